@@ -1,0 +1,24 @@
+//! Command-line interface: one submodule per command, each a thin layer over the core.
+
+use clap::{Parser, Subcommand};
+
+pub mod simulate;
+
+#[derive(Parser, Debug)]
+#[command(name = "otofit", version, about = "Middle-ear FE models tuned by neural posterior estimation")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {
+    /// Simulate parameter sets (prior draws or given rows) into a dataset folder.
+    Simulate(simulate::SimulateArgs),
+}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Simulate(args) => simulate::run(args),
+    }
+}

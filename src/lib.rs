@@ -1,0 +1,8 @@
+//! otofit: subject-specific middle-ear finite-element models tuned by neural posterior
+//! estimation.
+//!
+//! The numerical core (`sim`, `flow`, `npe`) is synchronous, takes plain data plus a
+//! config, and knows nothing of HTTP or SQL. `cli` holds the command-line glue.
+
+pub mod cli;
+pub mod sim;

@@ -1,0 +1,1 @@
+//! The FE middle-ear simulator.
