@@ -1,1 +1,24 @@
-//! The FE middle-ear simulator.
+//! The FE middle-ear simulator: θ (7 material parameters) + optional effects → 250
+//! features (five measures on a log-frequency grid).
+//!
+//! Parts: `canal` (1D Webster-horn FE with viscothermal losses), `shell` (axisymmetric
+//! conical shell FE of the eardrum), ossicles as rigid bodies with connector springs,
+//! coupled in `model` and solved by `system` (faer sparse LU, symbolic factorisation
+//! shared by all frequencies and parameter sets). `batch` runs many sets on rayon.
+//! No I/O here: the CLI and the service do that.
+
+pub mod air;
+pub mod canal;
+pub mod model;
+pub mod output;
+pub mod params;
+pub mod shell;
+pub mod system;
+
+pub use model::{Geometry, Model, ModelConfig, Preset, Response, Runner, SimError, log_grid};
+pub use params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, PARAMS, Theta};
+
+/// Simulates one parameter set into its feature vector.
+pub fn simulate(runner: &mut Runner<'_>, theta: &Theta, effects: &Effects) -> Result<Vec<f64>, SimError> {
+    Ok(output::features(&runner.run(theta, effects)?))
+}

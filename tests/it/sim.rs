@@ -1,1 +1,1 @@
-//! Simulator integration tests (verification against closed forms live in src/sim unit tests).
+//! Simulator integration tests.

@@ -1,0 +1,546 @@
+//! The coupled middle-ear model: canal FE + eardrum shell FE + rigid ossicles with
+//! connector springs, one sparse complex system per frequency.
+//!
+//! Unknowns: canal nodal pressures; eardrum node DOFs (u_r, u_z, β) except the clamped
+//! rim and the rigid umbo disc; ossicle DOFs [w_umbo, θ_malleus, x_incus, θ_incus,
+//! x_stapes, φ_stapes]; the middle-ear cavity pressure. The disc's axial motion is the
+//! umbo's, which is the malleus point at the umbo arm (w_umbo = x_malleus + l_u θ_m).
+//! z points medially; positive canal pressure pushes the drum toward +z.
+
+use super::air::{self, Air};
+use super::canal::{Area, CanalMesh};
+use super::params::{Effects, Theta};
+use super::shell::{ShellElement, ShellMaterial, cone_nodes};
+use super::system::{SolveError, System, SystemBuilder, Workspace};
+use faer::c64;
+use std::f64::consts::PI;
+
+/// Geometry and fixed material data. Every number is from physics-notes §1 unless the
+/// comment says it was chosen; `g_*` are the fixed geometric factors of k = E·g.
+#[derive(Clone, Debug)]
+pub struct Geometry {
+    /// Residual canal, probe (x = 0) to eardrum, m (notes §1.1: 12–15 mm).
+    pub canal_length: f64,
+    pub canal_area: Area,
+    /// Largest canal element, m (≥ 80 elements per wavelength at 8 kHz).
+    pub canal_h: f64,
+    /// Impedance measurement plane, distance from the probe, m (simulator.md: 3 mm).
+    pub zec_plane: f64,
+    /// Microphone for V/P, distance lateral of the eardrum end of the canal, m.
+    pub mic_to_tm: f64,
+    /// Eardrum radius, cone depth, thickness, m; density kg/m³; Poisson ratio.
+    pub tm_radius: f64,
+    pub tm_depth: f64,
+    /// Lateral bulge of the generator's midpoint from the straight cone, m.
+    pub tm_bulge: f64,
+    pub tm_thickness: f64,
+    pub tm_rho: f64,
+    pub tm_nu: f64,
+    /// Radius of the rigid disc tied to the umbo, m.
+    pub disc_radius: f64,
+    pub tm_elements: usize,
+    /// Masses (kg) and inertias about the rotation axis (kg·m²), notes §1.3.
+    pub m_malleus: f64,
+    pub i_malleus: f64,
+    pub m_incus: f64,
+    pub i_incus: f64,
+    pub m_stapes: f64,
+    pub i_stapes: f64,
+    /// Arms from the rotation axis, m: umbo, lenticular process, IMJ (negative = above
+    /// the axis, on the heads), tensor tympani insertion.
+    pub arm_umbo: f64,
+    pub arm_lp: f64,
+    pub arm_imj: f64,
+    pub arm_ttt: f64,
+    /// Stapes head height above the footplate, m; tilt of the stapes axis to the
+    /// lenticular process' motion, rad (chosen: it couples rocking to the drive).
+    pub stapes_height: f64,
+    pub stapes_tilt: f64,
+    /// Height above the footplate of the LDV spot for the rocking part, m.
+    pub ldv_spot: f64,
+    pub footplate_area: f64,
+    /// Leak channel length, m (notes §4: ℓ = 5 mm).
+    pub leak_length: f64,
+    /// Geometric factors, m (springs) or m³ (rotational springs), k = E·g.
+    pub g_aml: f64,
+    pub g_aml_rot: f64,
+    pub g_pil: f64,
+    pub g_pil_rot: f64,
+    pub g_ttt: f64,
+    pub g_stapedius: f64,
+    pub g_imj: f64,
+    pub g_imj_rot: f64,
+    pub g_isj: f64,
+    pub g_isj_shear: f64,
+    pub g_sal: f64,
+    pub g_sal_rock: f64,
+}
+
+impl Default for Geometry {
+    fn default() -> Self {
+        let nu = 0.485;
+        let shear = 1.0 / (2.0 * (1.0 + nu)); // G/E
+        // Ligament and tendon cross-sections and lengths: notes §1.4 mid-range values.
+        let (a_aml, l_aml) = (0.45e-6, 1.25e-3);
+        let (a_pil, l_pil) = (0.40e-6, 0.5e-3);
+        let torsion = |a: f64, l: f64| shear * a * a / (2.0 * PI) / l; // G·J/L per E, J = A²/2π
+        // Joints: k = E·A/t. IMJ A = 2.5 mm², t = 62.5 µm and ISJ A = 0.6 mm², t = 60 µm,
+        // so the IMJ is 4× stiffer per unit E (simulator.md); rotation E·I/t, I = A·R²/4.
+        let (a_imj, t_imj) = (2.5e-6, 62.5e-6);
+        let r_imj = (a_imj / PI).sqrt();
+        // SAL in piston shear k = G·P·d/w (notes §1.6), perimeter 7.2 mm, width 0.1 mm and
+        // depth 0.155 mm chosen so E = 0.2 MPa gives 750 N/m (target 500–1000 N/m).
+        let g_sal = shear * 7.2e-3 * 0.155e-3 / 0.1e-3;
+        let half_fp = 1.5e-3; // footplate semi-axis; rocking k = k_sal·a²/3 (thin ellipse)
+        Geometry {
+            canal_length: 12e-3,
+            canal_area: Area::Uniform(44e-6),
+            canal_h: 0.5e-3,
+            zec_plane: 3e-3,
+            mic_to_tm: 2e-3,
+            tm_radius: 4.4e-3,
+            tm_depth: 2.0e-3,
+            tm_bulge: 0.0,
+            tm_thickness: 80e-6,
+            tm_rho: 1100.0,
+            tm_nu: nu,
+            disc_radius: 0.75e-3,
+            tm_elements: 20,
+            m_malleus: 25e-6,
+            i_malleus: 70e-12,
+            m_incus: 28e-6,
+            i_incus: 80e-12,
+            m_stapes: 3e-6,
+            i_stapes: 2e-12,
+            arm_umbo: 5.5e-3,
+            arm_lp: 4.2e-3,
+            arm_imj: -1.0e-3,
+            arm_ttt: 2.0e-3,
+            stapes_height: 3.3e-3,
+            stapes_tilt: 0.2,
+            ldv_spot: 1.0e-3,
+            footplate_area: 3.2e-6,
+            leak_length: 5e-3,
+            g_aml: a_aml / l_aml,
+            g_aml_rot: torsion(a_aml, l_aml),
+            g_pil: a_pil / l_pil,
+            g_pil_rot: torsion(a_pil, l_pil),
+            g_ttt: 0.45e-6 / 2.5e-3,
+            g_stapedius: 0.13e-6 / 1.75e-3,
+            g_imj: a_imj / t_imj,
+            g_imj_rot: a_imj * r_imj * r_imj / (4.0 * t_imj),
+            g_isj: 0.6e-6 / 60e-6,
+            g_isj_shear: shear * 0.6e-6 / 60e-6,
+            g_sal,
+            g_sal_rock: g_sal * half_fp * half_fp / 3.0,
+        }
+    }
+}
+
+/// Air temperature preset.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    /// Temporal-bone laboratory, air at 22 °C (the default).
+    TemporalBone,
+    /// Living ear, air at 37 °C.
+    Live,
+}
+
+impl Preset {
+    pub fn air(self) -> Air {
+        match self {
+            Preset::TemporalBone => Air::at_celsius(22.0),
+            Preset::Live => Air::at_celsius(37.0),
+        }
+    }
+}
+
+/// Log-spaced frequency grid, Hz.
+pub fn log_grid(f_lo: f64, f_hi: f64, n: usize) -> Vec<f64> {
+    (0..n).map(|i| f_lo * (f_hi / f_lo).powf(i as f64 / (n - 1).max(1) as f64)).collect()
+}
+
+/// Everything needed to build a model.
+#[derive(Clone, Debug)]
+pub struct ModelConfig {
+    pub preset: Preset,
+    pub geometry: Geometry,
+    pub frequencies: Vec<f64>,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        ModelConfig { preset: Preset::TemporalBone, geometry: Geometry::default(), frequencies: log_grid(200.0, 8000.0, 50) }
+    }
+}
+
+/// Block ids of the system's coefficient terms.
+#[derive(Clone, Copy, Debug)]
+struct Blocks {
+    tm: usize,
+    ligaments: usize,
+    tendons: usize,
+    joints: usize,
+    sal: usize,
+    mass: usize,
+    cochlea: usize,
+    canal_first: usize, // 2 per element: ∫SN′N′, ∫SNN
+    drum_load: usize,   // −b p_L in the mechanics rows
+    drum_flow: usize,   // +jω bᵀq leaving the canal's last node
+    cavity_load: usize, // +b p_cav in the mechanics rows
+    cavity_row: usize,  // (1/C_cav) bᵀq − p_cav = 0
+    cavity_diag: usize,
+}
+
+/// Indices of the named unknowns.
+#[derive(Clone, Debug)]
+pub struct Dofs {
+    pub n_canal: usize,
+    pub umbo: usize,
+    pub theta_m: usize,
+    pub x_incus: usize,
+    pub theta_i: usize,
+    pub x_stapes: usize,
+    pub phi_stapes: usize,
+    pub p_cavity: usize,
+    pub n: usize,
+}
+
+/// A built model: mesh, blocks and the shared symbolic factorisation. Build once; run
+/// any number of parameter sets on any number of threads (one [`Runner`] per thread).
+pub struct Model {
+    pub config: ModelConfig,
+    pub air: Air,
+    pub canal: CanalMesh,
+    pub dofs: Dofs,
+    system: System,
+    blocks: Blocks,
+    /// Volume swept per unit of each unknown (zero off the eardrum).
+    b: Vec<f64>,
+    zec_node: usize,
+    mic_node: usize,
+}
+
+/// The complex responses at one frequency.
+#[derive(Clone, Copy, Debug)]
+pub struct Response {
+    pub freq_hz: f64,
+    /// Measured stapes velocity over canal pressure at the microphone, m/s/Pa.
+    pub vst_over_p: c64,
+    /// Ear-canal impedance at the measurement plane as the probe sees it, Pa·s/m³.
+    pub zec: c64,
+    /// Characteristic impedance ρc/S at the measurement plane.
+    pub z0: f64,
+}
+
+impl Response {
+    pub fn absorbance(&self) -> f64 {
+        air::absorbance(self.zec, self.z0)
+    }
+}
+
+/// Why one parameter set could not be simulated.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("parameter {name} = {value} must be finite and positive")]
+    BadParameter { name: &'static str, value: f64 },
+    #[error(transparent)]
+    Solve(#[from] SolveError),
+    #[error("model setup failed: {0}")]
+    Setup(String),
+}
+
+impl Model {
+    pub fn new(config: ModelConfig) -> Result<Model, SimError> {
+        let g = &config.geometry;
+        let air = config.preset.air();
+        let mic_x = g.canal_length - g.mic_to_tm;
+        let canal = CanalMesh::new(g.canal_length, &g.canal_area, g.canal_h, &[g.zec_plane, mic_x]);
+        let n_canal = canal.n_nodes();
+        // Eardrum: nodes from the disc edge (index 0) to the clamped rim (last).
+        let nodes = cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements);
+        let n_free_tm = nodes.len() - 2;
+        let tm_base = n_canal;
+        let osc = tm_base + 3 * n_free_tm;
+        let dofs = Dofs {
+            n_canal,
+            umbo: osc,
+            theta_m: osc + 1,
+            x_incus: osc + 2,
+            theta_i: osc + 3,
+            x_stapes: osc + 4,
+            phi_stapes: osc + 5,
+            p_cavity: osc + 6,
+            n: osc + 7,
+        };
+        // Global index of local eardrum DOF d of node i.
+        let tm_dof = |i: usize, d: usize| -> Option<usize> {
+            if i == 0 {
+                (d == 1).then_some(dofs.umbo) // disc: u_r = β = 0, u_z = umbo
+            } else if i == nodes.len() - 1 {
+                None // clamped annulus
+            } else {
+                Some(tm_base + 3 * (i - 1) + d)
+            }
+        };
+
+        let mut sb = SystemBuilder::new(dofs.n);
+        let blocks = Blocks {
+            tm: sb.block(),
+            ligaments: sb.block(),
+            tendons: sb.block(),
+            joints: sb.block(),
+            sal: sb.block(),
+            mass: sb.block(),
+            cochlea: sb.block(),
+            canal_first: {
+                let first = sb.block();
+                for _ in 1..2 * (n_canal - 1) {
+                    sb.block();
+                }
+                first
+            },
+            drum_load: sb.block(),
+            drum_flow: sb.block(),
+            cavity_load: sb.block(),
+            cavity_row: sb.block(),
+            cavity_diag: sb.block(),
+        };
+
+        // Canal elements.
+        for e in 0..n_canal - 1 {
+            for a in 0..2 {
+                for c in 0..2 {
+                    sb.add(blocks.canal_first + 2 * e, e + a, e + c, canal.k[e][2 * a + c]);
+                    sb.add(blocks.canal_first + 2 * e + 1, e + a, e + c, canal.m[e][2 * a + c]);
+                }
+            }
+        }
+
+        // Eardrum elements and the swept-volume vector b.
+        let mat = ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho };
+        let mut b = vec![0.0; dofs.n];
+        for el in 0..nodes.len() - 1 {
+            let se = ShellElement::new(nodes[el], nodes[el + 1], &mat);
+            let map: [Option<usize>; 6] = std::array::from_fn(|i| tm_dof(el + i / 3, i % 3));
+            for i in 0..6 {
+                let Some(gi) = map[i] else { continue };
+                b[gi] += se.b[i];
+                for j in 0..6 {
+                    let Some(gj) = map[j] else { continue };
+                    sb.add(blocks.tm, gi, gj, se.k_unit[i][j]);
+                    sb.add(blocks.mass, gi, gj, se.m[i][j]);
+                }
+            }
+        }
+        // The rigid disc: its area moves with the umbo; its mass rides on the umbo.
+        let disc_area = PI * g.disc_radius * g.disc_radius;
+        b[dofs.umbo] += disc_area;
+        sb.add(blocks.mass, dofs.umbo, dofs.umbo, g.tm_rho * g.tm_thickness * disc_area);
+
+        // Ossicles. Malleus in (w_umbo, θ_m): x_m = w_umbo − l_u θ_m, so a malleus point
+        // at arm l moves by w_umbo + (l − l_u) θ_m along z.
+        let (d, lu) = (&dofs, g.arm_umbo);
+        let malleus_at = |l: f64| vec![(d.umbo, 1.0), (d.theta_m, l - lu)];
+        let incus_at = |l: f64| vec![(d.x_incus, 1.0), (d.theta_i, l)];
+        // Stapes: piston x_s along its axis, tilted by α from z; rocking φ about the
+        // footplate centre moves the head by h·φ across the axis.
+        let (ca, sa, hs) = (g.stapes_tilt.cos(), g.stapes_tilt.sin(), g.stapes_height);
+        let head_z = [(d.x_stapes, ca), (d.phi_stapes, -hs * sa)];
+        let head_y = [(d.x_stapes, sa), (d.phi_stapes, hs * ca)];
+
+        // Masses (centres of mass on the rotation axis, at the footplate for rocking).
+        sb.add_outer(blocks.mass, &malleus_at(0.0), g.m_malleus);
+        sb.add(blocks.mass, d.theta_m, d.theta_m, g.i_malleus);
+        sb.add(blocks.mass, d.x_incus, d.x_incus, g.m_incus);
+        sb.add(blocks.mass, d.theta_i, d.theta_i, g.i_incus);
+        sb.add(blocks.mass, d.x_stapes, d.x_stapes, g.m_stapes);
+        sb.add(blocks.mass, d.phi_stapes, d.phi_stapes, g.i_stapes);
+
+        // Ligaments on the axis: translation plus torsion.
+        sb.add_outer(blocks.ligaments, &malleus_at(0.0), g.g_aml);
+        sb.add(blocks.ligaments, d.theta_m, d.theta_m, g.g_aml_rot);
+        sb.add_outer(blocks.ligaments, &incus_at(0.0), g.g_pil);
+        sb.add(blocks.ligaments, d.theta_i, d.theta_i, g.g_pil_rot);
+        // Tendons: tensor tympani on the malleus neck, stapedius across the stapes head.
+        sb.add_outer(blocks.tendons, &malleus_at(g.arm_ttt), g.g_ttt);
+        sb.add_outer(blocks.tendons, &head_y, g.g_stapedius);
+        // Joints: IMJ (translation at its arm + rotation), ISJ (along z and shear).
+        let mut imj = malleus_at(g.arm_imj);
+        imj.extend(incus_at(g.arm_imj).into_iter().map(|(i, c)| (i, -c)));
+        sb.add_outer(blocks.joints, &imj, g.g_imj);
+        sb.add_outer(blocks.joints, &[(d.theta_m, 1.0), (d.theta_i, -1.0)], g.g_imj_rot);
+        let mut isj = incus_at(g.arm_lp);
+        isj.extend(head_z.iter().map(|&(i, c)| (i, -c)));
+        sb.add_outer(blocks.joints, &isj, g.g_isj);
+        sb.add_outer(blocks.joints, &head_y, g.g_isj_shear);
+        // Stapes annular ligament: piston and rocking.
+        sb.add(blocks.sal, d.x_stapes, d.x_stapes, g.g_sal);
+        sb.add(blocks.sal, d.phi_stapes, d.phi_stapes, g.g_sal_rock);
+        // Cochlear load on the piston: force = Z_c·A_fp²·velocity.
+        sb.add(blocks.cochlea, d.x_stapes, d.x_stapes, g.footplate_area * g.footplate_area);
+
+        // Coupling through b: canal pressure loads the drum; drum volume velocity leaves
+        // the canal's last node; the cavity pressure pushes back.
+        let last = n_canal - 1;
+        for (i, &bi) in b.iter().enumerate().filter(|(_, bi)| **bi != 0.0) {
+            sb.add(blocks.drum_load, i, last, -bi);
+            sb.add(blocks.drum_flow, last, i, bi);
+            sb.add(blocks.cavity_load, i, d.p_cavity, bi);
+            sb.add(blocks.cavity_row, d.p_cavity, i, bi);
+        }
+        sb.add(blocks.cavity_diag, d.p_cavity, d.p_cavity, -1.0);
+
+        let system = sb.build().map_err(|e| SimError::Setup(format!("symbolic LU: {e:?}")))?;
+        let zec_node = canal.node_at(g.zec_plane).ok_or_else(|| SimError::Setup("no node at the Zec plane".into()))?;
+        let mic_node = canal.node_at(mic_x).ok_or_else(|| SimError::Setup("no node at the microphone".into()))?;
+        Ok(Model { config, air, canal, dofs, system, blocks, b, zec_node, mic_node })
+    }
+
+    pub fn nnz(&self) -> usize {
+        self.system.nnz()
+    }
+
+    pub fn n_unknowns(&self) -> usize {
+        self.system.n
+    }
+
+    pub fn frequencies(&self) -> &[f64] {
+        &self.config.frequencies
+    }
+
+    pub fn runner(&self) -> Runner<'_> {
+        Runner { model: self, ws: self.system.workspace(), coef: vec![c64::new(0.0, 0.0); self.system.n_blocks()] }
+    }
+
+    fn fill_coefficients(&self, theta: &Theta, fx: &Effects, w: f64, coef: &mut [c64]) {
+        let bl = &self.blocks;
+        let jw = c64::new(0.0, w);
+        let rayleigh = c64::new(1.0, w * theta.damping_beta());
+        // Power-law viscoelastic eardrum, E·(jω/ω0)^n, ω0 = 2π·1 kHz.
+        let n = fx.tm_exponent();
+        let visco = if n == 0.0 { c64::new(1.0, 0.0) } else { c64::from_polar((w / (2.0 * PI * 1000.0)).powf(n), n * PI / 2.0) };
+        coef[bl.tm] = rayleigh * visco * theta.e_eardrum();
+        coef[bl.ligaments] = rayleigh * theta.e_ligaments();
+        coef[bl.tendons] = rayleigh * theta.e_tendons();
+        coef[bl.joints] = rayleigh * theta.e_joints();
+        coef[bl.sal] = rayleigh * theta.e_sal();
+        coef[bl.mass] = c64::new(-w * w, 0.0);
+        coef[bl.cochlea] = jw * c64::new(theta.cochlear_load(), w * fx.cochlear_mass());
+        for e in 0..self.canal.n_nodes() - 1 {
+            let (ck, cm) = self.canal.coefficients(&self.air, w, e);
+            coef[bl.canal_first + 2 * e] = ck;
+            coef[bl.canal_first + 2 * e + 1] = cm;
+        }
+        coef[bl.drum_load] = c64::new(1.0, 0.0);
+        coef[bl.drum_flow] = jw;
+        coef[bl.cavity_load] = c64::new(1.0, 0.0);
+        let v = fx.cavity_volume();
+        coef[bl.cavity_row] = c64::new(if v.is_finite() { self.air.bulk_modulus() / v } else { 0.0 }, 0.0);
+        coef[bl.cavity_diag] = c64::new(1.0, 0.0);
+    }
+}
+
+/// Per-thread solver state for one model.
+pub struct Runner<'m> {
+    model: &'m Model,
+    ws: Workspace,
+    coef: Vec<c64>,
+}
+
+/// Power balance of one solve (W, for a unit probe volume velocity).
+#[derive(Clone, Copy, Debug)]
+pub struct PowerBalance {
+    pub probe: f64,
+    pub canal: f64,
+    pub into_drum: f64,
+    pub mechanical: f64,
+}
+
+impl Runner<'_> {
+    /// Solves one frequency; the full solution is then in [`Self::solution`].
+    pub fn solve_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
+        for (i, v) in theta.0.iter().enumerate() {
+            if !(v.is_finite() && *v > 0.0) {
+                return Err(SimError::BadParameter { name: super::params::PARAMS[i].name, value: *v });
+            }
+        }
+        let w = 2.0 * PI * freq_hz;
+        self.model.fill_coefficients(theta, fx, w, &mut self.coef);
+        self.model.system.solve(&self.coef, &[(0, c64::new(1.0, 0.0))], &mut self.ws, freq_hz)?;
+        Ok(())
+    }
+
+    /// The unknowns of the last solve (probe volume velocity 1 m³/s).
+    pub fn solution(&self) -> &[c64] {
+        &self.ws.x
+    }
+
+    /// Measured responses at one frequency, effects applied.
+    pub fn response_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<Response, SimError> {
+        self.solve_at(theta, fx, freq_hz)?;
+        let m = self.model;
+        let g = &m.config.geometry;
+        let x = &self.ws.x;
+        let w = 2.0 * PI * freq_hz;
+        let jw = c64::new(0.0, w);
+        let p = &x[..m.dofs.n_canal];
+        // Stapes velocity as the LDV sees it: piston·cos θ + rocking at the spot·sin θ.
+        let theta_ldv = fx.ldv_angle_deg().to_radians();
+        let v_piston = jw * x[m.dofs.x_stapes];
+        let v_rock = jw * x[m.dofs.phi_stapes] * g.ldv_spot;
+        let v_meas = v_piston * theta_ldv.cos() + v_rock * theta_ldv.sin();
+        let vst_over_p = v_meas / p[m.mic_node];
+        // Impedance at the plane, then moved by the probe offset along a lossy uniform
+        // line of the local area, then shunted by the leak.
+        let s = g.canal_area.at(g.zec_plane, g.canal_length);
+        let mut zec = p[m.zec_node] / m.canal.flux_at_node(&m.air, w, p, m.zec_node);
+        let dx = fx.probe_offset();
+        if dx != 0.0 {
+            let (zs, ys) = m.air.line_zy(w, s);
+            let (gamma, zc) = air::line_constants(zs, ys);
+            zec = air::shift_impedance(zec, zc, gamma, dx);
+        }
+        let a = fx.leak_radius();
+        if a > 0.0 {
+            let l = g.leak_length;
+            let mass = m.air.rho * (l + 1.7 * a) / (PI * a * a);
+            let res = 8.0 * m.air.mu * l / (PI * a.powi(4));
+            let z_leak = c64::new(res, w * mass);
+            zec = zec * z_leak / (zec + z_leak);
+        }
+        Ok(Response { freq_hz, vst_over_p, zec, z0: m.air.z0(s) })
+    }
+
+    /// All frequencies of the model's grid.
+    pub fn run(&mut self, theta: &Theta, fx: &Effects) -> Result<Vec<Response>, SimError> {
+        let freqs = self.model.config.frequencies.clone();
+        freqs.iter().map(|&f| self.response_at(theta, fx, f)).collect()
+    }
+
+    /// Power balance of the last solve, each term from its own physical formula:
+    /// probe ½Re(p̄₀U₀); canal ½Σ Re(pᴴA_e p); drum ½Re(p̄_L·jω bᵀq); mechanical
+    /// ½ω Σ Im(κ_b)·qᴴB_b q over the stiffness and dashpot blocks.
+    pub fn power_balance(&self, freq_hz: f64) -> PowerBalance {
+        let m = self.model;
+        let x = &self.ws.x;
+        let w = 2.0 * PI * freq_hz;
+        let probe = 0.5 * x[0].re;
+        let mut canal = 0.0;
+        for e in 0..m.canal.n_nodes() - 1 {
+            let a = m.canal.element(&m.air, w, e);
+            let (p0, p1) = (x[e], x[e + 1]);
+            let q = p0.conj() * (a[0] * p0 + a[1] * p1) + p1.conj() * (a[2] * p0 + a[3] * p1);
+            canal += 0.5 * q.re;
+        }
+        let vol: c64 = m.b.iter().zip(x).map(|(bi, xi)| *xi * *bi).sum();
+        let into_drum = 0.5 * (x[m.dofs.n_canal - 1].conj() * c64::new(0.0, w) * vol).re;
+        let bl = &m.blocks;
+        let mechanical: f64 = [bl.tm, bl.ligaments, bl.tendons, bl.joints, bl.sal, bl.cochlea]
+            .iter()
+            .map(|&b| 0.5 * w * self.coef[b].im * m.system.quadratic_form(b, &self.ws).re)
+            .sum();
+        PowerBalance { probe, canal, into_drum, mechanical }
+    }
+}

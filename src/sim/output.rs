@@ -1,0 +1,103 @@
+//! From complex responses to the 250 features: five measures × the frequency grid, in
+//! the order and units of simulator.md, and the test–retest noise model.
+
+use super::model::Response;
+use serde::Serialize;
+
+/// One measure (a block of the feature vector).
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct Measure {
+    pub name: &'static str,
+    pub unit: &'static str,
+    /// Test–retest standard deviation at ≤ 2 kHz (simulator.md noise model).
+    pub noise_std: f64,
+}
+
+pub const MEASURES: [Measure; 5] = [
+    Measure { name: "vst_mag", unit: "log10(m/s/Pa)", noise_std: 0.075 },
+    Measure { name: "vst_phase", unit: "rad", noise_std: 0.10 },
+    Measure { name: "zec_mag", unit: "log10(Pa·s/m³)", noise_std: 0.05 },
+    Measure { name: "zec_phase", unit: "rad", noise_std: 0.05 },
+    Measure { name: "absorbance", unit: "1", noise_std: 0.03 },
+];
+
+/// Feature groups a model can be asked to work without (modalities).
+pub const GROUPS: [(&str, &[&str]); 3] = [
+    ("stapes_velocity", &["vst_mag", "vst_phase"]),
+    ("impedance", &["zec_mag", "zec_phase"]),
+    ("absorbance", &["absorbance"]),
+];
+
+/// `measure@frequency` names, measure-major.
+pub fn feature_names(freqs: &[f64]) -> Vec<String> {
+    MEASURES.iter().flat_map(|m| freqs.iter().map(move |f| format!("{}@{:.1}", m.name, f))).collect()
+}
+
+/// The feature vector of one run (measure-major, phases unwrapped along frequency).
+pub fn features(responses: &[Response]) -> Vec<f64> {
+    let n = responses.len();
+    let mut out = Vec::with_capacity(5 * n);
+    out.extend(responses.iter().map(|r| r.vst_over_p.norm().log10()));
+    out.extend(unwrap(responses.iter().map(|r| r.vst_over_p.arg())));
+    out.extend(responses.iter().map(|r| r.zec.norm().log10()));
+    out.extend(unwrap(responses.iter().map(|r| r.zec.arg())));
+    out.extend(responses.iter().map(|r| r.absorbance()));
+    out
+}
+
+/// Unwraps phases so that consecutive values differ by less than π. The first value is
+/// kept in (−π, π].
+pub fn unwrap(phases: impl Iterator<Item = f64>) -> Vec<f64> {
+    let mut out: Vec<f64> = Vec::new();
+    for p in phases {
+        let v = match out.last() {
+            None => p,
+            Some(&prev) => {
+                let tau = std::f64::consts::TAU;
+                p + tau * ((prev - p) / tau).round()
+            }
+        };
+        out.push(v);
+    }
+    out
+}
+
+/// Test–retest standard deviation per feature: the measure's value, rising linearly in
+/// log-frequency from 1× at ≤ 2 kHz to 2× at 8 kHz (and beyond, by the same slope).
+pub fn noise_std(freqs: &[f64]) -> Vec<f64> {
+    MEASURES
+        .iter()
+        .flat_map(|m| freqs.iter().map(move |&f| m.noise_std * (1.0 + ((f / 2000.0).max(1.0)).log(4.0))))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn unwrap_removes_jumps() {
+        let w = unwrap([3.0, -3.0, -2.5, 2.9].into_iter());
+        assert!((w[1] - (-3.0 + std::f64::consts::TAU)).abs() < 1e-12);
+        for p in w.windows(2) {
+            assert!((p[1] - p[0]).abs() < std::f64::consts::PI);
+        }
+    }
+
+    #[test]
+    fn noise_rises_from_one_to_two_times() {
+        let s = noise_std(&[200.0, 2000.0, 4000.0, 8000.0]);
+        assert_eq!(s[0], 0.075);
+        assert_eq!(s[1], 0.075);
+        assert!((s[2] - 0.075 * 1.5).abs() < 1e-12);
+        assert!((s[3] - 0.15).abs() < 1e-12);
+        assert!((s[19] - 0.06).abs() < 1e-12);
+    }
+
+    #[test]
+    fn names_follow_measure_at_frequency() {
+        let n = feature_names(&[200.0, 1000.0]);
+        assert_eq!(n[0], "vst_mag@200.0");
+        assert_eq!(n[9], "absorbance@1000.0");
+    }
+}

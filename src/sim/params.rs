@@ -1,0 +1,255 @@
+//! The seven inferred parameters (simulator.md table; sources in physics-notes §2) and
+//! the optional effects (physics-notes §4), with names, units, scales and ranges.
+
+use serde::Serialize;
+
+/// Sampling scale of a parameter.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Scale {
+    Linear,
+    Log10,
+}
+
+/// A named scalar with a unit, a prior box and a nominal value.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct ParamSpec {
+    pub name: &'static str,
+    pub unit: &'static str,
+    pub scale: Scale,
+    pub low: f64,
+    pub high: f64,
+    pub nominal: f64,
+}
+
+impl ParamSpec {
+    /// Maps u ∈ [0, 1] onto the prior box (log-uniform for `Log10`).
+    pub fn from_unit(&self, u: f64) -> f64 {
+        match self.scale {
+            Scale::Linear => self.low + u * (self.high - self.low),
+            Scale::Log10 => 10f64.powf(self.low.log10() + u * (self.high.log10() - self.low.log10())),
+        }
+    }
+
+    pub fn contains(&self, v: f64) -> bool {
+        v.is_finite() && v >= self.low && v <= self.high
+    }
+}
+
+/// Number of inferred parameters.
+pub const N_PARAMS: usize = 7;
+
+/// The inferred parameters, in the column order of theta.csv.
+pub const PARAMS: [ParamSpec; N_PARAMS] = [
+    ParamSpec { name: "E_eardrum", unit: "Pa", scale: Scale::Log10, low: 1e6, high: 300e6, nominal: 20e6 },
+    ParamSpec { name: "E_ligaments", unit: "Pa", scale: Scale::Log10, low: 5e4, high: 5e7, nominal: 5e6 },
+    ParamSpec { name: "E_tendons", unit: "Pa", scale: Scale::Log10, low: 5e4, high: 5e7, nominal: 2e6 },
+    ParamSpec { name: "E_sal", unit: "Pa", scale: Scale::Log10, low: 5e3, high: 1e7, nominal: 2e5 },
+    ParamSpec { name: "E_joints", unit: "Pa", scale: Scale::Log10, low: 1e5, high: 1e9, nominal: 6e6 },
+    ParamSpec { name: "damping_beta", unit: "s", scale: Scale::Log10, low: 7.5e-6, high: 7.5e-4, nominal: 7.5e-5 },
+    ParamSpec { name: "cochlear_load", unit: "Pa·s/m³", scale: Scale::Log10, low: 2e9, high: 2e11, nominal: 2.1e10 },
+];
+
+/// One parameter set, in the order of [`PARAMS`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Theta(pub [f64; N_PARAMS]);
+
+impl Theta {
+    pub fn nominal() -> Theta {
+        Theta(PARAMS.map(|p| p.nominal))
+    }
+    pub fn e_eardrum(&self) -> f64 {
+        self.0[0]
+    }
+    pub fn e_ligaments(&self) -> f64 {
+        self.0[1]
+    }
+    pub fn e_tendons(&self) -> f64 {
+        self.0[2]
+    }
+    pub fn e_sal(&self) -> f64 {
+        self.0[3]
+    }
+    pub fn e_joints(&self) -> f64 {
+        self.0[4]
+    }
+    pub fn damping_beta(&self) -> f64 {
+        self.0[5]
+    }
+    pub fn cochlear_load(&self) -> f64 {
+        self.0[6]
+    }
+}
+
+/// An optional physical effect: one parameter, an "off" value, and a range.
+#[derive(Clone, Copy, Debug, Serialize)]
+pub struct EffectSpec {
+    pub name: &'static str,
+    pub unit: &'static str,
+    /// The value that switches the effect off (`inf` for an open cavity).
+    #[serde(serialize_with = "serialize_off")]
+    pub off: f64,
+    pub low: f64,
+    pub high: f64,
+    pub scale: Scale,
+    pub description: &'static str,
+}
+
+fn serialize_off<S: serde::Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+    if v.is_finite() { s.serialize_f64(*v) } else { s.serialize_str("inf") }
+}
+
+impl EffectSpec {
+    /// Accepts the off value or a value inside [low, high].
+    pub fn accepts(&self, v: f64) -> bool {
+        v == self.off || (v.is_finite() && v >= self.low && v <= self.high)
+    }
+    pub fn as_param(&self) -> ParamSpec {
+        ParamSpec {
+            name: self.name,
+            unit: self.unit,
+            scale: self.scale,
+            low: self.low,
+            high: self.high,
+            nominal: self.from_unit(0.5),
+        }
+    }
+    pub fn from_unit(&self, u: f64) -> f64 {
+        ParamSpec { name: self.name, unit: self.unit, scale: self.scale, low: self.low, high: self.high, nominal: 0.0 }
+            .from_unit(u)
+    }
+}
+
+pub const N_EFFECTS: usize = 6;
+
+/// The effect library, in a fixed order (physics-notes §4 for forms and signatures).
+pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
+    EffectSpec {
+        name: "cavity",
+        unit: "m³",
+        off: f64::INFINITY,
+        low: 0.5e-6,
+        high: 20e-6,
+        scale: Scale::Log10,
+        description: "closed middle-ear cavity of volume V behind the eardrum (inf = opened cavity)",
+    },
+    EffectSpec {
+        name: "tm_viscoelastic",
+        unit: "1",
+        off: 0.0,
+        low: 0.0,
+        high: 0.3,
+        scale: Scale::Linear,
+        description: "eardrum modulus E·(jω/ω0)^n, ω0 = 2π·1 kHz",
+    },
+    EffectSpec {
+        name: "probe_offset",
+        unit: "m",
+        off: 0.0,
+        low: -3e-3,
+        high: 3e-3,
+        scale: Scale::Linear,
+        description: "impedance measurement plane moved toward the eardrum by Δx",
+    },
+    EffectSpec {
+        name: "probe_leak",
+        unit: "m",
+        off: 0.0,
+        low: 0.05e-3,
+        high: 0.5e-3,
+        scale: Scale::Log10,
+        description: "leak of radius a (length 5 mm) shunting the probe",
+    },
+    EffectSpec {
+        name: "ldv_angle",
+        unit: "deg",
+        off: 0.0,
+        low: 0.0,
+        high: 60.0,
+        scale: Scale::Linear,
+        description: "LDV beam angle θ to the piston axis: v_piston·cos θ + rocking·sin θ",
+    },
+    EffectSpec {
+        name: "cochlear_mass",
+        unit: "kg/m⁴",
+        off: 0.0,
+        low: 0.0,
+        high: 1e6,
+        scale: Scale::Linear,
+        description: "cochlear fluid mass: Z_c = R_c + jωM_c",
+    },
+];
+
+/// Values of the optional effects, in the order of [`EFFECTS`]; all off by default.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Effects(pub [f64; N_EFFECTS]);
+
+impl Default for Effects {
+    fn default() -> Self {
+        Effects(EFFECTS.map(|e| e.off))
+    }
+}
+
+impl Effects {
+    pub fn index(name: &str) -> Option<usize> {
+        EFFECTS.iter().position(|e| e.name == name)
+    }
+    /// Sets one effect by name, checking the value against its range.
+    pub fn set(&mut self, name: &str, value: f64) -> Result<(), String> {
+        let i = Self::index(name).ok_or_else(|| {
+            let known: Vec<_> = EFFECTS.iter().map(|e| e.name).collect();
+            format!("unknown effect '{name}' (known: {})", known.join(", "))
+        })?;
+        let spec = &EFFECTS[i];
+        if !spec.accepts(value) {
+            return Err(format!(
+                "effect '{name}' = {value} is outside its range [{}, {}] {} (off = {})",
+                spec.low, spec.high, spec.unit, spec.off
+            ));
+        }
+        self.0[i] = value;
+        Ok(())
+    }
+    pub fn cavity_volume(&self) -> f64 {
+        self.0[0]
+    }
+    pub fn tm_exponent(&self) -> f64 {
+        self.0[1]
+    }
+    pub fn probe_offset(&self) -> f64 {
+        self.0[2]
+    }
+    pub fn leak_radius(&self) -> f64 {
+        self.0[3]
+    }
+    pub fn ldv_angle_deg(&self) -> f64 {
+        self.0[4]
+    }
+    pub fn cochlear_mass(&self) -> f64 {
+        self.0[5]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nominal_inside_prior_and_bounds_ordered() {
+        for p in PARAMS {
+            assert!(p.low < p.high && p.contains(p.nominal), "{}", p.name);
+            assert!((p.from_unit(0.0) - p.low).abs() <= 1e-9 * p.low);
+            assert!((p.from_unit(1.0) - p.high).abs() <= 1e-9 * p.high);
+        }
+    }
+
+    #[test]
+    fn effects_reject_out_of_range_and_unknown() {
+        let mut e = Effects::default();
+        assert!(e.set("cavity", 2e-6).is_ok());
+        assert!(e.set("cavity", f64::INFINITY).is_ok());
+        assert!(e.set("cavity", 1.0).unwrap_err().contains("outside its range"));
+        assert!(e.set("ldv_angle", f64::NAN).is_err());
+        assert!(e.set("wax", 1.0).unwrap_err().contains("unknown effect 'wax'"));
+    }
+}
