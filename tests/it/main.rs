@@ -1,3 +1,3 @@
-//! Integration tests: one binary, a module per area.
-
+//! One integration-test binary (one link step on 2 cores).
+mod baseline;
 mod sim;

@@ -1,1 +1,180 @@
-//! Simulator integration tests.
+//! Simulator integration tests: energy balance, the rigid lever, mesh convergence of
+//! the coupled model, and each optional effect's published signature (notes §4).
+
+use otofit::sim::{self, Effects, Model, ModelConfig, PARAMS, Theta};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn run(model: &Model, theta: &Theta, fx: &Effects) -> Vec<f64> {
+    sim::simulate(&mut model.runner(), theta, fx).unwrap()
+}
+
+fn with_effect(name: &str, value: f64) -> Effects {
+    let mut fx = Effects::default();
+    fx.set(name, value).unwrap();
+    fx
+}
+
+/// Largest |a − b| over the features of measure k in the band [f_lo, f_hi].
+fn max_diff(freqs: &[f64], a: &[f64], b: &[f64], k: usize, f_lo: f64, f_hi: f64) -> f64 {
+    (0..freqs.len()).filter(|&i| freqs[i] >= f_lo && freqs[i] <= f_hi).map(|i| (a[50 * k + i] - b[50 * k + i]).abs()).fold(0.0, f64::max)
+}
+
+fn mean_diff(freqs: &[f64], a: &[f64], b: &[f64], k: usize, f_lo: f64, f_hi: f64) -> f64 {
+    let idx: Vec<usize> = (0..freqs.len()).filter(|&i| freqs[i] >= f_lo && freqs[i] <= f_hi).collect();
+    idx.iter().map(|&i| a[50 * k + i] - b[50 * k + i]).sum::<f64>() / idx.len() as f64
+}
+
+#[test]
+fn power_in_equals_power_dissipated_for_random_draws() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let mut runner = model.runner();
+    let mut rng = ChaCha8Rng::seed_from_u64(7);
+    for _ in 0..30 {
+        let theta = Theta(std::array::from_fn(|i| PARAMS[i].from_unit(rng.random())));
+        let mut fx = Effects::default();
+        if rng.random::<bool>() {
+            fx.set("cavity", 2e-6).unwrap(); // lossless: must not change the balance
+        }
+        let f = 200.0 * 40f64.powf(rng.random());
+        runner.solve_at(&theta, &fx, f).unwrap();
+        let p = runner.power_balance(f);
+        assert!(p.probe > 0.0 && p.canal >= 0.0 && p.mechanical > 0.0, "{p:?}");
+        let tol = 1e-6 * p.probe;
+        assert!((p.probe - p.canal - p.into_drum).abs() < tol, "canal balance {p:?} at {f} Hz");
+        assert!((p.into_drum - p.mechanical).abs() < tol, "drum balance {p:?} at {f} Hz");
+    }
+}
+
+#[test]
+fn rigid_chain_moves_the_stapes_by_the_lever_ratio() {
+    // Stiff joints and a fixed rotation axis (stiff ligaments in translation, no
+    // torsion): the lenticular process moves arm_lp/arm_umbo times the umbo.
+    let mut cfg = ModelConfig::default();
+    cfg.geometry.g_aml *= 1e6;
+    cfg.geometry.g_pil *= 1e6;
+    cfg.geometry.g_aml_rot = 0.0;
+    cfg.geometry.g_pil_rot = 0.0;
+    let g = cfg.geometry.clone();
+    let model = Model::new(cfg).unwrap();
+    let mut theta = Theta::nominal();
+    theta.0[4] = 1e12; // E_joints: rigid joints
+    let mut runner = model.runner();
+    runner.solve_at(&theta, &Effects::default(), 250.0).unwrap();
+    let x = runner.solution();
+    let d = &model.dofs;
+    let ratio = (x[d.x_incus] + x[d.theta_i] * g.arm_lp) / x[d.umbo];
+    let expected = g.arm_lp / g.arm_umbo;
+    assert!((ratio.re - expected).abs() < 1e-3 * expected && ratio.im.abs() < 1e-3 * expected, "ratio {ratio}, expected {expected}");
+}
+
+#[test]
+fn coupled_model_converges_under_mesh_refinement() {
+    // Refine the drum and the canal together; the error against a fine mesh must
+    // shrink at about the elements' second order (factor ≈ 4 per halving).
+    let build = |tm: usize, h: f64| {
+        let mut cfg = ModelConfig::default();
+        cfg.geometry.tm_elements = tm;
+        cfg.geometry.canal_h = h;
+        Model::new(cfg).unwrap()
+    };
+    let theta = Theta::nominal();
+    let fx = Effects::default();
+    let reference = run(&build(160, 0.0625e-3), &theta, &fx);
+    let errs: Vec<f64> = [(10, 1e-3), (20, 0.5e-3), (40, 0.25e-3)]
+        .iter()
+        .map(|&(tm, h)| {
+            let x = run(&build(tm, h), &theta, &fx);
+            x.iter().zip(&reference).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max)
+        })
+        .collect();
+    eprintln!("max feature error vs fine mesh: {errs:?}");
+    assert!(errs[2] < 0.02, "default-density error too large: {errs:?}");
+    for w in errs.windows(2) {
+        assert!(w[0] / w[1] > 3.0, "convergence slower than second order: {errs:?}");
+    }
+}
+
+#[test]
+fn closed_cavity_lowers_low_frequency_absorbance_and_stapes_velocity() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let f = model.frequencies().to_vec();
+    let base = run(&model, &Theta::nominal(), &Effects::default());
+    let small = run(&model, &Theta::nominal(), &with_effect("cavity", 1.5e-6));
+    let large = run(&model, &Theta::nominal(), &with_effect("cavity", 6e-6));
+    // Below 1 kHz: vst falls (a few dB for 1–2 cm³, ~1 dB for 6 cm³); A falls; |Zec| rises.
+    let dv_small = 20.0 * mean_diff(&f, &small, &base, 0, 200.0, 500.0);
+    let dv_large = 20.0 * mean_diff(&f, &large, &base, 0, 200.0, 500.0);
+    assert!((-8.0..-2.0).contains(&dv_small), "1.5 cm³: vst change {dv_small:.2} dB");
+    assert!((-2.5..-0.3).contains(&dv_large), "6 cm³: vst change {dv_large:.2} dB");
+    assert!(mean_diff(&f, &small, &base, 4, 200.0, 1000.0) < -0.01);
+    assert!(mean_diff(&f, &small, &base, 2, 200.0, 1000.0) > 0.0);
+}
+
+#[test]
+fn ldv_angle_changes_stapes_velocity_only() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let f = model.frequencies().to_vec();
+    let base = run(&model, &Theta::nominal(), &Effects::default());
+    let tilted = run(&model, &Theta::nominal(), &with_effect("ldv_angle", 45.0));
+    assert_eq!(&base[100..250], &tilted[100..250], "Zec and A must not change");
+    // About cos 45° = −3 dB where rocking is small (low frequencies).
+    let d = 20.0 * mean_diff(&f, &tilted, &base, 0, 200.0, 1000.0);
+    assert!((-4.5..-1.5).contains(&d), "vst change {d:.2} dB below 1 kHz");
+}
+
+#[test]
+fn probe_offset_moves_impedance_phase_and_keeps_absorbance() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let f = model.frequencies().to_vec();
+    let base = run(&model, &Theta::nominal(), &Effects::default());
+    let moved = run(&model, &Theta::nominal(), &with_effect("probe_offset", 2e-3));
+    assert_eq!(&base[..100], &moved[..100], "vst/P must not change");
+    assert!(max_diff(&f, &moved, &base, 4, 200.0, 8000.0) < 0.02, "A nearly invariant (losses only)");
+    assert!(max_diff(&f, &moved, &base, 3, 2000.0, 8000.0) > 0.1, "Zec phase must move at high f");
+}
+
+#[test]
+fn probe_leak_raises_low_frequency_absorbance() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let f = model.frequencies().to_vec();
+    let base = run(&model, &Theta::nominal(), &Effects::default());
+    let leaky = run(&model, &Theta::nominal(), &with_effect("probe_leak", 0.3e-3));
+    assert_eq!(&base[..100], &leaky[..100], "vst/P must not change");
+    let a250 = |x: &[f64]| x[200 + f.iter().position(|&v| v >= 250.0).unwrap()];
+    assert!(a250(&leaky) > 0.3 && a250(&base) < 0.15, "A(250) {:.2} → {:.2}", a250(&base), a250(&leaky));
+    assert!(mean_diff(&f, &leaky, &base, 3, 200.0, 500.0) > 0.2, "Zec phase rises toward 0");
+    assert!(max_diff(&f, &leaky, &base, 4, 3000.0, 8000.0) < 0.02, "nothing at high f");
+}
+
+#[test]
+fn cochlear_mass_lowers_high_frequency_stapes_velocity() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let f = model.frequencies().to_vec();
+    let base = run(&model, &Theta::nominal(), &Effects::default());
+    let heavy = run(&model, &Theta::nominal(), &with_effect("cochlear_mass", 6e5));
+    let hi = 20.0 * mean_diff(&f, &heavy, &base, 0, 4000.0, 8000.0);
+    let lo = 20.0 * max_diff(&f, &heavy, &base, 0, 200.0, 1000.0);
+    assert!((-6.0..-0.5).contains(&hi), "vst change above 4 kHz {hi:.2} dB");
+    assert!(lo < hi.abs() / 3.0, "vst change below 1 kHz {lo:.2} dB vs {hi:.2} dB above 4 kHz");
+}
+
+#[test]
+fn viscoelastic_drum_changes_high_frequencies_more_than_low() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let f = model.frequencies().to_vec();
+    let base = run(&model, &Theta::nominal(), &Effects::default());
+    let visco = run(&model, &Theta::nominal(), &with_effect("tm_viscoelastic", 0.2));
+    let hi = max_diff(&f, &visco, &base, 1, 2000.0, 8000.0);
+    assert!(hi > 0.1, "vst phase above 2 kHz moves by {hi:.3} rad");
+    assert!(max_diff(&f, &visco, &base, 4, 3000.0, 8000.0) > 0.02);
+}
+
+#[test]
+fn failed_parameters_are_named() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let mut theta = Theta::nominal();
+    theta.0[3] = f64::NAN;
+    let err = sim::simulate(&mut model.runner(), &theta, &Effects::default()).unwrap_err();
+    assert!(err.to_string().contains("E_sal"), "{err}");
+}
