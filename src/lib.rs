@@ -5,4 +5,5 @@
 //! config, and knows nothing of HTTP or SQL. `cli` holds the command-line glue.
 
 pub mod cli;
+pub mod dataset;
 pub mod sim;

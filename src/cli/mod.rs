@@ -2,6 +2,7 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod bench;
 pub mod simulate;
 
 #[derive(Parser, Debug)]
@@ -15,10 +16,13 @@ pub struct Cli {
 pub enum Command {
     /// Simulate parameter sets (prior draws or given rows) into a dataset folder.
     Simulate(simulate::SimulateArgs),
+    /// Measure speed (simulator, ...) on this machine.
+    Bench(bench::BenchArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
+        Command::Bench(args) => bench::run(args),
     }
 }

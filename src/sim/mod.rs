@@ -8,6 +8,7 @@
 //! No I/O here: the CLI and the service do that.
 
 pub mod air;
+pub mod batch;
 pub mod canal;
 pub mod model;
 pub mod output;

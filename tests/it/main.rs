@@ -1,3 +1,4 @@
 //! One integration-test binary (one link step on 2 cores).
 mod baseline;
+mod cli;
 mod sim;

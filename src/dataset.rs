@@ -1,0 +1,210 @@
+//! Dataset folders on disk: theta.csv, x.csv (header rows, aligned) and meta.json.
+//! Files are written under temporary names and renamed at the end, so a crash never
+//! leaves a folder that looks complete.
+
+use crate::sim::batch::{Design, Noise};
+use crate::sim::output::{GROUPS, MEASURES, feature_names};
+use crate::sim::params::{EFFECTS, EffectSpec, ParamSpec};
+use anyhow::{Context, Result, bail};
+use serde::Serialize;
+use std::fs::File;
+use std::io::{BufRead, BufReader, BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+#[derive(Serialize)]
+pub struct Meta {
+    pub otofit_version: &'static str,
+    pub seed: Option<u64>,
+    pub n_rows: usize,
+    pub preset: crate::sim::Preset,
+    pub parameters: Vec<ParamSpec>,
+    pub frequencies_hz: Vec<f64>,
+    pub features: Vec<Feature>,
+    pub groups: Vec<Group>,
+    pub noise: NoiseMeta,
+    pub effects: Vec<EffectMeta>,
+    pub failed: Vec<Failed>,
+    pub wall_seconds: f64,
+}
+
+#[derive(Serialize)]
+pub struct Feature {
+    pub name: String,
+    pub measure: &'static str,
+    pub frequency_hz: f64,
+    pub unit: &'static str,
+}
+
+#[derive(Serialize)]
+pub struct Group {
+    pub name: &'static str,
+    pub measures: Vec<&'static str>,
+}
+
+/// `std` is the 1× noise model (for training); `scale` is what was added to x.csv.
+#[derive(Serialize)]
+pub struct NoiseMeta {
+    pub std: Vec<f64>,
+    pub scale: f64,
+}
+
+#[derive(Serialize)]
+pub struct EffectMeta {
+    #[serde(flatten)]
+    pub spec: EffectSpec,
+    /// "fixed", "varied" (a column of theta.csv) or "off".
+    pub mode: &'static str,
+    #[serde(serialize_with = "finite_or_str")]
+    pub value: f64,
+}
+
+fn finite_or_str<S: serde::Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+    if v.is_finite() { s.serialize_f64(*v) } else { s.serialize_str("inf") }
+}
+
+#[derive(Serialize, Clone, Debug)]
+pub struct Failed {
+    pub row: usize,
+    pub reason: String,
+}
+
+impl Meta {
+    pub fn new(design: &Design, preset: crate::sim::Preset, freqs: &[f64], noise: &Noise, seed: Option<u64>) -> Meta {
+        let features = feature_names(freqs)
+            .into_iter()
+            .enumerate()
+            .map(|(i, name)| {
+                let m = &MEASURES[i / freqs.len()];
+                Feature { name, measure: m.name, frequency_hz: freqs[i % freqs.len()], unit: m.unit }
+            })
+            .collect();
+        let effects = EFFECTS
+            .iter()
+            .enumerate()
+            .map(|(i, e)| {
+                let (mode, value) = if design.varied.contains(&i) {
+                    ("varied", f64::NAN)
+                } else if design.fixed.0[i] != e.off {
+                    ("fixed", design.fixed.0[i])
+                } else {
+                    ("off", e.off)
+                };
+                EffectMeta { spec: *e, mode, value: if value.is_nan() { e.off } else { value } }
+            })
+            .collect();
+        Meta {
+            otofit_version: env!("CARGO_PKG_VERSION"),
+            seed,
+            n_rows: 0,
+            preset,
+            parameters: design.columns(),
+            frequencies_hz: freqs.to_vec(),
+            features,
+            groups: GROUPS.iter().map(|(name, ms)| Group { name, measures: ms.to_vec() }).collect(),
+            noise: NoiseMeta { std: noise.std.clone(), scale: noise.scale },
+            effects,
+            failed: Vec::new(),
+            wall_seconds: 0.0,
+        }
+    }
+}
+
+/// Streams rows into `dir` under temporary names; [`Self::finish`] renames them.
+pub struct Writer {
+    dir: PathBuf,
+    theta: BufWriter<File>,
+    x: BufWriter<File>,
+    pub rows: usize,
+}
+
+const FILES: [&str; 3] = ["theta.csv", "x.csv", "meta.json"];
+
+fn tmp(dir: &Path, name: &str) -> PathBuf {
+    dir.join(format!("{name}.tmp"))
+}
+
+impl Writer {
+    pub fn create(dir: &Path, meta: &Meta) -> Result<Writer> {
+        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        let open = |name: &str| -> Result<BufWriter<File>> {
+            let p = tmp(dir, name);
+            Ok(BufWriter::new(File::create(&p).with_context(|| format!("cannot write {}", p.display()))?))
+        };
+        let mut theta = open(FILES[0])?;
+        let mut x = open(FILES[1])?;
+        writeln!(theta, "{}", meta.parameters.iter().map(|p| p.name).collect::<Vec<_>>().join(","))?;
+        writeln!(x, "{}", meta.features.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(","))?;
+        Ok(Writer { dir: dir.to_path_buf(), theta, x, rows: 0 })
+    }
+
+    pub fn push(&mut self, theta: &[f64], x: &[f64]) -> Result<()> {
+        write_row(&mut self.theta, theta)?;
+        write_row(&mut self.x, x)?;
+        self.rows += 1;
+        Ok(())
+    }
+
+    /// Flushes, writes meta.json and renames all three files into place.
+    pub fn finish(mut self, meta: &mut Meta) -> Result<()> {
+        meta.n_rows = self.rows;
+        self.theta.flush()?;
+        self.x.flush()?;
+        drop(self.theta);
+        drop(self.x);
+        let p = tmp(&self.dir, FILES[2]);
+        std::fs::write(&p, serde_json::to_vec_pretty(meta)?).with_context(|| format!("cannot write {}", p.display()))?;
+        for name in FILES {
+            std::fs::rename(tmp(&self.dir, name), self.dir.join(name))?;
+        }
+        Ok(())
+    }
+}
+
+fn write_row(w: &mut impl Write, v: &[f64]) -> std::io::Result<()> {
+    let mut first = true;
+    for x in v {
+        if !first {
+            w.write_all(b",")?;
+        }
+        first = false;
+        // Shortest representation that round-trips exactly.
+        write!(w, "{x:e}")?;
+    }
+    w.write_all(b"\n")
+}
+
+/// A numeric CSV table with a header row.
+pub struct Table {
+    pub header: Vec<String>,
+    pub rows: Vec<Vec<f64>>,
+}
+
+/// Reads a numeric CSV; errors name the file, line and column.
+pub fn read_csv(path: &Path) -> Result<Table> {
+    let f = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let mut lines = BufReader::new(f).lines();
+    let header: Vec<String> = match lines.next() {
+        Some(l) => l?.split(',').map(|s| s.trim().to_string()).collect(),
+        None => bail!("{}: empty file (expected a header row)", path.display()),
+    };
+    let mut rows = Vec::new();
+    for (i, line) in lines.enumerate() {
+        let line = line?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        let cells: Vec<&str> = line.split(',').collect();
+        if cells.len() != header.len() {
+            bail!("{}: line {} has {} values, the header has {}", path.display(), i + 2, cells.len(), header.len());
+        }
+        let row = cells
+            .iter()
+            .zip(&header)
+            .map(|(c, h)| {
+                c.trim().parse::<f64>().map_err(|_| anyhow::anyhow!("{}: line {}, column '{h}': '{c}' is not a number", path.display(), i + 2))
+            })
+            .collect::<Result<Vec<f64>>>()?;
+        rows.push(row);
+    }
+    Ok(Table { header, rows })
+}

@@ -1,0 +1,75 @@
+//! The `otofit` binary end to end: files written, errors that name the bad input.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn otofit(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_otofit")).args(args).output().unwrap()
+}
+
+fn scratch(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("otofit-it-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
+    let d = scratch("sim");
+    let (a, b) = (d.join("a"), d.join("b"));
+    for out in [&a, &b] {
+        let o = otofit(&["simulate", "--n", "12", "--seed", "4", "--noise-scale", "1", "--vary", "cavity", "--out", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let theta = std::fs::read_to_string(a.join("theta.csv")).unwrap();
+    let x = std::fs::read_to_string(a.join("x.csv")).unwrap();
+    assert_eq!(theta.lines().next().unwrap(), "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,cavity");
+    assert_eq!(theta.lines().count(), 13);
+    assert_eq!(x.lines().count(), 13);
+    assert_eq!(x.lines().next().unwrap().split(',').count(), 250);
+    assert!(x.starts_with("vst_mag@200.0,"));
+    assert_eq!(x, std::fs::read_to_string(b.join("x.csv")).unwrap(), "same seed, same data");
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("meta.json")).unwrap()).unwrap();
+    assert_eq!(meta["n_rows"], 12);
+    assert_eq!(meta["noise"]["std"].as_array().unwrap().len(), 250);
+    assert_eq!(meta["parameters"][7]["name"], "cavity");
+    assert!(!a.join("x.csv.tmp").exists());
+}
+
+#[test]
+fn simulate_given_rows_and_reports_failed_ones() {
+    let d = scratch("rows");
+    let rows = d.join("rows.csv");
+    std::fs::write(&rows, "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,ldv_angle\n2e7,5e6,2e6,2e5,6e6,7.5e-5,2.1e10,30\n2e7,5e6,2e6,-1,6e6,7.5e-5,2.1e10,0\n").unwrap();
+    let out = d.join("out");
+    let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("meta.json")).unwrap()).unwrap();
+    assert_eq!(meta["n_rows"], 1);
+    assert_eq!(meta["failed"][0]["row"], 1);
+    assert!(meta["failed"][0]["reason"].as_str().unwrap().contains("E_sal"));
+}
+
+#[test]
+fn simulate_errors_name_the_bad_input() {
+    let d = scratch("bad");
+    let out = d.join("o");
+    let cases: [(&[&str], &str); 4] = [
+        (&["--n", "2", "--effects", "cavity=abc"], "cavity"),
+        (&["--n", "2", "--effects", "wall=1"], "unknown effect 'wall'"),
+        (&["--n", "2", "--noise-scale=-1"], "--noise-scale"),
+        (&["--theta", "/nonexistent.csv"], "/nonexistent.csv"),
+    ];
+    for (args, needle) in cases {
+        let mut all = vec!["simulate", "--out", out.to_str().unwrap()];
+        all.extend_from_slice(args);
+        let o = otofit(&all);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(needle), "{args:?}: {err}");
+    }
+    let rows = d.join("rows.csv");
+    std::fs::write(&rows, "E_eardrum,E_ligaments\n1,2\n").unwrap();
+    let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("missing column 'E_tendons'"));
+}
