@@ -1,0 +1,20 @@
+# otofit service image. Build: docker build -t otofit .   Run: docker run -p 8080:8080 otofit
+# Release profile here only (CI and tests use the optimised dev profile).
+FROM rust:1.95-bookworm AS build
+WORKDIR /src
+COPY Cargo.toml Cargo.lock ./
+COPY src ./src
+COPY migrations ./migrations
+COPY models ./models
+COPY openapi.yaml ./
+RUN cargo build --release --locked --bin otofit
+
+FROM debian:bookworm-slim
+RUN useradd --system --home /var/lib/otofit otofit && mkdir -p /var/lib/otofit && chown otofit /var/lib/otofit
+COPY --from=build /src/target/release/otofit /usr/local/bin/otofit
+COPY --from=build /src/models /usr/share/otofit/models
+USER otofit
+WORKDIR /usr/share/otofit
+EXPOSE 8080
+# Inside a container the service must listen beyond loopback; publish the port with care.
+CMD ["otofit", "serve", "--addr", "0.0.0.0:8080", "--data-dir", "/var/lib/otofit"]
