@@ -122,6 +122,22 @@ impl CanalMesh {
     }
 }
 
+impl CanalMesh {
+    /// The exact two-port of the elements between nodes `from` < `to`: the Schur
+    /// complement S (2×2, row-major) with [U_in, −U_out] = S·[p_from, p_to], where U_in
+    /// enters at `from` toward the eardrum. Interior nodes are eliminated one by one
+    /// (the chain is tridiagonal), O(to − from).
+    pub fn condense(&self, air: &Air, omega: f64, from: usize, to: usize) -> [c64; 4] {
+        let mut s = self.element(air, omega, from);
+        for e in from + 1..to {
+            let b = self.element(air, omega, e);
+            let d = s[3] + b[0];
+            s = [s[0] - s[1] * s[2] / d, -s[1] * b[1] / d, -b[2] * s[2] / d, b[3] - b[2] * b[1] / d];
+        }
+        s
+    }
+}
+
 /// Termination of a stand-alone canal (for verification against closed forms).
 #[derive(Clone, Copy, Debug)]
 pub enum Load {
@@ -204,6 +220,30 @@ mod tests {
 
     fn rel(a: c64, b: c64) -> f64 {
         (a - b).norm() / b.norm()
+    }
+
+    #[test]
+    fn condensed_two_port_reproduces_the_full_canal() {
+        let air = Air::at_celsius(22.0);
+        let mesh = CanalMesh::new(15e-3, &Area::Cone { r0: 4e-3, r1: 3e-3 }, 0.5e-3, &[3e-3]);
+        let n = mesh.n_nodes();
+        let mid = mesh.node_at(3e-3).unwrap();
+        for f in [200.0, 3000.0, 8000.0] {
+            let w = 2.0 * std::f64::consts::PI * f;
+            let zl = c64::new(2e7, -3e7);
+            let p = solve_driven(&mesh, &air, w, Load::Impedance(zl));
+            // Whole canal: U_in = 1 and U_out = p_L / Z_L.
+            let s = mesh.condense(&air, w, 0, n - 1);
+            let u_in = s[0] * p[0] + s[1] * p[n - 1];
+            let u_out = -(s[2] * p[0] + s[3] * p[n - 1]);
+            assert!((u_in - 1.0).norm() < 1e-9, "{u_in}");
+            assert!((u_out - p[n - 1] / zl).norm() < 1e-9 * u_out.norm());
+            // Flux through an interior station equals the consistent element flux.
+            let right = mesh.condense(&air, w, mid, n - 1);
+            let flux = right[0] * p[mid] + right[1] * p[n - 1];
+            let reference = mesh.flux_at_node(&air, w, &p, mid);
+            assert!((flux - reference).norm() < 1e-6 * reference.norm(), "{flux} vs {reference}");
+        }
     }
 
     #[test]

@@ -10,6 +10,7 @@
 pub mod air;
 pub mod batch;
 pub mod canal;
+pub mod drum;
 pub mod model;
 pub mod output;
 pub mod params;

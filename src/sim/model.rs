@@ -1,7 +1,8 @@
 //! The coupled middle-ear model: canal FE + eardrum shell FE + rigid ossicles with
 //! connector springs, one sparse complex system per frequency.
 //!
-//! Unknowns: canal nodal pressures; eardrum node DOFs (u_r, u_z, β) except the clamped
+//! Unknowns: canal pressures at the kept nodes (probe, Zec plane, microphone, eardrum; the
+//! interior nodes are condensed per frequency into exact two-ports); eardrum node DOFs (u_r, u_z, β) except the clamped
 //! rim and the rigid umbo disc; ossicle DOFs [w_umbo, θ_malleus, x_incus, θ_incus,
 //! x_stapes, φ_stapes]; the middle-ear cavity pressure. The disc's axial motion is the
 //! umbo's, which is the malleus point at the umbo arm (w_umbo = x_malleus + l_u θ_m).
@@ -9,6 +10,7 @@
 
 use super::air::{self, Air};
 use super::canal::{Area, CanalMesh};
+use super::drum::{DrumCoefficients, DrumModes};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
 use super::system::{SolveError, System, SystemBuilder, Workspace};
@@ -174,11 +176,19 @@ pub struct ModelConfig {
     pub preset: Preset,
     pub geometry: Geometry,
     pub frequencies: Vec<f64>,
+    /// Eliminate the drum's interior exactly through its modes (`drum.rs`); `false`
+    /// keeps every shell DOF in the sparse system (same answer, slower; for tests).
+    pub reduce_drum: bool,
 }
 
 impl Default for ModelConfig {
     fn default() -> Self {
-        ModelConfig { preset: Preset::TemporalBone, geometry: Geometry::default(), frequencies: log_grid(200.0, 8000.0, 50) }
+        ModelConfig {
+            preset: Preset::TemporalBone,
+            geometry: Geometry::default(),
+            frequencies: log_grid(200.0, 8000.0, 50),
+            reduce_drum: true,
+        }
     }
 }
 
@@ -192,17 +202,20 @@ struct Blocks {
     sal: usize,
     mass: usize,
     cochlea: usize,
-    canal_first: usize, // 2 per element: ∫SN′N′, ∫SNN
+    canal_first: usize, // 4 per canal segment: its condensed 2×2
     drum_load: usize,   // −b p_L in the mechanics rows
     drum_flow: usize,   // +jω bᵀq leaving the canal's last node
     cavity_load: usize, // +b p_cav in the mechanics rows
     cavity_row: usize,  // (1/C_cav) bᵀq − p_cav = 0
     cavity_diag: usize,
+    drum_schur: usize, // 9: the condensed drum interior on (umbo, p_drum, p_cavity)
 }
 
 /// Indices of the named unknowns.
 #[derive(Clone, Debug)]
 pub struct Dofs {
+    /// Kept canal nodes (unknowns 0..n_canal), as mesh node indices in x order.
+    pub canal_nodes: Vec<usize>,
     pub n_canal: usize,
     pub umbo: usize,
     pub theta_m: usize,
@@ -225,6 +238,7 @@ pub struct Model {
     blocks: Blocks,
     /// Volume swept per unit of each unknown (zero off the eardrum).
     b: Vec<f64>,
+    drum: Option<DrumModes>,
     zec_node: usize,
     mic_node: usize,
 }
@@ -264,13 +278,21 @@ impl Model {
         let air = config.preset.air();
         let mic_x = g.canal_length - g.mic_to_tm;
         let canal = CanalMesh::new(g.canal_length, &g.canal_area, g.canal_h, &[g.zec_plane, mic_x]);
-        let n_canal = canal.n_nodes();
+        let mut canal_nodes = vec![0, canal.n_nodes() - 1];
+        for x in [g.zec_plane, mic_x] {
+            canal_nodes.push(canal.node_at(x).ok_or_else(|| SimError::Setup(format!("no canal node at x = {x} m")))?);
+        }
+        canal_nodes.sort_unstable();
+        canal_nodes.dedup();
+        let n_canal = canal_nodes.len();
         // Eardrum: nodes from the disc edge (index 0) to the clamped rim (last).
         let nodes = cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements);
         let n_free_tm = nodes.len() - 2;
         let tm_base = n_canal;
-        let osc = tm_base + 3 * n_free_tm;
+        let n_interior = 3 * n_free_tm;
+        let osc = tm_base + if config.reduce_drum { 0 } else { n_interior };
         let dofs = Dofs {
+            canal_nodes: canal_nodes.clone(),
             n_canal,
             umbo: osc,
             theta_m: osc + 1,
@@ -282,13 +304,15 @@ impl Model {
             n: osc + 7,
         };
         // Global index of local eardrum DOF d of node i.
-        let tm_dof = |i: usize, d: usize| -> Option<usize> {
+        // Local eardrum DOF d of node i: interior index 0..n_interior, the umbo as
+        // n_interior, None on the clamped rim.
+        let tm_local = |i: usize, d: usize| -> Option<usize> {
             if i == 0 {
-                (d == 1).then_some(dofs.umbo) // disc: u_r = β = 0, u_z = umbo
+                (d == 1).then_some(n_interior) // disc: u_r = β = 0, u_z = umbo
             } else if i == nodes.len() - 1 {
                 None // clamped annulus
             } else {
-                Some(tm_base + 3 * (i - 1) + d)
+                Some(3 * (i - 1) + d)
             }
         };
 
@@ -303,7 +327,7 @@ impl Model {
             cochlea: sb.block(),
             canal_first: {
                 let first = sb.block();
-                for _ in 1..2 * (n_canal - 1) {
+                for _ in 1..4 * (n_canal - 1) {
                     sb.block();
                 }
                 first
@@ -313,34 +337,71 @@ impl Model {
             cavity_load: sb.block(),
             cavity_row: sb.block(),
             cavity_diag: sb.block(),
+            drum_schur: {
+                let first = sb.block();
+                for _ in 1..9 {
+                    sb.block();
+                }
+                first
+            },
         };
 
-        // Canal elements.
-        for e in 0..n_canal - 1 {
+        // Canal segments between kept nodes: one unit block per two-port entry.
+        for seg in 0..n_canal - 1 {
             for a in 0..2 {
                 for c in 0..2 {
-                    sb.add(blocks.canal_first + 2 * e, e + a, e + c, canal.k[e][2 * a + c]);
-                    sb.add(blocks.canal_first + 2 * e + 1, e + a, e + c, canal.m[e][2 * a + c]);
+                    sb.add(blocks.canal_first + 4 * seg + 2 * a + c, seg + a, seg + c, 1.0);
                 }
             }
         }
 
-        // Eardrum elements and the swept-volume vector b.
+        // Eardrum elements, assembled densely over the local DOFs (interior + umbo).
         let mat = ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho };
-        let mut b = vec![0.0; dofs.n];
+        let nl = n_interior + 1;
+        let (mut kd, mut md, mut bd) = (faer::Mat::<f64>::zeros(nl, nl), faer::Mat::<f64>::zeros(nl, nl), vec![0.0; nl]);
         for el in 0..nodes.len() - 1 {
             let se = ShellElement::new(nodes[el], nodes[el + 1], &mat);
-            let map: [Option<usize>; 6] = std::array::from_fn(|i| tm_dof(el + i / 3, i % 3));
+            let map: [Option<usize>; 6] = std::array::from_fn(|i| tm_local(el + i / 3, i % 3));
             for i in 0..6 {
-                let Some(gi) = map[i] else { continue };
-                b[gi] += se.b[i];
+                let Some(li) = map[i] else { continue };
+                bd[li] += se.b[i];
                 for j in 0..6 {
-                    let Some(gj) = map[j] else { continue };
-                    sb.add(blocks.tm, gi, gj, se.k_unit[i][j]);
-                    sb.add(blocks.mass, gi, gj, se.m[i][j]);
+                    let Some(lj) = map[j] else { continue };
+                    kd[(li, lj)] += se.k_unit[i][j];
+                    md[(li, lj)] += se.m[i][j];
                 }
             }
         }
+        let mut b = vec![0.0; dofs.n];
+        let drum = if config.reduce_drum {
+            let ni = n_interior;
+            let col = |a: &faer::Mat<f64>| (0..ni).map(|i| a[(i, ni)]).collect::<Vec<f64>>();
+            let modes = DrumModes::new(&kd.submatrix(0, 0, ni, ni).to_owned(), &md.submatrix(0, 0, ni, ni).to_owned(), &col(&kd), &col(&md), &bd[..ni])
+                .map_err(SimError::Setup)?;
+            sb.add(blocks.tm, dofs.umbo, dofs.umbo, kd[(ni, ni)]);
+            sb.add(blocks.mass, dofs.umbo, dofs.umbo, md[(ni, ni)]);
+            b[dofs.umbo] = bd[ni];
+            let (last, pc) = (n_canal - 1, dofs.p_cavity);
+            let at = [dofs.umbo, last, pc];
+            for i in 0..3 {
+                for j in 0..3 {
+                    sb.add(blocks.drum_schur + 3 * i + j, at[i], at[j], 1.0);
+                }
+            }
+            Some(modes)
+        } else {
+            let global = |l: usize| if l == n_interior { dofs.umbo } else { tm_base + l };
+            for li in 0..nl {
+                b[global(li)] += bd[li];
+                for lj in 0..nl {
+                    if kd[(li, lj)] != 0.0 || md[(li, lj)] != 0.0 {
+                        sb.add(blocks.tm, global(li), global(lj), kd[(li, lj)]);
+                        sb.add(blocks.mass, global(li), global(lj), md[(li, lj)]);
+                    }
+                }
+            }
+            None
+        };
         // The rigid disc: its area moves with the umbo; its mass rides on the umbo.
         let disc_area = PI * g.disc_radius * g.disc_radius;
         b[dofs.umbo] += disc_area;
@@ -400,9 +461,10 @@ impl Model {
         sb.add(blocks.cavity_diag, d.p_cavity, d.p_cavity, -1.0);
 
         let system = sb.build().map_err(|e| SimError::Setup(format!("symbolic LU: {e:?}")))?;
-        let zec_node = canal.node_at(g.zec_plane).ok_or_else(|| SimError::Setup("no node at the Zec plane".into()))?;
-        let mic_node = canal.node_at(mic_x).ok_or_else(|| SimError::Setup("no node at the microphone".into()))?;
-        Ok(Model { config, air, canal, dofs, system, blocks, b, zec_node, mic_node })
+        let kept = |x: f64| canal_nodes.iter().position(|&i| (canal.x[i] - x).abs() < 1e-9);
+        let zec_node = kept(g.zec_plane).filter(|&k| k + 1 < n_canal).ok_or_else(|| SimError::Setup("the Zec plane must lie inside the canal".into()))?;
+        let mic_node = kept(mic_x).ok_or_else(|| SimError::Setup("no node at the microphone".into()))?;
+        Ok(Model { config, air, canal, dofs, system, blocks, b, drum, zec_node, mic_node })
     }
 
     pub fn nnz(&self) -> usize {
@@ -435,10 +497,9 @@ impl Model {
         coef[bl.sal] = rayleigh * theta.e_sal();
         coef[bl.mass] = c64::new(-w * w, 0.0);
         coef[bl.cochlea] = jw * c64::new(theta.cochlear_load(), w * fx.cochlear_mass());
-        for e in 0..self.canal.n_nodes() - 1 {
-            let (ck, cm) = self.canal.coefficients(&self.air, w, e);
-            coef[bl.canal_first + 2 * e] = ck;
-            coef[bl.canal_first + 2 * e + 1] = cm;
+        for (seg, pair) in self.dofs.canal_nodes.windows(2).enumerate() {
+            let s = self.canal.condense(&self.air, w, pair[0], pair[1]);
+            coef[bl.canal_first + 4 * seg..bl.canal_first + 4 * seg + 4].copy_from_slice(&s);
         }
         coef[bl.drum_load] = c64::new(1.0, 0.0);
         coef[bl.drum_flow] = jw;
@@ -446,6 +507,15 @@ impl Model {
         let v = fx.cavity_volume();
         coef[bl.cavity_row] = c64::new(if v.is_finite() { self.air.bulk_modulus() / v } else { 0.0 }, 0.0);
         coef[bl.cavity_diag] = c64::new(1.0, 0.0);
+        if let Some(drum) = &self.drum {
+            let schur = drum.schur(&self.drum_coefficients(coef, w));
+            coef[bl.drum_schur..bl.drum_schur + 9].copy_from_slice(&schur);
+        }
+    }
+
+    fn drum_coefficients(&self, coef: &[c64], w: f64) -> DrumCoefficients {
+        let bl = &self.blocks;
+        DrumCoefficients { kappa: coef[bl.tm], s: -w * w, jw: c64::new(0.0, w), cavity: coef[bl.cavity_row].re }
     }
 }
 
@@ -502,7 +572,8 @@ impl Runner<'_> {
         // Impedance at the plane, then moved by the probe offset along a lossy uniform
         // line of the local area, then shunted by the leak.
         let s = g.canal_area.at(g.zec_plane, g.canal_length);
-        let mut zec = p[m.zec_node] / m.canal.flux_at_node(&m.air, w, p, m.zec_node);
+        let seg = &self.coef[m.blocks.canal_first + 4 * m.zec_node..];
+        let mut zec = p[m.zec_node] / (seg[0] * p[m.zec_node] + seg[1] * p[m.zec_node + 1]);
         let dx = fx.probe_offset();
         if dx != 0.0 {
             let (zs, ys) = m.air.line_zy(w, s);
@@ -535,19 +606,28 @@ impl Runner<'_> {
         let w = 2.0 * PI * freq_hz;
         let probe = 0.5 * x[0].re;
         let mut canal = 0.0;
-        for e in 0..m.canal.n_nodes() - 1 {
-            let a = m.canal.element(&m.air, w, e);
+        for e in 0..m.dofs.n_canal - 1 {
+            let a = &self.coef[m.blocks.canal_first + 4 * e..];
             let (p0, p1) = (x[e], x[e + 1]);
             let q = p0.conj() * (a[0] * p0 + a[1] * p1) + p1.conj() * (a[2] * p0 + a[3] * p1);
             canal += 0.5 * q.re;
         }
-        let vol: c64 = m.b.iter().zip(x).map(|(bi, xi)| *xi * *bi).sum();
-        let into_drum = 0.5 * (x[m.dofs.n_canal - 1].conj() * c64::new(0.0, w) * vol).re;
+        let mut vol: c64 = m.b.iter().zip(x).map(|(bi, xi)| *xi * *bi).sum();
         let bl = &m.blocks;
-        let mechanical: f64 = [bl.tm, bl.ligaments, bl.tendons, bl.joints, bl.sal, bl.cochlea]
+        let mut mechanical: f64 = [bl.tm, bl.ligaments, bl.tendons, bl.joints, bl.sal, bl.cochlea]
             .iter()
             .map(|&b| 0.5 * w * self.coef[b].im * m.system.quadratic_form(b, &self.ws).re)
             .sum();
+        if let Some(drum) = &m.drum {
+            // The condensed interior: recover its modal amplitudes for volume and losses.
+            let c = m.drum_coefficients(&self.coef, w);
+            let u = x[m.dofs.umbo];
+            let eta = drum.interior(&c, [u, x[m.dofs.n_canal - 1], x[m.dofs.p_cavity]]);
+            let (v_int, e_int) = drum.volume_and_energy(&eta, u);
+            vol += v_int;
+            mechanical += 0.5 * w * self.coef[bl.tm].im * e_int.re;
+        }
+        let into_drum = 0.5 * (x[m.dofs.n_canal - 1].conj() * c64::new(0.0, w) * vol).re;
         PowerBalance { probe, canal, into_drum, mechanical }
     }
 }

@@ -1,0 +1,113 @@
+//! Exact condensation of the eardrum's interior DOFs.
+//!
+//! The drum's interior block is κ·K + s·M with two scalars per solve (κ = E·(1 + jωβ)·…,
+//! s = −ω²) and fixed real K, M. With generalized eigenvectors normalised on K
+//! (Φᵀ K Φ = I, Φᵀ M Φ = diag μ), its inverse is Φ (κI + s·diag μ)⁻¹ Φᵀ: diagonal in
+//! modal coordinates. K rather than M normalises because the clamped K is well
+//! conditioned, while M's rotary terms shrink with the element size. So
+//! the interior can be eliminated exactly (all modes kept, nothing truncated) at
+//! O(modes) per solve, leaving only the umbo and the two pressures it couples to. The
+//! modes depend on the mesh only, not on E, and are computed once per model.
+
+use faer::{Mat, Side, c64};
+
+/// The interior of the drum, projected on its modes.
+#[derive(Clone, Debug)]
+pub struct DrumModes {
+    /// Modal masses μ_k = φ_kᵀ M φ_k (modal stiffnesses are 1 at E = 1 Pa).
+    pub mu: Vec<f64>,
+    /// φ_kᵀ K_ib, φ_kᵀ M_ib (coupling of mode k to the umbo), φ_kᵀ b_i (swept volume).
+    pub kb: Vec<f64>,
+    pub mb: Vec<f64>,
+    pub bb: Vec<f64>,
+}
+
+/// Coefficients of one solve: stiffness factor κ, mass factor s = −ω², flow factor jω,
+/// cavity stiffness ρc²/V (0 when the cavity is open).
+#[derive(Clone, Copy, Debug)]
+pub struct DrumCoefficients {
+    pub kappa: c64,
+    pub s: f64,
+    pub jw: c64,
+    pub cavity: f64,
+}
+
+impl DrumModes {
+    /// `k`, `m`: the interior blocks (n×n, symmetric, M positive definite); `k_ib`, `m_ib`:
+    /// their coupling columns to the umbo; `b`: the interior swept-volume vector.
+    pub fn new(k: &Mat<f64>, m: &Mat<f64>, k_ib: &[f64], m_ib: &[f64], b: &[f64]) -> Result<DrumModes, String> {
+        let n = k.nrows();
+        // K^{-1/2} from K's own eigendecomposition (the clamped drum's K is SPD).
+        let ek = k.self_adjoint_eigen(Side::Lower).map_err(|e| format!("stiffness eigen: {e:?}"))?;
+        let (vm, dm) = (ek.U(), ek.S().column_vector());
+        let mut half = Mat::<f64>::zeros(n, n);
+        for j in 0..n {
+            if dm[j] <= 0.0 {
+                return Err("drum stiffness matrix is not positive definite".into());
+            }
+            let w = 1.0 / dm[j].sqrt();
+            for i in 0..n {
+                half[(i, j)] = vm[(i, j)] * w;
+            }
+        }
+        let k_inv_half = &half * vm.transpose();
+        let c = &k_inv_half * m * &k_inv_half;
+        let c = Mat::<f64>::from_fn(n, n, |i, j| 0.5 * (c[(i, j)] + c[(j, i)]));
+        let em = c.self_adjoint_eigen(Side::Lower).map_err(|e| format!("mass eigen: {e:?}"))?;
+        let phi = &k_inv_half * em.U();
+        let project = |v: &[f64]| -> Vec<f64> { (0..n).map(|kk| (0..n).map(|i| phi[(i, kk)] * v[i]).sum()).collect() };
+        Ok(DrumModes {
+            mu: (0..n).map(|i| em.S().column_vector()[i]).collect(),
+            kb: project(k_ib),
+            mb: project(m_ib),
+            bb: project(b),
+        })
+    }
+
+    /// Modal amplitudes of mode k's coupling: row entries (umbo, flow, cavity rows) and
+    /// column entries (umbo, canal-pressure, cavity-pressure columns).
+    fn coupling(&self, k: usize, c: &DrumCoefficients) -> ([c64; 3], [c64; 3]) {
+        let a = c.kappa * self.kb[k] + c.s * self.mb[k];
+        let b = self.bb[k];
+        ([a, c.jw * b, c64::new(c.cavity * b, 0.0)], [a, c64::new(-b, 0.0), c64::new(b, 0.0)])
+    }
+
+    /// The Schur complement the interior adds to the 3×3 block of (umbo, canal pressure
+    /// at the drum, cavity pressure), row-major.
+    pub fn schur(&self, c: &DrumCoefficients) -> [c64; 9] {
+        let mut out = [c64::new(0.0, 0.0); 9];
+        for k in 0..self.mu.len() {
+            let (r, col) = self.coupling(k, c);
+            let d = c.kappa + c.s * self.mu[k];
+            for i in 0..3 {
+                let ri = r[i] / d;
+                for j in 0..3 {
+                    out[3 * i + j] -= ri * col[j];
+                }
+            }
+        }
+        out
+    }
+
+    /// Modal amplitudes η of the interior for boundary values x_b = (umbo, p_drum, p_cav).
+    pub fn interior(&self, c: &DrumCoefficients, xb: [c64; 3]) -> Vec<c64> {
+        (0..self.mu.len())
+            .map(|k| {
+                let (_, col) = self.coupling(k, c);
+                -(col[0] * xb[0] + col[1] * xb[1] + col[2] * xb[2]) / (c.kappa + c.s * self.mu[k])
+            })
+            .collect()
+    }
+
+    /// Interior swept volume Σ bb_k η_k and the interior part of the unit-stiffness
+    /// quadratic form qᴴ K q (interior–interior plus both cross terms) for umbo value u.
+    pub fn volume_and_energy(&self, eta: &[c64], u: c64) -> (c64, c64) {
+        let mut vol = c64::new(0.0, 0.0);
+        let mut energy = c64::new(0.0, 0.0);
+        for k in 0..eta.len() {
+            vol += eta[k] * self.bb[k];
+            energy += eta[k].conj() * eta[k] + (eta[k].conj() * u + u.conj() * eta[k]) * self.kb[k];
+        }
+        (vol, energy)
+    }
+}
