@@ -21,11 +21,23 @@ pub enum BenchWhat {
         #[arg(long, default_value_t = 10_000)]
         runs: usize,
     },
+    /// Discrepancy naming on hidden-effect cases (simulator-only pipeline).
+    Discrepancy {
+        /// Hidden cases per effect.
+        #[arg(long, default_value_t = 20)]
+        cases: usize,
+        /// Effect-free cases (false alarms).
+        #[arg(long, default_value_t = 50)]
+        clean: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
         BenchWhat::Sim { runs } => sim(runs),
+        BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
     }
 }
 

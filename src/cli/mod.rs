@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod bench;
+pub mod diagnose;
 pub mod simulate;
 
 #[derive(Parser, Debug)]

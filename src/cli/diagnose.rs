@@ -1,0 +1,117 @@
+//! The discrepancy workflow on the command line, and its benchmark.
+
+use crate::discrepancy::{self, Observation, Thresholds, Verdict};
+use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
+use crate::sim::params::{EFFECTS, N_EFFECTS};
+use crate::sim::{Model, ModelConfig};
+use anyhow::Result;
+use std::time::Instant;
+
+/// Base fit without NPE: LM from the nominal row and a few prior draws.
+fn base_fit(model: &Model, obs: &Observation, seed: u64) -> Option<discrepancy::Fit> {
+    let design = Design::default();
+    let mut starts = vec![crate::sim::Theta::nominal().0.to_vec()];
+    starts.extend(design.draw(seed ^ 0xBA5E, 0, 3));
+    discrepancy::fit(model, &design, &starts, obs, 40)
+}
+
+struct Case {
+    truth: Option<(usize, f64)>,
+    verdict: Verdict,
+    named: Option<&'static str>,
+    covered: bool,
+    base_rchi2: f64,
+    after_rchi2: f64,
+    best_drop: f64,
+}
+
+fn run_case(model: &Model, noise: &Noise, seed: u64, row_id: usize, hidden: Option<usize>, t: &Thresholds, candidates: &[usize]) -> Option<Case> {
+    let mut design = Design::default();
+    if let Some(e) = hidden {
+        design.varied.push(e);
+    }
+    // Base parameters from the middle 80 % of the prior (unit-box), effect from its range.
+    let mut row = design.draw(seed, row_id, 1).remove(0);
+    let cols = design.columns();
+    let mut rng_u = design.draw(seed ^ 0xC0FFEE, row_id, 1).remove(0);
+    for (k, c) in cols.iter().enumerate().take(7) {
+        let q = 0.1 + 0.8 * unit_of(c, rng_u[k]);
+        row[k] = c.from_unit(q);
+    }
+    rng_u.clear();
+    let x = run_rows(model, &design, &[row.clone()], row_id, Some(noise)).remove(0).ok()?;
+    let obs = Observation { x, sigma: noise.std.clone() };
+    let base = base_fit(model, &obs, seed + row_id as u64)?;
+    let ranked = discrepancy::rank_candidates(model, &Design::default(), &base.row, base.chi2, &obs, candidates);
+    let v = discrepancy::verdict(base.reduced_chi2(), &ranked, base.chi2, t);
+    let best_drop = ranked.first().map_or(0.0, |c| base.chi2 - c.chi2);
+    let named = (v == Verdict::EffectNamed).then(|| ranked[0].effect);
+    let covered = match (hidden, named) {
+        (Some(e), Some(n)) if EFFECTS[e].name == n => {
+            let t = row[7];
+            t >= ranked[0].interval90[0] && t <= ranked[0].interval90[1]
+        }
+        _ => false,
+    };
+    let after = if v == Verdict::EffectNamed { ranked[0].reduced_chi2 } else { base.reduced_chi2() };
+    Some(Case { truth: hidden.map(|e| (e, row[7])), verdict: v, named, covered, base_rchi2: base.reduced_chi2(), after_rchi2: after, best_drop })
+}
+
+fn unit_of(c: &crate::sim::params::ParamSpec, v: f64) -> f64 {
+    let t = |v: f64| if c.scale == crate::sim::params::Scale::Log10 { v.log10() } else { v };
+    (t(v) - t(c.low)) / (t(c.high) - t(c.low))
+}
+
+pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
+    let model = Model::new(ModelConfig::default())?;
+    let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed };
+    let all: Vec<usize> = (0..N_EFFECTS).collect();
+    let t0 = Instant::now();
+    // Null calibration: the base fit's reduced χ² on effect-free data (separate rows).
+    let never = Thresholds { base_reduced_chi2: f64::INFINITY, best_drop: f64::INFINITY, explained: 0.0 };
+    let null: Vec<Case> = (0..clean).filter_map(|i| run_case(&model, &noise, seed, 100_000 + i, None, &never, &all)).collect();
+    let q95 = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[(0.95 * (v.len() - 1) as f64).round() as usize]
+    };
+    let t = Thresholds {
+        base_reduced_chi2: q95(null.iter().map(|c| c.base_rchi2).collect()),
+        best_drop: q95(null.iter().map(|c| c.best_drop).collect()),
+        explained: 1.3,
+    };
+    println!("null ({} cases): 95 % quantiles: base reduced χ² {:.3}, best χ² drop {:.1}", null.len(), t.base_reduced_chi2, t.best_drop);
+    let false_alarms = (0..clean).filter_map(|i| run_case(&model, &noise, seed, 200_000 + i, None, &t, &all)).filter(|c| c.verdict != Verdict::NoDiscrepancy).count();
+    println!("false alarms on {clean} fresh effect-free cases: {false_alarms} ({:.1} %)", 100.0 * false_alarms as f64 / clean as f64);
+    println!("{:<16} {:>6} {:>8} {:>9} {:>10} {:>10}  confusions", "effect", "cases", "named %", "cover90 %", "χ²ν before", "χ²ν after");
+    for e in 0..N_EFFECTS {
+        let rows: Vec<Case> = (0..cases).filter_map(|i| run_case(&model, &noise, seed, e * 1000 + i, Some(e), &t, &all)).collect();
+        let n = rows.len() as f64;
+        let named = rows.iter().filter(|c| c.named == Some(EFFECTS[e].name)).count() as f64;
+        let covered = rows.iter().filter(|c| c.covered).count() as f64;
+        let med = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v[v.len() / 2]
+        };
+        let mut conf: std::collections::BTreeMap<String, usize> = Default::default();
+        for c in rows.iter().filter(|c| c.named != Some(EFFECTS[e].name)) {
+            let key = match c.verdict {
+                Verdict::EffectNamed => c.named.unwrap().to_string(),
+                v => format!("{v:?}"),
+            };
+            *conf.entry(key).or_default() += 1;
+            let _ = c.truth;
+        }
+        println!(
+            "{:<16} {:>6} {:>8.0} {:>9.0} {:>10.2} {:>10.2}  {:?}",
+            EFFECTS[e].name,
+            rows.len(),
+            100.0 * named / n,
+            100.0 * covered / named.max(1.0),
+            med(rows.iter().map(|c| c.base_rchi2).collect()),
+            med(rows.iter().map(|c| c.after_rchi2).collect()),
+            conf
+        );
+    }
+    println!("wall {:.1} s", t0.elapsed().as_secs_f64());
+    Ok(())
+}
