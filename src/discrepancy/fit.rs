@@ -25,7 +25,7 @@ pub fn to_unbounded(p: &ParamSpec, v: f64) -> f64 {
 }
 
 pub fn from_unbounded(p: &ParamSpec, u: f64) -> f64 {
-    p.from_unit(1.0 / (1.0 + (-u).exp()))
+    p.from_unit(1.0 / (1.0 + (-u).exp())).clamp(p.low, p.high)
 }
 
 /// Residual of one feature, with phase differences wrapped into (−π, π] so that a
