@@ -7,4 +7,5 @@
 pub mod cli;
 pub mod dataset;
 pub mod discrepancy;
+pub mod plot;
 pub mod sim;

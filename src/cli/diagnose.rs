@@ -7,12 +7,11 @@ use crate::sim::{Model, ModelConfig};
 use anyhow::Result;
 use std::time::Instant;
 
-/// Base fit without NPE: LM from the nominal row and a few prior draws.
-fn base_fit(model: &Model, obs: &Observation, seed: u64) -> Option<discrepancy::Fit> {
-    let design = Design::default();
+/// Base starts without NPE: the nominal row and a few prior draws.
+fn base_starts(seed: u64) -> Vec<Vec<f64>> {
     let mut starts = vec![crate::sim::Theta::nominal().0.to_vec()];
-    starts.extend(design.draw(seed ^ 0xBA5E, 0, 3));
-    discrepancy::fit(model, &design, &starts, obs, 40)
+    starts.extend(Design::default().draw(seed ^ 0xBA5E, 0, 3));
+    starts
 }
 
 struct Case {
@@ -23,6 +22,9 @@ struct Case {
     base_rchi2: f64,
     after_rchi2: f64,
     best_drop: f64,
+    /// Σ((x_on − x_off)/σ)² at the true parameters without noise: how visible the
+    /// hidden effect is at all.
+    strength: f64,
 }
 
 fn run_case(model: &Model, noise: &Noise, seed: u64, row_id: usize, hidden: Option<usize>, t: &Thresholds, candidates: &[usize]) -> Option<Case> {
@@ -40,9 +42,17 @@ fn run_case(model: &Model, noise: &Noise, seed: u64, row_id: usize, hidden: Opti
     }
     rng_u.clear();
     let x = run_rows(model, &design, &[row.clone()], row_id, Some(noise)).remove(0).ok()?;
+    let strength = match hidden {
+        Some(_) => {
+            let on = run_rows(model, &design, &[row.clone()], row_id, None).remove(0).ok()?;
+            let off = run_rows(model, &Design::default(), &[row[..7].to_vec()], row_id, None).remove(0).ok()?;
+            let nf = on.len() / 5;
+            (0..on.len()).map(|i| (discrepancy::fit::feature_residual(i, nf, on[i], off[i]) / noise.std[i]).powi(2)).sum()
+        }
+        None => 0.0,
+    };
     let obs = Observation { x, sigma: noise.std.clone() };
-    let base = base_fit(model, &obs, seed + row_id as u64)?;
-    let ranked = discrepancy::rank_candidates(model, &Design::default(), &base.row, base.chi2, &obs, candidates);
+    let (base, ranked) = discrepancy::fit_and_rank(model, &obs, &base_starts(seed + row_id as u64), candidates)?;
     let v = discrepancy::verdict(base.reduced_chi2(), &ranked, base.chi2, t);
     let best_drop = ranked.first().map_or(0.0, |c| base.chi2 - c.chi2);
     let named = (v == Verdict::EffectNamed).then(|| ranked[0].effect);
@@ -54,13 +64,16 @@ fn run_case(model: &Model, noise: &Noise, seed: u64, row_id: usize, hidden: Opti
         _ => false,
     };
     let after = if v == Verdict::EffectNamed { ranked[0].reduced_chi2 } else { base.reduced_chi2() };
-    Some(Case { truth: hidden.map(|e| (e, row[7])), verdict: v, named, covered, base_rchi2: base.reduced_chi2(), after_rchi2: after, best_drop })
+    Some(Case { truth: hidden.map(|e| (e, row[7])), verdict: v, named, covered, base_rchi2: base.reduced_chi2(), after_rchi2: after, best_drop, strength })
 }
 
 fn unit_of(c: &crate::sim::params::ParamSpec, v: f64) -> f64 {
     let t = |v: f64| if c.scale == crate::sim::params::Scale::Log10 { v.log10() } else { v };
     (t(v) - t(c.low)) / (t(c.high) - t(c.low))
 }
+
+/// Signature strength above which a hidden effect counts as visible at 1× noise.
+const VISIBLE: f64 = 50.0;
 
 pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     let model = Model::new(ModelConfig::default())?;
@@ -82,11 +95,14 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     println!("null ({} cases): 95 % quantiles: base reduced χ² {:.3}, best χ² drop {:.1}", null.len(), t.base_reduced_chi2, t.best_drop);
     let false_alarms = (0..clean).filter_map(|i| run_case(&model, &noise, seed, 200_000 + i, None, &t, &all)).filter(|c| c.verdict != Verdict::NoDiscrepancy).count();
     println!("false alarms on {clean} fresh effect-free cases: {false_alarms} ({:.1} %)", 100.0 * false_alarms as f64 / clean as f64);
-    println!("{:<16} {:>6} {:>8} {:>9} {:>10} {:>10}  confusions", "effect", "cases", "named %", "cover90 %", "χ²ν before", "χ²ν after");
+    println!("visible: the hidden effect's noise-free signature Σ(Δx/σ)² exceeds {VISIBLE}");
+    println!("{:<16} {:>6} {:>8} {:>8} {:>10} {:>9} {:>10} {:>10}  confusions", "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν before", "χ²ν after");
     for e in 0..N_EFFECTS {
         let rows: Vec<Case> = (0..cases).filter_map(|i| run_case(&model, &noise, seed, e * 1000 + i, Some(e), &t, &all)).collect();
         let n = rows.len() as f64;
         let named = rows.iter().filter(|c| c.named == Some(EFFECTS[e].name)).count() as f64;
+        let visible: Vec<&Case> = rows.iter().filter(|c| c.strength > VISIBLE).collect();
+        let named_visible = visible.iter().filter(|c| c.named == Some(EFFECTS[e].name)).count() as f64;
         let covered = rows.iter().filter(|c| c.covered).count() as f64;
         let med = |mut v: Vec<f64>| {
             v.sort_by(f64::total_cmp);
@@ -102,10 +118,12 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
             let _ = c.truth;
         }
         println!(
-            "{:<16} {:>6} {:>8.0} {:>9.0} {:>10.2} {:>10.2}  {:?}",
+            "{:<16} {:>6} {:>8.0} {:>8} {:>10.0} {:>9.0} {:>10.2} {:>10.2}  {:?}",
             EFFECTS[e].name,
             rows.len(),
             100.0 * named / n,
+            visible.len(),
+            100.0 * named_visible / (visible.len() as f64).max(1.0),
             100.0 * covered / named.max(1.0),
             med(rows.iter().map(|c| c.base_rchi2).collect()),
             med(rows.iter().map(|c| c.after_rchi2).collect()),

@@ -1,0 +1,234 @@
+//! SVG figures written by hand (no plotting dependency to build): spectra with bands,
+//! residual maps and corner plots. Each function returns a complete SVG document.
+
+mod canvas;
+pub use canvas::{Axes, Canvas};
+
+use crate::sim::output::MEASURES;
+
+/// Colours: observation, MAP, draws, predictive band, truth.
+pub const OBS: &str = "#222222";
+pub const MAP: &str = "#d62728";
+pub const DRAW: &str = "#1f77b4";
+pub const BAND: &str = "#1f77b4";
+pub const TRUTH: &str = "#2ca02c";
+
+/// How each measure is shown: its label and the map from feature value to plotted value.
+fn display(measure: usize, v: f64) -> f64 {
+    match MEASURES[measure].name {
+        "vst_mag" => 20.0 * (v + 3.0), // log10(m/s/Pa) → dB re 1 mm/s/Pa
+        "zec_mag" => v,                 // log10(Pa·s/m³)
+        "vst_phase" | "zec_phase" => v.to_degrees(),
+        _ => v,
+    }
+}
+
+fn label(measure: usize) -> &'static str {
+    match MEASURES[measure].name {
+        "vst_mag" => "|Vst/P| (dB re 1 mm/s/Pa)",
+        "vst_phase" => "Vst/P phase (deg)",
+        "zec_mag" => "log10 |Zec| (Pa·s/m³)",
+        "zec_phase" => "Zec phase (deg)",
+        _ => "absorbance",
+    }
+}
+
+/// One spectrum to draw, as 250 features (measure-major on `freqs`).
+pub struct Series<'a> {
+    pub x: &'a [f64],
+    pub color: &'a str,
+    pub width: f64,
+    pub opacity: f64,
+    pub label: Option<&'a str>,
+}
+
+/// Five panels (one per measure): optional bands (lower, upper, colour) under the series.
+pub fn spectra(title: &str, freqs: &[f64], bands: &[(&[f64], &[f64], &str)], series: &[Series<'_>]) -> String {
+    let n = freqs.len();
+    let (pw, ph) = (420.0, 240.0);
+    let mut c = Canvas::new(2.0 * pw + 40.0, 3.0 * ph + 60.0);
+    c.text(20.0, 28.0, 16.0, "start", title);
+    for m in 0..MEASURES.len() {
+        let (col, row) = (m % 2, m / 2);
+        let (x0, y0) = (20.0 + col as f64 * pw, 40.0 + row as f64 * ph);
+        let shown = |x: &[f64]| -> Vec<f64> { x[m * n..(m + 1) * n].iter().map(|&v| display(m, v)).collect() };
+        let mut lo = f64::INFINITY;
+        let mut hi = f64::NEG_INFINITY;
+        for s in series {
+            for v in shown(s.x) {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+        for (l, u, _) in bands {
+            for v in shown(l).into_iter().chain(shown(u)) {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+        let pad = 0.05 * (hi - lo).max(1e-6);
+        let ax = Axes::new(x0 + 60.0, y0 + 10.0, pw - 80.0, ph - 60.0, (freqs[0], freqs[n - 1]), (lo - pad, hi + pad), true);
+        c.axes(&ax, "frequency (Hz)", label(m));
+        for (l, u, color) in bands {
+            c.band(&ax, freqs, &shown(l), &shown(u), color, 0.2);
+        }
+        for s in series {
+            c.line(&ax, freqs, &shown(s.x), s.color, s.width, s.opacity);
+        }
+    }
+    // Legend in the empty sixth panel.
+    let (lx, mut ly) = (40.0 + pw, 80.0 + 2.0 * ph);
+    for s in series.iter().filter(|s| s.label.is_some()) {
+        c.rect(lx, ly - 8.0, 24.0, 3.0, s.color, 1.0);
+        c.text(lx + 32.0, ly - 2.0, 12.0, "start", s.label.unwrap_or(""));
+        ly += 20.0;
+    }
+    for (_, _, color) in bands.iter().take(1) {
+        c.rect(lx, ly - 10.0, 24.0, 10.0, color, 0.2);
+        c.text(lx + 32.0, ly - 2.0, 12.0, "start", "predictive band");
+    }
+    c.finish()
+}
+
+/// Residual map: measures × frequencies, colour = standardised residual clipped at ±4.
+pub fn residual_map(title: &str, freqs: &[f64], z: &[f64]) -> String {
+    let n = freqs.len();
+    let (cw, chh) = (12.0, 28.0);
+    let (left, top) = (150.0, 50.0);
+    let mut c = Canvas::new(left + cw * n as f64 + 120.0, top + chh * 5.0 + 70.0);
+    c.text(20.0, 28.0, 16.0, "start", title);
+    for m in 0..MEASURES.len() {
+        c.text(left - 8.0, top + chh * (m as f64 + 0.65), 12.0, "end", MEASURES[m].name);
+        for i in 0..n {
+            c.rect(left + cw * i as f64, top + chh * m as f64, cw, chh, &diverging(z[m * n + i] / 4.0), 1.0);
+        }
+    }
+    for &f in &[200.0, 500.0, 1000.0, 2000.0, 4000.0, 8000.0] {
+        let i = freqs.iter().position(|&g| g >= f * 0.999).unwrap_or(n - 1);
+        c.text(left + cw * (i as f64 + 0.5), top + chh * 5.0 + 16.0, 11.0, "middle", &format!("{f:.0}"));
+    }
+    c.text(left + cw * n as f64 / 2.0, top + chh * 5.0 + 36.0, 12.0, "middle", "frequency (Hz)");
+    // Colour bar.
+    let bx = left + cw * n as f64 + 30.0;
+    for k in 0..20 {
+        let v = 1.0 - k as f64 / 9.5;
+        c.rect(bx, top + 7.0 * k as f64, 16.0, 7.0, &diverging(v), 1.0);
+    }
+    c.text(bx + 20.0, top + 8.0, 11.0, "start", "z ≥ +4");
+    c.text(bx + 20.0, top + 140.0, 11.0, "start", "z ≤ −4");
+    c.finish()
+}
+
+/// Blue (−1) – white (0) – red (+1).
+fn diverging(t: f64) -> String {
+    let t = t.clamp(-1.0, 1.0);
+    let (r, g, b) = if t >= 0.0 { (1.0, 1.0 - t, 1.0 - t) } else { (1.0 + t, 1.0 + t, 1.0) };
+    format!("#{:02x}{:02x}{:02x}", (r * 255.0) as u8, (g * 255.0) as u8, (b * 255.0) as u8)
+}
+
+/// One parameter of a corner plot.
+pub struct Dim<'a> {
+    pub name: &'a str,
+    pub unit: &'a str,
+    pub low: f64,
+    pub high: f64,
+    pub log: bool,
+    pub truth: Option<f64>,
+    pub map: Option<f64>,
+}
+
+/// Corner plot: 1D histograms on the diagonal, 2D histograms below it, the true value
+/// (green) and MAP (red) marked; log axes for log-scale parameters.
+pub fn corner(title: &str, dims: &[Dim<'_>], samples: &[Vec<f64>]) -> String {
+    let d = dims.len();
+    let cell = 110.0;
+    let (left, top) = (60.0, 50.0);
+    let mut c = Canvas::new(left + cell * d as f64 + 20.0, top + cell * d as f64 + 60.0);
+    c.text(20.0, 28.0, 16.0, "start", title);
+    let bins = 24;
+    let unit = |k: usize, v: f64| -> f64 {
+        let t = |v: f64| if dims[k].log { v.log10() } else { v };
+        ((t(v) - t(dims[k].low)) / (t(dims[k].high) - t(dims[k].low))).clamp(0.0, 1.0 - 1e-12)
+    };
+    for i in 0..d {
+        for j in 0..=i {
+            let (x0, y0) = (left + cell * j as f64, top + cell * i as f64);
+            c.frame(x0 + 2.0, y0 + 2.0, cell - 4.0, cell - 4.0);
+            if i == j {
+                let mut h = vec![0usize; bins];
+                for s in samples {
+                    h[(unit(i, s[i]) * bins as f64) as usize] += 1;
+                }
+                let top_count = *h.iter().max().unwrap_or(&1) as f64;
+                for (b, &cnt) in h.iter().enumerate() {
+                    let bh = (cell - 10.0) * cnt as f64 / top_count.max(1.0);
+                    let bw = (cell - 4.0) / bins as f64;
+                    c.rect(x0 + 2.0 + bw * b as f64, y0 + cell - 2.0 - bh, bw, bh, DRAW, 0.7);
+                }
+                for (v, color) in [(dims[i].truth, TRUTH), (dims[i].map, MAP)] {
+                    if let Some(v) = v {
+                        let x = x0 + 2.0 + (cell - 4.0) * unit(i, v);
+                        c.vline(x, y0 + 2.0, y0 + cell - 2.0, color);
+                    }
+                }
+            } else {
+                let mut h = vec![0usize; bins * bins];
+                for s in samples {
+                    let (a, b) = ((unit(j, s[j]) * bins as f64) as usize, (unit(i, s[i]) * bins as f64) as usize);
+                    h[b * bins + a] += 1;
+                }
+                let top_count = *h.iter().max().unwrap_or(&1) as f64;
+                let bw = (cell - 4.0) / bins as f64;
+                for (k, &cnt) in h.iter().enumerate().filter(|(_, c)| **c > 0) {
+                    let (a, b) = (k % bins, k / bins);
+                    let op = (cnt as f64 / top_count).sqrt();
+                    c.rect(x0 + 2.0 + bw * a as f64, y0 + cell - 2.0 - bw * (b + 1) as f64, bw, bw, DRAW, op);
+                }
+                for (vx, vy, color) in [(dims[j].truth, dims[i].truth, TRUTH), (dims[j].map, dims[i].map, MAP)] {
+                    if let (Some(vx), Some(vy)) = (vx, vy) {
+                        c.dot(x0 + 2.0 + (cell - 4.0) * unit(j, vx), y0 + cell - 2.0 - (cell - 4.0) * unit(i, vy), 3.5, color);
+                    }
+                }
+            }
+        }
+        let lab = format!("{}{} ({})", if dims[i].log { "log " } else { "" }, dims[i].name, dims[i].unit);
+        c.text(left + cell * (i as f64 + 0.5), top + cell * d as f64 + 18.0, 11.0, "middle", &lab);
+    }
+    c.text(left, top + cell * d as f64 + 44.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
+    c.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn well_formed(svg: &str) {
+        assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+        assert!(!svg.contains("NaN") && !svg.contains("inf"), "non-finite coordinates");
+    }
+
+    #[test]
+    fn figures_are_well_formed_svg() {
+        let freqs = crate::sim::log_grid(200.0, 8000.0, 50);
+        let x: Vec<f64> = (0..250).map(|i| (i as f64 * 0.1).sin()).collect();
+        let lo: Vec<f64> = x.iter().map(|v| v - 0.1).collect();
+        let hi: Vec<f64> = x.iter().map(|v| v + 0.1).collect();
+        let s = spectra("t", &freqs, &[(&lo, &hi, BAND)], &[Series { x: &x, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") }]);
+        well_formed(&s);
+        assert_eq!(s.matches("<polyline").count(), 5);
+        well_formed(&residual_map("r", &freqs, &x));
+        let dims = [
+            Dim { name: "a", unit: "Pa", low: 1.0, high: 100.0, log: true, truth: Some(10.0), map: Some(12.0) },
+            Dim { name: "b", unit: "s", low: 0.0, high: 1.0, log: false, truth: None, map: Some(0.5) },
+        ];
+        let samples: Vec<Vec<f64>> = (0..200).map(|i| vec![1.0 + i as f64 / 3.0, (i as f64 / 200.0)]).collect();
+        well_formed(&corner("c", &dims, &samples));
+    }
+
+    #[test]
+    fn diverging_colours_span_blue_white_red() {
+        assert_eq!(diverging(-1.0), "#0000ff");
+        assert_eq!(diverging(0.0), "#ffffff");
+        assert_eq!(diverging(2.0), "#ff0000");
+    }
+}
