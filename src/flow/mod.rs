@@ -1,0 +1,147 @@
+//! The conditional neural spline flow on burn: an embedding MLP on the (standardised)
+//! features, then coupling transforms whose rational-quadratic splines are set by small
+//! MLPs of the untouched half and the embedding, with fixed permutations between them,
+//! over a standard-normal base. No I/O here; `npe` owns data, training and checkpoints.
+
+pub mod spline;
+
+use burn::nn::{Linear, LinearConfig};
+use burn::prelude::*;
+use burn::tensor::activation::relu;
+use serde::{Deserialize, Serialize};
+
+/// Architecture; stored in checkpoints.
+#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
+pub struct FlowConfig {
+    /// Parameter dimension.
+    pub dim: usize,
+    /// Width of the network's input (features plus group-mask flags).
+    pub inputs: usize,
+    /// Embedding hidden widths; empty = no embedding (the input is the context).
+    pub embedding: Vec<usize>,
+    pub transforms: usize,
+    pub hidden: usize,
+    pub bins: usize,
+    pub bound: f64,
+    /// Permutation applied before each transform.
+    pub permutations: Vec<Vec<usize>>,
+}
+
+impl FlowConfig {
+    /// The defaults of npe.md: 3×50 embedding, 5 transforms, 2×50 conditioners, 10 bins.
+    pub fn new(dim: usize, inputs: usize, embedding: bool) -> FlowConfig {
+        let transforms = 5;
+        // Reverse, then rotate: every dim is transformed and conditions the others.
+        let permutations = (0..transforms).map(|t| (0..dim).map(|i| (dim - 1 - i + t) % dim).collect()).collect();
+        FlowConfig {
+            dim,
+            inputs,
+            embedding: if embedding { vec![50, 50, 50] } else { vec![] },
+            transforms,
+            hidden: 50,
+            bins: 10,
+            bound: 5.0,
+            permutations,
+        }
+    }
+
+    fn context(&self) -> usize {
+        self.embedding.last().copied().unwrap_or(self.inputs)
+    }
+
+    /// Dims left untouched (conditioning) and transformed per coupling.
+    fn split(&self) -> (usize, usize) {
+        let dc = self.dim / 2;
+        (dc, self.dim - dc)
+    }
+}
+
+/// Fully connected layers with ReLU between them (none after the last).
+#[derive(Module, Debug)]
+pub struct Mlp {
+    layers: Vec<Linear>,
+}
+
+impl Mlp {
+    pub fn new(sizes: &[usize], device: &Device) -> Mlp {
+        Mlp { layers: sizes.windows(2).map(|w| LinearConfig::new(w[0], w[1]).init(device)).collect() }
+    }
+
+    pub fn forward(&self, mut x: Tensor<2>) -> Tensor<2> {
+        let n = self.layers.len();
+        for (i, l) in self.layers.iter().enumerate() {
+            x = l.forward(x);
+            if i + 1 < n {
+                x = relu(x);
+            }
+        }
+        x
+    }
+}
+
+#[derive(Module, Debug)]
+pub struct Flow {
+    embedding: Mlp,
+    conditioners: Vec<Mlp>,
+}
+
+impl Flow {
+    pub fn new(cfg: &FlowConfig, device: &Device) -> Flow {
+        let mut emb = vec![cfg.inputs];
+        emb.extend(&cfg.embedding);
+        let (dc, dt) = cfg.split();
+        let cond = [dc + cfg.context(), cfg.hidden, cfg.hidden, dt * spline::n_params(cfg.bins)];
+        Flow { embedding: Mlp::new(&emb, device), conditioners: (0..cfg.transforms).map(|_| Mlp::new(&cond, device)).collect() }
+    }
+
+    pub fn embed(&self, x: Tensor<2>) -> Tensor<2> {
+        self.embedding.forward(x)
+    }
+
+    fn spline_params(&self, cfg: &FlowConfig, t: usize, a: Tensor<2>, ctx: Tensor<2>) -> Tensor<3> {
+        let [b, _] = ctx.dims();
+        let (dc, dt) = cfg.split();
+        let input = if dc == 0 { ctx } else { Tensor::cat(vec![a, ctx], 1) };
+        self.conditioners[t].forward(input).reshape([b, dt, spline::n_params(cfg.bins)])
+    }
+
+    /// log q(u | context) for standardised parameters u [B, D] and embedded context [B, C].
+    pub fn log_prob(&self, cfg: &FlowConfig, mut u: Tensor<2>, ctx: Tensor<2>) -> Tensor<1> {
+        let device = u.device();
+        let (dc, dt) = cfg.split();
+        let [b, d] = u.dims();
+        let mut logdet = Tensor::<1>::zeros([b], &device);
+        for t in 0..cfg.transforms {
+            let perm = Tensor::<1, Int>::from_data(TensorData::new(cfg.permutations[t].iter().map(|&i| i as i64).collect::<Vec<_>>(), [d]), &device);
+            u = u.select(1, perm);
+            let a = u.clone().narrow(1, 0, dc);
+            let x = u.narrow(1, dc, dt);
+            let raw = self.spline_params(cfg, t, a.clone(), ctx.clone());
+            let (y, ld) = spline::forward(x, raw, cfg.bins, cfg.bound);
+            logdet = logdet + ld.sum_dim(1).reshape([b]);
+            u = if dc == 0 { y } else { Tensor::cat(vec![a, y], 1) };
+        }
+        let base = (u.powi_scalar(2).sum_dim(1).reshape([b]) * -0.5) - 0.5 * d as f64 * (2.0 * std::f64::consts::PI).ln();
+        base + logdet
+    }
+
+    /// Maps base draws z [B, D] to standardised parameters (the inverse direction).
+    pub fn sample_from(&self, cfg: &FlowConfig, mut z: Tensor<2>, ctx: Tensor<2>) -> Tensor<2> {
+        let device = z.device();
+        let (dc, dt) = cfg.split();
+        let d = cfg.dim;
+        for t in (0..cfg.transforms).rev() {
+            let a = z.clone().narrow(1, 0, dc);
+            let y = z.narrow(1, dc, dt);
+            let raw = self.spline_params(cfg, t, a.clone(), ctx.clone());
+            let x = spline::inverse(y, raw, cfg.bins, cfg.bound);
+            z = if dc == 0 { x } else { Tensor::cat(vec![a, x], 1) };
+            let mut inv = vec![0i64; d];
+            for (k, &p) in cfg.permutations[t].iter().enumerate() {
+                inv[p] = k as i64;
+            }
+            z = z.select(1, Tensor::<1, Int>::from_data(TensorData::new(inv, [d]), &device));
+        }
+        z
+    }
+}
