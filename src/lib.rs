@@ -7,6 +7,7 @@
 pub mod cli;
 pub mod dataset;
 pub mod flow;
+pub mod npe;
 pub mod discrepancy;
 pub mod plot;
 pub mod sim;

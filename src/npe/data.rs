@@ -1,0 +1,124 @@
+//! Training tables: theta.csv + x.csv (header rows) with meta.json (written by
+//! `otofit simulate`) or prior.json (any simulator's table).
+
+use super::prior::Param;
+use crate::dataset::read_csv;
+use anyhow::{Context, Result, bail};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// A feature group a model can be asked to do without (e.g. one modality).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Group {
+    pub name: String,
+    /// Indices of its features.
+    pub features: Vec<usize>,
+}
+
+pub struct Dataset {
+    pub params: Vec<Param>,
+    pub feature_names: Vec<String>,
+    pub frequencies_hz: Vec<f64>,
+    pub groups: Vec<Group>,
+    /// 1× noise standard deviation per feature (zeros when the table has none).
+    pub noise_std: Vec<f64>,
+    pub theta: Vec<Vec<f64>>,
+    pub x: Vec<Vec<f64>>,
+    /// Rows dropped for non-finite values or θ outside the prior box.
+    pub skipped: usize,
+}
+
+#[derive(Deserialize)]
+struct Meta {
+    parameters: Vec<Param>,
+    #[serde(default)]
+    frequencies_hz: Vec<f64>,
+    #[serde(default)]
+    features: Vec<MetaFeature>,
+    #[serde(default)]
+    groups: Vec<MetaGroup>,
+    #[serde(default)]
+    noise: Option<MetaNoise>,
+}
+
+#[derive(Deserialize)]
+struct MetaFeature {
+    #[serde(default)]
+    measure: String,
+}
+
+#[derive(Deserialize)]
+struct MetaGroup {
+    name: String,
+    measures: Vec<String>,
+}
+
+#[derive(Deserialize)]
+struct MetaNoise {
+    std: Vec<f64>,
+}
+
+#[derive(Deserialize)]
+struct PriorFile {
+    parameters: Vec<Param>,
+}
+
+impl Dataset {
+    pub fn load(dir: &Path) -> Result<Dataset> {
+        let meta_path = dir.join("meta.json");
+        let prior_path = dir.join("prior.json");
+        let (params, meta) = if meta_path.exists() {
+            let m: Meta = serde_json::from_slice(&std::fs::read(&meta_path)?).with_context(|| format!("{}: not a dataset meta.json", meta_path.display()))?;
+            (m.parameters.clone(), Some(m))
+        } else if prior_path.exists() {
+            let p: PriorFile = serde_json::from_slice(&std::fs::read(&prior_path)?)
+                .with_context(|| format!("{}: expected {{\"parameters\":[{{\"name\",\"low\",\"high\",\"scale\",\"unit\"}}]}}", prior_path.display()))?;
+            (p.parameters, None)
+        } else {
+            bail!("{}: neither meta.json nor prior.json found", dir.display());
+        };
+        for p in &params {
+            p.validate().map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+        }
+        let tt = read_csv(&dir.join("theta.csv"))?;
+        let xt = read_csv(&dir.join("x.csv"))?;
+        if tt.rows.len() != xt.rows.len() {
+            bail!("{}: theta.csv has {} rows but x.csv has {}", dir.display(), tt.rows.len(), xt.rows.len());
+        }
+        // theta.csv columns in prior order, by name.
+        let cols: Vec<usize> = params
+            .iter()
+            .map(|p| tt.header.iter().position(|h| *h == p.name).with_context(|| format!("{}: theta.csv has no column '{}'", dir.display(), p.name)))
+            .collect::<Result<_>>()?;
+        let nf = xt.header.len();
+        let (mut theta, mut x, mut skipped) = (Vec::new(), Vec::new(), 0);
+        for (t, xr) in tt.rows.iter().zip(&xt.rows) {
+            let row: Vec<f64> = cols.iter().map(|&c| t[c]).collect();
+            if row.iter().zip(&params).all(|(v, p)| p.contains(*v)) && xr.iter().all(|v| v.is_finite()) {
+                theta.push(row);
+                x.push(xr.clone());
+            } else {
+                skipped += 1;
+            }
+        }
+        let (mut frequencies_hz, mut groups, mut noise_std) = (vec![], vec![], vec![0.0; nf]);
+        if let Some(m) = meta {
+            frequencies_hz = m.frequencies_hz;
+            if let Some(n) = m.noise {
+                if n.std.len() != nf {
+                    bail!("{}: noise.std has {} values for {nf} features", meta_path.display(), n.std.len());
+                }
+                noise_std = n.std;
+            }
+            if m.features.len() == nf {
+                for g in m.groups {
+                    let features: Vec<usize> = (0..nf).filter(|&i| g.measures.contains(&m.features[i].measure)).collect();
+                    if !features.is_empty() {
+                        groups.push(Group { name: g.name, features });
+                    }
+                }
+            }
+        }
+        Ok(Dataset { params, feature_names: xt.header, frequencies_hz, groups, noise_std, theta, x, skipped })
+    }
+}

@@ -1,0 +1,345 @@
+//! Neural posterior estimation: prior bijection, standardisation, training, posterior
+//! sampling / density / MAP / summaries, calibration, and the checkpoint file.
+//! Synchronous; progress and cancellation go through a callback.
+
+pub mod calibrate;
+pub mod data;
+pub mod prior;
+mod train;
+
+pub use data::{Dataset, Group};
+pub use prior::{Param, Scale};
+pub use train::{EpochReport, TrainSettings, train};
+
+use crate::flow::{Flow, FlowConfig};
+use anyhow::{Context, Result, bail};
+use burn::module::Module;
+use burn::prelude::*;
+use burn::store::ModuleRecord;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+pub const FORMAT_VERSION: u32 = 1;
+const MAGIC: &[u8; 11] = b"OTOFIT-NPE\n";
+
+/// Everything about a model except its weights (the checkpoint's JSON header).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Header {
+    pub format_version: u32,
+    pub otofit_version: String,
+    pub params: Vec<Param>,
+    pub feature_names: Vec<String>,
+    pub frequencies_hz: Vec<f64>,
+    pub groups: Vec<Group>,
+    /// Whether the network takes group masks (accepts any subset of groups).
+    pub mask_groups: bool,
+    pub x_mean: Vec<f64>,
+    pub x_std: Vec<f64>,
+    pub u_mean: Vec<f64>,
+    pub u_std: Vec<f64>,
+    /// 1× noise model and the scale it was trained with.
+    pub noise_std: Vec<f64>,
+    pub noise_scale: f64,
+    pub flow: FlowConfig,
+    pub training: TrainingSummary,
+}
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct TrainingSummary {
+    pub epochs: usize,
+    pub best_epoch: usize,
+    pub best_val_loss: f64,
+    pub train_rows: usize,
+    pub val_rows: usize,
+    pub wall_seconds: f64,
+    pub seed: u64,
+}
+
+/// A trained posterior estimator, ready to answer on the CPU (`flex`) backend.
+pub struct Npe {
+    pub header: Header,
+    flow: Flow,
+    /// The same weights on the autodiff device, for MAP gradients.
+    flow_ad: Flow,
+    device: Device,
+}
+
+/// One observation: features in header order, with the features present.
+pub struct Obs<'a> {
+    pub x: &'a [f64],
+    /// `None`: all features present.
+    pub present: Option<&'a [bool]>,
+}
+
+/// Per-parameter posterior summary in natural units.
+#[derive(Clone, Debug, Serialize)]
+pub struct Summary {
+    pub name: String,
+    pub unit: String,
+    pub map: f64,
+    pub mean: f64,
+    pub median: f64,
+    pub q05: f64,
+    pub q95: f64,
+    pub std: f64,
+    /// Coefficient of variation std/mean (natural units, as the study reports it).
+    pub cv: f64,
+}
+
+impl Npe {
+    fn from_parts(header: Header, record: ModuleRecord) -> Npe {
+        let device = Device::flex();
+        let flow = Flow::new(&header.flow, &device).load_record(record.clone());
+        let flow_ad = Flow::new(&header.flow, &device.clone().autodiff()).load_record(record);
+        Npe { header, flow, flow_ad, device }
+    }
+
+    pub fn params(&self) -> &[Param] {
+        &self.header.params
+    }
+
+    /// Writes the checkpoint: magic, header length (u64 LE), JSON header, burn record.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let header = serde_json::to_vec(&self.header)?;
+        let record = self.flow.clone().into_record().into_bytes().map_err(|e| anyhow::anyhow!("record: {e:?}"))?;
+        let mut out = Vec::with_capacity(header.len() + record.len() + 32);
+        out.extend_from_slice(MAGIC);
+        out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        out.extend_from_slice(&header);
+        out.extend_from_slice(&record);
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, &out).with_context(|| format!("cannot write {}", tmp.display()))?;
+        std::fs::rename(&tmp, path)?;
+        Ok(())
+    }
+
+    pub fn load(path: &Path) -> Result<Npe> {
+        let bytes = std::fs::read(path).with_context(|| format!("cannot read model {}", path.display()))?;
+        Self::from_bytes(&bytes).with_context(|| format!("{} is not a usable otofit model", path.display()))
+    }
+
+    pub fn from_bytes(bytes: &[u8]) -> Result<Npe> {
+        if bytes.len() < MAGIC.len() + 8 || &bytes[..MAGIC.len()] != MAGIC {
+            bail!("not an otofit NPE checkpoint (bad magic)");
+        }
+        let n = u64::from_le_bytes(bytes[MAGIC.len()..MAGIC.len() + 8].try_into()?) as usize;
+        let start = MAGIC.len() + 8;
+        if bytes.len() < start + n {
+            bail!("truncated checkpoint");
+        }
+        let header: Header = serde_json::from_slice(&bytes[start..start + n]).context("checkpoint header")?;
+        if header.format_version != FORMAT_VERSION {
+            bail!("checkpoint format {} is not supported (this otofit reads format {FORMAT_VERSION})", header.format_version);
+        }
+        let (d, f) = (header.params.len(), header.feature_names.len());
+        let g = if header.mask_groups { header.groups.len() } else { 0 };
+        let shapes_ok = header.flow.dim == d
+            && header.flow.inputs == f + g
+            && header.x_mean.len() == f
+            && header.x_std.len() == f
+            && header.noise_std.len() == f
+            && header.u_mean.len() == d
+            && header.u_std.len() == d;
+        if !shapes_ok {
+            bail!("checkpoint header shapes disagree ({d} parameters, {f} features)");
+        }
+        let record = ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes[start + n..].to_vec())).map_err(|e| anyhow::anyhow!("weights: {e:?}"))?;
+        let expected = Flow::new(&header.flow, &Device::flex()).num_params();
+        let npe = Npe::from_parts(header, record);
+        if npe.flow.num_params() != expected {
+            bail!("weights do not match the architecture");
+        }
+        Ok(npe)
+    }
+
+    /// Network input for one observation: standardised features (absent ones zero) and,
+    /// for mask-trained models, one presence flag per group.
+    pub fn input_row(&self, obs: &Obs<'_>) -> Result<Vec<f32>> {
+        let h = &self.header;
+        let f = h.feature_names.len();
+        if obs.x.len() != f {
+            bail!("observation has {} features, the model expects {f}", obs.x.len());
+        }
+        let present = |i: usize| obs.present.is_none_or(|p| p[i]);
+        let mut row: Vec<f32> = (0..f)
+            .map(|i| if present(i) && obs.x[i].is_finite() { ((obs.x[i] - h.x_mean[i]) / h.x_std[i]) as f32 } else { 0.0 })
+            .collect();
+        if h.mask_groups {
+            let mut any = false;
+            for g in &h.groups {
+                let on = g.features.iter().all(|&i| present(i));
+                any |= on;
+                row.push(if on { 1.0 } else { 0.0 });
+            }
+            if !any {
+                bail!("no complete feature group present (groups: {})", h.groups.iter().map(|g| g.name.as_str()).collect::<Vec<_>>().join(", "));
+            }
+            // Features outside every group must be present.
+            for i in 0..f {
+                if !present(i) && !h.groups.iter().any(|g| g.features.contains(&i)) {
+                    bail!("feature '{}' is missing", h.feature_names[i]);
+                }
+            }
+        } else if let Some(i) = (0..f).find(|&i| !present(i) || !obs.x[i].is_finite()) {
+            bail!("feature '{}' is missing or not finite (this model needs every feature)", h.feature_names[i]);
+        }
+        Ok(row)
+    }
+
+    fn context(&self, flow: &Flow, input: &[f32], n: usize, device: &Device) -> Tensor<2> {
+        let width = input.len();
+        let one = Tensor::<2>::from_data(TensorData::new(input.to_vec(), [1, width]), device);
+        flow.embed(one).repeat_dim(0, n)
+    }
+
+    /// Standardised-u samples → natural θ.
+    fn to_theta(&self, v: &[f32]) -> Vec<f64> {
+        let h = &self.header;
+        h.params.iter().enumerate().map(|(k, p)| p.from_u(v[k] as f64 * h.u_std[k] + h.u_mean[k])).collect()
+    }
+
+    fn to_v(&self, theta: &[f64]) -> Vec<f32> {
+        let h = &self.header;
+        h.params.iter().enumerate().map(|(k, p)| ((p.to_u(theta[k]) - h.u_mean[k]) / h.u_std[k]) as f32).collect()
+    }
+
+    /// log |dv/dθ| summed over parameters (v: standardised u).
+    fn log_jacobian(&self, theta: &[f64]) -> f64 {
+        let h = &self.header;
+        h.params.iter().enumerate().map(|(k, p)| p.log_jacobian(theta[k]) - h.u_std[k].ln()).sum()
+    }
+
+    /// `n` posterior draws (natural units), deterministic for `seed`, with their
+    /// log-densities in the flow's space.
+    fn draw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f32>>, Vec<f64>) {
+        let d = self.header.params.len();
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let z: Vec<f32> = (0..n * d).map(|_| StandardNormal.sample(&mut rng)).collect();
+        let ctx = self.context(&self.flow, input, n, &self.device);
+        let z = Tensor::<2>::from_data(TensorData::new(z, [n, d]), &self.device);
+        let v = self.flow.sample_from(&self.header.flow, z, ctx.clone());
+        let lp = self.flow.log_prob(&self.header.flow, v.clone(), ctx);
+        let v: Vec<f32> = v.try_into_vec_as::<f32>().expect("flow output");
+        let lp: Vec<f64> = lp.try_into_vec_as::<f32>().expect("flow output").into_iter().map(f64::from).collect();
+        (v.chunks(d).map(|c| c.to_vec()).collect(), lp)
+    }
+
+    /// Posterior samples in natural units.
+    pub fn sample(&self, obs: &Obs<'_>, n: usize, seed: u64) -> Result<Vec<Vec<f64>>> {
+        let input = self.input_row(obs)?;
+        let (v, _) = self.draw(&input, n, seed);
+        Ok(v.iter().map(|r| self.to_theta(r)).collect())
+    }
+
+    /// log q(θ | x) in natural units (with the Jacobian of the bijection).
+    pub fn log_prob(&self, obs: &Obs<'_>, thetas: &[Vec<f64>]) -> Result<Vec<f64>> {
+        let input = self.input_row(obs)?;
+        Ok(self.log_prob_input(&input, thetas))
+    }
+
+    fn log_prob_input(&self, input: &[f32], thetas: &[Vec<f64>]) -> Vec<f64> {
+        let d = self.header.params.len();
+        let n = thetas.len();
+        let v: Vec<f32> = thetas.iter().flat_map(|t| self.to_v(t)).collect();
+        let ctx = self.context(&self.flow, input, n, &self.device);
+        let lp = self.flow.log_prob(&self.header.flow, Tensor::<2>::from_data(TensorData::new(v, [n, d]), &self.device), ctx);
+        let lp: Vec<f32> = lp.try_into_vec_as::<f32>().expect("flow output");
+        lp.iter().zip(thetas).map(|(l, t)| *l as f64 + self.log_jacobian(t)).collect()
+    }
+
+    /// Samples, MAP and per-parameter summaries for one observation.
+    pub fn infer(&self, obs: &Obs<'_>, n: usize, seed: u64) -> Result<Inference> {
+        let t0 = std::time::Instant::now();
+        let input = self.input_row(obs)?;
+        let (v, lp) = self.draw(&input, n.max(1), seed);
+        let samples: Vec<Vec<f64>> = v.iter().map(|r| self.to_theta(r)).collect();
+        let sample_ms = t0.elapsed().as_secs_f64() * 1e3;
+        let map = self.map_from(&input, &v, &lp);
+        let map_ms = t0.elapsed().as_secs_f64() * 1e3 - sample_ms;
+        let summaries = summarize(&self.header.params, &samples, &map);
+        Ok(Inference { samples, map, summaries, sample_ms, map_ms })
+    }
+
+    /// MAP in the flow's (unbounded, standardised) space: gradient ascent with Adam from
+    /// the best few draws, all in one batch.
+    fn map_from(&self, input: &[f32], v: &[Vec<f32>], lp: &[f64]) -> Vec<f64> {
+        let d = self.header.params.len();
+        let mut order: Vec<usize> = (0..v.len()).collect();
+        order.sort_by(|&a, &b| lp[b].total_cmp(&lp[a]));
+        let starts: Vec<usize> = order.into_iter().take(4).collect();
+        let k = starts.len();
+        let mut x: Vec<f32> = starts.iter().flat_map(|&i| v[i].clone()).collect();
+        let dev = self.device.clone().autodiff();
+        let ctx = self.context(&self.flow_ad, input, k, &dev).detach();
+        let (mut m, mut s) = (vec![0f32; k * d], vec![0f32; k * d]);
+        let (lr, b1, b2) = (0.02f32, 0.9f32, 0.999f32);
+        let mut best = (f64::NEG_INFINITY, vec![0f32; d]);
+        for step in 1..=40 {
+            let t = Tensor::<2>::from_data(TensorData::new(x.clone(), [k, d]), &dev).require_grad();
+            let lp = self.flow_ad.log_prob(&self.header.flow, t.clone(), ctx.clone());
+            let vals: Vec<f32> = lp.clone().try_into_vec_as::<f32>().expect("flow output");
+            for (j, &l) in vals.iter().enumerate() {
+                if (l as f64) > best.0 && l.is_finite() {
+                    best = (l as f64, x[j * d..(j + 1) * d].to_vec());
+                }
+            }
+            let grads = lp.sum().backward();
+            let Some(g) = t.grad(&grads) else { break };
+            let g: Vec<f32> = g.try_into_vec_as::<f32>().expect("gradient");
+            for i in 0..k * d {
+                let gi = -g[i]; // ascend
+                m[i] = b1 * m[i] + (1.0 - b1) * gi;
+                s[i] = b2 * s[i] + (1.0 - b2) * gi * gi;
+                let mh = m[i] / (1.0 - b1.powi(step));
+                let sh = s[i] / (1.0 - b2.powi(step));
+                x[i] -= lr * mh / (sh.sqrt() + 1e-8);
+            }
+        }
+        self.to_theta(&best.1)
+    }
+}
+
+/// The result of one inference.
+#[derive(Clone, Debug, Serialize)]
+pub struct Inference {
+    #[serde(skip)]
+    pub samples: Vec<Vec<f64>>,
+    pub map: Vec<f64>,
+    pub summaries: Vec<Summary>,
+    pub sample_ms: f64,
+    pub map_ms: f64,
+}
+
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    let pos = q * (sorted.len() - 1) as f64;
+    let (i, frac) = (pos.floor() as usize, pos - pos.floor());
+    if i + 1 < sorted.len() { sorted[i] * (1.0 - frac) + sorted[i + 1] * frac } else { sorted[i] }
+}
+
+pub fn summarize(params: &[Param], samples: &[Vec<f64>], map: &[f64]) -> Vec<Summary> {
+    params
+        .iter()
+        .enumerate()
+        .map(|(k, p)| {
+            let mut v: Vec<f64> = samples.iter().map(|s| s[k]).collect();
+            v.sort_by(f64::total_cmp);
+            let n = v.len() as f64;
+            let mean = v.iter().sum::<f64>() / n;
+            let std = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+            Summary {
+                name: p.name.clone(),
+                unit: p.unit.clone(),
+                map: map[k],
+                mean,
+                median: quantile(&v, 0.5),
+                q05: quantile(&v, 0.05),
+                q95: quantile(&v, 0.95),
+                std,
+                cv: std / mean.abs(),
+            }
+        })
+        .collect()
+}

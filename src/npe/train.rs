@@ -1,0 +1,197 @@
+//! Maximum-likelihood training of the flow on (θ, x) pairs with per-batch noise
+//! augmentation, optional group masking, early stopping on a validation split, and the
+//! best-validation weights kept. Deterministic for a seed.
+
+use super::{Dataset, FORMAT_VERSION, Header, Npe, TrainingSummary};
+use crate::flow::{Flow, FlowConfig};
+use anyhow::{Result, bail};
+use burn::grad_clipping::GradientClippingConfig;
+use burn::module::Module;
+use burn::optim::{AdamConfig, GradientsParams};
+use burn::prelude::*;
+use burn::store::ModuleRecord;
+use rand::seq::SliceRandom;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+
+#[derive(Clone, Debug)]
+pub struct TrainSettings {
+    pub embedding: bool,
+    /// Training noise = the dataset's 1× noise model × this.
+    pub noise_scale: f64,
+    pub seed: u64,
+    pub max_epochs: usize,
+    pub patience: usize,
+    pub batch: usize,
+    pub lr: f64,
+    pub mask_groups: bool,
+    pub val_fraction: f64,
+}
+
+impl Default for TrainSettings {
+    fn default() -> Self {
+        TrainSettings { embedding: true, noise_scale: 1.0, seed: 0, max_epochs: 300, patience: 20, batch: 200, lr: 5e-4, mask_groups: false, val_fraction: 0.1 }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub struct EpochReport {
+    pub epoch: usize,
+    pub train_loss: f64,
+    pub val_loss: f64,
+    pub best_val_loss: f64,
+    pub seconds: f64,
+}
+
+fn mean_std(rows: &[Vec<f64>], k: usize) -> (f64, f64) {
+    let n = rows.len() as f64;
+    let m = rows.iter().map(|r| r[k]).sum::<f64>() / n;
+    let v = rows.iter().map(|r| (r[k] - m).powi(2)).sum::<f64>() / n;
+    (m, v.sqrt())
+}
+
+/// Trains a model. `progress` gets one report per epoch and returns `false` to stop early
+/// (the best weights so far are kept).
+pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochReport) -> bool) -> Result<Npe> {
+    let start = std::time::Instant::now();
+    let (n, d, f) = (ds.theta.len(), ds.params.len(), ds.feature_names.len());
+    if n < 20 {
+        bail!("{n} usable rows: too few to train (need at least 20)");
+    }
+    if s.mask_groups && ds.groups.is_empty() {
+        bail!("--mask-groups needs feature groups (declared in meta.json)");
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
+    let mut idx: Vec<usize> = (0..n).collect();
+    idx.shuffle(&mut rng);
+    let n_val = ((n as f64 * s.val_fraction).round() as usize).clamp(1, n - 1);
+    let (val_idx, train_idx) = idx.split_at(n_val);
+
+    // Standardisation from the training rows; x spread includes the training noise.
+    let u_rows: Vec<Vec<f64>> = ds.theta.iter().map(|t| ds.params.iter().zip(t).map(|(p, v)| p.to_u(*v)).collect()).collect();
+    let train_u: Vec<Vec<f64>> = train_idx.iter().map(|&i| u_rows[i].clone()).collect();
+    let train_x: Vec<Vec<f64>> = train_idx.iter().map(|&i| ds.x[i].clone()).collect();
+    let (mut u_mean, mut u_std, mut x_mean, mut x_std) = (vec![], vec![], vec![], vec![]);
+    for k in 0..d {
+        let (m, sd) = mean_std(&train_u, k);
+        u_mean.push(m);
+        u_std.push(sd.max(1e-6));
+    }
+    for k in 0..f {
+        let (m, sd) = mean_std(&train_x, k);
+        x_mean.push(m);
+        x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2)).sqrt().max(1e-9));
+    }
+    let groups = if s.mask_groups { ds.groups.clone() } else { vec![] };
+    let cfg = FlowConfig::new(d, f + groups.len(), s.embedding);
+    let header = Header {
+        format_version: FORMAT_VERSION,
+        otofit_version: env!("CARGO_PKG_VERSION").into(),
+        params: ds.params.clone(),
+        feature_names: ds.feature_names.clone(),
+        frequencies_hz: ds.frequencies_hz.clone(),
+        groups: ds.groups.clone(),
+        mask_groups: s.mask_groups,
+        x_mean,
+        x_std,
+        u_mean,
+        u_std,
+        noise_std: ds.noise_std.clone(),
+        noise_scale: s.noise_scale,
+        flow: cfg.clone(),
+        training: TrainingSummary { seed: s.seed, train_rows: train_idx.len(), val_rows: n_val, ..Default::default() },
+    };
+
+    let device = Device::flex().autodiff();
+    device.seed(s.seed);
+    let mut flow = Flow::new(&cfg, &device);
+    let mut opt = AdamConfig::new().with_grad_clipping(Some(GradientClippingConfig::Norm(5.0))).init();
+
+    // One batch: v (standardised u) and the network input with fresh noise and masks.
+    let batch = |rows: &[usize], rng: &mut ChaCha8Rng| -> (Vec<f32>, Vec<f32>) {
+        let h = &header;
+        let mut v = Vec::with_capacity(rows.len() * d);
+        let mut inp = Vec::with_capacity(rows.len() * cfg.inputs);
+        for &i in rows {
+            v.extend((0..d).map(|k| ((u_rows[i][k] - h.u_mean[k]) / h.u_std[k]) as f32));
+            // Each group kept with probability 1/2, at least one kept.
+            let mut keep: Vec<bool> = groups.iter().map(|_| rng.random::<bool>()).collect();
+            if !keep.is_empty() && !keep.iter().any(|&k| k) {
+                let j = rng.random_range(0..keep.len());
+                keep[j] = true;
+            }
+            let start = inp.len();
+            for k in 0..f {
+                let e: f64 = StandardNormal.sample(rng);
+                inp.push(((ds.x[i][k] + s.noise_scale * ds.noise_std[k] * e - h.x_mean[k]) / h.x_std[k]) as f32);
+            }
+            for (g, &on) in groups.iter().zip(&keep) {
+                if !on {
+                    for &k in &g.features {
+                        inp[start + k] = 0.0;
+                    }
+                }
+            }
+            inp.extend(keep.iter().map(|&on| if on { 1.0 } else { 0.0 }));
+        }
+        (v, inp)
+    };
+    let loss_of = |flow: &Flow, v: Vec<f32>, inp: Vec<f32>, b: usize, dev: &Device| -> Tensor<1> {
+        let vt = Tensor::<2>::from_data(TensorData::new(v, [b, d]), dev);
+        let it = Tensor::<2>::from_data(TensorData::new(inp, [b, cfg.inputs]), dev);
+        let ctx = flow.embed(it);
+        flow.log_prob(&cfg, vt, ctx).mean().neg()
+    };
+
+    // Validation inputs with one fixed noise draw.
+    let mut val_rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x5EED);
+    let val_batches: Vec<(Vec<f32>, Vec<f32>, usize)> = val_idx.chunks(1000).map(|c| {
+        let (v, i) = batch(c, &mut val_rng);
+        (v, i, c.len())
+    }).collect();
+
+    let mut best: (f64, usize, Option<ModuleRecord>) = (f64::INFINITY, 0, None);
+    let mut train_order = train_idx.to_vec();
+    let mut epochs = 0;
+    for epoch in 1..=s.max_epochs {
+        let t0 = std::time::Instant::now();
+        epochs = epoch;
+        train_order.shuffle(&mut rng);
+        let (mut sum, mut count) = (0.0, 0);
+        for rows in train_order.chunks(s.batch) {
+            let (v, inp) = batch(rows, &mut rng);
+            let loss = loss_of(&flow, v, inp, rows.len(), &device);
+            let l = loss.clone().try_into_vec_as::<f32>().map(|v| v[0] as f64).unwrap_or(f64::NAN);
+            if !l.is_finite() {
+                continue; // a rare bad batch: skip rather than poison the weights
+            }
+            sum += l * rows.len() as f64;
+            count += rows.len();
+            let grads = GradientsParams::from_grads(loss.backward(), &flow);
+            flow = opt.step(s.lr, flow, grads);
+        }
+        let valid = flow.valid();
+        let plain = Device::flex();
+        let mut vsum = 0.0;
+        for (v, inp, b) in &val_batches {
+            let l = loss_of(&valid, v.clone(), inp.clone(), *b, &plain);
+            vsum += l.try_into_vec_as::<f32>().map(|v| v[0] as f64).unwrap_or(f64::NAN) * *b as f64;
+        }
+        let val_loss = vsum / n_val as f64;
+        if val_loss < best.0 {
+            best = (val_loss, epoch, Some(valid.into_record()));
+        }
+        let report = EpochReport { epoch, train_loss: sum / count.max(1) as f64, val_loss, best_val_loss: best.0, seconds: t0.elapsed().as_secs_f64() };
+        if !progress(&report) || epoch - best.1 >= s.patience {
+            break;
+        }
+    }
+    let Some(record) = best.2 else { bail!("training produced no finite validation loss") };
+    let mut header = header;
+    header.training.epochs = epochs;
+    header.training.best_epoch = best.1;
+    header.training.best_val_loss = best.0;
+    header.training.wall_seconds = start.elapsed().as_secs_f64();
+    Ok(Npe::from_parts(header, record))
+}

@@ -1,0 +1,128 @@
+//! NPE against an analytic posterior, calibration, checkpoints and determinism.
+
+use otofit::npe::{self, Dataset, Npe, Obs, Param, Scale, TrainSettings};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+const A: [[f64; 2]; 3] = [[1.0, 0.5], [-0.3, 1.0], [0.8, 0.8]];
+const SIGMA: f64 = 0.3;
+
+/// x = Aθ (noise comes from the noise model during training), θ uniform on [−4, 4]².
+fn linear_gaussian(n: usize, seed: u64) -> Dataset {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let params: Vec<Param> = ["a", "b"].iter().map(|n| Param { name: n.to_string(), unit: "1".into(), scale: Scale::Linear, low: -4.0, high: 4.0 }).collect();
+    let theta: Vec<Vec<f64>> = (0..n).map(|_| vec![rng.random_range(-4.0..4.0), rng.random_range(-4.0..4.0)]).collect();
+    let x = theta.iter().map(|t| A.iter().map(|r| r[0] * t[0] + r[1] * t[1]).collect()).collect();
+    Dataset {
+        params,
+        feature_names: vec!["x0".into(), "x1".into(), "x2".into()],
+        frequencies_hz: vec![],
+        groups: vec![],
+        noise_std: vec![SIGMA; 3],
+        theta,
+        x,
+        skipped: 0,
+    }
+}
+
+/// Exact posterior of θ for a flat prior (the box is wide): N((AᵀA)⁻¹Aᵀx, σ²(AᵀA)⁻¹).
+fn exact(x: &[f64]) -> ([f64; 2], [f64; 2]) {
+    let mut ata = [[0.0; 2]; 2];
+    let mut atx = [0.0; 2];
+    for (r, xi) in A.iter().zip(x) {
+        for i in 0..2 {
+            atx[i] += r[i] * xi;
+            for j in 0..2 {
+                ata[i][j] += r[i] * r[j];
+            }
+        }
+    }
+    let det = ata[0][0] * ata[1][1] - ata[0][1] * ata[1][0];
+    let inv = [[ata[1][1] / det, -ata[0][1] / det], [-ata[1][0] / det, ata[0][0] / det]];
+    let mean = [inv[0][0] * atx[0] + inv[0][1] * atx[1], inv[1][0] * atx[0] + inv[1][1] * atx[1]];
+    (mean, [SIGMA * inv[0][0].sqrt(), SIGMA * inv[1][1].sqrt()])
+}
+
+fn trained() -> &'static Npe {
+    static MODEL: std::sync::OnceLock<Npe> = std::sync::OnceLock::new();
+    MODEL.get_or_init(|| {
+        let ds = linear_gaussian(4000, 1);
+        let s = TrainSettings { embedding: false, max_epochs: 80, seed: 3, ..Default::default() };
+        npe::train(&ds, &s, &mut |r| {
+            eprintln!("epoch {} train {:.3} val {:.3}", r.epoch, r.train_loss, r.val_loss);
+            true
+        })
+        .unwrap()
+    })
+}
+
+#[test]
+fn recovers_the_analytic_linear_gaussian_posterior() {
+    let model = trained();
+    let mut rng = ChaCha8Rng::seed_from_u64(9);
+    for case in 0..4 {
+        let t = [rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)];
+        let x: Vec<f64> = A.iter().map(|r| r[0] * t[0] + r[1] * t[1] + SIGMA * rng.random_range(-1.0..1.0)).collect();
+        let (mean, std) = exact(&x);
+        let inf = model.infer(&Obs { x: &x, present: None }, 4000, case).unwrap();
+        for k in 0..2 {
+            let s = &inf.summaries[k];
+            eprintln!("case {case} θ{k}: mean {:.3} (exact {:.3}), std {:.3} (exact {:.3}), map {:.3}", s.mean, mean[k], s.std, std[k], s.map);
+            assert!((s.mean - mean[k]).abs() < 0.25 * std[k], "case {case} θ{k}: mean {} vs {}", s.mean, mean[k]);
+            assert!((s.std / std[k] - 1.0).abs() < 0.25, "case {case} θ{k}: std {} vs {}", s.std, std[k]);
+            assert!((s.map - mean[k]).abs() < 0.3 * std[k], "case {case} θ{k}: map {} vs {}", s.map, mean[k]);
+        }
+    }
+}
+
+#[test]
+fn coverage_on_held_out_simulations_is_not_overconfident() {
+    let model = trained();
+    let held = linear_gaussian(150, 77);
+    let mut rng = ChaCha8Rng::seed_from_u64(5);
+    let rows: Vec<(Vec<f64>, Vec<f64>)> = held
+        .theta
+        .iter()
+        .zip(&held.x)
+        .map(|(t, x)| (t.clone(), x.iter().map(|v| v + SIGMA * rng.sample::<f64, _>(rand_distr::StandardNormal)).collect()))
+        .collect();
+    let cal = npe::calibrate::calibrate(model, &rows, 300, 1).unwrap();
+    for (l, c) in cal.levels.iter().zip(&cal.coverage) {
+        eprintln!("level {l:.2}: coverage {c:.3}");
+        assert!(*c >= l - 0.1, "overconfident at {l}: {c}");
+    }
+}
+
+#[test]
+fn checkpoints_round_trip_and_bad_files_are_refused() {
+    let model = trained();
+    let dir = std::env::temp_dir().join(format!("otofit-npe-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("m.otofit");
+    model.save(&path).unwrap();
+    let loaded = Npe::load(&path).unwrap();
+    let x = [0.3, -0.2, 0.9];
+    let obs = Obs { x: &x, present: None };
+    assert_eq!(model.sample(&obs, 50, 4).unwrap(), loaded.sample(&obs, 50, 4).unwrap());
+    assert!(std::fs::metadata(&path).unwrap().len() < 1_000_000);
+    let bytes = std::fs::read(&path).unwrap();
+    let err = |b: &[u8]| Npe::from_bytes(b).err().map(|e| format!("{e:#}")).unwrap_or_default();
+    assert!(err(b"hello").contains("bad magic"));
+    assert!(err(&bytes[..bytes.len() / 2]).contains("weights") || err(&bytes[..bytes.len() / 2]).contains("truncated"));
+    let text = String::from_utf8_lossy(&bytes).replace("\"format_version\":1", "\"format_version\":9");
+    assert!(err(text.as_bytes()).contains("format 9"));
+    let e = model.sample(&Obs { x: &x[..2], present: None }, 5, 0).unwrap_err();
+    assert!(e.to_string().contains("expects 3"), "{e}");
+}
+
+#[test]
+fn training_is_deterministic_for_a_seed() {
+    let ds = linear_gaussian(400, 2);
+    let s = TrainSettings { embedding: true, max_epochs: 3, seed: 11, ..Default::default() };
+    let a = npe::train(&ds, &s, &mut |_| true).unwrap();
+    let b = npe::train(&ds, &s, &mut |_| true).unwrap();
+    assert_eq!(a.header.training.best_val_loss, b.header.training.best_val_loss);
+    let x = [0.1, 0.2, 0.3];
+    let obs = Obs { x: &x, present: None };
+    assert_eq!(a.sample(&obs, 20, 1).unwrap(), b.sample(&obs, 20, 1).unwrap());
+}
