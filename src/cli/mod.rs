@@ -3,8 +3,11 @@
 use clap::{Parser, Subcommand};
 
 pub mod bench;
+pub mod calibrate;
 pub mod diagnose;
+pub mod infer;
 pub mod simulate;
+pub mod train;
 
 #[derive(Parser, Debug)]
 #[command(name = "otofit", version, about = "Middle-ear FE models tuned by neural posterior estimation")]
@@ -17,6 +20,12 @@ pub struct Cli {
 pub enum Command {
     /// Simulate parameter sets (prior draws or given rows) into a dataset folder.
     Simulate(simulate::SimulateArgs),
+    /// Train a posterior estimator on a dataset folder.
+    Train(train::TrainArgs),
+    /// Posterior samples, MAP and summaries for observations.
+    Infer(infer::InferArgs),
+    /// Coverage and SBC ranks on held-out simulations (JSON).
+    Calibrate(calibrate::CalibrateArgs),
     /// Measure speed (simulator, ...) on this machine.
     Bench(bench::BenchArgs),
 }
@@ -25,5 +34,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Simulate(args) => simulate::run(args),
         Command::Bench(args) => bench::run(args),
+        Command::Train(args) => train::run(args),
+        Command::Infer(args) => infer::run(args),
+        Command::Calibrate(args) => calibrate::run(args),
     }
 }

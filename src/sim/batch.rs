@@ -60,6 +60,20 @@ pub struct Noise {
     pub seed: u64,
 }
 
+impl Noise {
+    /// `x` plus this noise, with row `row`'s stream (the same draw `run_rows` adds).
+    pub fn apply(&self, x: &[f64], row: usize) -> Vec<f64> {
+        let mut rng = row_rng(self.seed, row, 1);
+        x.iter()
+            .zip(&self.std)
+            .map(|(v, s)| {
+                let z: f64 = StandardNormal.sample(&mut rng);
+                v + self.scale * s * z
+            })
+            .collect()
+    }
+}
+
 /// Independent random stream per (seed, row, purpose): reproducible in any thread order.
 fn row_rng(seed: u64, row: usize, purpose: u64) -> ChaCha8Rng {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -81,15 +95,11 @@ pub fn run_rows(
             || model.runner(),
             |runner: &mut Runner<'_>, (k, row)| {
                 let (theta, fx) = design.split(row);
-                let mut x = super::simulate(runner, &theta, &fx)?;
-                if let Some(n) = noise.filter(|n| n.scale > 0.0) {
-                    let mut rng = row_rng(n.seed, first + k, 1);
-                    for (v, s) in x.iter_mut().zip(&n.std) {
-                        let z: f64 = StandardNormal.sample(&mut rng);
-                        *v += n.scale * s * z;
-                    }
-                }
-                Ok(x)
+                let x = super::simulate(runner, &theta, &fx)?;
+                Ok(match noise.filter(|n| n.scale > 0.0) {
+                    Some(n) => n.apply(&x, first + k),
+                    None => x,
+                })
             },
         )
         .collect()

@@ -73,3 +73,46 @@ fn simulate_errors_name_the_bad_input() {
     let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing column 'E_tendons'"));
 }
+
+#[test]
+fn train_infer_and_calibrate_from_the_command_line() {
+    let d = scratch("npe");
+    let (data, model, held) = (d.join("data"), d.join("m.otofit"), d.join("held"));
+    let s = |a: &[&str]| {
+        let o = otofit(a);
+        assert!(o.status.success(), "{a:?}: {}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    s(&["simulate", "--n", "400", "--seed", "1", "--out", data.to_str().unwrap()]);
+    s(&["simulate", "--n", "20", "--seed", "2", "--out", held.to_str().unwrap()]);
+    let o = s(&["train", "--data", data.to_str().unwrap(), "--out", model.to_str().unwrap(), "--max-epochs", "3", "--mask-groups"]);
+    assert_eq!(String::from_utf8_lossy(&o.stderr).lines().filter(|l| l.starts_with("epoch ")).count(), 3, "one progress line per epoch");
+    // Observation: the first two held-out rows, absorbance only (a subset: mask model).
+    let x = std::fs::read_to_string(held.join("x.csv")).unwrap();
+    let mut lines = x.lines();
+    let header: Vec<&str> = lines.next().unwrap().split(',').collect();
+    let keep: Vec<usize> = (0..header.len()).filter(|&i| header[i].starts_with("absorbance@")).collect();
+    let pick = |l: &str| keep.iter().map(|&i| l.split(',').nth(i).unwrap().to_string()).collect::<Vec<_>>().join(",");
+    let obs = d.join("obs.csv");
+    std::fs::write(&obs, format!("{}\n{}\n{}\n", keep.iter().map(|&i| header[i]).collect::<Vec<_>>().join(","), pick(lines.next().unwrap()), pick(lines.next().unwrap()))).unwrap();
+    let samples = d.join("samples.csv");
+    let o = s(&["infer", "--model", model.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--samples", "100", "--out", samples.to_str().unwrap()]);
+    let out = String::from_utf8_lossy(&o.stdout);
+    assert_eq!(out.lines().count(), 2, "one JSON object per observation");
+    let first: serde_json::Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
+    assert_eq!(first["parameters"][3]["name"], "E_sal");
+    assert!(first["parameters"][3]["cv"].as_f64().unwrap() > 0.0);
+    let csv = std::fs::read_to_string(&samples).unwrap();
+    assert!(csv.starts_with("obs,E_eardrum,"));
+    assert_eq!(csv.lines().count(), 201);
+    let o = s(&["calibrate", "--model", model.to_str().unwrap(), "--data", held.to_str().unwrap(), "--n", "10", "--samples", "50"]);
+    let cal: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(cal["levels"].as_array().unwrap().len(), 19);
+    // Errors name the problem.
+    let bad = d.join("bad.csv");
+    std::fs::write(&bad, "absorbance@999.0\n0.5\n").unwrap();
+    let o = otofit(&["infer", "--model", model.to_str().unwrap(), "--obs", bad.to_str().unwrap(), "--out", samples.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("'absorbance@999.0' is not a feature"));
+    let o = otofit(&["infer", "--model", obs.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--out", samples.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("not a usable otofit model"));
+}

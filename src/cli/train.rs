@@ -1,0 +1,61 @@
+//! `otofit train`: a dataset folder → a model file.
+
+use crate::npe::{self, Dataset, TrainSettings};
+use anyhow::{Result, bail};
+use clap::{Args, ValueEnum};
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct TrainArgs {
+    /// Folder with theta.csv, x.csv and meta.json (or prior.json).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Model file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    #[arg(long, value_enum, default_value_t = Embedding::Mlp)]
+    pub embedding: Embedding,
+    /// Training noise: the dataset's noise model × K.
+    #[arg(long, default_value_t = 1.0)]
+    pub noise_scale: f64,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    #[arg(long, default_value_t = 300)]
+    pub max_epochs: usize,
+    /// Drop whole feature groups at random so one network answers any subset.
+    #[arg(long)]
+    pub mask_groups: bool,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum Embedding {
+    Mlp,
+    None,
+}
+
+pub fn run(args: TrainArgs) -> Result<()> {
+    if !(args.noise_scale.is_finite() && args.noise_scale >= 0.0) {
+        bail!("--noise-scale must be a finite number ≥ 0, got {}", args.noise_scale);
+    }
+    if args.max_epochs == 0 {
+        bail!("--max-epochs must be at least 1");
+    }
+    let ds = Dataset::load(&args.data)?;
+    eprintln!("{} rows ({} skipped), {} parameters, {} features", ds.theta.len(), ds.skipped, ds.params.len(), ds.feature_names.len());
+    let settings = TrainSettings {
+        embedding: matches!(args.embedding, Embedding::Mlp),
+        noise_scale: args.noise_scale,
+        seed: args.seed,
+        max_epochs: args.max_epochs,
+        mask_groups: args.mask_groups,
+        ..TrainSettings::default()
+    };
+    let model = npe::train(&ds, &settings, &mut |r| {
+        eprintln!("epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)", r.epoch, r.train_loss, r.val_loss, r.best_val_loss, r.seconds);
+        true
+    })?;
+    model.save(&args.out)?;
+    let t = &model.header.training;
+    eprintln!("wrote {} (best epoch {} of {}, val loss {:.4}, {:.1} s)", args.out.display(), t.best_epoch, t.epochs, t.best_val_loss, t.wall_seconds);
+    Ok(())
+}
