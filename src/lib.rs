@@ -10,4 +10,5 @@ pub mod flow;
 pub mod npe;
 pub mod discrepancy;
 pub mod plot;
+pub mod store;
 pub mod sim;

@@ -343,3 +343,9 @@ pub fn summarize(params: &[Param], samples: &[Vec<f64>], map: &[f64]) -> Vec<Sum
         })
         .collect()
 }
+
+#[allow(dead_code)]
+fn assert_send_sync() {
+    fn is<T: Send + Sync>() {}
+    is::<Npe>();
+}
