@@ -144,6 +144,13 @@ impl Writer {
         Ok(())
     }
 
+    /// Removes the temporary files (a cancelled run leaves nothing behind).
+    pub fn abandon(self) {
+        for name in FILES {
+            let _ = std::fs::remove_file(tmp(&self.dir, name));
+        }
+    }
+
     /// Flushes, writes meta.json and renames all three files into place.
     pub fn finish(mut self, meta: &mut Meta) -> Result<()> {
         meta.n_rows = self.rows;
@@ -171,6 +178,68 @@ fn write_row(w: &mut impl Write, v: &[f64]) -> std::io::Result<()> {
         write!(w, "{x:e}")?;
     }
     w.write_all(b"\n")
+}
+
+/// Where a dataset's rows come from.
+pub enum Rows {
+    Prior { n: usize, seed: u64 },
+    Given(Vec<Vec<f64>>),
+}
+
+/// Why a dataset run stopped early.
+#[derive(Debug, thiserror::Error)]
+#[error("cancelled after {done} of {total} rows")]
+pub struct Cancelled {
+    pub done: usize,
+    pub total: usize,
+}
+
+/// Simulates `rows` into `dir` (chunks of 1024 on rayon, rows streamed to disk).
+/// `progress(done, total)` is called after each chunk; returning `false` cancels, and
+/// the temporary files are removed.
+pub fn simulate_to_dir(
+    model: &crate::sim::Model,
+    design: &Design,
+    rows: &Rows,
+    noise: &Noise,
+    preset: crate::sim::Preset,
+    dir: &Path,
+    progress: &mut dyn FnMut(usize, usize) -> bool,
+) -> Result<Meta> {
+    let start = std::time::Instant::now();
+    let (n, seed) = match rows {
+        Rows::Prior { n, seed } => (*n, Some(*seed)),
+        Rows::Given(g) => (g.len(), None),
+    };
+    let mut meta = Meta::new(design, preset, model.frequencies(), noise, seed);
+    let mut writer = Writer::create(dir, &meta)?;
+    let chunk = 1024;
+    for first in (0..n).step_by(chunk) {
+        let len = chunk.min(n - first);
+        let batch = match rows {
+            Rows::Given(g) => g[first..first + len].to_vec(),
+            Rows::Prior { seed, .. } => design.draw(*seed, first, len),
+        };
+        let results = crate::sim::batch::run_rows(model, design, &batch, first, Some(noise));
+        for (k, (row, res)) in batch.iter().zip(results).enumerate() {
+            let (_, fx) = design.split(row);
+            let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
+            let fail = |reason: String| Failed { row: first + k, reason };
+            match (res, bad_effect) {
+                (_, Some((e, v))) => meta.failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high))),
+                (Ok(x), None) if x.iter().all(|v| v.is_finite()) => writer.push(row, &x)?,
+                (Ok(_), None) => meta.failed.push(fail("non-finite output".into())),
+                (Err(e), None) => meta.failed.push(fail(e.to_string())),
+            }
+        }
+        if !progress(first + len, n) && first + len < n {
+            writer.abandon();
+            return Err(Cancelled { done: first + len, total: n }.into());
+        }
+    }
+    meta.wall_seconds = start.elapsed().as_secs_f64();
+    writer.finish(&mut meta)?;
+    Ok(meta)
 }
 
 /// A numeric CSV table with a header row.

@@ -1,6 +1,6 @@
 //! `otofit simulate`: prior draws or given rows → a dataset folder.
 
-use crate::dataset::{self, Failed, Meta, Writer};
+use crate::dataset::{self, Rows};
 use crate::sim::batch::{self, Design, Noise};
 use crate::sim::params::{EFFECTS, Effects, PARAMS};
 use crate::sim::{Model, ModelConfig, Preset};
@@ -111,48 +111,28 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         Some(p) => Some(read_rows(p, &mut design)?),
         None => None,
     };
-    let n = given.as_ref().map_or(args.n.unwrap_or(0), |g| g.len());
     let config = ModelConfig { preset: args.preset.into(), ..ModelConfig::default() };
     let preset = config.preset;
     let model = Model::new(config)?;
     let noise = Noise { std: batch::default_noise_std(&model), scale: args.noise_scale, seed: args.seed };
-    let mut meta = Meta::new(&design, preset, model.frequencies(), &noise, given.is_none().then_some(args.seed));
-    let mut writer = Writer::create(&args.out, &meta)?;
-
+    let rows = match given {
+        Some(g) => Rows::Given(g),
+        None => Rows::Prior { n: args.n.unwrap_or(0), seed: args.seed },
+    };
     let start = Instant::now();
     let tty = std::io::stderr().is_terminal();
-    let chunk = 1024;
     let mut last_report = Instant::now();
-    for first in (0..n).step_by(chunk) {
-        let len = chunk.min(n - first);
-        let rows = match &given {
-            Some(g) => g[first..first + len].to_vec(),
-            None => design.draw(args.seed, first, len),
-        };
-        let results = batch::run_rows(&model, &design, &rows, first, Some(&noise));
-        for (k, (row, res)) in rows.iter().zip(results).enumerate() {
-            let (_, fx) = design.split(row);
-            let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
-            match (res, bad_effect) {
-                (_, Some((e, v))) => meta.failed.push(Failed { row: first + k, reason: format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high) }),
-                (Ok(x), None) if x.iter().all(|v| v.is_finite()) => writer.push(row, &x)?,
-                (Ok(_), None) => meta.failed.push(Failed { row: first + k, reason: "non-finite output".into() }),
-                (Err(e), None) => meta.failed.push(Failed { row: first + k, reason: e.to_string() }),
-            }
-        }
-        let done = first + len;
+    let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, preset, &args.out, &mut |done, n| {
         if tty || last_report.elapsed().as_secs_f64() > 5.0 || done == n {
             let rate = done as f64 / start.elapsed().as_secs_f64();
             eprint!("{}simulated {done}/{n} ({rate:.0} runs/s){}", if tty { "\r" } else { "" }, if tty && done < n { "" } else { "\n" });
             last_report = Instant::now();
         }
-    }
-    meta.wall_seconds = start.elapsed().as_secs_f64();
+        true
+    })?;
     for f in &meta.failed {
         eprintln!("row {} failed: {}", f.row, f.reason);
     }
-    let failed = meta.failed.len();
-    writer.finish(&mut meta)?;
-    eprintln!("wrote {} rows ({failed} failed) to {} in {:.2} s", n - failed, args.out.display(), meta.wall_seconds);
+    eprintln!("wrote {} rows ({} failed) to {} in {:.2} s", meta.n_rows, meta.failed.len(), args.out.display(), meta.wall_seconds);
     Ok(())
 }
