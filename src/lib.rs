@@ -7,6 +7,8 @@
 pub mod cli;
 pub mod dataset;
 pub mod flow;
+pub mod http;
+pub mod jobs;
 pub mod npe;
 pub mod discrepancy;
 pub mod plot;

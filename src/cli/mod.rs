@@ -6,6 +6,7 @@ pub mod bench;
 pub mod calibrate;
 pub mod diagnose;
 pub mod infer;
+pub mod serve;
 pub mod simulate;
 pub mod train;
 
@@ -20,6 +21,8 @@ pub struct Cli {
 pub enum Command {
     /// Simulate parameter sets (prior draws or given rows) into a dataset folder.
     Simulate(simulate::SimulateArgs),
+    /// Run the HTTP service (API + job queue).
+    Serve(serve::ServeArgs),
     /// Train a posterior estimator on a dataset folder.
     Train(train::TrainArgs),
     /// Posterior samples, MAP and summaries for observations.
@@ -35,6 +38,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Simulate(args) => simulate::run(args),
         Command::Bench(args) => bench::run(args),
         Command::Train(args) => train::run(args),
+        Command::Serve(args) => serve::run(args),
         Command::Infer(args) => infer::run(args),
         Command::Calibrate(args) => calibrate::run(args),
     }

@@ -1,0 +1,110 @@
+//! `otofit serve`: the HTTP service with its job queue.
+
+use crate::http::{self, AppState};
+use crate::jobs::{self, Ctx};
+use crate::store::Store;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+
+#[derive(Args, Debug)]
+pub struct ServeArgs {
+    /// Listen address (loopback by default).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub addr: SocketAddr,
+    /// Database, datasets and trained models live here.
+    #[arg(long, default_value = "data")]
+    pub data_dir: PathBuf,
+    /// Checkpoint registered as the default model on first start.
+    #[arg(long, default_value = "models/default.otofit")]
+    pub default_model: PathBuf,
+    /// SHA-256 (hex) of an accepted API key; repeat or comma-separate. When set, every
+    /// route but /health needs `Authorization: Bearer <key>`.
+    #[arg(long = "api-key-hash", env = "OTOFIT_API_KEY_HASHES", value_delimiter = ',')]
+    pub api_key_hashes: Vec<String>,
+    /// Most queued + running jobs before POST /jobs answers 429.
+    #[arg(long, default_value_t = 64)]
+    pub max_queue: i64,
+    /// Logs as JSON lines.
+    #[arg(long)]
+    pub log_json: bool,
+}
+
+/// Opens the store, recovers interrupted jobs and registers the default model.
+pub async fn open(data_dir: &Path, default_model: &Path, max_queue: i64) -> Result<Arc<Ctx>> {
+    std::fs::create_dir_all(data_dir).with_context(|| format!("cannot create {}", data_dir.display()))?;
+    let store = Store::open(&data_dir.join("otofit.db")).await.context("opening the database")?;
+    let (requeued, failed) = store.recover().await?;
+    if requeued + failed > 0 {
+        tracing::warn!(requeued, failed, "recovered jobs left running by a previous process");
+    }
+    if default_model.exists() {
+        let path = std::fs::canonicalize(default_model)?;
+        store.add_model("default", &path.display().to_string(), true, None).await?;
+    } else {
+        tracing::warn!(path = %default_model.display(), "default model not found; /infer answers 503 until one is registered");
+    }
+    Ok(Arc::new(Ctx::new(store, data_dir.to_path_buf(), max_queue)))
+}
+
+pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
+    hex_hashes
+        .iter()
+        .filter(|h| !h.is_empty())
+        .map(|h| {
+            let b = hex::decode(h.trim()).ok().filter(|b| b.len() == 32);
+            b.map(|b| b.try_into().expect("32 bytes")).with_context(|| format!("--api-key-hash: '{h}' is not a SHA-256 hex digest"))
+        })
+        .collect()
+}
+
+pub fn run(args: ServeArgs) -> Result<()> {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,tower_http=info,sqlx=warn".into());
+    let sub = tracing_subscriber::fmt().with_env_filter(filter);
+    if args.log_json { sub.json().init() } else { sub.init() }
+    let keys = parse_key_hashes(&args.api_key_hashes)?;
+    if !args.addr.ip().is_loopback() && keys.is_empty() {
+        tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    rt.block_on(async move {
+        let ctx = open(&args.data_dir, &args.default_model, args.max_queue).await?;
+        let dispatcher = tokio::spawn(jobs::dispatcher(ctx.clone()));
+        let app = http::router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) });
+        let listener = tokio::net::TcpListener::bind(args.addr).await.with_context(|| format!("cannot listen on {}", args.addr))?;
+        tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), "otofit serving");
+        let c2 = ctx.clone();
+        axum::serve(listener, app)
+            .with_graceful_shutdown(async move {
+                shutdown_signal().await;
+                tracing::info!("shutting down: no new jobs; the running one stops at its next check");
+                c2.shutdown.store(true, Ordering::Relaxed);
+                c2.notify.notify_one();
+            })
+            .await?;
+        ctx.shutdown.store(true, Ordering::Relaxed);
+        ctx.notify.notify_one();
+        if tokio::time::timeout(std::time::Duration::from_secs(60), dispatcher).await.is_err() {
+            bail!("the running job did not stop within 60 s; it will be re-queued at the next start");
+        }
+        Ok(())
+    })
+}
+
+async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        if let Ok(mut s) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            s.recv().await;
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! { _ = ctrl_c => {}, _ = term => {} }
+}

@@ -1,0 +1,174 @@
+//! Health, models, jobs and datasets.
+
+use super::{AppState, Problem, json_body};
+use crate::jobs::{self, KINDS};
+use axum::body::Bytes;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::Deserialize;
+use serde_json::json;
+
+pub async fn health() -> Json<serde_json::Value> {
+    Json(json!({ "status": "ok", "version": env!("CARGO_PKG_VERSION") }))
+}
+
+pub async fn ready(State(st): State<AppState>) -> Response {
+    let db = st.ctx.store.ping().await;
+    let model = match st.ctx.store.default_model().await {
+        Ok(Some(m)) => st.ctx.loaded(&m.id, std::path::Path::new(&m.path)).is_ok(),
+        _ => false,
+    };
+    let body = Json(json!({ "ready": db && model, "database": db, "default_model": model }));
+    if db && model { body.into_response() } else { (StatusCode::SERVICE_UNAVAILABLE, body).into_response() }
+}
+
+pub async fn openapi() -> Response {
+    let mut r = include_str!("../../openapi.yaml").into_response();
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/yaml"));
+    r
+}
+
+fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
+    let base = json!({ "id": m.id, "default": m.is_default, "created_at": m.created_at, "source_job": m.source_job });
+    match st.ctx.loaded(&m.id, std::path::Path::new(&m.path)) {
+        Ok(npe) => {
+            let h = &npe.header;
+            let mut d = base;
+            d["parameters"] = json!(h.params);
+            d["frequencies_hz"] = json!(h.frequencies_hz);
+            d["features"] = json!(h.feature_names.len());
+            d["groups"] = json!(h.groups.iter().map(|g| &g.name).collect::<Vec<_>>());
+            d["accepts_subsets"] = json!(h.mask_groups);
+            d["training"] = json!(h.training);
+            d
+        }
+        Err(e) => {
+            let mut d = base;
+            d["error"] = json!(format!("{e:#}"));
+            d
+        }
+    }
+}
+
+pub async fn list_models(State(st): State<AppState>) -> Result<Json<serde_json::Value>, Problem> {
+    let rows = st.ctx.store.models().await.map_err(Problem::internal)?;
+    Ok(Json(json!({ "models": rows.iter().map(|m| model_doc(&st, m)).collect::<Vec<_>>() })))
+}
+
+pub async fn get_model(State(st): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, Problem> {
+    match st.ctx.store.model(&id).await.map_err(Problem::internal)? {
+        Some(m) => Ok(Json(model_doc(&st, &m))),
+        None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no model '{id}'"))),
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NewJob {
+    kind: String,
+    #[serde(default)]
+    params: serde_json::Value,
+}
+
+fn job_doc(j: &crate::store::JobRow) -> serde_json::Value {
+    let mut d = serde_json::to_value(j).unwrap_or_default();
+    d["links"] = json!({ "self": format!("/jobs/{}", j.id), "cancel": format!("/jobs/{}/cancel", j.id) });
+    d
+}
+
+pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Response, Problem> {
+    let req: NewJob = json_body(&headers, &body)?;
+    if !KINDS.contains(&req.kind.as_str()) {
+        return Err(Problem::invalid(vec![("kind".into(), format!("unknown job kind '{}' (known: {})", req.kind, KINDS.join(", ")))]));
+    }
+    jobs::validate(&req.kind, &req.params).map_err(Problem::invalid)?;
+    if req.kind == "train" {
+        let ds = req.params["dataset"].as_str().unwrap_or_default();
+        let ok = matches!(st.ctx.store.job(ds).await.map_err(Problem::internal)?, Some(j) if j.kind == "simulate" && j.state == "succeeded");
+        if !ok {
+            return Err(Problem::invalid(vec![("params.dataset".into(), format!("'{ds}' is not a succeeded simulate job"))]));
+        }
+    }
+    if st.ctx.store.count_active().await.map_err(Problem::internal)? >= st.ctx.max_queue {
+        return Err(Problem::new(StatusCode::TOO_MANY_REQUESTS, format!("the queue is full ({} active jobs); retry later", st.ctx.max_queue)));
+    }
+    let id = jobs::new_id();
+    st.ctx.store.insert_job(&id, &req.kind, &req.params, 3).await.map_err(Problem::internal)?;
+    st.ctx.notify.notify_one();
+    tracing::info!(job = %id, kind = %req.kind, "job queued");
+    let job = st.ctx.store.job(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
+    let mut r = (StatusCode::ACCEPTED, Json(job_doc(&job))).into_response();
+    r.headers_mut().insert(header::LOCATION, HeaderValue::from_str(&format!("/jobs/{id}")).map_err(Problem::internal)?);
+    Ok(r)
+}
+
+#[derive(Deserialize)]
+pub struct JobQuery {
+    state: Option<String>,
+    limit: Option<i64>,
+}
+
+pub async fn list_jobs(State(st): State<AppState>, Query(q): Query<JobQuery>) -> Result<Json<serde_json::Value>, Problem> {
+    const STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
+    if let Some(s) = &q.state {
+        if !STATES.contains(&s.as_str()) {
+            return Err(Problem::invalid(vec![("state".into(), format!("must be one of {}", STATES.join(", ")))]));
+        }
+    }
+    let limit = q.limit.unwrap_or(100).clamp(1, 1000);
+    let rows = st.ctx.store.jobs(q.state.as_deref(), limit).await.map_err(Problem::internal)?;
+    Ok(Json(json!({ "jobs": rows.iter().map(job_doc).collect::<Vec<_>>() })))
+}
+
+pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, Problem> {
+    match st.ctx.store.job(&id).await.map_err(Problem::internal)? {
+        Some(j) => Ok(Json(job_doc(&j))),
+        None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'"))),
+    }
+}
+
+pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
+    match st.ctx.store.job(&id).await.map_err(Problem::internal)? {
+        None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'"))),
+        Some(j) if ["succeeded", "failed", "cancelled"].contains(&j.state.as_str()) => Err(Problem::new(StatusCode::CONFLICT, format!("job '{id}' already ended ({})", j.state))),
+        Some(_) => {
+            let j = st.ctx.store.cancel(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
+            Ok((StatusCode::ACCEPTED, Json(job_doc(&j))).into_response())
+        }
+    }
+}
+
+async fn dataset_job(st: &AppState, id: &str) -> Result<(), Problem> {
+    match st.ctx.store.job(id).await.map_err(Problem::internal)? {
+        Some(j) if j.kind == "simulate" && j.state == "succeeded" => Ok(()),
+        Some(j) if j.kind == "simulate" => Err(Problem::new(StatusCode::CONFLICT, format!("dataset '{id}' is not ready (job {})", j.state))),
+        _ => Err(Problem::new(StatusCode::NOT_FOUND, format!("no dataset '{id}'"))),
+    }
+}
+
+pub async fn get_dataset(State(st): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, Problem> {
+    dataset_job(&st, &id).await?;
+    let meta = tokio::fs::read(st.ctx.dataset_dir(&id).join("meta.json")).await.map_err(Problem::internal)?;
+    let meta: serde_json::Value = serde_json::from_slice(&meta).map_err(Problem::internal)?;
+    Ok(Json(json!({
+        "id": id,
+        "rows": meta["n_rows"],
+        "meta": meta,
+        "files": { "theta": format!("/datasets/{id}/theta.csv"), "x": format!("/datasets/{id}/x.csv"), "meta": format!("/datasets/{id}/meta.json") },
+    })))
+}
+
+pub async fn get_dataset_file(State(st): State<AppState>, Path((id, file)): Path<(String, String)>) -> Result<Response, Problem> {
+    let ct = match file.as_str() {
+        "theta.csv" | "x.csv" => "text/csv",
+        "meta.json" => "application/json",
+        _ => return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{file}' (theta.csv, x.csv, meta.json)"))),
+    };
+    dataset_job(&st, &id).await?;
+    let bytes = tokio::fs::read(st.ctx.dataset_dir(&id).join(&file)).await.map_err(Problem::internal)?;
+    let mut r = bytes.into_response();
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
+    Ok(r)
+}

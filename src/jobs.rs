@@ -1,0 +1,334 @@
+//! The job queue: a tokio dispatcher claims queued jobs from SQLite one at a time and
+//! runs the CPU work on the blocking pool (simulations fan out on rayon inside it), so
+//! the async runtime never blocks. Progress goes to the database as the work goes;
+//! cancellation and shutdown are checked between chunks.
+
+use crate::dataset::{self, Rows};
+use crate::npe::{self, Dataset, Npe, TrainSettings};
+use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
+use crate::sim::output::feature_names;
+use crate::sim::params::{EFFECTS, Effects, N_PARAMS, PARAMS};
+use crate::sim::{Model, ModelConfig};
+use crate::store::{JobRow, Store};
+use anyhow::{Context, Result, anyhow, bail};
+use serde::Deserialize;
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::Duration;
+use tokio::sync::Notify;
+
+pub const KINDS: [&str; 3] = ["simulate", "train", "resimulate"];
+
+/// Shared service state.
+pub struct Ctx {
+    pub store: Store,
+    pub data_dir: PathBuf,
+    pub notify: Notify,
+    pub shutdown: AtomicBool,
+    models: RwLock<HashMap<String, Arc<Npe>>>,
+    pub max_queue: i64,
+}
+
+impl Ctx {
+    pub fn new(store: Store, data_dir: PathBuf, max_queue: i64) -> Ctx {
+        Ctx { store, data_dir, notify: Notify::new(), shutdown: AtomicBool::new(false), models: RwLock::new(HashMap::new()), max_queue }
+    }
+
+    /// A registered model, loaded once and shared.
+    pub fn loaded(&self, id: &str, path: &Path) -> Result<Arc<Npe>> {
+        if let Some(m) = self.models.read().map_err(|_| anyhow!("model cache poisoned"))?.get(id) {
+            return Ok(m.clone());
+        }
+        let m = Arc::new(Npe::load(path)?);
+        self.models.write().map_err(|_| anyhow!("model cache poisoned"))?.insert(id.to_string(), m.clone());
+        Ok(m)
+    }
+
+    pub fn dataset_dir(&self, id: &str) -> PathBuf {
+        self.data_dir.join("datasets").join(id)
+    }
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimulateParams {
+    pub n: Option<usize>,
+    #[serde(default)]
+    pub seed: u64,
+    /// Rows in the order of the 7 parameters, then the `vary` effects.
+    pub theta: Option<Vec<Vec<f64>>>,
+    #[serde(default)]
+    pub effects: BTreeMap<String, f64>,
+    #[serde(default)]
+    pub vary: Vec<String>,
+    #[serde(default)]
+    pub noise_scale: f64,
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrainParams {
+    /// Id of a succeeded simulate job.
+    pub dataset: String,
+    #[serde(default = "one")]
+    pub noise_scale: f64,
+    #[serde(default)]
+    pub seed: u64,
+    #[serde(default = "epochs")]
+    pub max_epochs: usize,
+    #[serde(default)]
+    pub mask_groups: bool,
+}
+
+fn one() -> f64 {
+    1.0
+}
+fn epochs() -> usize {
+    300
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ResimulateParams {
+    /// Rows of the 7 parameters (natural units), e.g. a MAP and posterior draws.
+    pub theta: Vec<Vec<f64>>,
+    #[serde(default)]
+    pub effects: BTreeMap<String, f64>,
+}
+
+pub const MAX_ROWS: usize = 100_000;
+pub const MAX_RESIMULATE: usize = 1_000;
+
+/// A validation problem: the JSON path of the field and what is wrong with it.
+pub type FieldError = (String, String);
+
+fn effects_of(map: &BTreeMap<String, f64>, errs: &mut Vec<FieldError>) -> Effects {
+    let mut fx = Effects::default();
+    for (name, v) in map {
+        if let Err(e) = fx.set(name, *v) {
+            errs.push((format!("params.effects.{name}"), e));
+        }
+    }
+    fx
+}
+
+/// Checks a job's params before it is queued, naming each bad field.
+pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldError>> {
+    let de = |e: serde_json::Error| vec![("params".to_string(), e.to_string())];
+    let mut errs = Vec::new();
+    match kind {
+        "simulate" => {
+            let p: SimulateParams = serde_json::from_value(params.clone()).map_err(de)?;
+            effects_of(&p.effects, &mut errs);
+            for (i, v) in p.vary.iter().enumerate() {
+                if Effects::index(v).is_none() {
+                    errs.push((format!("params.vary[{i}]"), format!("unknown effect '{v}'")));
+                }
+            }
+            match (&p.n, &p.theta) {
+                (Some(n), None) if *n == 0 || *n > MAX_ROWS => errs.push(("params.n".into(), format!("must be 1..={MAX_ROWS}"))),
+                (None, Some(rows)) if rows.is_empty() || rows.len() > MAX_ROWS => errs.push(("params.theta".into(), format!("needs 1..={MAX_ROWS} rows"))),
+                (None, Some(rows)) => {
+                    let w = N_PARAMS + p.vary.len();
+                    if let Some(i) = rows.iter().position(|r| r.len() != w) {
+                        errs.push((format!("params.theta[{i}]"), format!("needs {w} values (the 7 parameters, then the varied effects)")));
+                    }
+                }
+                (Some(_), Some(_)) => errs.push(("params".into(), "give either n or theta, not both".into())),
+                (None, None) => errs.push(("params.n".into(), "give n (prior draws) or theta (rows)".into())),
+                _ => {}
+            }
+            if !(p.noise_scale.is_finite() && p.noise_scale >= 0.0) {
+                errs.push(("params.noise_scale".into(), "must be a finite number ≥ 0".into()));
+            }
+        }
+        "train" => {
+            let p: TrainParams = serde_json::from_value(params.clone()).map_err(de)?;
+            if p.max_epochs == 0 || p.max_epochs > 5000 {
+                errs.push(("params.max_epochs".into(), "must be 1..=5000".into()));
+            }
+            if !(p.noise_scale.is_finite() && p.noise_scale >= 0.0) {
+                errs.push(("params.noise_scale".into(), "must be a finite number ≥ 0".into()));
+            }
+        }
+        "resimulate" => {
+            let p: ResimulateParams = serde_json::from_value(params.clone()).map_err(de)?;
+            effects_of(&p.effects, &mut errs);
+            if p.theta.is_empty() || p.theta.len() > MAX_RESIMULATE {
+                errs.push(("params.theta".into(), format!("needs 1..={MAX_RESIMULATE} rows")));
+            }
+            if let Some(i) = p.theta.iter().position(|r| r.len() != N_PARAMS) {
+                errs.push((format!("params.theta[{i}]"), format!("needs {N_PARAMS} values: {}", PARAMS.map(|p| p.name).join(", "))));
+            }
+        }
+        other => errs.push(("kind".into(), format!("unknown job kind '{other}' (known: {})", KINDS.join(", ")))),
+    }
+    if errs.is_empty() { Ok(()) } else { Err(errs) }
+}
+
+/// Reports progress and tells the worker whether to stop.
+pub struct Reporter {
+    tx: tokio::sync::mpsc::UnboundedSender<(f64, String)>,
+    cancel: Arc<AtomicBool>,
+}
+
+impl Reporter {
+    fn report(&self, progress: f64, message: String) -> bool {
+        let _ = self.tx.send((progress, message));
+        !self.cancel.load(Ordering::Relaxed)
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("stopped on request")]
+struct Stopped;
+
+/// Runs one job's CPU work (on a blocking thread). Returns the job's result document.
+fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
+    match job.kind.as_str() {
+        "simulate" => {
+            let p: SimulateParams = serde_json::from_value(job.params.clone())?;
+            let mut errs = Vec::new();
+            let mut design = Design { fixed: effects_of(&p.effects, &mut errs), varied: vec![] };
+            design.varied = p.vary.iter().filter_map(|v| Effects::index(v)).collect();
+            let model = Model::new(ModelConfig::default())?;
+            let noise = Noise { std: default_noise_std(&model), scale: p.noise_scale, seed: p.seed };
+            let rows = match p.theta {
+                Some(t) => Rows::Given(t),
+                None => Rows::Prior { n: p.n.unwrap_or(0), seed: p.seed },
+            };
+            let dir = ctx.dataset_dir(&job.id);
+            let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, model.config.preset, &dir, &mut |done, n| {
+                r.report(done as f64 / n as f64, format!("simulated {done}/{n}"))
+            })
+            .map_err(|e| if e.is::<dataset::Cancelled>() { Stopped.into() } else { e })?;
+            Ok(serde_json::json!({
+                "dataset": format!("/datasets/{}", job.id),
+                "rows": meta.n_rows,
+                "failed": meta.failed.len(),
+                "wall_seconds": meta.wall_seconds,
+            }))
+        }
+        "train" => {
+            let p: TrainParams = serde_json::from_value(job.params.clone())?;
+            let dir = ctx.dataset_dir(&p.dataset);
+            let ds = Dataset::load(&dir).with_context(|| format!("dataset '{}'", p.dataset))?;
+            let s = TrainSettings { noise_scale: p.noise_scale, seed: p.seed, max_epochs: p.max_epochs, mask_groups: p.mask_groups, ..TrainSettings::default() };
+            let max = s.max_epochs as f64;
+            let model = npe::train(&ds, &s, &mut |e| r.report(e.epoch as f64 / max, format!("epoch {} val loss {:.4}", e.epoch, e.val_loss)))?;
+            if ctx.shutdown.load(Ordering::Relaxed) {
+                bail!(Stopped);
+            }
+            let models = ctx.data_dir.join("models");
+            std::fs::create_dir_all(&models)?;
+            let path = models.join(format!("{}.otofit", job.id));
+            model.save(&path)?;
+            Ok(serde_json::json!({
+                "model": format!("/models/{}", job.id),
+                "path": path.display().to_string(),
+                "epochs": model.header.training.epochs,
+                "best_val_loss": model.header.training.best_val_loss,
+                "cancelled_early": r.cancel.load(Ordering::Relaxed),
+            }))
+        }
+        "resimulate" => {
+            let p: ResimulateParams = serde_json::from_value(job.params.clone())?;
+            let mut errs = Vec::new();
+            let design = Design { fixed: effects_of(&p.effects, &mut errs), varied: vec![] };
+            let model = Model::new(ModelConfig::default())?;
+            let out = run_rows(&model, &design, &p.theta, 0, None);
+            let x: Vec<serde_json::Value> = out.iter().map(|res| match res {
+                Ok(x) => serde_json::json!(x),
+                Err(e) => serde_json::json!({ "error": e.to_string() }),
+            }).collect();
+            r.report(1.0, format!("{} rows", p.theta.len()));
+            Ok(serde_json::json!({ "features": feature_names(model.frequencies()), "x": x }))
+        }
+        other => bail!("unknown job kind '{other}'"),
+    }
+}
+
+/// The dispatcher: claims and runs jobs until shutdown.
+pub async fn dispatcher(ctx: Arc<Ctx>) {
+    loop {
+        if ctx.shutdown.load(Ordering::Relaxed) {
+            break;
+        }
+        match ctx.store.claim().await {
+            Ok(Some(job)) => run(ctx.clone(), job).await,
+            Ok(None) => {
+                tokio::select! {
+                    _ = ctx.notify.notified() => {}
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                }
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "claiming a job failed");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+}
+
+async fn run(ctx: Arc<Ctx>, job: JobRow) {
+    let t0 = std::time::Instant::now();
+    tracing::info!(job = %job.id, kind = %job.kind, attempt = job.attempts, "job started");
+    let cancel = Arc::new(AtomicBool::new(false));
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let reporter = Reporter { tx, cancel: cancel.clone() };
+    let (c2, j2) = (ctx.clone(), job.clone());
+    let mut handle = tokio::task::spawn_blocking(move || execute(&c2, &j2, &reporter));
+    let result = loop {
+        tokio::select! {
+            Some((p, m)) = rx.recv() => {
+                if let Err(e) = ctx.store.progress(&job.id, p, &m).await {
+                    tracing::warn!(job = %job.id, error = %e, "progress not saved");
+                }
+            }
+            _ = tokio::time::sleep(Duration::from_millis(300)) => {
+                if ctx.shutdown.load(Ordering::Relaxed) || ctx.store.cancel_requested(&job.id).await {
+                    cancel.store(true, Ordering::Relaxed);
+                }
+            }
+            res = &mut handle => break res,
+        }
+    };
+    let shutting_down = ctx.shutdown.load(Ordering::Relaxed);
+    let cancelled = cancel.load(Ordering::Relaxed);
+    let store = &ctx.store;
+    let outcome = match result {
+        Err(e) => store.finish(&job.id, "failed", Some(&format!("worker panicked: {e}")), None).await,
+        // Interrupted by shutdown: back to the queue, the attempt not counted.
+        Ok(_) if cancelled && shutting_down => store.requeue(&job.id).await,
+        // A cancelled training still returns its best weights: that is a result.
+        Ok(Ok(doc)) => store.finish(&job.id, "succeeded", None, Some(&doc)).await,
+        Ok(Err(e)) if cancelled || e.is::<Stopped>() => store.finish(&job.id, "cancelled", None, None).await,
+        Ok(Err(e)) => store.finish(&job.id, "failed", Some(&format!("{e:#}")), None).await,
+    };
+    if let Err(e) = outcome {
+        tracing::error!(job = %job.id, error = %e, "job state not saved");
+    }
+    if job.kind == "train" {
+        if let Ok(Some(j)) = ctx.store.job(&job.id).await {
+            if j.state == "succeeded" {
+                let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
+                let _ = ctx.store.add_model(&job.id, &path.display().to_string(), false, Some(&job.id)).await;
+            }
+        }
+    }
+    tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
+}
+
+/// A new job id: time-ordered, unguessable enough for a local service.
+pub fn new_id() -> String {
+    use rand::Rng;
+    let ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_millis();
+    format!("{ms:012x}{:08x}", rand::rng().random::<u32>())
+}
+
+/// Known effect names, for error messages.
+pub fn effect_names() -> String {
+    EFFECTS.iter().map(|e| e.name).collect::<Vec<_>>().join(", ")
+}
