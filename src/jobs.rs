@@ -280,6 +280,8 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     let reporter = Reporter { tx, cancel: cancel.clone() };
     let (c2, j2) = (ctx.clone(), job.clone());
     let mut handle = tokio::task::spawn_blocking(move || execute(&c2, &j2, &reporter));
+    // An interval, not a sleep inside select!: progress messages must not starve the check.
+    let mut check = tokio::time::interval(Duration::from_millis(300));
     let result = loop {
         tokio::select! {
             Some((p, m)) = rx.recv() => {
@@ -287,7 +289,7 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
                     tracing::warn!(job = %job.id, error = %e, "progress not saved");
                 }
             }
-            _ = tokio::time::sleep(Duration::from_millis(300)) => {
+            _ = check.tick() => {
                 if ctx.shutdown.load(Ordering::Relaxed) || ctx.store.cancel_requested(&job.id).await {
                     cancel.store(true, Ordering::Relaxed);
                 }

@@ -1,5 +1,6 @@
 //! One integration-test binary (one link step on 2 cores).
 mod baseline;
 mod cli;
+mod http;
 mod npe;
 mod sim;

@@ -1,0 +1,246 @@
+//! The service through its router (no sockets): contract, validation, jobs, auth.
+
+use axum::Router;
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use otofit::http::{AppState, ROUTES, router};
+use otofit::jobs::{self, Ctx};
+use serde_json::{Value, json};
+use std::path::PathBuf;
+use std::sync::Arc;
+use tower::ServiceExt;
+
+const SPEC: &str = include_str!("../../openapi.yaml");
+
+fn default_model() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")
+}
+
+async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Arc<Ctx>) {
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let dir = std::env::temp_dir().join(format!("otofit-http-{}-{}", std::process::id(), N.fetch_add(1, std::sync::atomic::Ordering::SeqCst)));
+    let _ = std::fs::remove_dir_all(&dir);
+    let ctx = otofit::cli::serve::open(&dir, &default_model(), max_queue).await.unwrap();
+    if dispatch {
+        tokio::spawn(jobs::dispatcher(ctx.clone()));
+    }
+    (router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) }), ctx)
+}
+
+async fn call(app: &Router, method: &str, uri: &str, body: Option<Value>) -> (StatusCode, axum::http::HeaderMap, Value) {
+    let mut req = Request::builder().method(method).uri(uri);
+    if body.is_some() {
+        req = req.header(header::CONTENT_TYPE, "application/json");
+    }
+    let req = req.body(body.map_or(Body::empty(), |b| Body::from(b.to_string()))).unwrap();
+    let res = app.clone().oneshot(req).await.unwrap();
+    let (status, headers) = (res.status(), res.headers().clone());
+    let bytes = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
+    (status, headers, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
+async fn raw(app: &Router, req: Request<Body>) -> (StatusCode, axum::http::HeaderMap, Value) {
+    let res = app.clone().oneshot(req).await.unwrap();
+    let (status, headers) = (res.status(), res.headers().clone());
+    let bytes = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
+    (status, headers, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
+/// (method, path) of every operation in openapi.yaml (paths at 2 spaces, methods at 4).
+fn spec_operations() -> Vec<(String, String)> {
+    let mut ops = Vec::new();
+    let (mut in_paths, mut path) = (false, String::new());
+    for line in SPEC.lines() {
+        if line.starts_with("paths:") {
+            in_paths = true;
+        } else if !line.starts_with(' ') && !line.is_empty() {
+            in_paths = false;
+        } else if in_paths && line.starts_with("  /") {
+            path = line.trim().trim_end_matches(':').to_string();
+        } else if in_paths && (line == "    get:" || line == "    post:") {
+            ops.push((line.trim().trim_end_matches(':').to_string(), path.clone()));
+        }
+    }
+    ops
+}
+
+/// Every `example:` of the spec (single-line JSON), with the path it sits under.
+fn spec_examples() -> Vec<(String, Value)> {
+    let mut out = Vec::new();
+    let mut path = String::new();
+    for line in SPEC.lines() {
+        if line.starts_with("  /") {
+            path = line.trim().trim_end_matches(':').to_string();
+        }
+        if let Some(ex) = line.trim().strip_prefix("example: ") {
+            out.push((path.clone(), serde_json::from_str(ex).unwrap_or_else(|e| panic!("example under {path} is not JSON: {e}"))));
+        }
+    }
+    out
+}
+
+/// Required keys of a component schema (its `required: [...]` line).
+fn required(schema: &str) -> Vec<String> {
+    let start = SPEC.find(&format!("\n    {schema}:\n")).unwrap_or_else(|| panic!("no schema {schema}"));
+    let line = SPEC[start..].lines().find(|l| l.trim().starts_with("required:")).unwrap();
+    line.trim().trim_start_matches("required: [").trim_end_matches(']').split(", ").map(str::to_string).collect()
+}
+
+#[test]
+fn openapi_lists_exactly_the_served_routes() {
+    let mut spec = spec_operations();
+    let mut served: Vec<(String, String)> = ROUTES.iter().map(|(m, p)| (m.to_string(), p.to_string())).collect();
+    spec.sort();
+    served.sort();
+    assert_eq!(spec, served);
+}
+
+#[tokio::test]
+async fn spec_examples_are_answered_as_documented() {
+    let (app, _) = app(vec![], 8, false).await;
+    let examples = spec_examples();
+    let infer = &examples.iter().find(|(p, _)| p == "/infer").unwrap().1;
+    let (status, _, body) = call(&app, "POST", "/infer", Some(infer.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    for k in required("InferResponse") {
+        assert!(body.get(&k).is_some(), "response lacks required '{k}'");
+    }
+    for k in required("ParamSummary") {
+        assert!(body["parameters"][0].get(&k).is_some(), "parameter summary lacks '{k}'");
+    }
+    assert_eq!(body["samples"].as_array().unwrap().len(), 1000);
+    assert_eq!(body["inputs"]["interpolated"], true);
+    // The example is the nominal ear: its posterior must cover the nominal E_sal.
+    let sal = &body["parameters"][3];
+    assert!(sal["q05"].as_f64().unwrap() < 2e5 && sal["q95"].as_f64().unwrap() > 2e5, "{sal}");
+    let job = &examples.iter().find(|(p, _)| p == "/jobs").unwrap().1;
+    let (status, headers, body) = call(&app, "POST", "/jobs", Some(job.clone())).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{body}");
+    assert!(headers[header::LOCATION].to_str().unwrap().starts_with("/jobs/"));
+    for k in required("Job") {
+        assert!(body.get(&k).is_some(), "job lacks '{k}'");
+    }
+    for (path, ex) in &examples {
+        if path == "/health" {
+            let (_, _, b) = call(&app, "GET", "/health", None).await;
+            assert_eq!(b.as_object().unwrap().keys().collect::<Vec<_>>(), ex.as_object().unwrap().keys().collect::<Vec<_>>());
+        }
+    }
+    let (status, _, body) = call(&app, "GET", "/ready", None).await;
+    assert_eq!((status, body["ready"].as_bool()), (StatusCode::OK, Some(true)));
+}
+
+#[tokio::test]
+async fn bad_requests_get_problems_that_name_the_field() {
+    let (app, _) = app(vec![], 8, false).await;
+    let f = [200.0, 1000.0, 900.0, 8000.0];
+    let body = json!({"measurements": {"absorbance": {"frequencies_hz": f, "values": [0.1, 0.5, 0.6, 0.3]}}});
+    let (status, headers, p) = call(&app, "POST", "/infer", Some(body)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+    assert_eq!(p["errors"][0]["field"], "measurements.absorbance.frequencies_hz[2]", "{p}");
+    let narrow = json!({"measurements": {"absorbance": {"frequencies_hz": [500.0, 4000.0], "values": [0.1, 0.5]}}});
+    let (_, _, p) = call(&app, "POST", "/infer", Some(narrow)).await;
+    assert!(p["errors"][0]["message"].as_str().unwrap().contains("must cover"), "{p}");
+    let nan = json!({"measurements": {"absorbance": {"frequencies_hz": [200.0, 8000.0], "values": [0.1]}}, "samples": 0});
+    let (status, _, p) = call(&app, "POST", "/infer", Some(nan)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    let (status, _, p) = call(&app, "POST", "/infer", Some(json!({"measurements": {"wbt": {}}}))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert!(p["errors"][0]["field"] == "wbt", "{p}");
+    let req = Request::builder().method("POST").uri("/infer").header(header::CONTENT_TYPE, "application/json").body(Body::from("{not json")).unwrap();
+    assert_eq!(raw(&app, req).await.0, StatusCode::BAD_REQUEST);
+    let req = Request::builder().method("POST").uri("/infer").header(header::CONTENT_TYPE, "text/plain").body(Body::from("{}")).unwrap();
+    assert_eq!(raw(&app, req).await.0, StatusCode::UNSUPPORTED_MEDIA_TYPE);
+    let big = vec![b' '; otofit::http::MAX_BODY + 10];
+    let req = Request::builder().method("POST").uri("/infer").header(header::CONTENT_TYPE, "application/json").body(Body::from(big)).unwrap();
+    let (status, _, p) = raw(&app, req).await;
+    assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE, "{p}");
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 5, "effects": {"cavity": 1.0}}}))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(p["errors"][0]["field"], "params.effects.cavity", "{p}");
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": "nope"}}))).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.dataset")));
+    assert_eq!(call(&app, "GET", "/jobs/nope", None).await.0, StatusCode::NOT_FOUND);
+    assert_eq!(call(&app, "GET", "/jobs?state=done", None).await.0, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(call(&app, "GET", "/nowhere", None).await.0, StatusCode::NOT_FOUND);
+}
+
+async fn wait(app: &Router, id: &str) -> Value {
+    for _ in 0..600 {
+        let (_, _, j) = call(app, "GET", &format!("/jobs/{id}"), None).await;
+        if ["succeeded", "failed", "cancelled"].contains(&j["state"].as_str().unwrap_or("")) {
+            return j;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    panic!("job {id} did not end");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn simulate_train_and_infer_through_jobs() {
+    let (app, _) = app(vec![], 8, true).await;
+    let (_, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 120, "seed": 3}}))).await;
+    let id = j["id"].as_str().unwrap().to_string();
+    let done = wait(&app, &id).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["progress"], 1.0);
+    let (_, _, ds) = call(&app, "GET", &format!("/datasets/{id}"), None).await;
+    assert_eq!(ds["rows"], 120);
+    let res = app.clone().oneshot(Request::get(format!("/datasets/{id}/x.csv")).body(Body::empty()).unwrap()).await.unwrap();
+    let csv = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
+    assert_eq!(String::from_utf8_lossy(&csv).lines().count(), 121);
+    let (_, _, t) = call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": id, "max_epochs": 2}}))).await;
+    let tid = t["id"].as_str().unwrap().to_string();
+    let done = wait(&app, &tid).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let (status, _, m) = call(&app, "GET", &format!("/models/{tid}"), None).await;
+    assert_eq!((status, m["training"]["epochs"].as_u64()), (StatusCode::OK, Some(2)), "{m}");
+    let (_, _, r) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": [[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]]}}))).await;
+    let done = wait(&app, r["id"].as_str().unwrap()).await;
+    assert_eq!(done["result"]["x"][0].as_array().unwrap().len(), 250, "{done}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cancel_recover_and_queue_limits() {
+    let (app, ctx) = app(vec![], 2, true).await;
+    let (_, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 100000, "seed": 1}}))).await;
+    let id = j["id"].as_str().unwrap().to_string();
+    tokio::time::sleep(std::time::Duration::from_millis(400)).await;
+    let (status, _, _) = call(&app, "POST", &format!("/jobs/{id}/cancel"), None).await;
+    assert_eq!(status, StatusCode::ACCEPTED);
+    let done = wait(&app, &id).await;
+    assert_eq!(done["state"], "cancelled", "{done}");
+    assert!(!ctx.dataset_dir(&id).join("x.csv").exists() && !ctx.dataset_dir(&id).join("x.csv.tmp").exists());
+    assert_eq!(call(&app, "POST", &format!("/jobs/{id}/cancel"), None).await.0, StatusCode::CONFLICT);
+    // Queue bound: two queued jobs fill a queue of 2 (no dispatcher claims them here).
+    let (app2, ctx2) = self::app(vec![], 2, false).await;
+    for _ in 0..2 {
+        assert_eq!(call(&app2, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 10}}))).await.0, StatusCode::ACCEPTED);
+    }
+    assert_eq!(call(&app2, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 10}}))).await.0, StatusCode::TOO_MANY_REQUESTS);
+    // Crash recovery: a job left running is re-queued, or failed after its last attempt.
+    let store = &ctx2.store;
+    let first = store.claim().await.unwrap().unwrap();
+    let second = store.claim().await.unwrap().unwrap();
+    sqlx::query("UPDATE jobs SET attempts = max_attempts WHERE id = ?").bind(&second.id).execute(&store.pool).await.unwrap();
+    assert_eq!(store.recover().await.unwrap(), (1, 1));
+    assert_eq!(store.job(&first.id).await.unwrap().unwrap().state, "queued");
+    let failed = store.job(&second.id).await.unwrap().unwrap();
+    assert_eq!(failed.state, "failed");
+    assert!(failed.error.unwrap().contains("last attempt"));
+}
+
+#[tokio::test]
+async fn api_keys_guard_every_route_but_health() {
+    use sha2::Digest;
+    let hash: [u8; 32] = sha2::Sha256::digest(b"s3cret").into();
+    let (app, _) = app(vec![hash], 8, false).await;
+    assert_eq!(call(&app, "GET", "/health", None).await.0, StatusCode::OK);
+    assert_eq!(call(&app, "GET", "/models", None).await.0, StatusCode::UNAUTHORIZED);
+    let with = |key: &str| Request::get("/models").header(header::AUTHORIZATION, format!("Bearer {key}")).body(Body::empty()).unwrap();
+    assert_eq!(raw(&app, with("wrong")).await.0, StatusCode::UNAUTHORIZED);
+    assert_eq!(raw(&app, with("s3cret")).await.0, StatusCode::OK);
+    assert_eq!(otofit::cli::serve::parse_key_hashes(&[hex::encode(hash)]).unwrap(), vec![hash]);
+    assert!(otofit::cli::serve::parse_key_hashes(&["zz".into()]).is_err());
+}
