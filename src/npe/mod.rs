@@ -269,15 +269,15 @@ impl Npe {
         let d = self.header.params.len();
         let mut order: Vec<usize> = (0..v.len()).collect();
         order.sort_by(|&a, &b| lp[b].total_cmp(&lp[a]));
-        let starts: Vec<usize> = order.into_iter().take(4).collect();
+        let starts: Vec<usize> = order.into_iter().take(2).collect();
         let k = starts.len();
         let mut x: Vec<f32> = starts.iter().flat_map(|&i| v[i].clone()).collect();
         let dev = self.device.clone().autodiff();
         let ctx = self.context(&self.flow_ad, input, k, &dev).detach();
         let (mut m, mut s) = (vec![0f32; k * d], vec![0f32; k * d]);
-        let (lr, b1, b2) = (0.02f32, 0.9f32, 0.999f32);
+        let (lr, b1, b2) = (0.05f32, 0.9f32, 0.999f32);
         let mut best = (f64::NEG_INFINITY, vec![0f32; d]);
-        for step in 1..=40 {
+        for step in 1..=20 {
             let t = Tensor::<2>::from_data(TensorData::new(x.clone(), [k, d]), &dev).require_grad();
             let lp = self.flow_ad.log_prob(&self.header.flow, t.clone(), ctx.clone());
             let vals: Vec<f32> = lp.clone().try_into_vec_as::<f32>().expect("flow output");
