@@ -4,8 +4,82 @@ use crate::discrepancy::{self, Observation, Thresholds, Verdict};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::params::{EFFECTS, N_EFFECTS};
 use crate::sim::{Model, ModelConfig};
-use anyhow::Result;
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::path::PathBuf;
 use std::time::Instant;
+
+#[derive(Args, Debug)]
+pub struct DiagnoseArgs {
+    /// Base model (trained on otofit's simulator without effects).
+    #[arg(long)]
+    pub model: PathBuf,
+    /// One observation: CSV with a header of all 250 feature names.
+    #[arg(long)]
+    pub obs: PathBuf,
+    #[arg(long)]
+    pub out: PathBuf,
+    /// `all` or a comma-separated list of effects.
+    #[arg(long, default_value = "all")]
+    pub candidates: String,
+    /// Name the effect but do not extend and retrain.
+    #[arg(long)]
+    pub no_extend: bool,
+    /// Size of the extended model's training set, and its epochs.
+    #[arg(long, default_value_t = 10_000)]
+    pub train_rows: usize,
+    #[arg(long, default_value_t = 300)]
+    pub max_epochs: usize,
+    /// Effect-free simulations for the null distribution of the statistics.
+    #[arg(long, default_value_t = 40)]
+    pub null_cases: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+pub fn run(args: DiagnoseArgs) -> Result<()> {
+    use crate::discrepancy::workflow::{Settings, diagnose};
+    let candidates: Vec<usize> = if args.candidates == "all" {
+        (0..N_EFFECTS).collect()
+    } else {
+        args.candidates
+            .split(',')
+            .map(|c| crate::sim::Effects::index(c.trim()).with_context(|| format!("--candidates: unknown effect '{c}' (known: {})", crate::jobs::effect_names())))
+            .collect::<Result<_>>()?
+    };
+    let base = crate::npe::Npe::load(&args.model)?;
+    let table = crate::dataset::read_csv(&args.obs)?;
+    let Some(row) = table.rows.first() else { bail!("{}: no observation row", args.obs.display()) };
+    let (x, present) = super::infer::align(&base, &table.header, row)?;
+    if let Some(i) = present.iter().position(|p| !p) {
+        bail!("{}: feature '{}' is missing (diagnose needs all 250)", args.obs.display(), base.header.feature_names[i]);
+    }
+    let model = Model::new(ModelConfig::default())?;
+    let s = Settings { candidates, extend: !args.no_extend, train_rows: args.train_rows, max_epochs: args.max_epochs, null_cases: args.null_cases, seed: args.seed, ..Settings::default() };
+    let report = diagnose(&model, &base, &x, &s, &mut |m| eprintln!("{m}"))?;
+    std::fs::create_dir_all(&args.out)?;
+    for (name, svg) in &report.figures {
+        std::fs::write(args.out.join(name), svg)?;
+    }
+    let mut doc = serde_json::to_value(&report)?;
+    if let Some(m) = &report.extended_model {
+        let path = args.out.join("extended.otofit");
+        m.save(&path)?;
+        doc["extended_model"] = path.display().to_string().into();
+    }
+    doc["figures"] = report.figures.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>().into();
+    let tmp = args.out.join("report.json.tmp");
+    std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?)?;
+    std::fs::rename(&tmp, args.out.join("report.json"))?;
+    println!("verdict: {:?}{}", report.verdict, report.named.map(|n| format!(" ({n})")).unwrap_or_default());
+    for b in &report.before.bands {
+        println!("  {}", b.describe());
+    }
+    if let (Some(a), Some(p)) = (&report.after, &report.effect_posterior) {
+        println!("reduced χ² {:.2} → {:.2}; {} median {:.3e} [{:.3e}, {:.3e}] {}", report.before.reduced_chi2, a.reduced_chi2, p.effect, p.median, p.q05, p.q95, p.unit);
+    }
+    Ok(())
+}
 
 /// Base starts without NPE: the nominal row and a few prior draws.
 fn base_starts(seed: u64) -> Vec<Vec<f64>> {

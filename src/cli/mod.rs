@@ -21,6 +21,8 @@ pub struct Cli {
 pub enum Command {
     /// Simulate parameter sets (prior draws or given rows) into a dataset folder.
     Simulate(simulate::SimulateArgs),
+    /// Find where model and measurement disagree, name the missing effect, add it.
+    Diagnose(diagnose::DiagnoseArgs),
     /// Run the HTTP service (API + job queue).
     Serve(serve::ServeArgs),
     /// Train a posterior estimator on a dataset folder.
@@ -39,6 +41,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => bench::run(args),
         Command::Train(args) => train::run(args),
         Command::Serve(args) => serve::run(args),
+        Command::Diagnose(args) => diagnose::run(args),
         Command::Infer(args) => infer::run(args),
         Command::Calibrate(args) => calibrate::run(args),
     }

@@ -4,6 +4,7 @@
 
 pub mod fit;
 pub mod locate;
+pub mod workflow;
 
 pub use fit::{Fit, Observation, fit};
 pub use locate::{Band, locate};
@@ -39,12 +40,15 @@ pub fn rank_candidates(model: &Model, base: &Design, base_row: &[f64], base_chi2
             let mut design = base.clone();
             design.varied.push(e);
             let spec = EFFECTS[e].as_param();
-            // Three starts across the effect's range: the misfit is often multimodal in it.
-            let starts: Vec<Vec<f64>> = [0.15, 0.5, 0.85]
+            // Starts across the effect's range (the misfit is often multimodal in it), from
+            // the base row and from the nominal parameters: a missing effect can drag the
+            // base fit far from where the extended optimum lies.
+            let nominal = crate::sim::Theta::nominal().0;
+            let starts: Vec<Vec<f64>> = [base_row, &nominal[..]]
                 .iter()
-                .map(|&q| base_row.iter().copied().chain(std::iter::once(spec.from_unit(q))).collect())
+                .flat_map(|b| [0.15, 0.5, 0.85].map(|q| b.iter().copied().chain(std::iter::once(spec.from_unit(q))).collect::<Vec<f64>>()))
                 .collect();
-            let f = fit(model, &design, &starts, obs, 40)?;
+            let f = fit(model, &design, &starts, obs, 60)?;
             let k = design.width() - 1;
             let u = fit::to_unbounded(&spec, f.row[k]);
             let s = 1.645 * f.u_std[k];

@@ -1,6 +1,7 @@
 //! One integration-test binary (one link step on 2 cores).
 mod baseline;
 mod cli;
+mod discrepancy;
 mod http;
 mod npe;
 mod sim;

@@ -1,0 +1,291 @@
+//! The whole diagnosis: fit (NPE) → check (posterior predictive, calibrated null) →
+//! locate (bands) → name (candidate effects) → add (extend the prior, simulate, retrain)
+//! → show (before/after numbers and figures). Returns a report; the caller writes files.
+
+use super::{Band, Observation, Thresholds, Verdict, fit, fit_and_rank, locate};
+use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
+use crate::plot;
+use crate::sim::batch::{Design, Noise, run_rows};
+use crate::sim::output::{MEASURES, feature_names};
+use crate::sim::params::{EFFECTS, N_PARAMS, ParamSpec, Scale};
+use crate::sim::Model;
+use anyhow::{Result, bail};
+use serde::Serialize;
+
+#[derive(Clone, Debug)]
+pub struct Settings {
+    /// Effect indices to try.
+    pub candidates: Vec<usize>,
+    /// Extend, simulate and retrain when an effect is named.
+    pub extend: bool,
+    /// Posterior draws re-simulated for the predictive check.
+    pub draws: usize,
+    /// Effect-free simulations for the null distribution of the statistics.
+    pub null_cases: usize,
+    /// Training set size and epochs of the extended model.
+    pub train_rows: usize,
+    pub max_epochs: usize,
+    pub seed: u64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings { candidates: (0..EFFECTS.len()).collect(), extend: true, draws: 200, null_cases: 40, train_rows: 10_000, max_epochs: 300, seed: 0 }
+    }
+}
+
+/// Posterior-predictive check of one model against the observation.
+#[derive(Clone, Debug, Serialize)]
+pub struct Check {
+    pub reduced_chi2: f64,
+    /// Standardised residuals (obs − predictive mean)/σ_total per feature.
+    #[serde(skip)]
+    pub z: Vec<f64>,
+    pub bands: Vec<Band>,
+    /// Spearman ρ per measure between the MAP re-simulation and the observation.
+    pub spearman: Vec<(String, f64)>,
+    #[serde(skip)]
+    pub map_x: Vec<f64>,
+    #[serde(skip)]
+    pub lo: Vec<f64>,
+    #[serde(skip)]
+    pub hi: Vec<f64>,
+    #[serde(skip)]
+    pub draws_x: Vec<Vec<f64>>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct EffectPosterior {
+    pub effect: &'static str,
+    pub unit: &'static str,
+    pub median: f64,
+    pub q05: f64,
+    pub q95: f64,
+}
+
+#[derive(Serialize)]
+pub struct Report {
+    pub verdict: Verdict,
+    pub thresholds: Thresholds,
+    pub before: Check,
+    pub candidates: Vec<super::Candidate>,
+    pub named: Option<&'static str>,
+    /// Best χ² drop minus the runner-up's.
+    pub margin: Option<f64>,
+    pub after: Option<Check>,
+    pub effect_posterior: Option<EffectPosterior>,
+    pub map_before: Vec<f64>,
+    pub map_after: Option<Vec<f64>>,
+    #[serde(skip)]
+    pub extended_model: Option<Npe>,
+    #[serde(skip)]
+    pub figures: Vec<(String, String)>,
+    pub seconds: f64,
+}
+
+fn wrap(i: usize, nf: usize, d: f64) -> f64 {
+    fit::feature_residual(i, nf, d, 0.0)
+}
+
+fn ranks(v: &[f64]) -> Vec<f64> {
+    let mut idx: Vec<usize> = (0..v.len()).collect();
+    idx.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
+    let mut r = vec![0.0; v.len()];
+    for (k, &i) in idx.iter().enumerate() {
+        r[i] = k as f64;
+    }
+    r
+}
+
+/// Spearman rank correlation (no tie correction; spectra rarely tie).
+pub fn spearman(a: &[f64], b: &[f64]) -> f64 {
+    let (ra, rb) = (ranks(a), ranks(b));
+    let n = a.len() as f64;
+    let m = (n - 1.0) / 2.0;
+    let cov: f64 = ra.iter().zip(&rb).map(|(x, y)| (x - m) * (y - m)).sum();
+    let var: f64 = ra.iter().map(|x| (x - m).powi(2)).sum();
+    cov / var
+}
+
+/// Re-simulates posterior draws (rows in `design` order) and compares with `obs`.
+fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], obs: &Observation) -> Result<Check> {
+    let sims: Vec<Vec<f64>> = run_rows(model, design, draws, 0, None).into_iter().filter_map(|r| r.ok()).collect();
+    if sims.len() < draws.len() / 2 {
+        bail!("most posterior draws failed to simulate");
+    }
+    let map_x = run_rows(model, design, &[map.to_vec()], 0, None).remove(0)?;
+    let nf = obs.x.len() / MEASURES.len();
+    let n = sims.len() as f64;
+    let mut z = Vec::with_capacity(obs.x.len());
+    let (mut lo, mut hi) = (Vec::new(), Vec::new());
+    for i in 0..obs.x.len() {
+        // Residuals relative to the MAP spectrum keep phase wraps out of the spread.
+        let d: Vec<f64> = sims.iter().map(|s| wrap(i, nf, s[i] - map_x[i])).collect();
+        let mean = d.iter().sum::<f64>() / n;
+        let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+        let centre = map_x[i] + mean;
+        z.push(wrap(i, nf, obs.x[i] - centre) / (var + obs.sigma[i].powi(2)).sqrt());
+        let mut sorted = d.clone();
+        sorted.sort_by(f64::total_cmp);
+        lo.push(map_x[i] + sorted[(0.05 * (n - 1.0)) as usize] - 1.645 * obs.sigma[i]);
+        hi.push(map_x[i] + sorted[(0.95 * (n - 1.0)) as usize] + 1.645 * obs.sigma[i]);
+    }
+    let freqs = model.frequencies();
+    let spearman = MEASURES.iter().enumerate().map(|(m, ms)| (ms.name.to_string(), spearman(&map_x[m * nf..(m + 1) * nf], &obs.x[m * nf..(m + 1) * nf]))).collect();
+    let reduced_chi2 = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
+    Ok(Check { reduced_chi2, bands: locate(&z, freqs, 2.5, 3), z, spearman, map_x, lo, hi, draws_x: sims.into_iter().take(5).collect() })
+}
+
+fn to_param(p: &ParamSpec) -> npe::Param {
+    npe::Param {
+        name: p.name.to_string(),
+        unit: p.unit.to_string(),
+        scale: if p.scale == Scale::Log10 { npe::Scale::Log10 } else { npe::Scale::Linear },
+        low: p.low,
+        high: p.high,
+    }
+}
+
+/// Simulates a training set for `design` and trains an estimator on it.
+pub fn train_for(model: &Model, design: &Design, noise: &Noise, rows: usize, max_epochs: usize, seed: u64, progress: &mut dyn FnMut(&str)) -> Result<Npe> {
+    let theta = design.draw(seed, 0, rows);
+    let out = run_rows(model, design, &theta, 0, None);
+    let (mut t, mut x) = (Vec::new(), Vec::new());
+    for (row, r) in theta.into_iter().zip(out) {
+        if let Ok(v) = r {
+            if v.iter().all(|f| f.is_finite()) {
+                t.push(row);
+                x.push(v);
+            }
+        }
+    }
+    let ds = Dataset {
+        params: design.columns().iter().map(to_param).collect(),
+        feature_names: feature_names(model.frequencies()),
+        frequencies_hz: model.frequencies().to_vec(),
+        groups: vec![],
+        noise_std: noise.std.clone(),
+        theta: t,
+        x,
+        skipped: 0,
+    };
+    let s = TrainSettings { seed, max_epochs, noise_scale: 1.0, ..TrainSettings::default() };
+    npe::train(&ds, &s, &mut |e| {
+        progress(&format!("training the extended model: epoch {} val {:.3}", e.epoch, e.val_loss));
+        true
+    })
+}
+
+/// The null: effect-free simulations from the prior, pushed through the same fit and
+/// candidate ranking; their 95 % quantiles are the alarm thresholds.
+fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -> Result<Thresholds> {
+    let design = Design::default();
+    let rows = design.draw(s.seed ^ 0x4E55, 0, s.null_cases);
+    let noisy = Noise { seed: s.seed ^ 0x4E55, ..noise.clone() };
+    let sims = run_rows(model, &design, &rows, 0, Some(&noisy));
+    let (mut chi, mut drops) = (Vec::new(), Vec::new());
+    for (k, x) in sims.into_iter().enumerate() {
+        let Ok(x) = x else { continue };
+        let obs = Observation { x, sigma: noise.std.clone() };
+        let inf = base.infer(&Obs { x: &obs.x, present: None }, s.draws, s.seed + k as u64)?;
+        let c = check(model, &design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
+        chi.push(c.reduced_chi2);
+        if let Some((b, ranked)) = fit_and_rank(model, &obs, &[inf.map.clone()], &s.candidates) {
+            drops.push(ranked.first().map_or(0.0, |c| b.chi2 - c.chi2));
+        }
+    }
+    let q95 = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(((v.len().max(1) - 1) as f64 * 0.95).round() as usize).copied().unwrap_or(f64::INFINITY)
+    };
+    Ok(Thresholds { base_reduced_chi2: q95(chi), best_drop: q95(drops), explained: 1.5 })
+}
+
+fn figures(model: &Model, label: &str, obs: &Observation, c: &Check) -> Vec<(String, String)> {
+    let f = model.frequencies();
+    let mut series = vec![plot::Series { x: &obs.x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("observation") }];
+    for d in &c.draws_x {
+        series.push(plot::Series { x: d, color: plot::DRAW, width: 1.0, opacity: 0.35, label: None });
+    }
+    series.push(plot::Series { x: &c.map_x, color: plot::MAP, width: 1.5, opacity: 1.0, label: Some("MAP re-simulation") });
+    vec![
+        (format!("spectra_{label}.svg"), plot::spectra(&format!("Spectra {label}: observation, MAP, draws, 90 % predictive band"), f, &[(&c.lo, &c.hi, plot::BAND)], &series)),
+        (format!("residuals_{label}.svg"), plot::residual_map(&format!("Standardised residuals {label} (observation − prediction)/σ"), f, &c.z)),
+    ]
+}
+
+/// Runs the workflow for one observation (features in otofit's order) with a base model.
+pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &mut dyn FnMut(&str)) -> Result<Report> {
+    let t0 = std::time::Instant::now();
+    if base.header.feature_names != feature_names(model.frequencies()) || base.params().len() != N_PARAMS {
+        bail!("the base model must be an otofit model of the seven parameters on the simulator's grid");
+    }
+    let noise = Noise { std: base.header.noise_std.clone(), scale: 1.0, seed: s.seed };
+    let obs = Observation { x: x.to_vec(), sigma: noise.std.clone() };
+    progress("fit: base posterior");
+    let inf = base.infer(&Obs { x, present: None }, s.draws.max(200), s.seed)?;
+    progress("check: posterior predictive");
+    let base_design = Design::default();
+    let before = check(model, &base_design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
+    progress("null distribution of the statistics");
+    let thresholds = null_thresholds(model, base, &noise, s)?;
+    progress("name: fitting candidate effects");
+    let median: Vec<f64> = inf.summaries.iter().map(|p| p.median).collect();
+    let (base_fit, ranked) = fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates).ok_or_else(|| anyhow::anyhow!("the base fit failed"))?;
+    // Alarm: either statistic beyond its null quantile. Candidate: the best effect if its
+    // χ² drop beats both the BIC penalty and the null quantile of the best drop.
+    let best_drop = ranked.first().map_or(0.0, |c| base_fit.chi2 - c.chi2);
+    let alarm = before.reduced_chi2 > thresholds.base_reduced_chi2 || best_drop > thresholds.best_drop;
+    let candidate = ranked.first().filter(|c| c.score > 0.0 && best_drop > thresholds.best_drop).map(|c| c.effect);
+    let margin = (ranked.len() > 1).then(|| ranked[0].score - ranked[1].score);
+    let mut figs = figures(model, "before", &obs, &before);
+    let (mut after, mut effect_posterior, mut map_after, mut extended) = (None, None, None, None);
+    if let (Some(name), true) = (candidate, s.extend && alarm) {
+        let e = EFFECTS.iter().position(|x| x.name == name).expect("named effect");
+        let design = Design { varied: vec![e], ..Design::default() };
+        progress(&format!("add: simulating {} rows with {name} in the prior", s.train_rows));
+        let npe2 = train_for(model, &design, &noise, s.train_rows, s.max_epochs, s.seed, progress)?;
+        let inf2 = npe2.infer(&Obs { x, present: None }, s.draws.max(200), s.seed)?;
+        let c2 = check(model, &design, &inf2.samples[..s.draws.min(inf2.samples.len())], &inf2.map, &obs)?;
+        let p = &inf2.summaries[N_PARAMS];
+        effect_posterior = Some(EffectPosterior { effect: name, unit: EFFECTS[e].unit, median: p.median, q05: p.q05, q95: p.q95 });
+        figs.extend(figures(model, "after", &obs, &c2));
+        map_after = Some(inf2.map.clone());
+        after = Some(c2);
+        extended = Some(npe2);
+    }
+    // Named when the candidate's fit explains the data: by its direct fit, or (when the
+    // model was extended) by the retrained posterior's predictive check.
+    let explained = |c: &super::Candidate| c.reduced_chi2 <= thresholds.explained || after.as_ref().is_some_and(|a: &Check| a.reduced_chi2 <= thresholds.explained);
+    let v = match (alarm, ranked.first().filter(|c| Some(c.effect) == candidate)) {
+        (false, _) => Verdict::NoDiscrepancy,
+        (true, Some(c)) if explained(c) => Verdict::EffectNamed,
+        _ => Verdict::Unexplained,
+    };
+    let named = (v == Verdict::EffectNamed).then_some(candidate).flatten();
+    Ok(Report {
+        verdict: v,
+        thresholds,
+        before,
+        candidates: ranked,
+        named,
+        margin,
+        after,
+        effect_posterior,
+        map_before: inf.map,
+        map_after,
+        extended_model: extended,
+        figures: figs,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn spearman_of_monotone_maps_is_one() {
+        let a = [1.0, 2.0, 3.0, 10.0];
+        assert!((super::spearman(&a, &[0.1, 0.2, 0.5, 0.9]) - 1.0).abs() < 1e-12);
+        assert!((super::spearman(&a, &[4.0, 3.0, 2.0, 1.0]) + 1.0).abs() < 1e-12);
+    }
+}

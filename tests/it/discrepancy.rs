@@ -1,0 +1,62 @@
+//! The discrepancy workflow on data with a hidden effect (small settings for CI; the
+//! rates are measured by `otofit bench discrepancy`).
+
+use otofit::discrepancy::Verdict;
+use otofit::discrepancy::workflow::{Settings, diagnose};
+use otofit::npe::Npe;
+use otofit::sim::batch::{Design, Noise, default_noise_std, run_rows};
+use otofit::sim::{Effects, Model, ModelConfig};
+
+const THETA: [f64; 7] = [3e7, 2e6, 1e6, 4e5, 2e7, 1e-4, 3e10];
+
+fn base() -> Npe {
+    Npe::load(&std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")).unwrap()
+}
+
+/// A measured-like observation: θ above, the effect on (if any), 1× noise.
+fn observation(model: &Model, effect: Option<(&str, f64)>, seed: u64) -> Vec<f64> {
+    let mut fixed = Effects::default();
+    if let Some((name, v)) = effect {
+        fixed.set(name, v).unwrap();
+    }
+    let noise = Noise { std: default_noise_std(model), scale: 1.0, seed };
+    run_rows(model, &Design { fixed, varied: vec![] }, &[THETA.to_vec()], 0, Some(&noise)).remove(0).unwrap()
+}
+
+fn settings(candidates: Vec<usize>) -> Settings {
+    Settings { candidates, draws: 100, null_cases: 12, train_rows: 2000, max_epochs: 25, seed: 1, ..Settings::default() }
+}
+
+#[test]
+fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let x = observation(&model, Some(("probe_leak", 3e-4)), 5);
+    let r = diagnose(&model, &base(), &x, &settings((0..6).collect()), &mut |_| {}).unwrap();
+    assert_eq!(r.verdict, Verdict::EffectNamed, "candidates {:?}", r.candidates.iter().map(|c| (c.effect, c.score)).collect::<Vec<_>>());
+    assert_eq!(r.named, Some("probe_leak"));
+    let p = r.effect_posterior.as_ref().unwrap();
+    assert!(p.q05 <= 3e-4 && 3e-4 <= p.q95, "90 % interval [{}, {}]", p.q05, p.q95);
+    let after = r.after.as_ref().unwrap();
+    assert!(after.reduced_chi2 < 1.5 && after.reduced_chi2 < r.before.reduced_chi2 / 5.0, "χ²ν {} → {}", r.before.reduced_chi2, after.reduced_chi2);
+    assert!(r.before.bands.iter().any(|b| b.measure == "zec_phase" && b.f_lo_hz < 300.0));
+    assert_eq!(r.figures.len(), 4);
+}
+
+#[test]
+fn stays_quiet_without_an_effect() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let x = observation(&model, None, 6);
+    let r = diagnose(&model, &base(), &x, &settings((0..6).collect()), &mut |_| {}).unwrap();
+    assert_eq!(r.verdict, Verdict::NoDiscrepancy, "χ²ν {} (alarm {}), best {:?}", r.before.reduced_chi2, r.thresholds.base_reduced_chi2, r.candidates.first().map(|c| (c.effect, c.score)));
+    assert!(r.after.is_none());
+}
+
+#[test]
+fn says_unexplained_when_the_effect_is_not_a_candidate() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let x = observation(&model, Some(("probe_leak", 3e-4)), 5);
+    let without_leak = vec![0, 4, 5]; // cavity, ldv_angle, cochlear_mass
+    let r = diagnose(&model, &base(), &x, &settings(without_leak), &mut |_| {}).unwrap();
+    assert_eq!(r.verdict, Verdict::Unexplained);
+    assert!(r.before.bands.iter().any(|b| b.measure == "zec_phase" && b.sign > 0 && b.f_lo_hz < 300.0), "{:?}", r.before.bands);
+}
