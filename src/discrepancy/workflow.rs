@@ -26,11 +26,13 @@ pub struct Settings {
     pub train_rows: usize,
     pub max_epochs: usize,
     pub seed: u64,
+    /// Thresholds measured earlier for the same base model (skips the null runs).
+    pub thresholds: Option<Thresholds>,
 }
 
 impl Default for Settings {
     fn default() -> Self {
-        Settings { candidates: (0..EFFECTS.len()).collect(), extend: true, draws: 200, null_cases: 40, train_rows: 10_000, max_epochs: 300, seed: 0 }
+        Settings { candidates: (0..EFFECTS.len()).collect(), extend: true, draws: 200, null_cases: 40, train_rows: 10_000, max_epochs: 300, seed: 0, thresholds: None }
     }
 }
 
@@ -178,7 +180,7 @@ pub fn train_for(model: &Model, design: &Design, noise: &Noise, rows: usize, max
 
 /// The null: effect-free simulations from the prior, pushed through the same fit and
 /// candidate ranking; their 95 % quantiles are the alarm thresholds.
-fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -> Result<Thresholds> {
+pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -> Result<Thresholds> {
     let design = Design::default();
     let rows = design.draw(s.seed ^ 0x4E55, 0, s.null_cases);
     let noisy = Noise { seed: s.seed ^ 0x4E55, ..noise.clone() };
@@ -227,8 +229,13 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     progress("check: posterior predictive");
     let base_design = Design::default();
     let before = check(model, &base_design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
-    progress("null distribution of the statistics");
-    let thresholds = null_thresholds(model, base, &noise, s)?;
+    let thresholds = match s.thresholds {
+        Some(t) => t,
+        None => {
+            progress("null distribution of the statistics");
+            null_thresholds(model, base, &noise, s)?
+        }
+    };
     progress("name: fitting candidate effects");
     let median: Vec<f64> = inf.summaries.iter().map(|p| p.median).collect();
     let (base_fit, ranked) = fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates).ok_or_else(|| anyhow::anyhow!("the base fit failed"))?;
