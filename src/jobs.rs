@@ -19,7 +19,7 @@ use std::sync::{Arc, RwLock};
 use std::time::Duration;
 use tokio::sync::Notify;
 
-pub const KINDS: [&str; 3] = ["simulate", "train", "resimulate"];
+pub const KINDS: [&str; 4] = ["simulate", "train", "resimulate", "diagnose"];
 
 /// Shared service state.
 pub struct Ctx {
@@ -98,6 +98,37 @@ pub struct ResimulateParams {
     pub effects: BTreeMap<String, f64>,
 }
 
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiagnoseParams {
+    /// Base model id; the default model if absent.
+    pub model: Option<String>,
+    /// The observation: 250 features in the model's order (see GET /models/{id}).
+    pub x: Vec<f64>,
+    /// Effect names; all if absent.
+    pub candidates: Option<Vec<String>>,
+    #[serde(default = "yes")]
+    pub extend: bool,
+    #[serde(default = "rows")]
+    pub train_rows: usize,
+    #[serde(default = "epochs")]
+    pub max_epochs: usize,
+    #[serde(default = "nulls")]
+    pub null_cases: usize,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn yes() -> bool {
+    true
+}
+fn rows() -> usize {
+    10_000
+}
+fn nulls() -> usize {
+    40
+}
+
 pub const MAX_ROWS: usize = 100_000;
 pub const MAX_RESIMULATE: usize = 1_000;
 
@@ -161,6 +192,26 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             }
             if let Some(i) = p.theta.iter().position(|r| r.len() != N_PARAMS) {
                 errs.push((format!("params.theta[{i}]"), format!("needs {N_PARAMS} values: {}", PARAMS.map(|p| p.name).join(", "))));
+            }
+        }
+        "diagnose" => {
+            let p: DiagnoseParams = serde_json::from_value(params.clone()).map_err(de)?;
+            if let Some(i) = p.x.iter().position(|v| !v.is_finite()) {
+                errs.push((format!("params.x[{i}]"), "must be a finite number".into()));
+            }
+            for (i, c) in p.candidates.iter().flatten().enumerate() {
+                if Effects::index(c).is_none() {
+                    errs.push((format!("params.candidates[{i}]"), format!("unknown effect '{c}' (known: {})", effect_names())));
+                }
+            }
+            if p.train_rows < 100 || p.train_rows > MAX_ROWS {
+                errs.push(("params.train_rows".into(), format!("must be 100..={MAX_ROWS}")));
+            }
+            if p.max_epochs == 0 || p.max_epochs > 5000 {
+                errs.push(("params.max_epochs".into(), "must be 1..=5000".into()));
+            }
+            if p.null_cases < 5 || p.null_cases > 1000 {
+                errs.push(("params.null_cases".into(), "must be 5..=1000".into()));
             }
         }
         other => errs.push(("kind".into(), format!("unknown job kind '{other}' (known: {})", KINDS.join(", ")))),
@@ -246,8 +297,53 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             r.report(1.0, format!("{} rows", p.theta.len()));
             Ok(serde_json::json!({ "features": feature_names(model.frequencies()), "x": x }))
         }
+        "diagnose" => {
+            use crate::discrepancy::workflow::{Settings, diagnose};
+            let p: DiagnoseParams = serde_json::from_value(job.params.clone())?;
+            let (id, path) = match &p.model {
+                Some(id) => (id.clone(), ctx.data_dir.join("models").join(format!("{id}.otofit"))),
+                None => ("default".to_string(), PathBuf::new()),
+            };
+            let path = if p.model.is_none() { default_model_path(ctx)? } else { path };
+            let base = ctx.loaded(&id, &path)?;
+            if p.x.len() != base.header.feature_names.len() {
+                bail!("params.x has {} values; model '{id}' has {} features", p.x.len(), base.header.feature_names.len());
+            }
+            let candidates = match &p.candidates {
+                Some(c) => c.iter().filter_map(|n| Effects::index(n)).collect(),
+                None => (0..EFFECTS.len()).collect(),
+            };
+            let s = Settings { candidates, extend: p.extend, train_rows: p.train_rows, max_epochs: p.max_epochs, null_cases: p.null_cases, seed: p.seed, ..Settings::default() };
+            let model = Model::new(ModelConfig::default())?;
+            let steps = ["fit", "check", "null", "name", "add", "training"];
+            let report = diagnose(&model, &base, &p.x, &s, &mut |m| {
+                let k = steps.iter().position(|s| m.contains(s)).unwrap_or(0);
+                let _ = r.report(k as f64 / steps.len() as f64, m.to_string());
+            })?;
+            let dir = ctx.data_dir.join("reports").join(&job.id);
+            std::fs::create_dir_all(&dir)?;
+            for (name, svg) in &report.figures {
+                std::fs::write(dir.join(name), svg)?;
+            }
+            let mut doc = serde_json::to_value(&report)?;
+            if let Some(m) = &report.extended_model {
+                let models = ctx.data_dir.join("models");
+                std::fs::create_dir_all(&models)?;
+                m.save(&models.join(format!("{}.otofit", job.id)))?;
+                doc["extended_model"] = format!("/models/{}", job.id).into();
+            }
+            doc["figures"] = report.figures.iter().map(|(n, _)| format!("/jobs/{}/files/{n}", job.id)).collect::<Vec<_>>().into();
+            std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&doc)?)?;
+            Ok(doc)
+        }
         other => bail!("unknown job kind '{other}'"),
     }
+}
+
+fn default_model_path(ctx: &Ctx) -> Result<PathBuf> {
+    let rt = tokio::runtime::Handle::current();
+    let row = rt.block_on(ctx.store.default_model())?.ok_or_else(|| anyhow!("no default model is registered"))?;
+    Ok(PathBuf::from(row.path))
 }
 
 /// The dispatcher: claims and runs jobs until shutdown.
@@ -312,10 +408,10 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     if let Err(e) = outcome {
         tracing::error!(job = %job.id, error = %e, "job state not saved");
     }
-    if job.kind == "train" {
+    if job.kind == "train" || job.kind == "diagnose" {
         if let Ok(Some(j)) = ctx.store.job(&job.id).await {
-            if j.state == "succeeded" {
-                let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
+            let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
+            if j.state == "succeeded" && path.exists() {
                 let _ = ctx.store.add_model(&job.id, &path.display().to_string(), false, Some(&job.id)).await;
             }
         }

@@ -17,7 +17,7 @@ use std::sync::Arc;
 use subtle::ConstantTimeEq;
 
 /// Every route the server answers: (method, path). openapi.yaml must list exactly these.
-pub const ROUTES: [(&str, &str); 12] = [
+pub const ROUTES: [(&str, &str); 13] = [
     ("get", "/health"),
     ("get", "/ready"),
     ("get", "/openapi.yaml"),
@@ -28,6 +28,7 @@ pub const ROUTES: [(&str, &str); 12] = [
     ("get", "/jobs"),
     ("get", "/jobs/{id}"),
     ("post", "/jobs/{id}/cancel"),
+    ("get", "/jobs/{id}/files/{name}"),
     ("get", "/datasets/{id}"),
     ("get", "/datasets/{id}/{file}"),
 ];
@@ -153,6 +154,7 @@ pub fn router(state: AppState) -> Router {
         .route("/jobs", post(create_job).get(list_jobs))
         .route("/jobs/{id}", get(get_job))
         .route("/jobs/{id}/cancel", post(cancel_job))
+        .route("/jobs/{id}/files/{name}", get(get_job_file))
         .route("/datasets/{id}", get(get_dataset))
         .route("/datasets/{id}/{file}", get(get_dataset_file))
         .fallback(|| async { Problem::new(StatusCode::NOT_FOUND, "no such route") })

@@ -172,3 +172,19 @@ pub async fn get_dataset_file(State(st): State<AppState>, Path((id, file)): Path
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
     Ok(r)
 }
+
+/// A file a diagnose job wrote: report.json or its SVG figures.
+pub async fn get_job_file(State(st): State<AppState>, Path((id, name)): Path<(String, String)>) -> Result<Response, Problem> {
+    let ct = if name.ends_with(".svg") { "image/svg+xml" } else if name == "report.json" { "application/json" } else { "" };
+    if ct.is_empty() || name.contains('/') || name.contains("..") {
+        return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{name}'")));
+    }
+    if st.ctx.store.job(&id).await.map_err(Problem::internal)?.is_none() {
+        return Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'")));
+    }
+    let path = st.ctx.data_dir.join("reports").join(&id).join(&name);
+    let bytes = tokio::fs::read(&path).await.map_err(|_| Problem::new(StatusCode::NOT_FOUND, format!("job '{id}' has no file '{name}'")))?;
+    let mut r = bytes.into_response();
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
+    Ok(r)
+}

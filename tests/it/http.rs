@@ -244,3 +244,26 @@ async fn api_keys_guard_every_route_but_health() {
     assert_eq!(otofit::cli::serve::parse_key_hashes(&[hex::encode(hash)]).unwrap(), vec![hash]);
     assert!(otofit::cli::serve::parse_key_hashes(&["zz".into()]).is_err());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn diagnose_job_writes_a_report_with_figures() {
+    let (app, _) = app(vec![], 8, true).await;
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let mut fx = otofit::sim::Effects::default();
+    fx.set("probe_leak", 3e-4).unwrap();
+    let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &fx).unwrap();
+    let params = json!({"x": x, "extend": false, "null_cases": 5, "candidates": ["probe_leak", "cavity"]});
+    let (status, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": params}))).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{j}");
+    let done = wait(&app, j["id"].as_str().unwrap()).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let r = &done["result"];
+    assert!(["effect_named", "unexplained"].contains(&r["verdict"].as_str().unwrap()), "{r}");
+    assert_eq!(r["candidates"][0]["effect"], "probe_leak");
+    let fig = r["figures"][0].as_str().unwrap();
+    let res = app.clone().oneshot(Request::get(fig).body(Body::empty()).unwrap()).await.unwrap();
+    assert_eq!(res.headers()[header::CONTENT_TYPE], "image/svg+xml");
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": {"x": [1.0], "candidates": ["wall"]}}))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(p["errors"][0]["field"], "params.candidates[0]", "{p}");
+}
