@@ -67,7 +67,8 @@ pub fn run(args: InferArgs) -> Result<()> {
             out.push_str(&vals.join(","));
             out.push('\n');
         }
-        let json = serde_json::json!({ "observation": r, "parameters": inf.summaries, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
+        let differential = crate::npe::normal::read(&names, &inf.samples);
+        let json = serde_json::json!({ "observation": r, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
         writeln!(stdout.lock(), "{json}")?;
     }
     let tmp = args.out.with_extension("tmp");

@@ -163,9 +163,12 @@ pub async fn infer(State(st): State<AppState>, headers: HeaderMap, body: Bytes) 
         .map_err(Problem::internal)?
         .map_err(|e| Problem::invalid(vec![("measurements".into(), format!("{e:#}"))]))?;
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
+    let names: Vec<&str> = npe.params().iter().map(|p| p.name.as_str()).collect();
     let mut doc = json!({
         "model": row.id,
         "parameters": inf.summaries,
+        "differential": crate::npe::normal::read(&names, &inf.samples),
+        "differential_note": "posterior probability below / within / above the normal range reported for each parameter, and what a deviation is associated with: information, not a diagnosis",
         "map": inf.map,
         "inputs": {
             "used": used,

@@ -4,6 +4,7 @@
 
 pub mod calibrate;
 pub mod data;
+pub mod normal;
 pub mod prior;
 mod train;
 
