@@ -1,4 +1,5 @@
-# otofit service image. Build: docker build -t otofit .   Run: docker run -p 8080:8080 otofit
+# otofit service image. Build: docker build -t otofit .
+# Run:   docker run -p 127.0.0.1:8080:8080 -v otofit-data:/var/lib/otofit otofit
 # Release profile here only (CI and tests use the optimised dev profile).
 FROM rust:1.95-bookworm AS build
 WORKDIR /src
@@ -15,6 +16,7 @@ COPY --from=build /src/target/release/otofit /usr/local/bin/otofit
 COPY --from=build /src/models /usr/share/otofit/models
 USER otofit
 WORKDIR /usr/share/otofit
+VOLUME /var/lib/otofit
 EXPOSE 8080
 # Inside a container the service must listen beyond loopback; publish the port with care.
-CMD ["otofit", "serve", "--addr", "0.0.0.0:8080", "--data-dir", "/var/lib/otofit"]
+CMD ["otofit", "serve", "--addr", "0.0.0.0:8080", "--data-dir", "/var/lib/otofit", "--default-model", "/usr/share/otofit/models/default.otofit"]

@@ -31,6 +31,19 @@ pub enum BenchWhat {
         #[arg(long, default_value_t = 1000)]
         samples: usize,
     },
+    /// NPE: training on a two-moons-like toy and on a middle-ear table, inference latency,
+    /// held-out log-probability.
+    Npe {
+        /// A middle-ear dataset folder (e.g. from `otofit simulate --n 10000`); skipped if absent.
+        #[arg(long)]
+        data: Option<std::path::PathBuf>,
+        /// A trained middle-ear model for the latency and held-out numbers.
+        #[arg(long, default_value = "models/default.otofit")]
+        model: std::path::PathBuf,
+        /// Held-out middle-ear dataset folder.
+        #[arg(long)]
+        held: Option<std::path::PathBuf>,
+    },
     /// Discrepancy naming on hidden-effect cases (simulator-only pipeline).
     Discrepancy {
         /// Hidden cases per effect.
@@ -47,6 +60,7 @@ pub enum BenchWhat {
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
         BenchWhat::Sim { runs } => sim(runs),
+        BenchWhat::Npe { data, model, held } => npe_bench(data, &model, held),
         BenchWhat::Infer { clients, requests, samples } => infer(clients, requests, samples),
         BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
     }
@@ -153,4 +167,61 @@ fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
         let _ = std::fs::remove_dir_all(&dir);
         anyhow::Ok(())
     })
+}
+
+/// Two-moons-like toy (Greenberg et al. 2019): θ ∈ [−1, 1]², x ∈ R².
+fn two_moons(n: usize, seed: u64) -> crate::npe::Dataset {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let params = ["t0", "t1"].iter().map(|n| crate::npe::Param { name: n.to_string(), unit: "1".into(), scale: crate::npe::Scale::Linear, low: -1.0, high: 1.0 }).collect();
+    let (mut theta, mut x) = (Vec::new(), Vec::new());
+    for _ in 0..n {
+        let t: [f64; 2] = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+        let a: f64 = rng.random_range(-std::f64::consts::FRAC_PI_2..std::f64::consts::FRAC_PI_2);
+        let r = 0.1 + 0.01 * rng.sample::<f64, _>(rand_distr::StandardNormal);
+        let p = [r * a.cos() + 0.25, r * a.sin()];
+        let s = std::f64::consts::FRAC_1_SQRT_2;
+        x.push(vec![p[0] - (t[0] + t[1]).abs() * s, p[1] + (-t[0] + t[1]) * s]);
+        theta.push(t.to_vec());
+    }
+    crate::npe::Dataset { params, feature_names: vec!["x0".into(), "x1".into()], frequencies_hz: vec![], groups: vec![], noise_std: vec![0.0; 2], theta, x, skipped: 0 }
+}
+
+fn npe_bench(data: Option<std::path::PathBuf>, model: &std::path::Path, held: Option<std::path::PathBuf>) -> Result<()> {
+    use crate::npe::{self, Npe, Obs, TrainSettings};
+    let toy = two_moons(10_000, 1);
+    let t = Instant::now();
+    let m = npe::train(&toy, &TrainSettings { embedding: false, noise_scale: 0.0, ..Default::default() }, &mut |_| true)?;
+    let test = two_moons(1000, 2);
+    let lp: f64 = test.theta.iter().zip(&test.x).map(|(th, x)| m.log_prob(&Obs { x, present: None }, std::slice::from_ref(th)).map(|v| v[0]).unwrap_or(f64::NAN)).sum::<f64>() / 1000.0;
+    println!("two-moons toy, 10,000 simulations: {:.1} s, {} epochs (best {}), held-out mean log q(θ|x) {lp:.3} (sbi 0.27 here: ~208 s, 155 epochs)", t.elapsed().as_secs_f64(), m.header.training.epochs, m.header.training.best_epoch);
+    if let Some(dir) = data {
+        let ds = npe::Dataset::load(&dir)?;
+        let t = Instant::now();
+        let m = npe::train(&ds, &TrainSettings::default(), &mut |_| true)?;
+        println!("middle ear, {} simulations × {} features, 3×50 embedding: {:.1} s, {} epochs (best {}, val loss {:.3}) (sbi 0.27 here: ~290 s, 190 epochs; target ≤ 150 s)", ds.theta.len(), ds.feature_names.len(), t.elapsed().as_secs_f64(), m.header.training.epochs, m.header.training.best_epoch, m.header.training.best_val_loss);
+    }
+    let m = Npe::load(model)?;
+    let x0 = crate::sim::simulate(&mut Model::new(ModelConfig::default())?.runner(), &Theta::nominal(), &Effects::default())?;
+    let obs = Obs { x: &x0, present: None };
+    m.infer(&obs, 1000, 0)?; // warm up
+    let mut times: Vec<f64> = (0..5)
+        .map(|k| {
+            let t = Instant::now();
+            let _ = m.infer(&obs, 10_000, k);
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    println!("infer after load, 10,000 samples + MAP + CV, one observation: median {:.0} ms of 5 (target ≤ 100 ms)", median(&mut times));
+    if let Some(dir) = held {
+        let ds = npe::Dataset::load(&dir)?;
+        let noise = crate::sim::batch::Noise { std: m.header.noise_std.clone(), scale: m.header.noise_scale, seed: 9 };
+        let n = ds.theta.len().min(500);
+        let lp: f64 = (0..n).map(|i| {
+            let x = noise.apply(&ds.x[i], i);
+            m.log_prob(&Obs { x: &x, present: None }, std::slice::from_ref(&ds.theta[i])).map(|v| v[0]).unwrap_or(f64::NAN)
+        }).sum::<f64>() / n as f64;
+        println!("held-out mean log q(θ|x) of {} on {n} simulations (natural units): {lp:.2}", model.display());
+    }
+    Ok(())
 }

@@ -116,3 +116,53 @@ fn train_infer_and_calibrate_from_the_command_line() {
     let o = otofit(&["infer", "--model", obs.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--out", samples.to_str().unwrap()]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("not a usable otofit model"));
 }
+
+#[test]
+fn any_simulators_table_trains_with_a_prior_json_and_bad_tables_are_named() {
+    let d = scratch("prior");
+    let data = d.join("data");
+    std::fs::create_dir_all(&data).unwrap();
+    std::fs::write(data.join("prior.json"), r#"{"parameters":[{"name":"k","low":1,"high":100,"scale":"log10","unit":"N/m"},{"name":"c","low":-1,"high":1,"scale":"linear"}]}"#).unwrap();
+    let (mut theta, mut x) = ("k,c\n".to_string(), "y0,y1,y2\n".to_string());
+    for i in 0..300 {
+        let (k, c) = (10f64.powf(2.0 * (i as f64 * 0.618).fract()), 2.0 * (i as f64 * 0.377).fract() - 1.0);
+        theta += &format!("{k},{c}\n");
+        x += &format!("{},{},{}\n", k.log10(), c, k.log10() * c);
+    }
+    std::fs::write(data.join("theta.csv"), &theta).unwrap();
+    std::fs::write(data.join("x.csv"), &x).unwrap();
+    let model = d.join("m.otofit");
+    let o = otofit(&["train", "--data", data.to_str().unwrap(), "--out", model.to_str().unwrap(), "--max-epochs", "2", "--embedding", "none"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let obs = d.join("obs.csv");
+    std::fs::write(&obs, "y0,y1,y2\n1.0,0.5,0.5\n").unwrap();
+    let out = d.join("s.csv");
+    let o = otofit(&["infer", "--model", model.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--samples", "500", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for line in std::fs::read_to_string(&out).unwrap().lines().skip(1) {
+        let v: Vec<f64> = line.split(',').map(|s| s.parse().unwrap()).collect();
+        assert!((1.0..=100.0).contains(&v[0]) && (-1.0..=1.0).contains(&v[1]), "sample outside the prior box: {line}");
+    }
+    // Bad tables: each error names what is wrong.
+    let renamed = theta.replacen("k,c", "k,d", 1);
+    let cases: [(&str, &str, &str); 4] = [
+        ("prior.json", r#"{"parameters":[{"name":"k","low":5,"high":1,"scale":"linear"}]}"#, "'k': bounds [5, 1]"),
+        ("x.csv", "y0,y1,y2\n", "theta.csv has 300 rows but x.csv has 0"),
+        ("x.csv", "y0,y1,y2\n1,2\n", "line 2 has 2 values"),
+        ("theta.csv", &renamed, "no column 'c'"),
+    ];
+    for (file, text, needle) in cases {
+        let bad = d.join(format!("bad-{file}-{}", needle.len()));
+        std::fs::create_dir_all(&bad).unwrap();
+        for f in ["prior.json", "theta.csv", "x.csv"] {
+            std::fs::copy(data.join(f), bad.join(f)).unwrap();
+        }
+        std::fs::write(bad.join(file), text).unwrap();
+        let o = otofit(&["train", "--data", bad.to_str().unwrap(), "--out", d.join("x.otofit").to_str().unwrap()]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && err.contains(needle), "{file}: {err}");
+    }
+    std::fs::write(&obs, "y0,y1,y2\n1.0,NaN,0.5\n").unwrap();
+    let o = otofit(&["infer", "--model", model.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("feature 'y1' is missing or not finite"));
+}

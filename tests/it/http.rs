@@ -267,3 +267,68 @@ async fn diagnose_job_writes_a_report_with_figures() {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     assert_eq!(p["errors"][0]["field"], "params.candidates[0]", "{p}");
 }
+
+/// Blocking HTTP/1.1 over std (the real binary, on a socket).
+fn http(port: u16, method: &str, path: &str, body: Option<&str>) -> Option<(u16, Value)> {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
+    let b = body.unwrap_or("");
+    let req = format!("{method} {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{b}", b.len());
+    s.write_all(req.as_bytes()).ok()?;
+    let mut out = String::new();
+    s.read_to_string(&mut out).ok()?;
+    let status = out.split(' ').nth(1)?.parse().ok()?;
+    let json = out.split("\r\n\r\n").nth(1).and_then(|b| serde_json::from_str(b).ok()).unwrap_or(Value::Null);
+    Some((status, json))
+}
+
+fn start(port: u16, dir: &std::path::Path) -> std::process::Child {
+    let child = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap(), "--default-model", default_model().to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    for _ in 0..100 {
+        if http(port, "GET", "/health", None).is_some() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    child
+}
+
+#[test]
+fn a_job_killed_with_sigkill_is_requeued_and_completes_after_restart() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = std::env::temp_dir().join(format!("otofit-kill-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut server = start(port, &dir);
+    let (status, job) = http(port, "POST", "/jobs", Some(r#"{"kind":"simulate","params":{"n":40000,"seed":2}}"#)).unwrap();
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    let path = format!("/jobs/{id}");
+    for _ in 0..100 {
+        if http(port, "GET", &path, None).unwrap().1["state"] == "running" {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    server.kill().unwrap(); // SIGKILL: no chance to clean up
+    server.wait().unwrap();
+    let mut server = start(port, &dir);
+    let mut last = Value::Null;
+    for _ in 0..600 {
+        last = http(port, "GET", &path, None).unwrap().1;
+        if last["state"] == "succeeded" || last["state"] == "failed" {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    server.kill().unwrap();
+    server.wait().unwrap();
+    assert_eq!(last["state"], "succeeded", "{last}");
+    assert_eq!(last["attempts"], 2, "one attempt killed, one completed");
+    let x = std::fs::read_to_string(dir.join("datasets").join(&id).join("x.csv")).unwrap();
+    assert_eq!(x.lines().count(), 40_001, "the dataset is complete, not a mix of two runs");
+}
