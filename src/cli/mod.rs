@@ -8,6 +8,7 @@ pub mod diagnose;
 pub mod infer;
 pub mod serve;
 pub mod simulate;
+pub mod study;
 pub mod train;
 
 #[derive(Parser, Debug)]
@@ -23,6 +24,8 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Find where model and measurement disagree, name the missing effect, add it.
     Diagnose(diagnose::DiagnoseArgs),
+    /// The seed study's analyses (validate, noise, size): tables, JSON and SVG figures.
+    Study(study::StudyArgs),
     /// Run the HTTP service (API + job queue).
     Serve(serve::ServeArgs),
     /// Train a posterior estimator on a dataset folder.
@@ -41,6 +44,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => bench::run(args),
         Command::Train(args) => train::run(args),
         Command::Serve(args) => serve::run(args),
+        Command::Study(args) => study::run(args),
         Command::Diagnose(args) => diagnose::run(args),
         Command::Infer(args) => infer::run(args),
         Command::Calibrate(args) => calibrate::run(args),

@@ -166,3 +166,27 @@ fn any_simulators_table_trains_with_a_prior_json_and_bad_tables_are_named() {
     let o = otofit(&["infer", "--model", model.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("feature 'y1' is missing or not finite"));
 }
+
+#[test]
+fn studies_show_the_direction_of_noise_and_training_size() {
+    let d = scratch("study");
+    let width = |file: &std::path::Path| -> Vec<f64> {
+        let v: serde_json::Value = serde_json::from_slice(&std::fs::read(file).unwrap()).unwrap();
+        v["runs"].as_array().unwrap().iter().map(|r| r["mean_width_decades"].as_f64().unwrap()).collect()
+    };
+    let (noise, size, val) = (d.join("noise"), d.join("size"), d.join("validate"));
+    let ok = |a: &[&str]| {
+        let o = otofit(a);
+        assert!(o.status.success(), "{a:?}: {}", String::from_utf8_lossy(&o.stderr));
+    };
+    ok(&["study", "noise", "--train-rows", "2000", "--max-epochs", "40", "--out", noise.to_str().unwrap()]);
+    let w = width(&noise.join("noise.json"));
+    assert!(w[2] > w[1], "10× noise must widen the posterior: {w:?}");
+    ok(&["study", "size", "--train-rows", "3000", "--max-epochs", "40", "--out", size.to_str().unwrap()]);
+    let w = width(&size.join("size.json"));
+    assert!(w[2] < w[0], "100× more simulations must narrow the posterior: {w:?}");
+    ok(&["study", "validate", "--n", "20", "--out", val.to_str().unwrap()]);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(val.join("validate.json")).unwrap()).unwrap();
+    assert!(v["mean_rho"].as_f64().unwrap() > 0.9, "{v}");
+    assert!(val.join("validate_0_corner.svg").exists() && val.join("validate_4_spectra.svg").exists());
+}
