@@ -191,10 +191,11 @@ pub fn corner(title: &str, dims: &[Dim<'_>], samples: &[Vec<f64>]) -> String {
                 }
             }
         }
-        let lab = format!("{}{} ({})", if dims[i].log { "log " } else { "" }, dims[i].name, dims[i].unit);
-        c.text(left + cell * (i as f64 + 0.5), top + cell * d as f64 + 18.0, 11.0, "middle", &lab);
+        let x = left + cell * (i as f64 + 0.5);
+        c.text(x, top + cell * d as f64 + 16.0, 10.0, "middle", dims[i].name);
+        c.text(x, top + cell * d as f64 + 28.0, 9.0, "middle", &format!("{}{}", if dims[i].log { "log axis, " } else { "" }, dims[i].unit));
     }
-    c.text(left, top + cell * d as f64 + 44.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
+    c.text(left, top + cell * d as f64 + 48.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
     c.finish()
 }
 
