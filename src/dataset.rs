@@ -277,3 +277,23 @@ pub fn read_csv(path: &Path) -> Result<Table> {
     }
     Ok(Table { header, rows })
 }
+
+/// A noise table: one row of per-feature test–retest STDs under a header of feature
+/// names (e.g. reference/std.csv), in the order of `names`.
+pub fn read_noise_table(path: &Path, names: &[String]) -> Result<Vec<f64>> {
+    let t = read_csv(path)?;
+    if t.rows.len() != 1 {
+        bail!("{}: a noise table has exactly one row of STDs, found {}", path.display(), t.rows.len());
+    }
+    names
+        .iter()
+        .map(|n| {
+            let i = t.header.iter().position(|h| h == n).with_context(|| format!("{}: column '{n}' missing (the table needs every feature)", path.display()))?;
+            let v = t.rows[0][i];
+            if !(v.is_finite() && v >= 0.0) {
+                bail!("{}: column '{n}': STD must be finite and ≥ 0, got {v}", path.display());
+            }
+            Ok(v)
+        })
+        .collect()
+}

@@ -12,5 +12,6 @@ pub mod jobs;
 pub mod npe;
 pub mod discrepancy;
 pub mod plot;
+pub mod reference;
 pub mod store;
 pub mod sim;

@@ -33,6 +33,10 @@ pub struct SimulateArgs {
     /// Gaussian noise added to x: the noise model × K (0 = none).
     #[arg(long, default_value_t = 0.0)]
     pub noise_scale: f64,
+    /// Per-feature STD table (one row, header = feature names) replacing the default
+    /// noise model, e.g. reference/std.csv.
+    #[arg(long)]
+    pub noise_table: Option<PathBuf>,
     #[arg(long, value_enum, default_value_t = PresetArg::TemporalBone)]
     pub preset: PresetArg,
     /// Replace an existing dataset in --out.
@@ -114,7 +118,11 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     let config = ModelConfig { preset: args.preset.into(), ..ModelConfig::default() };
     let preset = config.preset;
     let model = Model::new(config)?;
-    let noise = Noise { std: batch::default_noise_std(&model), scale: args.noise_scale, seed: args.seed };
+    let std = match &args.noise_table {
+        Some(p) => dataset::read_noise_table(p, &crate::sim::output::feature_names(model.frequencies())).context("--noise-table")?,
+        None => batch::default_noise_std(&model),
+    };
+    let noise = Noise { std, scale: args.noise_scale, seed: args.seed };
     let rows = match given {
         Some(g) => Rows::Given(g),
         None => Rows::Prior { n: args.n.unwrap_or(0), seed: args.seed },

@@ -1,7 +1,7 @@
 //! `otofit train`: a dataset folder → a model file.
 
 use crate::npe::{self, Dataset, TrainSettings};
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 
@@ -18,6 +18,10 @@ pub struct TrainArgs {
     /// Training noise: the dataset's noise model × K.
     #[arg(long, default_value_t = 1.0)]
     pub noise_scale: f64,
+    /// Per-feature STD table (one row, header = feature names) replacing the dataset's
+    /// noise model, e.g. reference/std.csv.
+    #[arg(long)]
+    pub noise_table: Option<PathBuf>,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     #[arg(long, default_value_t = 300)]
@@ -40,7 +44,10 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if args.max_epochs == 0 {
         bail!("--max-epochs must be at least 1");
     }
-    let ds = Dataset::load(&args.data)?;
+    let mut ds = Dataset::load(&args.data)?;
+    if let Some(p) = &args.noise_table {
+        ds.noise_std = crate::dataset::read_noise_table(p, &ds.feature_names).context("--noise-table")?;
+    }
     eprintln!("{} rows ({} skipped), {} parameters, {} features", ds.theta.len(), ds.skipped, ds.params.len(), ds.feature_names.len());
     let settings = TrainSettings {
         embedding: matches!(args.embedding, Embedding::Mlp),

@@ -110,7 +110,7 @@ pub fn spearman(a: &[f64], b: &[f64]) -> f64 {
 }
 
 /// Re-simulates posterior draws (rows in `design` order) and compares with `obs`.
-fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], obs: &Observation) -> Result<Check> {
+pub fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], obs: &Observation) -> Result<Check> {
     let sims: Vec<Vec<f64>> = run_rows(model, design, draws, 0, None).into_iter().filter_map(|r| r.ok()).collect();
     if sims.len() < draws.len() / 2 {
         bail!("most posterior draws failed to simulate");
@@ -211,7 +211,7 @@ fn figures(model: &Model, label: &str, obs: &Observation, c: &Check) -> Vec<(Str
     }
     series.push(plot::Series { x: &c.map_x, color: plot::MAP, width: 1.5, opacity: 1.0, label: Some("MAP re-simulation") });
     vec![
-        (format!("spectra_{label}.svg"), plot::spectra(&format!("Spectra {label}: observation, MAP, draws, 90 % predictive band"), f, &[(&c.lo, &c.hi, plot::BAND)], &series)),
+        (format!("spectra_{label}.svg"), plot::spectra(&format!("Spectra {label}: observation, MAP, draws, 90 % predictive band"), f, &[plot::Band { lo: &c.lo, hi: &c.hi, color: plot::BAND, label: "90 % predictive band" }], &series)),
         (format!("residuals_{label}.svg"), plot::residual_map(&format!("Standardised residuals {label} (observation − prediction)/σ"), f, &c.z)),
     ]
 }

@@ -42,8 +42,16 @@ pub struct Series<'a> {
     pub label: Option<&'a str>,
 }
 
-/// Five panels (one per measure): optional bands (lower, upper, colour) under the series.
-pub fn spectra(title: &str, freqs: &[f64], bands: &[(&[f64], &[f64], &str)], series: &[Series<'_>]) -> String {
+/// A shaded band between two spectra (e.g. a 90 % predictive band).
+pub struct Band<'a> {
+    pub lo: &'a [f64],
+    pub hi: &'a [f64],
+    pub color: &'a str,
+    pub label: &'a str,
+}
+
+/// Five panels (one per measure): optional bands under the series.
+pub fn spectra(title: &str, freqs: &[f64], bands: &[Band<'_>], series: &[Series<'_>]) -> String {
     let n = freqs.len();
     let (pw, ph) = (420.0, 240.0);
     let mut c = Canvas::new(2.0 * pw + 40.0, 3.0 * ph + 60.0);
@@ -60,8 +68,8 @@ pub fn spectra(title: &str, freqs: &[f64], bands: &[(&[f64], &[f64], &str)], ser
                 hi = hi.max(v);
             }
         }
-        for (l, u, _) in bands {
-            for v in shown(l).into_iter().chain(shown(u)) {
+        for b in bands {
+            for v in shown(b.lo).into_iter().chain(shown(b.hi)) {
                 lo = lo.min(v);
                 hi = hi.max(v);
             }
@@ -69,8 +77,8 @@ pub fn spectra(title: &str, freqs: &[f64], bands: &[(&[f64], &[f64], &str)], ser
         let pad = 0.05 * (hi - lo).max(1e-6);
         let ax = Axes::new(x0 + 60.0, y0 + 10.0, pw - 80.0, ph - 60.0, (freqs[0], freqs[n - 1]), (lo - pad, hi + pad), true);
         c.axes(&ax, "frequency (Hz)", label(m));
-        for (l, u, color) in bands {
-            c.band(&ax, freqs, &shown(l), &shown(u), color, 0.2);
+        for b in bands {
+            c.band(&ax, freqs, &shown(b.lo), &shown(b.hi), b.color, 0.2);
         }
         for s in series {
             c.line(&ax, freqs, &shown(s.x), s.color, s.width, s.opacity);
@@ -83,9 +91,10 @@ pub fn spectra(title: &str, freqs: &[f64], bands: &[(&[f64], &[f64], &str)], ser
         c.text(lx + 32.0, ly - 2.0, 12.0, "start", s.label.unwrap_or(""));
         ly += 20.0;
     }
-    for (_, _, color) in bands.iter().take(1) {
-        c.rect(lx, ly - 10.0, 24.0, 10.0, color, 0.2);
-        c.text(lx + 32.0, ly - 2.0, 12.0, "start", "predictive band");
+    for b in bands {
+        c.rect(lx, ly - 10.0, 24.0, 10.0, b.color, 0.2);
+        c.text(lx + 32.0, ly - 2.0, 12.0, "start", b.label);
+        ly += 20.0;
     }
     c.finish()
 }
@@ -214,7 +223,7 @@ mod tests {
         let x: Vec<f64> = (0..250).map(|i| (i as f64 * 0.1).sin()).collect();
         let lo: Vec<f64> = x.iter().map(|v| v - 0.1).collect();
         let hi: Vec<f64> = x.iter().map(|v| v + 0.1).collect();
-        let s = spectra("t", &freqs, &[(&lo, &hi, BAND)], &[Series { x: &x, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") }]);
+        let s = spectra("t", &freqs, &[Band { lo: &lo, hi: &hi, color: BAND, label: "band" }], &[Series { x: &x, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") }]);
         well_formed(&s);
         assert_eq!(s.matches("<polyline").count(), 5);
         well_formed(&residual_map("r", &freqs, &x));

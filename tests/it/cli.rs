@@ -190,3 +190,44 @@ fn studies_show_the_direction_of_noise_and_training_size() {
     assert!(v["mean_rho"].as_f64().unwrap() > 0.9, "{v}");
     assert!(val.join("validate_0_corner.svg").exists() && val.join("validate_4_spectra.svg").exists());
 }
+
+#[test]
+fn reference_ear_is_an_observation_and_a_noise_table() {
+    let d = scratch("reference");
+    let root = env!("CARGO_MANIFEST_DIR");
+    let (obs, std) = (format!("{root}/reference/obs.csv"), format!("{root}/reference/std.csv"));
+    let model = format!("{root}/models/default.otofit");
+    let s = |a: &[&str]| {
+        let o = otofit(a);
+        assert!(o.status.success(), "{a:?}: {}", String::from_utf8_lossy(&o.stderr));
+        o
+    };
+    let out = d.join("study");
+    let o = s(&["study", "reference", "--model", &model, "--out", out.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&o.stdout).contains("mean |ρ|"));
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("reference.json")).unwrap()).unwrap();
+    assert_eq!(v["rho_map"].as_array().unwrap().len(), 5);
+    assert_eq!(v["rho_draws"].as_array().unwrap().len(), 5, "five posterior draws re-simulated");
+    assert_eq!(v["differential"].as_array().unwrap().len(), 7);
+    // Regression guard on the measured 0.72 (MAP) and 0.83 (least squares).
+    assert!(v["mean_abs_rho"].as_f64().unwrap() > 0.6, "{}", v["mean_abs_rho"]);
+    assert!(v["least_squares"]["mean_abs_rho"].as_f64().unwrap() > 0.75, "{}", v["least_squares"]);
+    for f in ["reference_spectra.svg", "reference_corner.svg", "reference_residuals.svg"] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    // The shipped table is an OBS for infer and a noise table for simulate and train.
+    s(&["infer", "--model", &model, "--obs", &obs, "--samples", "50", "--out", d.join("s.csv").to_str().unwrap()]);
+    let data = d.join("data");
+    s(&["simulate", "--n", "60", "--noise-table", &std, "--noise-scale", "1", "--out", data.to_str().unwrap()]);
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(data.join("meta.json")).unwrap()).unwrap();
+    let written: Vec<f64> = meta["noise"]["std"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap()).collect();
+    let table = std::fs::read_to_string(&std).unwrap();
+    let shipped: Vec<f64> = table.lines().nth(1).unwrap().split(',').map(|c| c.parse().unwrap()).collect();
+    assert_eq!(written, shipped, "meta.json records the noise table used");
+    s(&["train", "--data", data.to_str().unwrap(), "--noise-table", &std, "--max-epochs", "1", "--out", d.join("m.otofit").to_str().unwrap()]);
+    let bad = d.join("bad_std.csv");
+    std::fs::write(&bad, "absorbance@200.0\n0.03\n").unwrap();
+    let o = otofit(&["train", "--data", data.to_str().unwrap(), "--noise-table", bad.to_str().unwrap(), "--out", d.join("m2.otofit").to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("column 'vst_mag@200.0' missing"), "{}", String::from_utf8_lossy(&o.stderr));
+}

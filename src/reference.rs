@@ -1,0 +1,118 @@
+//! The measured-like reference ear: normative mean spectra with citations
+//! (`reference/ear.json`), interpolated onto a model's frequency grid as an observation
+//! (250 features) with a test–retest STD per feature.
+
+use crate::sim::output::{MEASURES, feature_names, noise_std};
+use anyhow::{Context, Result, bail};
+use serde::Deserialize;
+use std::collections::BTreeMap;
+
+/// The anchor table, compiled into the binary so that the service and the Docker image
+/// need no data folder.
+pub const EAR_JSON: &str = include_str!("../reference/ear.json");
+
+#[derive(Deserialize)]
+struct Curve {
+    frequency_hz: Vec<f64>,
+    value: Vec<f64>,
+    citation: String,
+}
+
+#[derive(Deserialize)]
+struct Table {
+    vst_mag_db: Curve,
+    vst_phase_deg: Curve,
+    zec_mag: Curve,
+    zec_phase_deg: Curve,
+    absorbance: Curve,
+    std: BTreeMap<String, serde_json::Value>,
+}
+
+/// The reference ear on one frequency grid, in feature units.
+pub struct Reference {
+    pub feature_names: Vec<String>,
+    pub x: Vec<f64>,
+    pub std: Vec<f64>,
+    /// One citation per measure, in `MEASURES` order.
+    pub citations: Vec<String>,
+}
+
+/// Linear interpolation in log-frequency, constant beyond the end anchors.
+fn interpolate(c: &Curve, name: &str, grid: &[f64]) -> Result<Vec<f64>> {
+    let f = &c.frequency_hz;
+    if f.len() < 2 || f.len() != c.value.len() || f.windows(2).any(|w| w[1] <= w[0]) || f[0] <= 0.0 {
+        bail!("reference/ear.json: '{name}' needs ≥ 2 strictly increasing positive frequencies, one value each");
+    }
+    Ok(grid
+        .iter()
+        .map(|&g| {
+            let i = f.partition_point(|&x| x < g).clamp(1, f.len() - 1);
+            let t = ((g.ln() - f[i - 1].ln()) / (f[i].ln() - f[i - 1].ln())).clamp(0.0, 1.0);
+            c.value[i - 1] * (1.0 - t) + c.value[i] * t
+        })
+        .collect())
+}
+
+/// Builds the reference ear on `freqs` (the model grid).
+pub fn build(freqs: &[f64]) -> Result<Reference> {
+    let t: Table = serde_json::from_str(EAR_JSON).context("reference/ear.json")?;
+    let mut x = Vec::with_capacity(5 * freqs.len());
+    // vst in feature units: log10(m/s/Pa) from dB re 1 mm/s/Pa; phases in rad.
+    x.extend(interpolate(&t.vst_mag_db, "vst_mag_db", freqs)?.iter().map(|db| db / 20.0 - 3.0));
+    x.extend(interpolate(&t.vst_phase_deg, "vst_phase_deg", freqs)?.iter().map(|d| d.to_radians()));
+    x.extend(interpolate(&log10(&t.zec_mag), "zec_mag", freqs)?);
+    x.extend(interpolate(&t.zec_phase_deg, "zec_phase_deg", freqs)?.iter().map(|d| d.to_radians()));
+    x.extend(interpolate(&t.absorbance, "absorbance", freqs)?);
+    // STD: the noise model's shape in frequency, at the table's level per measure.
+    let mut std = noise_std(freqs);
+    for (m, measure) in MEASURES.iter().enumerate() {
+        let level = t.std.get(measure.name).and_then(|v| v.as_f64()).with_context(|| format!("reference/ear.json: std.{} missing", measure.name))?;
+        for s in &mut std[m * freqs.len()..(m + 1) * freqs.len()] {
+            *s *= level / measure.noise_std;
+        }
+    }
+    let citations = [&t.vst_mag_db, &t.vst_phase_deg, &t.zec_mag, &t.zec_phase_deg, &t.absorbance].iter().map(|c| c.citation.clone()).collect();
+    Ok(Reference { feature_names: feature_names(freqs), x, std, citations })
+}
+
+fn log10(c: &Curve) -> Curve {
+    Curve { frequency_hz: c.frequency_hz.clone(), value: c.value.iter().map(|v| v.log10()).collect(), citation: String::new() }
+}
+
+/// One-row CSV with a header of feature names (the OBS format of `otofit infer`).
+pub fn csv(names: &[String], row: &[f64]) -> String {
+    let cells: Vec<String> = row.iter().map(|v| format!("{v:.6e}")).collect();
+    format!("{}\n{}\n", names.join(","), cells.join(","))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::{Model, ModelConfig};
+
+    #[test]
+    fn anchors_are_reproduced_on_the_grid() {
+        let freqs = [200.0, 1000.0, 2000.0, 8000.0];
+        let r = build(&freqs).unwrap();
+        let n = freqs.len();
+        // Goode 1994 at 1 kHz: −19.5 dB re 1 mm/s/Pa.
+        assert!((r.x[1] - (-19.5 / 20.0 - 3.0)).abs() < 1e-12);
+        assert!((r.x[n + 2] - (-90f64).to_radians()).abs() < 1e-12);
+        assert!((r.x[4 * n + 2] - 0.70).abs() < 1e-12);
+        // Absorbance is held below its first anchor (250 Hz).
+        assert!((r.x[4 * n] - 0.12).abs() < 1e-12);
+        // The STD doubles from 2 to 8 kHz.
+        assert!((r.std[4 * n + 3] / r.std[4 * n + 2] - 2.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn shipped_csvs_match_the_table() {
+        let model = Model::new(ModelConfig::default()).unwrap();
+        let r = build(model.frequencies()).unwrap();
+        let root = env!("CARGO_MANIFEST_DIR");
+        let obs = std::fs::read_to_string(format!("{root}/reference/obs.csv")).unwrap();
+        let std = std::fs::read_to_string(format!("{root}/reference/std.csv")).unwrap();
+        assert_eq!(obs, csv(&r.feature_names, &r.x), "reference/obs.csv is stale: run `otofit study reference --out DIR` and copy DIR/reference_obs.csv");
+        assert_eq!(std, csv(&r.feature_names, &r.std), "reference/std.csv is stale");
+    }
+}
