@@ -96,6 +96,9 @@ pub struct ResimulateParams {
     pub theta: Vec<Vec<f64>>,
     #[serde(default)]
     pub effects: BTreeMap<String, f64>,
+    /// The observation the rows were inferred from (250 features): drawn in the figure
+    /// and compared by Spearman ρ per measure.
+    pub observation: Option<Vec<f64>>,
 }
 
 #[derive(Deserialize)]
@@ -192,6 +195,14 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             }
             if let Some(i) = p.theta.iter().position(|r| r.len() != N_PARAMS) {
                 errs.push((format!("params.theta[{i}]"), format!("needs {N_PARAMS} values: {}", PARAMS.map(|p| p.name).join(", "))));
+            }
+            if let Some(x) = &p.observation {
+                let n = 5 * crate::sim::ModelConfig::default().frequencies.len();
+                if x.len() != n {
+                    errs.push(("params.observation".into(), format!("needs {n} features in the model's order, got {}", x.len())));
+                } else if let Some(i) = x.iter().position(|v| !v.is_finite()) {
+                    errs.push((format!("params.observation[{i}]"), "must be a finite number".into()));
+                }
             }
         }
         "diagnose" => {
@@ -295,7 +306,14 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 Err(e) => serde_json::json!({ "error": e.to_string() }),
             }).collect();
             r.report(1.0, format!("{} rows", p.theta.len()));
-            Ok(serde_json::json!({ "features": feature_names(model.frequencies()), "x": x }))
+            let ok: Vec<&[f64]> = out.iter().filter_map(|o| o.as_deref().ok()).collect();
+            let page = crate::plot::resimulation(model.frequencies(), &p.theta, &ok, p.observation.as_deref());
+            let dir = ctx.data_dir.join("reports").join(&job.id);
+            std::fs::create_dir_all(&dir)?;
+            std::fs::write(dir.join("spectra.svg"), &page.svg)?;
+            std::fs::write(dir.join("report.html"), &page.html)?;
+            let files = |n: &str| format!("/jobs/{}/files/{n}", job.id);
+            Ok(serde_json::json!({ "features": feature_names(model.frequencies()), "x": x, "rho": page.rho, "figures": [files("spectra.svg")], "report": files("report.html") }))
         }
         "diagnose" => {
             use crate::discrepancy::workflow::{Settings, diagnose};
@@ -333,6 +351,8 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 doc["extended_model"] = format!("/models/{}", job.id).into();
             }
             doc["figures"] = report.figures.iter().map(|(n, _)| format!("/jobs/{}/files/{n}", job.id)).collect::<Vec<_>>().into();
+            doc["report"] = format!("/jobs/{}/files/report.html", job.id).into();
+            std::fs::write(dir.join("report.html"), report.html())?;
             std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&doc)?)?;
             Ok(doc)
         }

@@ -68,6 +68,7 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
         doc["extended_model"] = path.display().to_string().into();
     }
     doc["figures"] = report.figures.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>().into();
+    std::fs::write(args.out.join("report.html"), report.html())?;
     let tmp = args.out.join("report.json.tmp");
     std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?)?;
     std::fs::rename(&tmp, args.out.join("report.json"))?;

@@ -4,6 +4,7 @@
 
 pub mod fit;
 pub mod locate;
+mod report;
 pub mod workflow;
 
 pub use fit::{Fit, Observation, fit};

@@ -173,9 +173,14 @@ pub async fn get_dataset_file(State(st): State<AppState>, Path((id, file)): Path
     Ok(r)
 }
 
-/// A file a diagnose job wrote: report.json or its SVG figures.
+/// A file a job wrote: its report page (report.html), report.json or SVG figures.
 pub async fn get_job_file(State(st): State<AppState>, Path((id, name)): Path<(String, String)>) -> Result<Response, Problem> {
-    let ct = if name.ends_with(".svg") { "image/svg+xml" } else if name == "report.json" { "application/json" } else { "" };
+    let ct = match name.rsplit('.').next() {
+        Some("svg") => "image/svg+xml",
+        Some("html") => "text/html; charset=utf-8",
+        Some("json") => "application/json",
+        _ => "",
+    };
     if ct.is_empty() || name.contains('/') || name.contains("..") {
         return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{name}'")));
     }

@@ -2,6 +2,9 @@
 //! residual maps and corner plots. Each function returns a complete SVG document.
 
 mod canvas;
+pub mod html;
+mod pages;
+pub use pages::{Resimulation, resimulation, rho_per_measure};
 pub use canvas::{Axes, Canvas};
 
 use crate::sim::output::MEASURES;

@@ -189,6 +189,15 @@ fn studies_show_the_direction_of_noise_and_training_size() {
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(val.join("validate.json")).unwrap()).unwrap();
     assert!(v["mean_rho"].as_f64().unwrap() > 0.9, "{v}");
     assert!(val.join("validate_0_corner.svg").exists() && val.join("validate_4_spectra.svg").exists());
+    // Each study's page links its figures, and every linked figure exists.
+    for dir in [&noise, &size, &val] {
+        let page = std::fs::read_to_string(dir.join("report.html")).unwrap();
+        let linked: Vec<&str> = page.split("<img src=\"").skip(1).map(|s| s.split('"').next().unwrap()).collect();
+        assert!(linked.len() >= 3, "{}: {linked:?}", dir.display());
+        for f in linked {
+            assert!(dir.join(f).exists(), "{} links missing {f}", dir.display());
+        }
+    }
 }
 
 #[test]
@@ -212,7 +221,7 @@ fn reference_ear_is_an_observation_and_a_noise_table() {
     // Regression guard on the measured 0.72 (MAP) and 0.83 (least squares).
     assert!(v["mean_abs_rho"].as_f64().unwrap() > 0.6, "{}", v["mean_abs_rho"]);
     assert!(v["least_squares"]["mean_abs_rho"].as_f64().unwrap() > 0.75, "{}", v["least_squares"]);
-    for f in ["reference_spectra.svg", "reference_corner.svg", "reference_residuals.svg"] {
+    for f in ["reference_spectra.svg", "reference_corner.svg", "reference_residuals.svg", "report.html"] {
         assert!(out.join(f).exists(), "{f}");
     }
     // The shipped table is an OBS for infer and a noise table for simulate and train.

@@ -199,6 +199,26 @@ async fn simulate_train_and_infer_through_jobs() {
     let (_, _, r) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": [[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]]}}))).await;
     let done = wait(&app, r["id"].as_str().unwrap()).await;
     assert_eq!(done["result"]["x"][0].as_array().unwrap().len(), 250, "{done}");
+    // With the observation: ρ per row and measure, a figure and a report page.
+    let obs = done["result"]["x"][0].clone();
+    let theta = json!([[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10], [2e7, 5e6, 2e6, 1e6, 6e6, 7.5e-5, 2.1e10]]);
+    let (_, _, r) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": theta, "observation": obs}}))).await;
+    let done = wait(&app, r["id"].as_str().unwrap()).await;
+    let rho = &done["result"]["rho"];
+    assert!(rho[0].as_array().unwrap().iter().all(|v| (v.as_f64().unwrap() - 1.0).abs() < 1e-12), "same row, same spectra: {rho}");
+    assert!(rho[1][0].as_f64().unwrap() < 1.0, "a stiffer annular ligament changes vst: {rho}");
+    let page = text(&app, done["result"]["report"].as_str().unwrap()).await;
+    assert!(page.contains("<img src=\"spectra.svg\"") && page.contains("E_sal"));
+    let (_, _, bad) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": theta, "observation": [1.0]}}))).await;
+    assert_eq!(bad["errors"][0]["field"], "params.observation", "{bad}");
+}
+
+/// GET a text/html resource.
+async fn text(app: &Router, uri: &str) -> String {
+    let res = app.clone().oneshot(Request::get(uri).body(Body::empty()).unwrap()).await.unwrap();
+    assert_eq!(res.status(), StatusCode::OK, "{uri}");
+    assert_eq!(res.headers()[header::CONTENT_TYPE], "text/html; charset=utf-8");
+    String::from_utf8(axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap().to_vec()).unwrap()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -263,6 +283,13 @@ async fn diagnose_job_writes_a_report_with_figures() {
     let fig = r["figures"][0].as_str().unwrap();
     let res = app.clone().oneshot(Request::get(fig).body(Body::empty()).unwrap()).await.unwrap();
     assert_eq!(res.headers()[header::CONTENT_TYPE], "image/svg+xml");
+    // The report page links every figure relatively, so each resolves beside it.
+    let page = text(&app, r["report"].as_str().unwrap()).await;
+    assert!(page.contains("probe_leak"));
+    for f in r["figures"].as_array().unwrap() {
+        let name = f.as_str().unwrap().rsplit('/').next().unwrap();
+        assert!(page.contains(&format!("<img src=\"{name}\"")), "{name} not on the page");
+    }
     let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": {"x": [1.0], "candidates": ["wall"]}}))).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     assert_eq!(p["errors"][0]["field"], "params.candidates[0]", "{p}");
