@@ -170,7 +170,7 @@ pub fn run(a: StudyArgs) -> Result<()> {
             let x0 = run_rows(&model, &Design::default(), &[truth.clone()], 0, None).remove(0)?;
             let x = noise.apply(&x0, 0);
             let mut rows = vec![];
-            let (mut table, mut figs) = (vec![], vec![]);
+            let (mut table, mut figs, mut runs) = (vec![], vec![], vec![]);
             for &size in &sizes {
                 for &level in &levels {
                     let sub = Dataset { theta: ds.theta[..size].to_vec(), x: ds.x[..size].to_vec(), ..simulated(&model, 0, 0) };
@@ -185,6 +185,8 @@ pub fn run(a: StudyArgs) -> Result<()> {
                     // (log-uniform posteriors as wide as the prior have CV > 1).
                     let width = inf.summaries.iter().map(|s| (s.q95 / s.q05).log10()).sum::<f64>() / 7.0;
                     println!("{size:>6} simulations, noise {level:>4}×: mean 90 % width {width:.3} decades, mean CV {:.3}, mean ρ {mean_rho:.3}, epochs {}  CV per parameter {:?}", cv.iter().sum::<f64>() / 7.0, npe.header.training.epochs, cv.iter().map(|c| (c * 1000.0).round() / 1000.0).collect::<Vec<_>>());
+                    let run_label = if matches!(a.name, StudyName::Noise) { format!("{level}× noise") } else { format!("{size} simulations") };
+                    runs.push((run_label, inf.summaries.iter().map(|s| [s.q05, s.median, s.q95]).collect::<Vec<_>>()));
                     figs.push((format!("{label}_corner.svg"), format!("{size} simulations, {level}× noise: posterior, truth (green), MAP (red)")));
                     table.push(vec![size.to_string(), format!("{level}×"), format!("{width:.3}"), format!("{:.3}", cv.iter().sum::<f64>() / 7.0), format!("{mean_rho:.3}"), npe.header.training.epochs.to_string()]);
                     rows.push(json!({ "train_rows": size, "noise_scale": level, "cv": names.iter().zip(&cv).collect::<Vec<_>>(), "mean_cv": cv.iter().sum::<f64>() / 7.0, "mean_width_decades": width, "rho": r, "mean_rho": mean_rho, "epochs": npe.header.training.epochs }));
@@ -193,6 +195,10 @@ pub fn run(a: StudyArgs) -> Result<()> {
             let name = if matches!(a.name, StudyName::Noise) { "noise.json" } else { "size.json" };
             write(&a.out, name, &serde_json::to_string_pretty(&json!({ "truth": truth, "runs": rows }))?)?;
             let noise_study = matches!(a.name, StudyName::Noise);
+            let stem = if noise_study { "noise" } else { "size" };
+            let dims: Vec<plot::Dim<'_>> = PARAMS.iter().zip(&truth).map(|(p, &t)| plot::Dim { name: p.name, unit: p.unit, low: p.low, high: p.high, log: p.scale == crate::sim::params::Scale::Log10, truth: Some(t), map: None }).collect();
+            let run_refs: Vec<(&str, Vec<[f64; 3]>)> = runs.iter().map(|(l, q)| (l.as_str(), q.clone())).collect();
+            write(&a.out, &format!("{stem}_intervals.svg"), &plot::intervals(&format!("Posterior 90 % intervals, one observation ({stem} study)"), &dims, &run_refs))?;
             let mut p = Page::new(if noise_study { "otofit study noise: training noise 0.1×, 1×, 10×" } else { "otofit study size: 100×, 10×, 1× fewer simulations" });
             p.text(if noise_study {
                 "One observation (a prior draw with 1× noise) inferred by models trained with the noise model scaled 0.1×, 1× and 10×. Study (Fig. 4): CV about 7× larger from 1× to 10×; ρ 0.96 → 0.94."
@@ -200,6 +206,7 @@ pub fn run(a: StudyArgs) -> Result<()> {
                 "One observation (a prior draw with 1× noise) inferred by models trained on nested subsets of one simulated set. Study (Fig. 5): posteriors narrow as the training set grows."
             });
             p.table(&["simulations", "noise", "mean 90 % width (decades)", "mean CV", "mean ρ", "epochs"], table);
+            p.figure(&format!("{stem}_intervals.svg"), "90 % intervals and medians per parameter, one line per model");
             for (file, caption) in &figs {
                 p.figure(file, caption);
             }

@@ -3,6 +3,7 @@
 //! MLPs of the untouched half and the embedding, with fixed permutations between them,
 //! over a standard-normal base. No I/O here; `npe` owns data, training and checkpoints.
 
+pub mod plain;
 pub mod spline;
 
 use burn::nn::{Linear, LinearConfig};
@@ -67,6 +68,20 @@ impl Mlp {
         Mlp { layers: sizes.windows(2).map(|w| LinearConfig::new(w[0], w[1]).init(device)).collect() }
     }
 
+    /// The weights as plain f64 layers.
+    fn dense(&self) -> Vec<plain::Dense> {
+        self.layers
+            .iter()
+            .map(|l| {
+                let w = l.weight.val();
+                let [i, o] = w.dims();
+                let w: Vec<f32> = w.try_into_vec_as::<f32>().expect("weights");
+                let b: Vec<f32> = l.bias.as_ref().map(|b| b.val().try_into_vec_as::<f32>().expect("bias")).unwrap_or_else(|| vec![0.0; o]);
+                plain::Dense { w: faer::Mat::from_fn(i, o, |r, c| w[r * o + c] as f64), b: b.into_iter().map(f64::from).collect() }
+            })
+            .collect()
+    }
+
     pub fn forward(&self, mut x: Tensor<2>) -> Tensor<2> {
         let n = self.layers.len();
         for (i, l) in self.layers.iter().enumerate() {
@@ -92,6 +107,11 @@ impl Flow {
         let (dc, dt) = cfg.split();
         let cond = [dc + cfg.context(), cfg.hidden, cfg.hidden, dt * spline::n_params(cfg.bins)];
         Flow { embedding: Mlp::new(&emb, device), conditioners: (0..cfg.transforms).map(|_| Mlp::new(&cond, device)).collect() }
+    }
+
+    /// A plain-Rust copy for inference.
+    pub fn plain(&self, cfg: &FlowConfig) -> plain::PlainFlow {
+        plain::PlainFlow { cfg: cfg.clone(), embedding: self.embedding.dense(), conditioners: self.conditioners.iter().map(Mlp::dense).collect() }
     }
 
     pub fn embed(&self, x: Tensor<2>) -> Tensor<2> {

@@ -12,7 +12,9 @@ pub use data::{Dataset, Group};
 pub use prior::{Param, Scale};
 pub use train::{EpochReport, TrainSettings, train};
 
+use crate::flow::plain::{Bound, PlainFlow};
 use crate::flow::{Flow, FlowConfig};
+use rayon::prelude::*;
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
 use burn::prelude::*;
@@ -64,8 +66,8 @@ pub struct Npe {
     pub header: Header,
     flow: Flow,
     /// The same weights on the autodiff device, for MAP gradients.
-    flow_ad: Flow,
-    device: Device,
+    /// The same weights for inference in plain Rust (flow::plain).
+    plain: PlainFlow,
 }
 
 /// One observation: features in header order, with the features present.
@@ -94,8 +96,8 @@ impl Npe {
     fn from_parts(header: Header, record: ModuleRecord) -> Npe {
         let device = Device::flex();
         let flow = Flow::new(&header.flow, &device).load_record(record.clone());
-        let flow_ad = Flow::new(&header.flow, &device.clone().autodiff()).load_record(record);
-        Npe { header, flow, flow_ad, device }
+        let plain = flow.plain(&header.flow);
+        Npe { header, flow, plain }
     }
 
     pub fn params(&self) -> &[Param] {
@@ -190,16 +192,10 @@ impl Npe {
         Ok(row)
     }
 
-    fn context(&self, flow: &Flow, input: &[f32], n: usize, device: &Device) -> Tensor<2> {
-        let width = input.len();
-        let one = Tensor::<2>::from_data(TensorData::new(input.to_vec(), [1, width]), device);
-        flow.embed(one).repeat_dim(0, n)
-    }
-
     /// Standardised-u samples → natural θ.
-    fn to_theta(&self, v: &[f32]) -> Vec<f64> {
+    fn to_theta(&self, v: &[f64]) -> Vec<f64> {
         let h = &self.header;
-        h.params.iter().enumerate().map(|(k, p)| p.from_u(v[k] as f64 * h.u_std[k] + h.u_mean[k])).collect()
+        h.params.iter().enumerate().map(|(k, p)| p.from_u(v[k] * h.u_std[k] + h.u_mean[k])).collect()
     }
 
     fn to_v(&self, theta: &[f64]) -> Vec<f32> {
@@ -213,19 +209,27 @@ impl Npe {
         h.params.iter().enumerate().map(|(k, p)| p.log_jacobian(theta[k]) - h.u_std[k].ln()).sum()
     }
 
-    /// `n` posterior draws (natural units), deterministic for `seed`, with their
+    /// `n` posterior draws (standardised space), deterministic for `seed`, with their
     /// log-densities in the flow's space.
-    fn draw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f32>>, Vec<f64>) {
+    fn draw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
         let d = self.header.params.len();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let z: Vec<f32> = (0..n * d).map(|_| StandardNormal.sample(&mut rng)).collect();
-        let ctx = self.context(&self.flow, input, n, &self.device);
-        let z = Tensor::<2>::from_data(TensorData::new(z, [n, d]), &self.device);
-        let v = self.flow.sample_from(&self.header.flow, z, ctx.clone());
-        let lp = self.flow.log_prob(&self.header.flow, v.clone(), ctx);
-        let v: Vec<f32> = v.try_into_vec_as::<f32>().expect("flow output");
-        let lp: Vec<f64> = lp.try_into_vec_as::<f32>().expect("flow output").into_iter().map(f64::from).collect();
-        (v.chunks(d).map(|c| c.to_vec()).collect(), lp)
+        let bound = self.bind(input);
+        // Two row blocks on two threads: each block is one batched pass.
+        let z: Vec<f64> = z.into_iter().map(f64::from).collect();
+        let blocks: Vec<(Vec<f64>, Vec<f64>)> = z.par_chunks(d * n.div_ceil(2).max(1)).map(|c| bound.sample(c)).collect();
+        let mut v = Vec::with_capacity(n);
+        let mut lp = Vec::with_capacity(n);
+        for (m, l) in blocks {
+            v.extend(m.chunks_exact(d).map(<[f64]>::to_vec));
+            lp.extend(l);
+        }
+        (v, lp)
+    }
+
+    fn bind(&self, input: &[f32]) -> Bound<'_> {
+        self.plain.bind(&input.iter().map(|&v| v as f64).collect::<Vec<_>>())
     }
 
     /// Posterior samples in natural units.
@@ -243,12 +247,10 @@ impl Npe {
 
     fn log_prob_input(&self, input: &[f32], thetas: &[Vec<f64>]) -> Vec<f64> {
         let d = self.header.params.len();
-        let n = thetas.len();
-        let v: Vec<f32> = thetas.iter().flat_map(|t| self.to_v(t)).collect();
-        let ctx = self.context(&self.flow, input, n, &self.device);
-        let lp = self.flow.log_prob(&self.header.flow, Tensor::<2>::from_data(TensorData::new(v, [n, d]), &self.device), ctx);
-        let lp: Vec<f32> = lp.try_into_vec_as::<f32>().expect("flow output");
-        lp.iter().zip(thetas).map(|(l, t)| *l as f64 + self.log_jacobian(t)).collect()
+        let v: Vec<f64> = thetas.iter().flat_map(|t| self.to_v(t)).map(f64::from).collect();
+        let lp = self.bind(input).log_prob(&v);
+        debug_assert_eq!(lp.len() * d, v.len());
+        lp.iter().zip(thetas).map(|(l, t)| l + self.log_jacobian(t)).collect()
     }
 
     /// Samples, MAP and per-parameter summaries for one observation.
@@ -265,38 +267,41 @@ impl Npe {
     }
 
     /// MAP in the flow's (unbounded, standardised) space: gradient ascent with Adam from
-    /// the best few draws, all in one batch.
-    fn map_from(&self, input: &[f32], v: &[Vec<f32>], lp: &[f64]) -> Vec<f64> {
+    /// the two best draws, central-difference gradients (f64, all points in one batch).
+    fn map_from(&self, input: &[f32], v: &[Vec<f64>], lp: &[f64]) -> Vec<f64> {
         let d = self.header.params.len();
         let mut order: Vec<usize> = (0..v.len()).collect();
         order.sort_by(|&a, &b| lp[b].total_cmp(&lp[a]));
-        let starts: Vec<usize> = order.into_iter().take(2).collect();
-        let k = starts.len();
-        let mut x: Vec<f32> = starts.iter().flat_map(|&i| v[i].clone()).collect();
-        let dev = self.device.clone().autodiff();
-        let ctx = self.context(&self.flow_ad, input, k, &dev).detach();
-        let (mut m, mut s) = (vec![0f32; k * d], vec![0f32; k * d]);
-        let (lr, b1, b2) = (0.05f32, 0.9f32, 0.999f32);
-        let mut best = (f64::NEG_INFINITY, vec![0f32; d]);
+        let bound = self.bind(input);
+        let (lr, b1, b2, h) = (0.05, 0.9f64, 0.999f64, 1e-4);
+        let mut best = (f64::NEG_INFINITY, vec![0f64; d]);
+        let mut xs: Vec<Vec<f64>> = order.iter().take(2).map(|&i| v[i].clone()).collect();
+        let k = xs.len();
+        let (mut m, mut s) = (vec![0.0; k * d], vec![0.0; k * d]);
+        let rows = 1 + 2 * d;
         for step in 1..=20 {
-            let t = Tensor::<2>::from_data(TensorData::new(x.clone(), [k, d]), &dev).require_grad();
-            let lp = self.flow_ad.log_prob(&self.header.flow, t.clone(), ctx.clone());
-            let vals: Vec<f32> = lp.clone().try_into_vec_as::<f32>().expect("flow output");
-            for (j, &l) in vals.iter().enumerate() {
-                if (l as f64) > best.0 && l.is_finite() {
-                    best = (l as f64, x[j * d..(j + 1) * d].to_vec());
+            // Per start: x, then x ± h e_j; every start's points in one batch.
+            let mut pts = Vec::with_capacity(k * rows * d);
+            for x in &xs {
+                for r in 0..rows {
+                    pts.extend((0..d).map(|j| x[j] + if r > 0 && (r - 1) / 2 == j { if r % 2 == 1 { h } else { -h } } else { 0.0 }));
                 }
             }
-            let grads = lp.sum().backward();
-            let Some(g) = t.grad(&grads) else { break };
-            let g: Vec<f32> = g.try_into_vec_as::<f32>().expect("gradient");
-            for i in 0..k * d {
-                let gi = -g[i]; // ascend
-                m[i] = b1 * m[i] + (1.0 - b1) * gi;
-                s[i] = b2 * s[i] + (1.0 - b2) * gi * gi;
-                let mh = m[i] / (1.0 - b1.powi(step));
-                let sh = s[i] / (1.0 - b2.powi(step));
-                x[i] -= lr * mh / (sh.sqrt() + 1e-8);
+            let l = bound.log_prob(&pts);
+            for (si, x) in xs.iter_mut().enumerate() {
+                let l = &l[si * rows..(si + 1) * rows];
+                if l[0].is_finite() && l[0] > best.0 {
+                    best = (l[0], x.clone());
+                }
+                for j in 0..d {
+                    let g = -(l[1 + 2 * j] - l[2 + 2 * j]) / (2.0 * h); // ascend
+                    let (m, s) = (&mut m[si * d + j], &mut s[si * d + j]);
+                    *m = b1 * *m + (1.0 - b1) * g;
+                    *s = b2 * *s + (1.0 - b2) * g * g;
+                    let mh = *m / (1.0 - b1.powi(step));
+                    let sh = *s / (1.0 - b2.powi(step));
+                    x[j] -= lr * mh / (sh.sqrt() + 1e-8);
+                }
             }
         }
         self.to_theta(&best.1)

@@ -211,6 +211,44 @@ pub fn corner(title: &str, dims: &[Dim<'_>], samples: &[Vec<f64>]) -> String {
     c.finish()
 }
 
+/// Colours for runs compared side by side (noise levels, training sizes).
+pub const RUNS: [&str; 4] = ["#9467bd", "#1f77b4", "#ff7f0e", "#8c564b"];
+
+/// Posterior intervals per parameter for several runs (rows = parameters, one line per
+/// run: 90 % interval with the median as a dot), over the prior box; truth in green.
+pub fn intervals(title: &str, dims: &[Dim<'_>], runs: &[(&str, Vec<[f64; 3]>)]) -> String {
+    let (left, top, w, row) = (150.0, 50.0, 520.0, 26.0 + 8.0 * runs.len() as f64);
+    let mut c = Canvas::new(left + w + 40.0, top + row * dims.len() as f64 + 40.0 + 18.0 * runs.len() as f64);
+    c.text(20.0, 28.0, 16.0, "start", title);
+    for (k, d) in dims.iter().enumerate() {
+        let y0 = top + row * k as f64;
+        let t = |v: f64| if d.log { v.log10() } else { v };
+        let px = |v: f64| left + w * ((t(v) - t(d.low)) / (t(d.high) - t(d.low))).clamp(0.0, 1.0);
+        c.frame(left, y0, w, row - 4.0);
+        c.text(left - 8.0, y0 + row / 2.0, 11.0, "end", d.name);
+        c.text(left + w + 4.0, y0 + row / 2.0, 9.0, "start", if d.log { "log" } else { "" });
+        c.text(left + 3.0, y0 + row - 7.0, 8.0, "start", &format!("{:.2e}", d.low));
+        c.text(left + w - 3.0, y0 + row - 7.0, 8.0, "end", &format!("{:.2e} {}", d.high, d.unit));
+        if let Some(v) = d.truth {
+            c.vline(px(v), y0, y0 + row - 4.0, TRUTH);
+        }
+        for (r, (_, q)) in runs.iter().enumerate() {
+            let y = y0 + 8.0 + 8.0 * r as f64;
+            let [lo, mid, hi] = q[k];
+            c.rect(px(lo), y - 1.5, (px(hi) - px(lo)).max(1.0), 3.0, RUNS[r % RUNS.len()], 1.0);
+            c.dot(px(mid), y, 3.0, RUNS[r % RUNS.len()]);
+        }
+    }
+    let mut ly = top + row * dims.len() as f64 + 20.0;
+    for (r, (label, _)) in runs.iter().enumerate() {
+        c.rect(left, ly - 6.0, 24.0, 3.0, RUNS[r % RUNS.len()], 1.0);
+        c.text(left + 32.0, ly - 2.0, 12.0, "start", label);
+        ly += 18.0;
+    }
+    c.text(left + w, ly - 2.0, 11.0, "end", "90 % interval and median · green: true value · axes span the prior box");
+    c.finish()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -236,6 +274,10 @@ mod tests {
         ];
         let samples: Vec<Vec<f64>> = (0..200).map(|i| vec![1.0 + i as f64 / 3.0, (i as f64 / 200.0)]).collect();
         well_formed(&corner("c", &dims, &samples));
+        let runs = [("a", vec![[2.0, 5.0, 9.0], [0.1, 0.5, 0.9]]), ("b", vec![[4.0, 5.0, 6.0], [0.4, 0.5, 0.6]])];
+        let s = intervals("i", &dims, &runs);
+        well_formed(&s);
+        assert_eq!(s.matches("<circle").count(), 4, "one median dot per run and parameter");
     }
 
     #[test]

@@ -1,0 +1,320 @@
+//! The trained flow's inference path in plain f64 Rust (faer matmuls): posterior draws
+//! with their log-densities in one inverse pass, and log-densities of given points.
+//! burn trains and stores the flow; this copy of its weights serves `infer`, where
+//! burn's per-op overhead on small tensors dominated (see docs/npe.md). A test checks
+//! both paths agree.
+
+use super::FlowConfig;
+use faer::linalg::matmul::matmul;
+use faer::{Accum, Mat, MatMut, MatRef, Par};
+
+const MIN_WIDTH: f64 = 1e-3;
+const MIN_HEIGHT: f64 = 1e-3;
+const MIN_DERIVATIVE: f64 = 1e-3;
+
+/// One linear layer: y = x W + b, W [in × out].
+#[derive(Clone, Debug)]
+pub struct Dense {
+    pub w: Mat<f64>,
+    pub b: Vec<f64>,
+}
+
+/// Row vector × W + b.
+fn row_forward(l: &Dense, x: &[f64]) -> Vec<f64> {
+    let mut y = l.b.clone();
+    for (i, &xi) in x.iter().enumerate() {
+        for (j, yj) in y.iter_mut().enumerate() {
+            *yj += xi * l.w[(i, j)];
+        }
+    }
+    y
+}
+
+fn relu_row(v: &mut [f64]) {
+    v.iter_mut().for_each(|x| *x = x.max(0.0));
+}
+
+/// A batch through a layer: x is [in × n] column-major (each sample contiguous), the
+/// result [out × n]; `bias` added, then ReLU unless `last`.
+fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, last: bool) -> Vec<f64> {
+    let (o, i) = (w.ncols(), w.nrows());
+    let mut y = vec![0.0; o * n];
+    matmul(MatMut::from_column_major_slice_mut(&mut y, o, n), Accum::Replace, w.transpose(), MatRef::from_column_major_slice(x, i, n), 1.0, Par::Seq);
+    for col in y.chunks_exact_mut(o) {
+        for (v, b) in col.iter_mut().zip(bias) {
+            *v += b;
+            if !last {
+                *v = v.max(0.0);
+            }
+        }
+    }
+    y
+}
+
+/// The flow's weights and architecture.
+#[derive(Clone, Debug)]
+pub struct PlainFlow {
+    pub cfg: FlowConfig,
+    pub embedding: Vec<Dense>,
+    pub conditioners: Vec<Vec<Dense>>,
+}
+
+/// The flow bound to one observation: the embedding and each conditioner's context
+/// term (first layer's context rows × context + bias) computed once.
+pub struct Bound<'a> {
+    flow: &'a PlainFlow,
+    ctx_bias: Vec<Vec<f64>>,
+}
+
+impl PlainFlow {
+    /// Embeds one input row and folds it into each conditioner's first layer.
+    pub fn bind(&self, input: &[f64]) -> Bound<'_> {
+        let mut h = input.to_vec();
+        let n = self.embedding.len();
+        for (i, l) in self.embedding.iter().enumerate() {
+            h = row_forward(l, &h);
+            if i + 1 < n {
+                relu_row(&mut h);
+            }
+        }
+        let dc = self.cfg.dim / 2;
+        let ctx_bias = self
+            .conditioners
+            .iter()
+            .map(|c| {
+                let first = &c[0];
+                let mut b = first.b.clone();
+                for (i, &hi) in h.iter().enumerate() {
+                    for (j, bj) in b.iter_mut().enumerate() {
+                        *bj += hi * first.w[(dc + i, j)];
+                    }
+                }
+                b
+            })
+            .collect();
+        Bound { flow: self, ctx_bias }
+    }
+}
+
+/// Knot positions of one dim's spline from its raw parameters: (cx, cy), K+1 long.
+fn knots(raw: &[f64], bins: usize, bound: f64) -> ([f64; 33], [f64; 33]) {
+    assert!(bins < 32, "at most 31 bins");
+    let positions = |r: &[f64], min: f64| -> [f64; 33] {
+        let m = r.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
+        let mut e = [0.0; 33];
+        let mut s = 0.0;
+        for (k, v) in r.iter().enumerate() {
+            e[k] = (v - m).exp();
+            s += e[k];
+        }
+        let mut c = [0.0; 33];
+        let mut acc = 0.0;
+        c[0] = -bound;
+        for k in 0..bins {
+            acc += e[k] / s * (1.0 - bins as f64 * min) + min;
+            c[k + 1] = acc * 2.0 * bound - bound;
+        }
+        c
+    };
+    (positions(&raw[..bins], MIN_WIDTH), positions(&raw[bins..2 * bins], MIN_HEIGHT))
+}
+
+/// Derivative at knot k (1 at both ends; softplus of the raw value inside). Only the
+/// two knots of the active bin are needed, so they are computed on demand.
+fn derivative(raw: &[f64], bins: usize, k: usize) -> f64 {
+    if k == 0 || k == bins {
+        return 1.0;
+    }
+    let r = raw[2 * bins + k - 1];
+    r.max(0.0) + (-r.abs()).exp().ln_1p() + MIN_DERIVATIVE
+}
+
+/// Bin holding v among knots c (interior knots counted as burn's `bin_of` does).
+fn bin_of(v: f64, c: &[f64], bins: usize) -> usize {
+    (1..bins).filter(|&k| v >= c[k]).count()
+}
+
+/// The active bin of one dim's spline: (x0, y0, width, height, d at both ends).
+fn bin(v: f64, raw: &[f64], bins: usize, bound: f64, by_y: bool) -> (f64, f64, f64, f64, [f64; 2]) {
+    let (cx, cy) = knots(raw, bins, bound);
+    let k = bin_of(v, if by_y { &cy } else { &cx }, bins);
+    (cx[k], cy[k], cx[k + 1] - cx[k], cy[k + 1] - cy[k], [derivative(raw, bins, k), derivative(raw, bins, k + 1)])
+}
+
+/// log f′ at position t ∈ [0, 1] in a bin of slope delta with end derivatives d.
+fn log_slope(delta: f64, d: [f64; 2], t: f64) -> f64 {
+    let t1 = t * (1.0 - t);
+    let den = delta + (d[0] + d[1] - 2.0 * delta) * t1;
+    let dnum = delta * delta * (d[1] * t * t + 2.0 * delta * t1 + d[0] * (1.0 - t) * (1.0 - t));
+    dnum.ln() - 2.0 * den.ln()
+}
+
+/// y = f(x) and log |f'(x)| for one dim.
+fn spline_forward(x: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
+    if x.abs() > bound {
+        return (x, 0.0);
+    }
+    let (x0, y0, w, h, d) = bin(x, raw, bins, bound, false);
+    let delta = h / w;
+    let t = ((x - x0) / w).clamp(0.0, 1.0);
+    let t1 = t * (1.0 - t);
+    let y = y0 + h * (delta * t * t + d[0] * t1) / (delta + (d[0] + d[1] - 2.0 * delta) * t1);
+    (y, log_slope(delta, d, t))
+}
+
+/// x = f⁻¹(y) and log |f'(x)| for one dim.
+fn spline_inverse(y: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
+    if y.abs() > bound {
+        return (y, 0.0);
+    }
+    let (x0, y0, w, h, d) = bin(y, raw, bins, bound, true);
+    let delta = h / w;
+    let dy = y - y0;
+    let s = d[0] + d[1] - 2.0 * delta;
+    let a = h * (delta - d[0]) + dy * s;
+    let b = h * d[0] - dy * s;
+    let c = -delta * dy;
+    let disc = (b * b - 4.0 * a * c).max(0.0);
+    let t = ((2.0 * c) / (-b - disc.sqrt())).clamp(0.0, 1.0);
+    (t * w + x0, log_slope(delta, d, t))
+}
+
+fn log_normal(z: &[f64]) -> f64 {
+    -0.5 * z.iter().map(|v| v * v).sum::<f64>() - 0.5 * z.len() as f64 * (2.0 * std::f64::consts::PI).ln()
+}
+
+impl Bound<'_> {
+    /// Raw spline parameters [P × n] (P = dt·(3K−1)) of transform `t` for the untouched
+    /// parts `a` [dc × n].
+    fn raw(&self, t: usize, a: &[f64], n: usize) -> Vec<f64> {
+        let layers = &self.flow.conditioners[t];
+        let first = &layers[0];
+        let dc = a.len() / n.max(1);
+        let width = first.w.ncols();
+        let mut h = vec![0.0; width * n];
+        if dc > 0 {
+            matmul(MatMut::from_column_major_slice_mut(&mut h, width, n), Accum::Replace, first.w.as_ref().subrows(0, dc).transpose(), MatRef::from_column_major_slice(a, dc, n), 1.0, Par::Seq);
+        }
+        for col in h.chunks_exact_mut(width) {
+            for (v, b) in col.iter_mut().zip(&self.ctx_bias[t]) {
+                *v = (*v + b).max(0.0);
+            }
+        }
+        let last = layers.len() - 1;
+        for (i, l) in layers.iter().enumerate().skip(1) {
+            h = batch_forward(l.w.as_ref(), &l.b, &h, n, i == last);
+        }
+        h
+    }
+
+    /// One coupling transform on u [d × n] (after its permutation), forward or inverse;
+    /// adds each sample's log |f'| to `logdet`.
+    fn couple(&self, t: usize, u: &mut [f64], n: usize, inverse: bool, logdet: &mut [f64]) {
+        let cfg = &self.flow.cfg;
+        let d = cfg.dim;
+        let (dc, dt) = (d / 2, d - d / 2);
+        let np = 3 * cfg.bins - 1;
+        let a: Vec<f64> = u.chunks_exact(d).flat_map(|c| c[..dc].iter().copied()).collect();
+        let raw = self.raw(t, &a, n);
+        for ((col, r), ld) in u.chunks_exact_mut(d).zip(raw.chunks_exact(dt * np)).zip(logdet.iter_mut()) {
+            for k in 0..dt {
+                let p = &r[k * np..(k + 1) * np];
+                let (y, l) = if inverse { spline_inverse(col[dc + k], p, cfg.bins, cfg.bound) } else { spline_forward(col[dc + k], p, cfg.bins, cfg.bound) };
+                col[dc + k] = y;
+                *ld += l;
+            }
+        }
+    }
+
+    /// Standard-normal draws z (n rows of d, row-major) → points v (same layout) and
+    /// log q(v), in one inverse pass.
+    pub fn sample(&self, z: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let cfg = &self.flow.cfg;
+        let d = cfg.dim;
+        let n = z.len() / d;
+        let mut logdet = vec![0.0; n];
+        let mut u = z.to_vec();
+        let mut tmp = vec![0.0; d];
+        for t in (0..cfg.transforms).rev() {
+            self.couple(t, &mut u, n, true, &mut logdet);
+            // Undo the permutation applied before transform t: new[p[k]] = old[k].
+            let p = &cfg.permutations[t];
+            for col in u.chunks_exact_mut(d) {
+                for (k, &pk) in p.iter().enumerate() {
+                    tmp[pk] = col[k];
+                }
+                col.copy_from_slice(&tmp);
+            }
+        }
+        let lp = z.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c) + ld).collect();
+        (u, lp)
+    }
+
+    /// log q(v) for points v (n rows of d, row-major; the flow's standardised space).
+    pub fn log_prob(&self, v: &[f64]) -> Vec<f64> {
+        let cfg = &self.flow.cfg;
+        let d = cfg.dim;
+        let n = v.len() / d;
+        let mut logdet = vec![0.0; n];
+        let mut u = v.to_vec();
+        let mut tmp = vec![0.0; d];
+        for t in 0..cfg.transforms {
+            let p = &cfg.permutations[t];
+            for col in u.chunks_exact_mut(d) {
+                for (j, &pj) in p.iter().enumerate() {
+                    tmp[j] = col[pj];
+                }
+                col.copy_from_slice(&tmp);
+            }
+            self.couple(t, &mut u, n, false, &mut logdet);
+        }
+        u.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c) + ld).collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::flow::Flow;
+    use burn::prelude::*;
+
+    #[test]
+    fn plain_path_matches_burn() {
+        let dev = Device::flex();
+        let cfg = FlowConfig::new(7, 12, true);
+        let flow = Flow::new(&cfg, &dev);
+        let plain = flow.plain(&cfg);
+        let input: Vec<f32> = (0..12).map(|i| (i as f32 * 0.37).sin()).collect();
+        let n = 64;
+        let z: Vec<f32> = (0..n * 7).map(|i| ((i * 7919 % 113) as f32 / 113.0 - 0.5) * 5.0).collect();
+        let ctx = flow.embed(Tensor::<2>::from_data(TensorData::new(input.clone(), [1, 12]), &dev)).repeat_dim(0, n);
+        let v_burn: Vec<f32> = flow.sample_from(&cfg, Tensor::<2>::from_data(TensorData::new(z.clone(), [n, 7]), &dev), ctx.clone()).try_into_vec_as::<f32>().unwrap();
+        let lp_burn: Vec<f32> = flow.log_prob(&cfg, Tensor::<2>::from_data(TensorData::new(v_burn.clone(), [n, 7]), &dev), ctx).try_into_vec_as::<f32>().unwrap();
+        let bound = plain.bind(&input.iter().map(|&v| v as f64).collect::<Vec<_>>());
+        let (v, lp) = bound.sample(&z.iter().map(|&v| v as f64).collect::<Vec<_>>());
+        for (a, b) in v.iter().zip(&v_burn) {
+            assert!((a - *b as f64).abs() < 1e-4, "sample {a} vs {b}");
+        }
+        let lp2 = bound.log_prob(&v);
+        for ((a, b), c) in lp.iter().zip(&lp_burn).zip(&lp2) {
+            assert!((a - *b as f64).abs() < 1e-3 * (1.0 + a.abs()), "log q {a} vs burn {b}");
+            assert!((a - c).abs() < 1e-9, "one-pass log q {a} vs forward {c}");
+        }
+    }
+
+    #[test]
+    fn spline_inverse_undoes_forward_with_the_same_log_slope() {
+        let bins = 8;
+        let raw: Vec<f64> = (0..3 * bins - 1).map(|i| ((i * 7919 % 101) as f64 / 50.0 - 1.0) * 2.0).collect();
+        for i in 0..40 {
+            let x = -5.5 + 11.0 * i as f64 / 39.0;
+            let (y, ld) = spline_forward(x, &raw, bins, 5.0);
+            let (back, ld2) = spline_inverse(y, &raw, bins, 5.0);
+            assert!((back - x).abs() < 1e-9, "{x} → {y} → {back}");
+            assert!((ld - ld2).abs() < 1e-7);
+            let h = 1e-6;
+            let fd = (spline_forward(x + h, &raw, bins, 5.0).0 - spline_forward(x - h, &raw, bins, 5.0).0) / (2.0 * h);
+            assert!((fd.ln() - ld).abs() < 1e-5, "x = {x}: {} vs {ld}", fd.ln());
+        }
+    }
+}
