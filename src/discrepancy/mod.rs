@@ -100,7 +100,8 @@ pub enum Verdict {
 }
 
 /// Alarm thresholds, both measured on effect-free data simulated from the model itself
-/// (their 95 % quantiles), so the false-alarm rate is known rather than assumed.
+/// (their 97.5 % quantiles, see `workflow::ALARM_QUANTILE`), so the false-alarm rate is
+/// known rather than assumed.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct Thresholds {
     /// Reduced χ² of the base fit.

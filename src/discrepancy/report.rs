@@ -27,7 +27,7 @@ impl Report {
         p.heading("Verdict").text(&verdict);
         let t = &self.thresholds;
         p.heading("Statistics").table(
-            &["statistic", "value", "threshold (95 % of effect-free data)"],
+            &["statistic", "value", "threshold (97.5 % quantile of effect-free data)"],
             vec![
                 vec!["reduced χ², base posterior-predictive".into(), format!("{:.2}", self.before.reduced_chi2), format!("{:.2}", t.base_reduced_chi2)],
                 vec!["best candidate's χ² drop".into(), self.candidates.first().map_or("—".into(), |c| format!("{:.1} ({})", self.before_drop(c), c.effect)), format!("{:.1}", t.best_drop)],
