@@ -146,7 +146,7 @@ fn log_slope(delta: f64, d: [f64; 2], t: f64) -> f64 {
     let t1 = t * (1.0 - t);
     let den = delta + (d[0] + d[1] - 2.0 * delta) * t1;
     let dnum = delta * delta * (d[1] * t * t + 2.0 * delta * t1 + d[0] * (1.0 - t) * (1.0 - t));
-    dnum.ln() - 2.0 * den.ln()
+    (dnum / (den * den)).ln()
 }
 
 /// y = f(x) and log |f'(x)| for one dim.

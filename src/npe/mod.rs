@@ -216,9 +216,10 @@ impl Npe {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let z: Vec<f32> = (0..n * d).map(|_| StandardNormal.sample(&mut rng)).collect();
         let bound = self.bind(input);
-        // Two row blocks on two threads: each block is one batched pass.
+        // Blocks of 128 rows: buffers stay in cache (and under the allocator's mmap
+        // threshold); rayon spreads them over the cores.
         let z: Vec<f64> = z.into_iter().map(f64::from).collect();
-        let blocks: Vec<(Vec<f64>, Vec<f64>)> = z.par_chunks(d * n.div_ceil(2).max(1)).map(|c| bound.sample(c)).collect();
+        let blocks: Vec<(Vec<f64>, Vec<f64>)> = z.par_chunks(d * 128).map(|c| bound.sample(c)).collect();
         let mut v = Vec::with_capacity(n);
         let mut lp = Vec::with_capacity(n);
         for (m, l) in blocks {
@@ -267,7 +268,8 @@ impl Npe {
     }
 
     /// MAP in the flow's (unbounded, standardised) space: gradient ascent with Adam from
-    /// the two best draws, central-difference gradients (f64, all points in one batch).
+    /// the two best draws, forward-difference gradients (f64, h = 1e-4: error ~1e-4
+    /// relative, far below what Adam's normalised steps notice; all points in one batch).
     fn map_from(&self, input: &[f32], v: &[Vec<f64>], lp: &[f64]) -> Vec<f64> {
         let d = self.header.params.len();
         let mut order: Vec<usize> = (0..v.len()).collect();
@@ -278,13 +280,13 @@ impl Npe {
         let mut xs: Vec<Vec<f64>> = order.iter().take(2).map(|&i| v[i].clone()).collect();
         let k = xs.len();
         let (mut m, mut s) = (vec![0.0; k * d], vec![0.0; k * d]);
-        let rows = 1 + 2 * d;
+        let rows = 1 + d;
         for step in 1..=20 {
-            // Per start: x, then x ± h e_j; every start's points in one batch.
+            // Per start: x, then x + h e_j; every start's points in one batch.
             let mut pts = Vec::with_capacity(k * rows * d);
             for x in &xs {
                 for r in 0..rows {
-                    pts.extend((0..d).map(|j| x[j] + if r > 0 && (r - 1) / 2 == j { if r % 2 == 1 { h } else { -h } } else { 0.0 }));
+                    pts.extend((0..d).map(|j| x[j] + if r == j + 1 { h } else { 0.0 }));
                 }
             }
             let l = bound.log_prob(&pts);
@@ -294,7 +296,7 @@ impl Npe {
                     best = (l[0], x.clone());
                 }
                 for j in 0..d {
-                    let g = -(l[1 + 2 * j] - l[2 + 2 * j]) / (2.0 * h); // ascend
+                    let g = -(l[1 + j] - l[0]) / h; // ascend
                     let (m, s) = (&mut m[si * d + j], &mut s[si * d + j]);
                     *m = b1 * *m + (1.0 - b1) * g;
                     *s = b2 * *s + (1.0 - b2) * g * g;
