@@ -7,6 +7,7 @@ COPY Cargo.toml Cargo.lock ./
 COPY src ./src
 COPY migrations ./migrations
 COPY models ./models
+COPY reference ./reference
 COPY openapi.yaml ./
 RUN cargo build --release --locked --bin otofit
 
@@ -14,6 +15,7 @@ FROM debian:bookworm-slim
 RUN useradd --system --home /var/lib/otofit otofit && mkdir -p /var/lib/otofit && chown otofit /var/lib/otofit
 COPY --from=build /src/target/release/otofit /usr/local/bin/otofit
 COPY --from=build /src/models /usr/share/otofit/models
+COPY --from=build /src/reference /usr/share/otofit/reference
 USER otofit
 WORKDIR /usr/share/otofit
 VOLUME /var/lib/otofit

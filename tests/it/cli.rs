@@ -240,3 +240,31 @@ fn reference_ear_is_an_observation_and_a_noise_table() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("column 'vst_mag@200.0' missing"), "{}", String::from_utf8_lossy(&o.stderr));
 }
+
+#[test]
+fn the_docker_build_copies_every_file_compiled_into_the_binary() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let docker = std::fs::read_to_string(root.join("Dockerfile")).unwrap();
+    let copied: Vec<&str> = docker.lines().filter_map(|l| l.strip_prefix("COPY ")).filter(|l| !l.starts_with("--from")).flat_map(|l| l.split_whitespace()).collect();
+    let mut stack = vec![root.join("src")];
+    let mut checked = 0;
+    while let Some(dir) = stack.pop() {
+        for e in std::fs::read_dir(&dir).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+                continue;
+            }
+            let text = std::fs::read_to_string(&p).unwrap();
+            for part in text.split("include_str!(\"").skip(1).chain(text.split("include_bytes!(\"").skip(1)) {
+                let rel = part.split('"').next().unwrap();
+                let target = p.parent().unwrap().join(rel);
+                let target = target.canonicalize().unwrap_or_else(|_| panic!("{}: {rel} does not exist", p.display()));
+                let top = target.strip_prefix(root.canonicalize().unwrap()).unwrap().components().next().unwrap().as_os_str().to_str().unwrap().to_string();
+                assert!(copied.iter().any(|c| c.trim_end_matches('/') == top), "Dockerfile does not COPY {top} (needed by {})", p.display());
+                checked += 1;
+            }
+        }
+    }
+    assert!(checked >= 3, "found {checked} include_str! uses");
+}
