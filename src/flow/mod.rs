@@ -165,3 +165,42 @@ impl Flow {
         z
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+
+    /// One Adam step on the negative log-likelihood moves every weight matrix and bias of
+    /// the embedding and of every conditioner: the gradient reaches all of them.
+    #[test]
+    fn gradient_reaches_every_layer() {
+        let dev = Device::flex().autodiff();
+        let cfg = FlowConfig::new(7, 12, true);
+        let flow = Flow::new(&cfg, &dev);
+        let before = flow.plain(&cfg);
+        let n = 32;
+        let u: Vec<f32> = (0..n * 7).map(|i| ((i * 7919 % 97) as f32 / 97.0 - 0.5) * 4.0).collect();
+        let x: Vec<f32> = (0..n * 12).map(|i| ((i * 104_729 % 89) as f32 / 89.0 - 0.5) * 2.0).collect();
+        let ctx = flow.embed(Tensor::<2>::from_data(TensorData::new(x, [n, 12]), &dev));
+        let loss = flow.log_prob(&cfg, Tensor::<2>::from_data(TensorData::new(u, [n, 7]), &dev), ctx).mean().neg();
+        let grads = GradientsParams::from_grads(loss.backward(), &flow);
+        let mut opt = AdamConfig::new().init();
+        let after = opt.step(1e-3, flow, grads).plain(&cfg);
+        let moved = |a: &plain::Dense, b: &plain::Dense| {
+            let w = (0..a.w.nrows()).flat_map(|i| (0..a.w.ncols()).map(move |j| (i, j))).filter(|&(i, j)| a.w[(i, j)] != b.w[(i, j)]).count();
+            let bias = a.b.iter().zip(&b.b).filter(|(p, q)| p != q).count();
+            (w, bias)
+        };
+        let layers = before.embedding.iter().zip(&after.embedding).map(|(a, b)| ("embedding", a, b));
+        let layers = layers.chain(before.conditioners.iter().zip(&after.conditioners).flat_map(|(a, b)| a.iter().zip(b).map(|(a, b)| ("conditioner", a, b))));
+        let mut count = 0;
+        for (k, (what, a, b)) in layers.enumerate() {
+            let (w, bias) = moved(a, b);
+            assert!(w > a.w.nrows() * a.w.ncols() / 2, "{what} layer {k}: only {w} of {} weights moved", a.w.nrows() * a.w.ncols());
+            assert!(bias > 0, "{what} layer {k}: no bias moved");
+            count += 1;
+        }
+        assert_eq!(count, 3 + 5 * 3);
+    }
+}
