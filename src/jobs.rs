@@ -80,8 +80,14 @@ pub struct TrainParams {
     pub max_epochs: usize,
     #[serde(default)]
     pub mask_groups: bool,
+    /// Flows in the ensemble (1..=8).
+    #[serde(default = "one_member")]
+    pub ensemble: usize,
 }
 
+fn one_member() -> usize {
+    1
+}
 fn one() -> f64 {
     1.0
 }
@@ -186,6 +192,9 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             if !(p.noise_scale.is_finite() && p.noise_scale >= 0.0) {
                 errs.push(("params.noise_scale".into(), "must be a finite number ≥ 0".into()));
             }
+            if !(1..=8).contains(&p.ensemble) {
+                errs.push(("params.ensemble".into(), "must be 1..=8".into()));
+            }
         }
         "resimulate" => {
             let p: ResimulateParams = serde_json::from_value(params.clone()).map_err(de)?;
@@ -277,9 +286,10 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             let p: TrainParams = serde_json::from_value(job.params.clone())?;
             let dir = ctx.dataset_dir(&p.dataset);
             let ds = Dataset::load(&dir).with_context(|| format!("dataset '{}'", p.dataset))?;
-            let s = TrainSettings { noise_scale: p.noise_scale, seed: p.seed, max_epochs: p.max_epochs, mask_groups: p.mask_groups, ..TrainSettings::default() };
-            let max = s.max_epochs as f64;
-            let model = npe::train(&ds, &s, &mut |e| r.report(e.epoch as f64 / max, format!("epoch {} val loss {:.4}", e.epoch, e.val_loss)))?;
+            let s = TrainSettings { noise_scale: p.noise_scale, seed: p.seed, max_epochs: p.max_epochs, mask_groups: p.mask_groups, ensemble: p.ensemble, ..TrainSettings::default() };
+            // Progress over all members (each may stop early, so this is a lower bound).
+            let max = (s.max_epochs * s.ensemble) as f64;
+            let model = npe::train(&ds, &s, &mut |e| r.report((e.member * s.max_epochs + e.epoch) as f64 / max, format!("member {} epoch {} val loss {:.4}", e.member, e.epoch, e.val_loss)))?;
             if ctx.shutdown.load(Ordering::Relaxed) {
                 bail!(Stopped);
             }

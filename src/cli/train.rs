@@ -29,6 +29,9 @@ pub struct TrainArgs {
     /// Drop whole feature groups at random so one network answers any subset.
     #[arg(long)]
     pub mask_groups: bool,
+    /// Train K flows from different seeds and store them as one equal-weight ensemble.
+    #[arg(long, default_value_t = 1)]
+    pub ensemble: usize,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -44,6 +47,9 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if args.max_epochs == 0 {
         bail!("--max-epochs must be at least 1");
     }
+    if !(1..=16).contains(&args.ensemble) {
+        bail!("--ensemble must be between 1 and 16, got {}", args.ensemble);
+    }
     let mut ds = Dataset::load(&args.data)?;
     if let Some(p) = &args.noise_table {
         ds.noise_std = crate::dataset::read_noise_table(p, &ds.feature_names).context("--noise-table")?;
@@ -55,10 +61,12 @@ pub fn run(args: TrainArgs) -> Result<()> {
         seed: args.seed,
         max_epochs: args.max_epochs,
         mask_groups: args.mask_groups,
+        ensemble: args.ensemble,
         ..TrainSettings::default()
     };
     let model = npe::train(&ds, &settings, &mut |r| {
-        eprintln!("epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)", r.epoch, r.train_loss, r.val_loss, r.best_val_loss, r.seconds);
+        let m = if args.ensemble > 1 { format!("member {} ", r.member) } else { String::new() };
+        eprintln!("{m}epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)", r.epoch, r.train_loss, r.val_loss, r.best_val_loss, r.seconds);
         true
     })?;
     model.save(&args.out)?;

@@ -42,6 +42,7 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
             d["groups"] = json!(h.groups.iter().map(|g| &g.name).collect::<Vec<_>>());
             d["accepts_subsets"] = json!(h.mask_groups);
             d["training"] = json!(h.training);
+            d["members"] = json!(h.members);
             d
         }
         Err(e) => {

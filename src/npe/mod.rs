@@ -25,7 +25,8 @@ use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-pub const FORMAT_VERSION: u32 = 1;
+/// 2: members stored as length-prefixed records (an ensemble); 1 (one record) is read too.
+pub const FORMAT_VERSION: u32 = 2;
 const MAGIC: &[u8; 11] = b"OTOFIT-NPE\n";
 
 /// Everything about a model except its weights (the checkpoint's JSON header).
@@ -48,6 +49,13 @@ pub struct Header {
     pub noise_scale: f64,
     pub flow: FlowConfig,
     pub training: TrainingSummary,
+    /// Flows in the equal-weight ensemble (trained from different seeds).
+    #[serde(default = "one")]
+    pub members: usize,
+}
+
+fn one() -> usize {
+    1
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -64,10 +72,41 @@ pub struct TrainingSummary {
 /// A trained posterior estimator, ready to answer on the CPU (`flex`) backend.
 pub struct Npe {
     pub header: Header,
-    flow: Flow,
-    /// The same weights on the autodiff device, for MAP gradients.
+    /// The ensemble's flows (one for a single model), as trained and stored by burn.
+    flows: Vec<Flow>,
     /// The same weights for inference in plain Rust (flow::plain).
-    plain: PlainFlow,
+    plains: Vec<PlainFlow>,
+}
+
+/// The members bound to one observation: an equal-weight mixture.
+struct Mixture<'a> {
+    members: Vec<Bound<'a>>,
+}
+
+impl Mixture<'_> {
+    /// log q(v) = log mean_k q_k(v).
+    fn log_prob(&self, v: &[f64]) -> Vec<f64> {
+        if self.members.len() == 1 {
+            return self.members[0].log_prob(v);
+        }
+        let all: Vec<Vec<f64>> = self.members.iter().map(|m| m.log_prob(v)).collect();
+        let ln_k = (self.members.len() as f64).ln();
+        (0..all[0].len())
+            .map(|i| {
+                let top = all.iter().map(|l| l[i]).fold(f64::NEG_INFINITY, f64::max);
+                if !top.is_finite() {
+                    return top;
+                }
+                top + all.iter().map(|l| (l[i] - top).exp()).sum::<f64>().ln() - ln_k
+            })
+            .collect()
+    }
+
+    /// Block `b` of base draws through member b mod K, with mixture log-densities.
+    fn sample(&self, b: usize, z: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let (v, lp) = self.members[b % self.members.len()].sample(z);
+        if self.members.len() == 1 { (v, lp) } else { let lp = self.log_prob(&v); (v, lp) }
+    }
 }
 
 /// One observation: features in header order, with the features present.
@@ -93,26 +132,33 @@ pub struct Summary {
 }
 
 impl Npe {
-    fn from_parts(header: Header, record: ModuleRecord) -> Npe {
+    fn from_parts(header: Header, records: Vec<ModuleRecord>) -> Npe {
         let device = Device::flex();
-        let flow = Flow::new(&header.flow, &device).load_record(record.clone());
-        let plain = flow.plain(&header.flow);
-        Npe { header, flow, plain }
+        let flows: Vec<Flow> = records.into_iter().map(|r| Flow::new(&header.flow, &device).load_record(r)).collect();
+        let plains = flows.iter().map(|f| f.plain(&header.flow)).collect();
+        Npe { header, flows, plains }
     }
 
     pub fn params(&self) -> &[Param] {
         &self.header.params
     }
 
-    /// Writes the checkpoint: magic, header length (u64 LE), JSON header, burn record.
+    /// Writes the checkpoint: magic, header length (u64 LE), JSON header, then per member
+    /// its burn record's length (u64 LE) and bytes.
     pub fn save(&self, path: &Path) -> Result<()> {
-        let header = serde_json::to_vec(&self.header)?;
-        let record = self.flow.clone().into_record().into_bytes().map_err(|e| anyhow::anyhow!("record: {e:?}"))?;
-        let mut out = Vec::with_capacity(header.len() + record.len() + 32);
+        let mut h = self.header.clone();
+        h.format_version = FORMAT_VERSION;
+        h.members = self.flows.len();
+        let header = serde_json::to_vec(&h)?;
+        let mut out = Vec::with_capacity(header.len() + 400_000 * self.flows.len());
         out.extend_from_slice(MAGIC);
         out.extend_from_slice(&(header.len() as u64).to_le_bytes());
         out.extend_from_slice(&header);
-        out.extend_from_slice(&record);
+        for f in &self.flows {
+            let record = f.clone().into_record().into_bytes().map_err(|e| anyhow::anyhow!("record: {e:?}"))?;
+            out.extend_from_slice(&(record.len() as u64).to_le_bytes());
+            out.extend_from_slice(&record);
+        }
         let tmp = path.with_extension("tmp");
         std::fs::write(&tmp, &out).with_context(|| format!("cannot write {}", tmp.display()))?;
         std::fs::rename(&tmp, path)?;
@@ -134,8 +180,8 @@ impl Npe {
             bail!("truncated checkpoint");
         }
         let header: Header = serde_json::from_slice(&bytes[start..start + n]).context("checkpoint header")?;
-        if header.format_version != FORMAT_VERSION {
-            bail!("checkpoint format {} is not supported (this otofit reads format {FORMAT_VERSION})", header.format_version);
+        if header.format_version != FORMAT_VERSION && header.format_version != 1 {
+            bail!("checkpoint format {} is not supported (this otofit reads formats 1 and {FORMAT_VERSION})", header.format_version);
         }
         let (d, f) = (header.params.len(), header.feature_names.len());
         let g = if header.mask_groups { header.groups.len() } else { 0 };
@@ -149,10 +195,31 @@ impl Npe {
         if !shapes_ok {
             bail!("checkpoint header shapes disagree ({d} parameters, {f} features)");
         }
-        let record = ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(bytes[start + n..].to_vec())).map_err(|e| anyhow::anyhow!("weights: {e:?}"))?;
+        let record = |b: &[u8]| ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec())).map_err(|e| anyhow::anyhow!("weights: {e:?}"));
+        let mut rest = &bytes[start + n..];
+        let records = if header.format_version == 1 {
+            vec![record(rest)?]
+        } else {
+            let mut out = Vec::new();
+            for k in 0..header.members {
+                if rest.len() < 8 {
+                    bail!("truncated checkpoint (member {k} of {})", header.members);
+                }
+                let len = u64::from_le_bytes(rest[..8].try_into()?) as usize;
+                if rest.len() < 8 + len {
+                    bail!("truncated checkpoint (member {k} of {})", header.members);
+                }
+                out.push(record(&rest[8..8 + len])?);
+                rest = &rest[8 + len..];
+            }
+            out
+        };
+        if records.is_empty() {
+            bail!("checkpoint has no weights");
+        }
         let expected = Flow::new(&header.flow, &Device::flex()).num_params();
-        let npe = Npe::from_parts(header, record);
-        if npe.flow.num_params() != expected {
+        let npe = Npe::from_parts(header, records);
+        if npe.flows.iter().any(|f| f.num_params() != expected) {
             bail!("weights do not match the architecture");
         }
         Ok(npe)
@@ -217,9 +284,9 @@ impl Npe {
         let z: Vec<f32> = (0..n * d).map(|_| StandardNormal.sample(&mut rng)).collect();
         let bound = self.bind(input);
         // Blocks of 128 rows: buffers stay in cache (and under the allocator's mmap
-        // threshold); rayon spreads them over the cores.
+        // threshold); rayon spreads them over the cores; block b comes from member b mod K.
         let z: Vec<f64> = z.into_iter().map(f64::from).collect();
-        let blocks: Vec<(Vec<f64>, Vec<f64>)> = z.par_chunks(d * 128).map(|c| bound.sample(c)).collect();
+        let blocks: Vec<(Vec<f64>, Vec<f64>)> = z.par_chunks(d * 128).enumerate().map(|(b, c)| bound.sample(b, c)).collect();
         let mut v = Vec::with_capacity(n);
         let mut lp = Vec::with_capacity(n);
         for (m, l) in blocks {
@@ -229,8 +296,9 @@ impl Npe {
         (v, lp)
     }
 
-    fn bind(&self, input: &[f32]) -> Bound<'_> {
-        self.plain.bind(&input.iter().map(|&v| v as f64).collect::<Vec<_>>())
+    fn bind(&self, input: &[f32]) -> Mixture<'_> {
+        let x: Vec<f64> = input.iter().map(|&v| v as f64).collect();
+        Mixture { members: self.plains.iter().map(|p| p.bind(&x)).collect() }
     }
 
     /// Posterior samples in natural units.

@@ -190,12 +190,12 @@ async fn simulate_train_and_infer_through_jobs() {
     let res = app.clone().oneshot(Request::get(format!("/datasets/{id}/x.csv")).body(Body::empty()).unwrap()).await.unwrap();
     let csv = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
     assert_eq!(String::from_utf8_lossy(&csv).lines().count(), 121);
-    let (_, _, t) = call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": id, "max_epochs": 2}}))).await;
+    let (_, _, t) = call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": id, "max_epochs": 2, "ensemble": 2}}))).await;
     let tid = t["id"].as_str().unwrap().to_string();
     let done = wait(&app, &tid).await;
     assert_eq!(done["state"], "succeeded", "{done}");
     let (status, _, m) = call(&app, "GET", &format!("/models/{tid}"), None).await;
-    assert_eq!((status, m["training"]["epochs"].as_u64()), (StatusCode::OK, Some(2)), "{m}");
+    assert_eq!((status, m["training"]["epochs"].as_u64(), m["members"].as_u64()), (StatusCode::OK, Some(4), Some(2)), "two members of two epochs: {m}");
     let (_, _, r) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": [[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]]}}))).await;
     let done = wait(&app, r["id"].as_str().unwrap()).await;
     assert_eq!(done["result"]["x"][0].as_array().unwrap().len(), 250, "{done}");

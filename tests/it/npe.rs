@@ -109,10 +109,36 @@ fn checkpoints_round_trip_and_bad_files_are_refused() {
     let err = |b: &[u8]| Npe::from_bytes(b).err().map(|e| format!("{e:#}")).unwrap_or_default();
     assert!(err(b"hello").contains("bad magic"));
     assert!(err(&bytes[..bytes.len() / 2]).contains("weights") || err(&bytes[..bytes.len() / 2]).contains("truncated"));
-    let text = String::from_utf8_lossy(&bytes).replace("\"format_version\":1", "\"format_version\":9");
+    let text = String::from_utf8_lossy(&bytes).replace("\"format_version\":2", "\"format_version\":9");
     assert!(err(text.as_bytes()).contains("format 9"));
     let e = model.sample(&Obs { x: &x[..2], present: None }, 5, 0).unwrap_err();
     assert!(e.to_string().contains("expects 3"), "{e}");
+}
+
+#[test]
+fn ensembles_store_every_member_and_format_1_still_loads() {
+    let ds = linear_gaussian(400, 2);
+    let s = TrainSettings { embedding: false, max_epochs: 3, seed: 5, ensemble: 2, ..Default::default() };
+    let model = npe::train(&ds, &s, &mut |_| true).unwrap();
+    assert_eq!(model.header.members, 2);
+    let single = npe::train(&ds, &TrainSettings { ensemble: 1, ..s.clone() }, &mut |_| true).unwrap();
+    let x = [0.3, -0.2, 0.9];
+    let obs = Obs { x: &x, present: None };
+    let (a, b) = (model.sample(&obs, 300, 1).unwrap(), single.sample(&obs, 300, 1).unwrap());
+    // Block 0 (rows 0..128) comes from member 0, which is the single model; block 1 from member 1.
+    assert_eq!(a[..128], b[..128]);
+    assert_ne!(a[128..256], b[128..256]);
+    let dir = std::env::temp_dir().join(format!("otofit-ens-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    model.save(&dir.join("e.otofit")).unwrap();
+    let loaded = Npe::load(&dir.join("e.otofit")).unwrap();
+    assert_eq!(loaded.header.members, 2);
+    assert_eq!(loaded.sample(&obs, 300, 1).unwrap(), a);
+    let lp = loaded.log_prob(&obs, &a[..5]).unwrap();
+    assert!(lp.iter().all(|v| v.is_finite()));
+    // The shipped default model is a format-1 file: it must keep loading.
+    let default = Npe::load(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit"))).unwrap();
+    assert_eq!((default.header.format_version, default.header.members), (1, 1));
 }
 
 #[test]
