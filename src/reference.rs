@@ -2,7 +2,7 @@
 //! (`reference/ear.json`), interpolated onto a model's frequency grid as an observation
 //! (250 features) with a test–retest STD per feature.
 
-use crate::sim::output::{MEASURES, feature_names, noise_std};
+use crate::sim::output::{MEASURES, feature_names, interpolate_log_f, noise_std};
 use anyhow::{Context, Result, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
@@ -43,14 +43,7 @@ fn interpolate(c: &Curve, name: &str, grid: &[f64]) -> Result<Vec<f64>> {
     if f.len() < 2 || f.len() != c.value.len() || f.windows(2).any(|w| w[1] <= w[0]) || f[0] <= 0.0 {
         bail!("reference/ear.json: '{name}' needs ≥ 2 strictly increasing positive frequencies, one value each");
     }
-    Ok(grid
-        .iter()
-        .map(|&g| {
-            let i = f.partition_point(|&x| x < g).clamp(1, f.len() - 1);
-            let t = ((g.ln() - f[i - 1].ln()) / (f[i].ln() - f[i - 1].ln())).clamp(0.0, 1.0);
-            c.value[i - 1] * (1.0 - t) + c.value[i] * t
-        })
-        .collect())
+    Ok(interpolate_log_f(f, &c.value, grid))
 }
 
 /// Builds the reference ear on `freqs` (the model grid).

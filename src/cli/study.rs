@@ -3,7 +3,8 @@
 //! training-set size (Fig. 5). Each prints a table and writes JSON and SVG figures.
 
 use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
-use crate::plot::{self, html::Page, rho_per_measure as rho};
+use crate::discrepancy::workflow::spearman_per_measure as rho;
+use crate::plot::{self, html::Page};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
 use crate::sim::{Model, ModelConfig, PARAMS};
@@ -122,15 +123,14 @@ pub fn run(a: StudyArgs) -> Result<()> {
                     let f = model.frequencies();
                     // Five posterior draws re-simulated, and the observation's noise band.
                     let draws: Vec<Vec<f64>> = run_rows(&model, &Design::default(), &inf.samples[..5.min(inf.samples.len())], 0, None).into_iter().filter_map(|r| r.ok()).collect();
-                    let lo: Vec<f64> = x.iter().zip(&noise.std).map(|(v, s)| v - s).collect();
-                    let hi: Vec<f64> = x.iter().zip(&noise.std).map(|(v, s)| v + s).collect();
+                    let (lo, hi) = plot::plus_minus(&x, &noise.std);
                     let mut series = vec![plot::Series { x: &x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("noisy simulation (observation)") }];
                     for (k, d) in draws.iter().enumerate() {
                         series.push(plot::Series { x: d, color: plot::DRAW, width: 1.0, opacity: 0.5, label: (k == 0).then_some("posterior draws re-simulated") });
                     }
                     series.push(plot::Series { x: x0, color: plot::TRUTH, width: 1.5, opacity: 1.0, label: Some("ground truth") });
                     series.push(plot::Series { x: &map_x, color: plot::MAP, width: 1.5, opacity: 1.0, label: Some("MAP re-simulation") });
-                    let band = [plot::Band { lo: &lo, hi: &hi, color: "#777777", label: "observation ± test–retest STD" }];
+                    let band = [plot::Band { lo: &lo, hi: &hi, color: plot::NOISE, label: "observation ± test–retest STD" }];
                     write(&a.out, &format!("validate_{i}_spectra.svg"), &plot::spectra(&format!("Unseen simulation {i}"), f, &band, &series))?;
                     write(&a.out, &format!("validate_{i}_corner.svg"), &corner(&npe, &inf.samples, Some(t), &inf.map, &format!("Posterior, unseen simulation {i}")))?;
                 }
@@ -257,8 +257,7 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     let names: Vec<&str> = npe.params().iter().map(|p| p.name.as_str()).collect();
     let differential = npe::normal::read(&names, &inf.samples);
 
-    let lo_obs: Vec<f64> = r.x.iter().zip(&r.std).map(|(x, s)| x - s).collect();
-    let hi_obs: Vec<f64> = r.x.iter().zip(&r.std).map(|(x, s)| x + s).collect();
+    let (lo_obs, hi_obs) = plot::plus_minus(&r.x, &r.std);
     let mut series = vec![plot::Series { x: &r.x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("reference ear (normative means)") }];
     for (k, d) in c.draws_x.iter().enumerate() {
         series.push(plot::Series { x: d, color: plot::DRAW, width: 1.0, opacity: 0.5, label: (k == 0).then_some("posterior draws re-simulated") });
@@ -266,7 +265,7 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     series.push(plot::Series { x: &c.map_x, color: plot::MAP, width: 1.5, opacity: 1.0, label: Some("MAP re-simulation") });
     series.push(plot::Series { x: &best_x, color: plot::TRUTH, width: 1.5, opacity: 1.0, label: Some("least-squares fit") });
     let bands = [
-        plot::Band { lo: &lo_obs, hi: &hi_obs, color: "#777777", label: "reference ± test–retest STD" },
+        plot::Band { lo: &lo_obs, hi: &hi_obs, color: plot::NOISE, label: "reference ± test–retest STD" },
         plot::Band { lo: &c.lo, hi: &c.hi, color: plot::BAND, label: "90 % posterior-predictive band" },
     ];
     write(out, "reference_spectra.svg", &plot::spectra("Reference ear: normative means, MAP and posterior draws re-simulated", f, &bands, &series))?;

@@ -31,6 +31,18 @@ pub struct Candidate {
     pub fit: Fit,
 }
 
+impl Candidate {
+    /// BIC penalty for the one extra parameter: ln(number of features).
+    pub fn penalty(&self) -> f64 {
+        (self.fit.n_features as f64).ln()
+    }
+
+    /// χ² drop against the base fit (the score before its penalty).
+    pub fn chi2_drop(&self) -> f64 {
+        self.score + self.penalty()
+    }
+}
+
 /// Fits the base design extended by each candidate effect, starting from `base_row`
 /// (the base model's MAP or best fit); best first.
 pub fn rank_candidates(model: &Model, base: &Design, base_row: &[f64], base_chi2: f64, obs: &Observation, candidates: &[usize]) -> Vec<Candidate> {

@@ -30,7 +30,7 @@ impl Report {
             &["statistic", "value", "threshold (97.5 % quantile of effect-free data)"],
             vec![
                 vec!["reduced χ², base posterior-predictive".into(), format!("{:.2}", self.before.reduced_chi2), format!("{:.2}", t.base_reduced_chi2)],
-                vec!["best candidate's χ² drop".into(), self.candidates.first().map_or("—".into(), |c| format!("{:.1} ({})", self.before_drop(c), c.effect)), format!("{:.1}", t.best_drop)],
+                vec!["best candidate's χ² drop".into(), self.candidates.first().map_or("—".into(), |c| format!("{:.1} ({})", c.chi2_drop(), c.effect)), format!("{:.1}", t.best_drop)],
                 vec!["reduced χ² that counts as explained".into(), "".into(), format!("≤ {:.2}", t.explained)],
             ],
         );
@@ -67,10 +67,5 @@ impl Report {
         }
         p.text(&format!("Run time {:.1} s.", self.seconds));
         p.render()
-    }
-
-    /// χ² drop of a candidate against the base fit (its score plus the BIC penalty).
-    fn before_drop(&self, c: &super::Candidate) -> f64 {
-        c.score + (self.before.z.len() as f64).ln()
     }
 }

@@ -109,6 +109,12 @@ pub fn spearman(a: &[f64], b: &[f64]) -> f64 {
     cov / var
 }
 
+/// Spearman ρ per measure between two feature vectors (measure-major).
+pub fn spearman_per_measure(a: &[f64], b: &[f64]) -> Vec<f64> {
+    let n = a.len() / MEASURES.len();
+    (0..MEASURES.len()).map(|m| spearman(&a[m * n..(m + 1) * n], &b[m * n..(m + 1) * n])).collect()
+}
+
 /// Re-simulates posterior draws (rows in `design` order) and compares with `obs`.
 pub fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], obs: &Observation) -> Result<Check> {
     let sims: Vec<Vec<f64>> = run_rows(model, design, draws, 0, None).into_iter().filter_map(|r| r.ok()).collect();
@@ -133,7 +139,7 @@ pub fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], ob
         hi.push(map_x[i] + sorted[(0.95 * (n - 1.0)) as usize] + 1.645 * obs.sigma[i]);
     }
     let freqs = model.frequencies();
-    let spearman = MEASURES.iter().enumerate().map(|(m, ms)| (ms.name.to_string(), spearman(&map_x[m * nf..(m + 1) * nf], &obs.x[m * nf..(m + 1) * nf]))).collect();
+    let spearman = MEASURES.iter().map(|ms| ms.name.to_string()).zip(spearman_per_measure(&map_x, &obs.x)).collect();
     let reduced_chi2 = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
     Ok(Check { reduced_chi2, bands: locate(&z, freqs, 2.5, 3), z, spearman, map_x, lo, hi, draws_x: sims.into_iter().take(5).collect() })
 }

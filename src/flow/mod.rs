@@ -169,7 +169,7 @@ impl Flow {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use burn::optim::{AdamConfig, GradientsParams, Optimizer};
+    use burn::optim::{AdamConfig, GradientsParams};
 
     /// One Adam step on the negative log-likelihood moves every weight matrix and bias of
     /// the embedding and of every conditioner: the gradient reaches all of them.

@@ -19,21 +19,6 @@ pub struct Dense {
     pub b: Vec<f64>,
 }
 
-/// Row vector × W + b.
-fn row_forward(l: &Dense, x: &[f64]) -> Vec<f64> {
-    let mut y = l.b.clone();
-    for (i, &xi) in x.iter().enumerate() {
-        for (j, yj) in y.iter_mut().enumerate() {
-            *yj += xi * l.w[(i, j)];
-        }
-    }
-    y
-}
-
-fn relu_row(v: &mut [f64]) {
-    v.iter_mut().for_each(|x| *x = x.max(0.0));
-}
-
 /// A batch through a layer: x is [in × n] column-major (each sample contiguous), the
 /// result [out × n]; `bias` added, then ReLU unless `last`.
 fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, last: bool) -> Vec<f64> {
@@ -70,28 +55,13 @@ impl PlainFlow {
     /// Embeds one input row and folds it into each conditioner's first layer.
     pub fn bind(&self, input: &[f64]) -> Bound<'_> {
         let mut h = input.to_vec();
-        let n = self.embedding.len();
+        let last = self.embedding.len().saturating_sub(1);
         for (i, l) in self.embedding.iter().enumerate() {
-            h = row_forward(l, &h);
-            if i + 1 < n {
-                relu_row(&mut h);
-            }
+            h = batch_forward(l.w.as_ref(), &l.b, &h, 1, i == last);
         }
         let dc = self.cfg.dim / 2;
-        let ctx_bias = self
-            .conditioners
-            .iter()
-            .map(|c| {
-                let first = &c[0];
-                let mut b = first.b.clone();
-                for (i, &hi) in h.iter().enumerate() {
-                    for (j, bj) in b.iter_mut().enumerate() {
-                        *bj += hi * first.w[(dc + i, j)];
-                    }
-                }
-                b
-            })
-            .collect();
+        // The context rows of each first layer, applied once: bias + h W[dc..].
+        let ctx_bias = self.conditioners.iter().map(|c| batch_forward(c[0].w.as_ref().subrows(dc, h.len()), &c[0].b, &h, 1, true)).collect();
         Bound { flow: self, ctx_bias }
     }
 }
@@ -179,6 +149,22 @@ fn spline_inverse(y: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
     (t * w + x0, log_slope(delta, d, t))
 }
 
+/// Applies permutation p to every row of u (new[j] = old[p[j]], as burn's `select`), or
+/// undoes it.
+fn permute(u: &mut [f64], p: &[usize], undo: bool) {
+    let mut tmp = vec![0.0; p.len()];
+    for row in u.chunks_exact_mut(p.len()) {
+        for (j, &pj) in p.iter().enumerate() {
+            if undo {
+                tmp[pj] = row[j];
+            } else {
+                tmp[j] = row[pj];
+            }
+        }
+        row.copy_from_slice(&tmp);
+    }
+}
+
 fn log_normal(z: &[f64]) -> f64 {
     -0.5 * z.iter().map(|v| v * v).sum::<f64>() - 0.5 * z.len() as f64 * (2.0 * std::f64::consts::PI).ln()
 }
@@ -188,18 +174,9 @@ impl Bound<'_> {
     /// parts `a` [dc × n].
     fn raw(&self, t: usize, a: &[f64], n: usize) -> Vec<f64> {
         let layers = &self.flow.conditioners[t];
-        let first = &layers[0];
         let dc = a.len() / n.max(1);
-        let width = first.w.ncols();
-        let mut h = vec![0.0; width * n];
-        if dc > 0 {
-            matmul(MatMut::from_column_major_slice_mut(&mut h, width, n), Accum::Replace, first.w.as_ref().subrows(0, dc).transpose(), MatRef::from_column_major_slice(a, dc, n), 1.0, Par::Seq);
-        }
-        for col in h.chunks_exact_mut(width) {
-            for (v, b) in col.iter_mut().zip(&self.ctx_bias[t]) {
-                *v = (*v + b).max(0.0);
-            }
-        }
+        // First layer: the untouched rows of W on `a`, plus the folded context term.
+        let mut h = batch_forward(layers[0].w.as_ref().subrows(0, dc), &self.ctx_bias[t], a, n, false);
         let last = layers.len() - 1;
         for (i, l) in layers.iter().enumerate().skip(1) {
             h = batch_forward(l.w.as_ref(), &l.b, &h, n, i == last);
@@ -234,17 +211,9 @@ impl Bound<'_> {
         let n = z.len() / d;
         let mut logdet = vec![0.0; n];
         let mut u = z.to_vec();
-        let mut tmp = vec![0.0; d];
         for t in (0..cfg.transforms).rev() {
             self.couple(t, &mut u, n, true, &mut logdet);
-            // Undo the permutation applied before transform t: new[p[k]] = old[k].
-            let p = &cfg.permutations[t];
-            for col in u.chunks_exact_mut(d) {
-                for (k, &pk) in p.iter().enumerate() {
-                    tmp[pk] = col[k];
-                }
-                col.copy_from_slice(&tmp);
-            }
+            permute(&mut u, &cfg.permutations[t], true);
         }
         let lp = z.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c) + ld).collect();
         (u, lp)
@@ -257,15 +226,8 @@ impl Bound<'_> {
         let n = v.len() / d;
         let mut logdet = vec![0.0; n];
         let mut u = v.to_vec();
-        let mut tmp = vec![0.0; d];
         for t in 0..cfg.transforms {
-            let p = &cfg.permutations[t];
-            for col in u.chunks_exact_mut(d) {
-                for (j, &pj) in p.iter().enumerate() {
-                    tmp[j] = col[pj];
-                }
-                col.copy_from_slice(&tmp);
-            }
+            permute(&mut u, &cfg.permutations[t], false);
             self.couple(t, &mut u, n, false, &mut logdet);
         }
         u.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c) + ld).collect()

@@ -69,15 +69,7 @@ fn resample(field: &str, f: &[f64], v: &[f64], grid: &[f64], errs: &mut Vec<(Str
         errs.push((format!("{field}.frequencies_hz"), format!("must cover the model band {:.0}–{:.0} Hz (got {:.0}–{:.0})", grid[0], grid[grid.len() - 1], f[0], f[f.len() - 1])));
         return None;
     }
-    Some(
-        grid.iter()
-            .map(|&g| {
-                let i = f.partition_point(|&x| x < g).clamp(1, f.len() - 1);
-                let t = ((g.ln() - f[i - 1].ln()) / (f[i].ln() - f[i - 1].ln())).clamp(0.0, 1.0);
-                v[i - 1] * (1.0 - t) + v[i] * t
-            })
-            .collect(),
-    )
+    Some(crate::sim::output::interpolate_log_f(f, v, grid))
 }
 
 fn check_values(field: &str, v: &[f64], positive: bool, errs: &mut Vec<(String, String)>) {

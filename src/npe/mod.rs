@@ -86,10 +86,22 @@ struct Mixture<'a> {
 impl Mixture<'_> {
     /// log q(v) = log mean_k q_k(v).
     fn log_prob(&self, v: &[f64]) -> Vec<f64> {
-        if self.members.len() == 1 {
-            return self.members[0].log_prob(v);
+        self.mix(v, None)
+    }
+
+    /// The mixture density, reusing member `known.0`'s densities `known.1` when given.
+    fn mix(&self, v: &[f64], known: Option<(usize, Vec<f64>)>) -> Vec<f64> {
+        let mut known = known;
+        let mut all: Vec<Vec<f64>> = Vec::with_capacity(self.members.len());
+        for (k, m) in self.members.iter().enumerate() {
+            all.push(match known.take_if(|(j, _)| *j == k) {
+                Some((_, l)) => l,
+                None => m.log_prob(v),
+            });
         }
-        let all: Vec<Vec<f64>> = self.members.iter().map(|m| m.log_prob(v)).collect();
+        if all.len() == 1 {
+            return all.pop().unwrap_or_default();
+        }
         let ln_k = (self.members.len() as f64).ln();
         (0..all[0].len())
             .map(|i| {
@@ -104,8 +116,10 @@ impl Mixture<'_> {
 
     /// Block `b` of base draws through member b mod K, with mixture log-densities.
     fn sample(&self, b: usize, z: &[f64]) -> (Vec<f64>, Vec<f64>) {
-        let (v, lp) = self.members[b % self.members.len()].sample(z);
-        if self.members.len() == 1 { (v, lp) } else { let lp = self.log_prob(&v); (v, lp) }
+        let k = b % self.members.len();
+        let (v, lp) = self.members[k].sample(z);
+        let lp = self.mix(&v, Some((k, lp)));
+        (v, lp)
     }
 }
 

@@ -4,7 +4,7 @@
 mod canvas;
 pub mod html;
 mod pages;
-pub use pages::{Resimulation, resimulation, rho_per_measure};
+pub use pages::{Resimulation, resimulation};
 pub use canvas::{Axes, Canvas};
 
 use crate::sim::output::MEASURES;
@@ -15,6 +15,13 @@ pub const MAP: &str = "#d62728";
 pub const DRAW: &str = "#1f77b4";
 pub const BAND: &str = "#1f77b4";
 pub const TRUTH: &str = "#2ca02c";
+/// The observation's noise band.
+pub const NOISE: &str = "#777777";
+
+/// x ± s, elementwise (e.g. an observation and its test–retest STD).
+pub fn plus_minus(x: &[f64], s: &[f64]) -> (Vec<f64>, Vec<f64>) {
+    (x.iter().zip(s).map(|(v, e)| v - e).collect(), x.iter().zip(s).map(|(v, e)| v + e).collect())
+}
 
 /// How each measure is shown: its label and the map from feature value to plotted value.
 fn display(measure: usize, v: f64) -> f64 {

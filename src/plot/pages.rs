@@ -2,7 +2,7 @@
 
 use super::html::Page;
 use super::{MAP, OBS, DRAW, Series, spectra};
-use crate::discrepancy::workflow::spearman;
+use crate::discrepancy::workflow::spearman_per_measure;
 use crate::sim::PARAMS;
 use crate::sim::output::MEASURES;
 
@@ -11,12 +11,6 @@ pub struct Resimulation {
     pub svg: String,
     pub html: String,
     pub rho: Option<Vec<Vec<f64>>>,
-}
-
-/// Spearman ρ per measure between two feature vectors.
-pub fn rho_per_measure(a: &[f64], b: &[f64]) -> Vec<f64> {
-    let n = a.len() / MEASURES.len();
-    (0..MEASURES.len()).map(|m| spearman(&a[m * n..(m + 1) * n], &b[m * n..(m + 1) * n])).collect()
 }
 
 /// Rows re-simulated (the first drawn as the MAP), over the observation when given.
@@ -32,7 +26,7 @@ pub fn resimulation(freqs: &[f64], theta: &[Vec<f64>], x: &[&[f64]], obs: Option
         series.push(Series { x: first, color: MAP, width: 1.5, opacity: 1.0, label: Some("first row (e.g. the MAP)") });
     }
     let svg = spectra("Re-simulated spectra", freqs, &[], &series);
-    let rho = obs.map(|o| x.iter().map(|row| rho_per_measure(row, o)).collect::<Vec<_>>());
+    let rho = obs.map(|o| x.iter().map(|row| spearman_per_measure(row, o)).collect::<Vec<_>>());
     let mut p = Page::new("otofit re-simulation");
     p.text(&format!("{} rows re-simulated, {} succeeded.", theta.len(), x.len()));
     let mut head = vec!["row"];

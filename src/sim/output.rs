@@ -71,6 +71,18 @@ pub fn noise_std(freqs: &[f64]) -> Vec<f64> {
         .collect()
 }
 
+/// Linear interpolation in log-frequency of (f, v) at each grid frequency, held constant
+/// beyond the end points. `f` must increase strictly and hold at least 2 points.
+pub fn interpolate_log_f(f: &[f64], v: &[f64], grid: &[f64]) -> Vec<f64> {
+    grid.iter()
+        .map(|&g| {
+            let i = f.partition_point(|&x| x < g).clamp(1, f.len() - 1);
+            let t = ((g.ln() - f[i - 1].ln()) / (f[i].ln() - f[i - 1].ln())).clamp(0.0, 1.0);
+            v[i - 1] * (1.0 - t) + v[i] * t
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
