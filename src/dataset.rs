@@ -159,7 +159,8 @@ impl Writer {
         drop(self.theta);
         drop(self.x);
         let p = tmp(&self.dir, FILES[2]);
-        std::fs::write(&p, serde_json::to_vec_pretty(meta)?).with_context(|| format!("cannot write {}", p.display()))?;
+        std::fs::write(&p, serde_json::to_vec_pretty(meta)?)
+            .with_context(|| format!("cannot write {}", p.display()))?;
         for name in FILES {
             std::fs::rename(tmp(&self.dir, name), self.dir.join(name))?;
         }
@@ -226,7 +227,9 @@ pub fn simulate_to_dir(
             let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
             let fail = |reason: String| Failed { row: first + k, reason };
             match (res, bad_effect) {
-                (_, Some((e, v))) => meta.failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high))),
+                (_, Some((e, v))) => {
+                    meta.failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high)))
+                }
                 (Ok(x), None) if x.iter().all(|v| v.is_finite()) => writer.push(row, &x)?,
                 (Ok(_), None) => meta.failed.push(fail("non-finite output".into())),
                 (Err(e), None) => meta.failed.push(fail(e.to_string())),
@@ -270,7 +273,9 @@ pub fn read_csv(path: &Path) -> Result<Table> {
             .iter()
             .zip(&header)
             .map(|(c, h)| {
-                c.trim().parse::<f64>().map_err(|_| anyhow::anyhow!("{}: line {}, column '{h}': '{c}' is not a number", path.display(), i + 2))
+                c.trim().parse::<f64>().map_err(|_| {
+                    anyhow::anyhow!("{}: line {}, column '{h}': '{c}' is not a number", path.display(), i + 2)
+                })
             })
             .collect::<Result<Vec<f64>>>()?;
         rows.push(row);
@@ -288,7 +293,10 @@ pub fn read_noise_table(path: &Path, names: &[String]) -> Result<Vec<f64>> {
     names
         .iter()
         .map(|n| {
-            let i = t.header.iter().position(|h| h == n).with_context(|| format!("{}: column '{n}' missing (the table needs every feature)", path.display()))?;
+            let i =
+                t.header.iter().position(|h| h == n).with_context(|| {
+                    format!("{}: column '{n}' missing (the table needs every feature)", path.display())
+                })?;
             let v = t.rows[0][i];
             if !(v.is_finite() && v >= 0.0) {
                 bail!("{}: column '{n}': STD must be finite and ≥ 0, got {v}", path.display());

@@ -33,7 +33,14 @@ pub struct Ctx {
 
 impl Ctx {
     pub fn new(store: Store, data_dir: PathBuf, max_queue: i64) -> Ctx {
-        Ctx { store, data_dir, notify: Notify::new(), shutdown: AtomicBool::new(false), models: RwLock::new(HashMap::new()), max_queue }
+        Ctx {
+            store,
+            data_dir,
+            notify: Notify::new(),
+            shutdown: AtomicBool::new(false),
+            models: RwLock::new(HashMap::new()),
+            max_queue,
+        }
     }
 
     /// A registered model, loaded once and shared.
@@ -168,12 +175,19 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
                 }
             }
             match (&p.n, &p.theta) {
-                (Some(n), None) if *n == 0 || *n > MAX_ROWS => errs.push(("params.n".into(), format!("must be 1..={MAX_ROWS}"))),
-                (None, Some(rows)) if rows.is_empty() || rows.len() > MAX_ROWS => errs.push(("params.theta".into(), format!("needs 1..={MAX_ROWS} rows"))),
+                (Some(n), None) if *n == 0 || *n > MAX_ROWS => {
+                    errs.push(("params.n".into(), format!("must be 1..={MAX_ROWS}")))
+                }
+                (None, Some(rows)) if rows.is_empty() || rows.len() > MAX_ROWS => {
+                    errs.push(("params.theta".into(), format!("needs 1..={MAX_ROWS} rows")))
+                }
                 (None, Some(rows)) => {
                     let w = N_PARAMS + p.vary.len();
                     if let Some(i) = rows.iter().position(|r| r.len() != w) {
-                        errs.push((format!("params.theta[{i}]"), format!("needs {w} values (the 7 parameters, then the varied effects)")));
+                        errs.push((
+                            format!("params.theta[{i}]"),
+                            format!("needs {w} values (the 7 parameters, then the varied effects)"),
+                        ));
                     }
                 }
                 (Some(_), Some(_)) => errs.push(("params".into(), "give either n or theta, not both".into())),
@@ -203,12 +217,18 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
                 errs.push(("params.theta".into(), format!("needs 1..={MAX_RESIMULATE} rows")));
             }
             if let Some(i) = p.theta.iter().position(|r| r.len() != N_PARAMS) {
-                errs.push((format!("params.theta[{i}]"), format!("needs {N_PARAMS} values: {}", PARAMS.map(|p| p.name).join(", "))));
+                errs.push((
+                    format!("params.theta[{i}]"),
+                    format!("needs {N_PARAMS} values: {}", PARAMS.map(|p| p.name).join(", ")),
+                ));
             }
             if let Some(x) = &p.observation {
                 let n = 5 * crate::sim::ModelConfig::default().frequencies.len();
                 if x.len() != n {
-                    errs.push(("params.observation".into(), format!("needs {n} features in the model's order, got {}", x.len())));
+                    errs.push((
+                        "params.observation".into(),
+                        format!("needs {n} features in the model's order, got {}", x.len()),
+                    ));
                 } else if let Some(i) = x.iter().position(|v| !v.is_finite()) {
                     errs.push((format!("params.observation[{i}]"), "must be a finite number".into()));
                 }
@@ -221,7 +241,10 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             }
             for (i, c) in p.candidates.iter().flatten().enumerate() {
                 if Effects::index(c).is_none() {
-                    errs.push((format!("params.candidates[{i}]"), format!("unknown effect '{c}' (known: {})", effect_names())));
+                    errs.push((
+                        format!("params.candidates[{i}]"),
+                        format!("unknown effect '{c}' (known: {})", effect_names()),
+                    ));
                 }
             }
             if p.train_rows < 100 || p.train_rows > MAX_ROWS {
@@ -271,10 +294,11 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 None => Rows::Prior { n: p.n.unwrap_or(0), seed: p.seed },
             };
             let dir = ctx.dataset_dir(&job.id);
-            let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, model.config.preset, &dir, &mut |done, n| {
-                r.report(done as f64 / n as f64, format!("simulated {done}/{n}"))
-            })
-            .map_err(|e| if e.is::<dataset::Cancelled>() { Stopped.into() } else { e })?;
+            let meta =
+                dataset::simulate_to_dir(&model, &design, &rows, &noise, model.config.preset, &dir, &mut |done, n| {
+                    r.report(done as f64 / n as f64, format!("simulated {done}/{n}"))
+                })
+                .map_err(|e| if e.is::<dataset::Cancelled>() { Stopped.into() } else { e })?;
             Ok(serde_json::json!({
                 "dataset": format!("/datasets/{}", job.id),
                 "rows": meta.n_rows,
@@ -286,10 +310,22 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             let p: TrainParams = serde_json::from_value(job.params.clone())?;
             let dir = ctx.dataset_dir(&p.dataset);
             let ds = Dataset::load(&dir).with_context(|| format!("dataset '{}'", p.dataset))?;
-            let s = TrainSettings { noise_scale: p.noise_scale, seed: p.seed, max_epochs: p.max_epochs, mask_groups: p.mask_groups, ensemble: p.ensemble, ..TrainSettings::default() };
+            let s = TrainSettings {
+                noise_scale: p.noise_scale,
+                seed: p.seed,
+                max_epochs: p.max_epochs,
+                mask_groups: p.mask_groups,
+                ensemble: p.ensemble,
+                ..TrainSettings::default()
+            };
             // Progress over all members (each may stop early, so this is a lower bound).
             let max = (s.max_epochs * s.ensemble) as f64;
-            let model = npe::train(&ds, &s, &mut |e| r.report((e.member * s.max_epochs + e.epoch) as f64 / max, format!("member {} epoch {} val loss {:.4}", e.member, e.epoch, e.val_loss)))?;
+            let model = npe::train(&ds, &s, &mut |e| {
+                r.report(
+                    (e.member * s.max_epochs + e.epoch) as f64 / max,
+                    format!("member {} epoch {} val loss {:.4}", e.member, e.epoch, e.val_loss),
+                )
+            })?;
             if ctx.shutdown.load(Ordering::Relaxed) {
                 bail!(Stopped);
             }
@@ -311,10 +347,13 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             let design = Design { fixed: effects_of(&p.effects, &mut errs), varied: vec![] };
             let model = Model::new(ModelConfig::default())?;
             let out = run_rows(&model, &design, &p.theta, 0, None);
-            let x: Vec<serde_json::Value> = out.iter().map(|res| match res {
-                Ok(x) => serde_json::json!(x),
-                Err(e) => serde_json::json!({ "error": e.to_string() }),
-            }).collect();
+            let x: Vec<serde_json::Value> = out
+                .iter()
+                .map(|res| match res {
+                    Ok(x) => serde_json::json!(x),
+                    Err(e) => serde_json::json!({ "error": e.to_string() }),
+                })
+                .collect();
             r.report(1.0, format!("{} rows", p.theta.len()));
             let ok: Vec<&[f64]> = out.iter().filter_map(|o| o.as_deref().ok()).collect();
             let page = crate::plot::resimulation(model.frequencies(), &p.theta, &ok, p.observation.as_deref());
@@ -323,7 +362,9 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             std::fs::write(dir.join("spectra.svg"), &page.svg)?;
             std::fs::write(dir.join("report.html"), &page.html)?;
             let files = |n: &str| format!("/jobs/{}/files/{n}", job.id);
-            Ok(serde_json::json!({ "features": feature_names(model.frequencies()), "x": x, "rho": page.rho, "figures": [files("spectra.svg")], "report": files("report.html") }))
+            Ok(
+                serde_json::json!({ "features": feature_names(model.frequencies()), "x": x, "rho": page.rho, "figures": [files("spectra.svg")], "report": files("report.html") }),
+            )
         }
         "diagnose" => {
             use crate::discrepancy::workflow::{Settings, diagnose};
@@ -335,13 +376,25 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             let path = if p.model.is_none() { default_model_path(ctx)? } else { path };
             let base = ctx.loaded(&id, &path)?;
             if p.x.len() != base.header.feature_names.len() {
-                bail!("params.x has {} values; model '{id}' has {} features", p.x.len(), base.header.feature_names.len());
+                bail!(
+                    "params.x has {} values; model '{id}' has {} features",
+                    p.x.len(),
+                    base.header.feature_names.len()
+                );
             }
             let candidates = match &p.candidates {
                 Some(c) => c.iter().filter_map(|n| Effects::index(n)).collect(),
                 None => (0..EFFECTS.len()).collect(),
             };
-            let s = Settings { candidates, extend: p.extend, train_rows: p.train_rows, max_epochs: p.max_epochs, null_cases: p.null_cases, seed: p.seed, ..Settings::default() };
+            let s = Settings {
+                candidates,
+                extend: p.extend,
+                train_rows: p.train_rows,
+                max_epochs: p.max_epochs,
+                null_cases: p.null_cases,
+                seed: p.seed,
+                ..Settings::default()
+            };
             let model = Model::new(ModelConfig::default())?;
             let steps = ["fit", "check", "null", "name", "add", "training"];
             let report = diagnose(&model, &base, &p.x, &s, &mut |m| {
@@ -360,7 +413,8 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 m.save(&models.join(format!("{}.otofit", job.id)))?;
                 doc["extended_model"] = format!("/models/{}", job.id).into();
             }
-            doc["figures"] = report.figures.iter().map(|(n, _)| format!("/jobs/{}/files/{n}", job.id)).collect::<Vec<_>>().into();
+            doc["figures"] =
+                report.figures.iter().map(|(n, _)| format!("/jobs/{}/files/{n}", job.id)).collect::<Vec<_>>().into();
             doc["report"] = format!("/jobs/{}/files/report.html", job.id).into();
             std::fs::write(dir.join("report.html"), report.html())?;
             std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&doc)?)?;

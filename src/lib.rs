@@ -6,12 +6,12 @@
 
 pub mod cli;
 pub mod dataset;
+pub mod discrepancy;
 pub mod flow;
 pub mod http;
 pub mod jobs;
 pub mod npe;
-pub mod discrepancy;
 pub mod plot;
 pub mod reference;
-pub mod store;
 pub mod sim;
+pub mod store;

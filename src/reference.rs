@@ -59,17 +59,28 @@ pub fn build(freqs: &[f64]) -> Result<Reference> {
     // STD: the noise model's shape in frequency, at the table's level per measure.
     let mut std = noise_std(freqs);
     for (m, measure) in MEASURES.iter().enumerate() {
-        let level = t.std.get(measure.name).and_then(|v| v.as_f64()).with_context(|| format!("reference/ear.json: std.{} missing", measure.name))?;
+        let level = t
+            .std
+            .get(measure.name)
+            .and_then(|v| v.as_f64())
+            .with_context(|| format!("reference/ear.json: std.{} missing", measure.name))?;
         for s in &mut std[m * freqs.len()..(m + 1) * freqs.len()] {
             *s *= level / measure.noise_std;
         }
     }
-    let citations = [&t.vst_mag_db, &t.vst_phase_deg, &t.zec_mag, &t.zec_phase_deg, &t.absorbance].iter().map(|c| c.citation.clone()).collect();
+    let citations = [&t.vst_mag_db, &t.vst_phase_deg, &t.zec_mag, &t.zec_phase_deg, &t.absorbance]
+        .iter()
+        .map(|c| c.citation.clone())
+        .collect();
     Ok(Reference { feature_names: feature_names(freqs), x, std, citations })
 }
 
 fn log10(c: &Curve) -> Curve {
-    Curve { frequency_hz: c.frequency_hz.clone(), value: c.value.iter().map(|v| v.log10()).collect(), citation: String::new() }
+    Curve {
+        frequency_hz: c.frequency_hz.clone(),
+        value: c.value.iter().map(|v| v.log10()).collect(),
+        citation: String::new(),
+    }
 }
 
 /// One-row CSV with a header of feature names (the OBS format of `otofit infer`).
@@ -105,7 +116,11 @@ mod tests {
         let root = env!("CARGO_MANIFEST_DIR");
         let obs = std::fs::read_to_string(format!("{root}/reference/obs.csv")).unwrap();
         let std = std::fs::read_to_string(format!("{root}/reference/std.csv")).unwrap();
-        assert_eq!(obs, csv(&r.feature_names, &r.x), "reference/obs.csv is stale: run `otofit study reference --out DIR` and copy DIR/reference_obs.csv");
+        assert_eq!(
+            obs,
+            csv(&r.feature_names, &r.x),
+            "reference/obs.csv is stale: run `otofit study reference --out DIR` and copy DIR/reference_obs.csv"
+        );
         assert_eq!(std, csv(&r.feature_names, &r.std), "reference/std.csv is stale");
     }
 }

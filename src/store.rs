@@ -54,7 +54,13 @@ pub fn now() -> String {
     let day = doy - (153 * mp + 2) / 5 + 1;
     let month = if mp < 10 { mp + 3 } else { mp - 9 };
     let year = yoe + era * 400 + i64::from(month <= 2);
-    format!("{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{:03}Z", rem / 3600, rem % 3600 / 60, rem % 60, d.subsec_millis())
+    format!(
+        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{:03}Z",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60,
+        d.subsec_millis()
+    )
 }
 
 fn job_from(row: &sqlx::sqlite::SqliteRow) -> JobRow {
@@ -106,35 +112,66 @@ impl Store {
         sqlx::query("SELECT 1").fetch_one(&self.pool).await.is_ok()
     }
 
-    pub async fn add_model(&self, id: &str, path: &str, is_default: bool, source_job: Option<&str>) -> Result<(), sqlx::Error> {
-        sqlx::query("INSERT OR IGNORE INTO models (id, path, is_default, created_at, source_job) VALUES (?, ?, ?, ?, ?)")
-            .bind(id)
-            .bind(path)
-            .bind(is_default as i64)
-            .bind(now())
-            .bind(source_job)
-            .execute(&self.pool)
-            .await?;
+    pub async fn add_model(
+        &self,
+        id: &str,
+        path: &str,
+        is_default: bool,
+        source_job: Option<&str>,
+    ) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "INSERT OR IGNORE INTO models (id, path, is_default, created_at, source_job) VALUES (?, ?, ?, ?, ?)",
+        )
+        .bind(id)
+        .bind(path)
+        .bind(is_default as i64)
+        .bind(now())
+        .bind(source_job)
+        .execute(&self.pool)
+        .await?;
         Ok(())
     }
 
     pub async fn models(&self) -> Result<Vec<ModelRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM models ORDER BY created_at").fetch_all(&self.pool).await?.iter().map(model_from).collect())
+        Ok(sqlx::query("SELECT * FROM models ORDER BY created_at")
+            .fetch_all(&self.pool)
+            .await?
+            .iter()
+            .map(model_from)
+            .collect())
     }
 
     pub async fn model(&self, id: &str) -> Result<Option<ModelRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM models WHERE id = ?").bind(id).fetch_optional(&self.pool).await?.as_ref().map(model_from))
+        Ok(sqlx::query("SELECT * FROM models WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+            .as_ref()
+            .map(model_from))
     }
 
     pub async fn default_model(&self) -> Result<Option<ModelRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM models WHERE is_default = 1 LIMIT 1").fetch_optional(&self.pool).await?.as_ref().map(model_from))
+        Ok(sqlx::query("SELECT * FROM models WHERE is_default = 1 LIMIT 1")
+            .fetch_optional(&self.pool)
+            .await?
+            .as_ref()
+            .map(model_from))
     }
 
     pub async fn count_active(&self) -> Result<i64, sqlx::Error> {
-        sqlx::query("SELECT COUNT(*) AS n FROM jobs WHERE state IN ('queued', 'running')").fetch_one(&self.pool).await.map(|r| r.get("n"))
+        sqlx::query("SELECT COUNT(*) AS n FROM jobs WHERE state IN ('queued', 'running')")
+            .fetch_one(&self.pool)
+            .await
+            .map(|r| r.get("n"))
     }
 
-    pub async fn insert_job(&self, id: &str, kind: &str, params: &serde_json::Value, max_attempts: i64) -> Result<(), sqlx::Error> {
+    pub async fn insert_job(
+        &self,
+        id: &str,
+        kind: &str,
+        params: &serde_json::Value,
+        max_attempts: i64,
+    ) -> Result<(), sqlx::Error> {
         sqlx::query("INSERT INTO jobs (id, kind, params, max_attempts, created_at) VALUES (?, ?, ?, ?, ?)")
             .bind(id)
             .bind(kind)
@@ -147,7 +184,12 @@ impl Store {
     }
 
     pub async fn job(&self, id: &str) -> Result<Option<JobRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM jobs WHERE id = ?").bind(id).fetch_optional(&self.pool).await?.as_ref().map(job_from))
+        Ok(sqlx::query("SELECT * FROM jobs WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?
+            .as_ref()
+            .map(job_from))
     }
 
     pub async fn jobs(&self, state: Option<&str>, limit: i64) -> Result<Vec<JobRow>, sqlx::Error> {
@@ -183,7 +225,13 @@ impl Store {
     }
 
     /// Final state of a running job.
-    pub async fn finish(&self, id: &str, state: &str, error: Option<&str>, result: Option<&serde_json::Value>) -> Result<(), sqlx::Error> {
+    pub async fn finish(
+        &self,
+        id: &str,
+        state: &str,
+        error: Option<&str>,
+        result: Option<&serde_json::Value>,
+    ) -> Result<(), sqlx::Error> {
         sqlx::query("UPDATE jobs SET state = ?, error = ?, result = ?, finished_at = ?, progress = CASE WHEN ? = 'succeeded' THEN 1 ELSE progress END WHERE id = ?")
             .bind(state)
             .bind(error)
@@ -204,7 +252,10 @@ impl Store {
             .bind(id)
             .execute(&self.pool)
             .await?;
-        sqlx::query("UPDATE jobs SET cancel_requested = 1 WHERE id = ? AND state = 'running'").bind(id).execute(&self.pool).await?;
+        sqlx::query("UPDATE jobs SET cancel_requested = 1 WHERE id = ? AND state = 'running'")
+            .bind(id)
+            .execute(&self.pool)
+            .await?;
         self.job(id).await
     }
 
@@ -228,10 +279,12 @@ impl Store {
         .execute(&self.pool)
         .await?
         .rows_affected();
-        let requeued = sqlx::query("UPDATE jobs SET state = 'queued', message = 're-queued after a restart' WHERE state = 'running'")
-            .execute(&self.pool)
-            .await?
-            .rows_affected();
+        let requeued = sqlx::query(
+            "UPDATE jobs SET state = 'queued', message = 're-queued after a restart' WHERE state = 'running'",
+        )
+        .execute(&self.pool)
+        .await?
+        .rows_affected();
         Ok((requeued, failed))
     }
 

@@ -98,8 +98,16 @@ fn sim(runs: usize) -> Result<()> {
     }
     let wall = t.elapsed().as_secs_f64();
     let threads = rayon::current_num_threads();
-    println!("system: {} unknowns, {} non-zeros, {} frequencies", model.n_unknowns(), model.nnz(), model.frequencies().len());
-    println!("one run, one core: median {one:.2} ms ({:.1} µs per frequency; target ≤ 2 ms)", one * 1e3 / model.frequencies().len() as f64);
+    println!(
+        "system: {} unknowns, {} non-zeros, {} frequencies",
+        model.n_unknowns(),
+        model.nnz(),
+        model.frequencies().len()
+    );
+    println!(
+        "one run, one core: median {one:.2} ms ({:.1} µs per frequency; target ≤ 2 ms)",
+        one * 1e3 / model.frequencies().len() as f64
+    );
     println!(
         "{runs} runs on {threads} threads: {wall:.2} s ({:.0} runs/s, {failed} failed; target ≤ 15 s for 10,000); speed-up over one core {:.2}×",
         runs as f64 / wall,
@@ -113,7 +121,10 @@ async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64)> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let t = Instant::now();
     let mut s = tokio::net::TcpStream::connect(addr).await?;
-    let req = format!("POST /infer HTTP/1.1\r\nHost: bench\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}", body.len());
+    let req = format!(
+        "POST /infer HTTP/1.1\r\nHost: bench\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
     s.write_all(req.as_bytes()).await?;
     let mut buf = Vec::new();
     s.read_to_end(&mut buf).await?;
@@ -123,7 +134,10 @@ async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64)> {
 
 fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
     let spec = include_str!("../../openapi.yaml");
-    let example = spec.lines().map(str::trim).find_map(|l| l.strip_prefix("example: ").filter(|e| e.starts_with("{\"measurements\"")))
+    let example = spec
+        .lines()
+        .map(str::trim)
+        .find_map(|l| l.strip_prefix("example: ").filter(|e| e.starts_with("{\"measurements\"")))
         .ok_or_else(|| anyhow::anyhow!("no /infer example in openapi.yaml"))?;
     let mut body: serde_json::Value = serde_json::from_str(example)?;
     body["samples"] = samples.into();
@@ -173,7 +187,16 @@ fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
 fn two_moons(n: usize, seed: u64) -> crate::npe::Dataset {
     use rand::{Rng, SeedableRng};
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let params = ["t0", "t1"].iter().map(|n| crate::npe::Param { name: n.to_string(), unit: "1".into(), scale: crate::npe::Scale::Linear, low: -1.0, high: 1.0 }).collect();
+    let params = ["t0", "t1"]
+        .iter()
+        .map(|n| crate::npe::Param {
+            name: n.to_string(),
+            unit: "1".into(),
+            scale: crate::npe::Scale::Linear,
+            low: -1.0,
+            high: 1.0,
+        })
+        .collect();
     let (mut theta, mut x) = (Vec::new(), Vec::new());
     for _ in 0..n {
         let t: [f64; 2] = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
@@ -184,25 +207,64 @@ fn two_moons(n: usize, seed: u64) -> crate::npe::Dataset {
         x.push(vec![p[0] - (t[0] + t[1]).abs() * s, p[1] + (-t[0] + t[1]) * s]);
         theta.push(t.to_vec());
     }
-    crate::npe::Dataset { params, feature_names: vec!["x0".into(), "x1".into()], frequencies_hz: vec![], groups: vec![], noise_std: vec![0.0; 2], theta, x, skipped: 0 }
+    crate::npe::Dataset {
+        params,
+        feature_names: vec!["x0".into(), "x1".into()],
+        frequencies_hz: vec![],
+        groups: vec![],
+        noise_std: vec![0.0; 2],
+        theta,
+        x,
+        skipped: 0,
+    }
 }
 
-fn npe_bench(data: Option<std::path::PathBuf>, model: &std::path::Path, held: Option<std::path::PathBuf>) -> Result<()> {
+fn npe_bench(
+    data: Option<std::path::PathBuf>,
+    model: &std::path::Path,
+    held: Option<std::path::PathBuf>,
+) -> Result<()> {
     use crate::npe::{self, Npe, Obs, TrainSettings};
     let toy = two_moons(10_000, 1);
     let t = Instant::now();
-    let m = npe::train(&toy, &TrainSettings { embedding: false, noise_scale: 0.0, ..Default::default() }, &mut |_| true)?;
+    let m =
+        npe::train(&toy, &TrainSettings { embedding: false, noise_scale: 0.0, ..Default::default() }, &mut |_| true)?;
     let test = two_moons(1000, 2);
-    let lp: f64 = test.theta.iter().zip(&test.x).map(|(th, x)| m.log_prob(&Obs { x, present: None }, std::slice::from_ref(th)).map(|v| v[0]).unwrap_or(f64::NAN)).sum::<f64>() / 1000.0;
-    println!("two-moons toy, 10,000 simulations: {:.1} s, {} epochs (best {}), held-out mean log q(θ|x) {lp:.3} (sbi 0.27 here: ~208 s, 155 epochs)", t.elapsed().as_secs_f64(), m.header.training.epochs, m.header.training.best_epoch);
+    let lp: f64 = test
+        .theta
+        .iter()
+        .zip(&test.x)
+        .map(|(th, x)| {
+            m.log_prob(&Obs { x, present: None }, std::slice::from_ref(th)).map(|v| v[0]).unwrap_or(f64::NAN)
+        })
+        .sum::<f64>()
+        / 1000.0;
+    println!(
+        "two-moons toy, 10,000 simulations: {:.1} s, {} epochs (best {}), held-out mean log q(θ|x) {lp:.3} (sbi 0.27 here: ~208 s, 155 epochs)",
+        t.elapsed().as_secs_f64(),
+        m.header.training.epochs,
+        m.header.training.best_epoch
+    );
     if let Some(dir) = data {
         let ds = npe::Dataset::load(&dir)?;
         let t = Instant::now();
         let m = npe::train(&ds, &TrainSettings::default(), &mut |_| true)?;
-        println!("middle ear, {} simulations × {} features, 3×50 embedding: {:.1} s, {} epochs (best {}, val loss {:.3}) (sbi 0.27 here: ~290 s, 190 epochs; target ≤ 150 s)", ds.theta.len(), ds.feature_names.len(), t.elapsed().as_secs_f64(), m.header.training.epochs, m.header.training.best_epoch, m.header.training.best_val_loss);
+        println!(
+            "middle ear, {} simulations × {} features, 3×50 embedding: {:.1} s, {} epochs (best {}, val loss {:.3}) (sbi 0.27 here: ~290 s, 190 epochs; target ≤ 150 s)",
+            ds.theta.len(),
+            ds.feature_names.len(),
+            t.elapsed().as_secs_f64(),
+            m.header.training.epochs,
+            m.header.training.best_epoch,
+            m.header.training.best_val_loss
+        );
     }
     let m = Npe::load(model)?;
-    let x0 = crate::sim::simulate(&mut Model::new(ModelConfig::default())?.runner(), &Theta::nominal(), &Effects::default())?;
+    let x0 = crate::sim::simulate(
+        &mut Model::new(ModelConfig::default())?.runner(),
+        &Theta::nominal(),
+        &Effects::default(),
+    )?;
     let obs = Obs { x: &x0, present: None };
     m.infer(&obs, 1000, 0)?; // warm up
     let (mut times, mut sample, mut map) = (vec![], vec![], vec![]);
@@ -223,10 +285,15 @@ fn npe_bench(data: Option<std::path::PathBuf>, model: &std::path::Path, held: Op
         let ds = npe::Dataset::load(&dir)?;
         let noise = crate::sim::batch::Noise { std: m.header.noise_std.clone(), scale: m.header.noise_scale, seed: 9 };
         let n = ds.theta.len().min(500);
-        let lp: f64 = (0..n).map(|i| {
-            let x = noise.apply(&ds.x[i], i);
-            m.log_prob(&Obs { x: &x, present: None }, std::slice::from_ref(&ds.theta[i])).map(|v| v[0]).unwrap_or(f64::NAN)
-        }).sum::<f64>() / n as f64;
+        let lp: f64 = (0..n)
+            .map(|i| {
+                let x = noise.apply(&ds.x[i], i);
+                m.log_prob(&Obs { x: &x, present: None }, std::slice::from_ref(&ds.theta[i]))
+                    .map(|v| v[0])
+                    .unwrap_or(f64::NAN)
+            })
+            .sum::<f64>()
+            / n as f64;
         println!("held-out mean log q(θ|x) of {} on {n} simulations (natural units): {lp:.2}", model.display());
     }
     Ok(())

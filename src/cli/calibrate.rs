@@ -28,8 +28,13 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         bail!("{}: its features differ from the model's", args.data.display());
     }
     // Held-out x are noise-free simulations: add the model's training noise once.
-    let noise = crate::sim::batch::Noise { std: model.header.noise_std.clone(), scale: model.header.noise_scale, seed: args.seed };
-    let rows: Vec<(Vec<f64>, Vec<f64>)> = ds.theta.iter().zip(&ds.x).take(args.n).enumerate().map(|(i, (t, x))| (t.clone(), noise.apply(x, i))).collect();
+    let noise = crate::sim::batch::Noise {
+        std: model.header.noise_std.clone(),
+        scale: model.header.noise_scale,
+        seed: args.seed,
+    };
+    let rows: Vec<(Vec<f64>, Vec<f64>)> =
+        ds.theta.iter().zip(&ds.x).take(args.n).enumerate().map(|(i, (t, x))| (t.clone(), noise.apply(x, i))).collect();
     let cal = calibrate(&model, &rows, args.samples, args.seed)?;
     println!("{}", serde_json::to_string(&cal)?);
     Ok(())

@@ -44,7 +44,11 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
     } else {
         args.candidates
             .split(',')
-            .map(|c| crate::sim::Effects::index(c.trim()).with_context(|| format!("--candidates: unknown effect '{c}' (known: {})", crate::jobs::effect_names())))
+            .map(|c| {
+                crate::sim::Effects::index(c.trim()).with_context(|| {
+                    format!("--candidates: unknown effect '{c}' (known: {})", crate::jobs::effect_names())
+                })
+            })
             .collect::<Result<_>>()?
     };
     let base = crate::npe::Npe::load(&args.model)?;
@@ -55,7 +59,15 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
         bail!("{}: feature '{}' is missing (diagnose needs all 250)", args.obs.display(), base.header.feature_names[i]);
     }
     let model = Model::new(ModelConfig::default())?;
-    let s = Settings { candidates, extend: !args.no_extend, train_rows: args.train_rows, max_epochs: args.max_epochs, null_cases: args.null_cases, seed: args.seed, ..Settings::default() };
+    let s = Settings {
+        candidates,
+        extend: !args.no_extend,
+        train_rows: args.train_rows,
+        max_epochs: args.max_epochs,
+        null_cases: args.null_cases,
+        seed: args.seed,
+        ..Settings::default()
+    };
     let report = diagnose(&model, &base, &x, &s, &mut |m| eprintln!("{m}"))?;
     std::fs::create_dir_all(&args.out)?;
     for (name, svg) in &report.figures {
@@ -77,7 +89,10 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
         println!("  {}", b.describe());
     }
     if let (Some(a), Some(p)) = (&report.after, &report.effect_posterior) {
-        println!("reduced χ² {:.2} → {:.2}; {} median {:.3e} [{:.3e}, {:.3e}] {}", report.before.reduced_chi2, a.reduced_chi2, p.effect, p.median, p.q05, p.q95, p.unit);
+        println!(
+            "reduced χ² {:.2} → {:.2}; {} median {:.3e} [{:.3e}, {:.3e}] {}",
+            report.before.reduced_chi2, a.reduced_chi2, p.effect, p.median, p.q05, p.q95, p.unit
+        );
     }
     Ok(())
 }
@@ -96,7 +111,12 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     let t = null_thresholds(&model, &base, &noise, &s)?;
     s.thresholds = Some(t);
     let q = 100.0 * crate::discrepancy::workflow::ALARM_QUANTILE;
-    println!("null ({NULL_CASES} effect-free cases, measured once): {q} % quantiles: posterior-predictive χ²ν {:.3}, best χ² drop {:.1} ({:.0} s)", t.base_reduced_chi2, t.best_drop, t0.elapsed().as_secs_f64());
+    println!(
+        "null ({NULL_CASES} effect-free cases, measured once): {q} % quantiles: posterior-predictive χ²ν {:.3}, best χ² drop {:.1} ({:.0} s)",
+        t.base_reduced_chi2,
+        t.best_drop,
+        t0.elapsed().as_secs_f64()
+    );
     let case = |row: usize, hidden: Option<usize>| -> Option<(Vec<f64>, Option<f64>, f64)> {
         let mut design = Design::default();
         design.varied.extend(hidden);
@@ -111,7 +131,9 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
             Some(_) => {
                 let on = run_rows(&model, &design, &[r.clone()], row, None).remove(0).ok()?;
                 let off = run_rows(&model, &Design::default(), &[r[..7].to_vec()], row, None).remove(0).ok()?;
-                (0..on.len()).map(|i| (discrepancy::fit::feature_residual(i, 50, on[i], off[i]) / noise.std[i]).powi(2)).sum()
+                (0..on.len())
+                    .map(|i| (discrepancy::fit::feature_residual(i, 50, on[i], off[i]) / noise.std[i]).powi(2))
+                    .sum()
             }
             None => 0.0,
         };
@@ -125,9 +147,15 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         n_clean += 1;
         false_alarms += usize::from(r.verdict != Verdict::NoDiscrepancy);
     }
-    println!("false alarms: {false_alarms} of {n_clean} effect-free cases ({:.1} %; target ≤ 5 %)", 100.0 * false_alarms as f64 / n_clean.max(1) as f64);
+    println!(
+        "false alarms: {false_alarms} of {n_clean} effect-free cases ({:.1} %; target ≤ 5 %)",
+        100.0 * false_alarms as f64 / n_clean.max(1) as f64
+    );
     println!("visible: the effect's noise-free signature Σ(Δx/σ)² > {VISIBLE}");
-    println!("{:<16} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  other verdicts", "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit");
+    println!(
+        "{:<16} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  other verdicts",
+        "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit"
+    );
     for e in 0..N_EFFECTS {
         let (mut n, mut named, mut vis, mut named_vis, mut covered) = (0, 0, 0, 0, 0);
         let (mut before, mut after) = (Vec::new(), Vec::new());

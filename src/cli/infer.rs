@@ -57,8 +57,11 @@ pub fn run(args: InferArgs) -> Result<()> {
     out.push_str(&if many { format!("obs,{}\n", names.join(",")) } else { format!("{}\n", names.join(",")) });
     let stdout = std::io::stdout();
     for (r, row) in table.rows.iter().enumerate() {
-        let (x, present) = align(&model, &table.header, row).with_context(|| format!("{}: row {}", args.obs.display(), r + 1))?;
-        let inf = model.infer(&Obs { x: &x, present: Some(&present) }, args.samples, args.seed).with_context(|| format!("observation {}", r + 1))?;
+        let (x, present) =
+            align(&model, &table.header, row).with_context(|| format!("{}: row {}", args.obs.display(), r + 1))?;
+        let inf = model
+            .infer(&Obs { x: &x, present: Some(&present) }, args.samples, args.seed)
+            .with_context(|| format!("observation {}", r + 1))?;
         for s in &inf.samples {
             let vals: Vec<String> = s.iter().map(|v| format!("{v:e}")).collect();
             if many {

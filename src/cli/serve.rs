@@ -56,15 +56,21 @@ pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
         .filter(|h| !h.is_empty())
         .map(|h| {
             let b = hex::decode(h.trim()).ok().filter(|b| b.len() == 32);
-            b.map(|b| b.try_into().expect("32 bytes")).with_context(|| format!("--api-key-hash: '{h}' is not a SHA-256 hex digest"))
+            b.map(|b| b.try_into().expect("32 bytes"))
+                .with_context(|| format!("--api-key-hash: '{h}' is not a SHA-256 hex digest"))
         })
         .collect()
 }
 
 pub fn run(args: ServeArgs) -> Result<()> {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info,tower_http=info,sqlx=warn".into());
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| "info,tower_http=info,sqlx=warn".into());
     let sub = tracing_subscriber::fmt().with_env_filter(filter);
-    if args.log_json { sub.json().init() } else { sub.init() }
+    if args.log_json {
+        sub.json().init()
+    } else {
+        sub.init()
+    }
     let keys = parse_key_hashes(&args.api_key_hashes)?;
     if !args.addr.ip().is_loopback() && keys.is_empty() {
         tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
@@ -74,7 +80,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let ctx = open(&args.data_dir, &args.default_model, args.max_queue).await?;
         let dispatcher = tokio::spawn(jobs::dispatcher(ctx.clone()));
         let app = http::router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) });
-        let listener = tokio::net::TcpListener::bind(args.addr).await.with_context(|| format!("cannot listen on {}", args.addr))?;
+        let listener = tokio::net::TcpListener::bind(args.addr)
+            .await
+            .with_context(|| format!("cannot listen on {}", args.addr))?;
         tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), "otofit serving");
         let c2 = ctx.clone();
         axum::serve(listener, app)

@@ -64,7 +64,8 @@ pub fn parse_effects(items: &[String]) -> Result<Effects> {
     let mut fx = Effects::default();
     for item in items.iter().filter(|s| !s.is_empty()) {
         let (name, value) = item.split_once('=').with_context(|| format!("--effects: '{item}' is not name=value"))?;
-        let value: f64 = value.trim().parse().with_context(|| format!("--effects: value of '{name}' is not a number"))?;
+        let value: f64 =
+            value.trim().parse().with_context(|| format!("--effects: value of '{name}' is not a number"))?;
         fx.set(name.trim(), value).map_err(|e| anyhow::anyhow!("--effects: {e}"))?;
     }
     Ok(fx)
@@ -95,7 +96,10 @@ fn read_rows(path: &PathBuf, design: &mut Design) -> Result<Vec<Vec<f64>>> {
         }
     }
     for &i in &design.varied {
-        cols.push(col(EFFECTS[i].name).with_context(|| format!("{}: missing column '{}' (--vary)", path.display(), EFFECTS[i].name))?);
+        cols.push(
+            col(EFFECTS[i].name)
+                .with_context(|| format!("{}: missing column '{}' (--vary)", path.display(), EFFECTS[i].name))?,
+        );
     }
     Ok(table.rows.iter().map(|r| cols.iter().map(|&c| r[c]).collect()).collect())
 }
@@ -119,7 +123,8 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     let preset = config.preset;
     let model = Model::new(config)?;
     let std = match &args.noise_table {
-        Some(p) => dataset::read_noise_table(p, &crate::sim::output::feature_names(model.frequencies())).context("--noise-table")?,
+        Some(p) => dataset::read_noise_table(p, &crate::sim::output::feature_names(model.frequencies()))
+            .context("--noise-table")?,
         None => batch::default_noise_std(&model),
     };
     let noise = Noise { std, scale: args.noise_scale, seed: args.seed };
@@ -133,7 +138,11 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, preset, &args.out, &mut |done, n| {
         if tty || last_report.elapsed().as_secs_f64() > 5.0 || done == n {
             let rate = done as f64 / start.elapsed().as_secs_f64();
-            eprint!("{}simulated {done}/{n} ({rate:.0} runs/s){}", if tty { "\r" } else { "" }, if tty && done < n { "" } else { "\n" });
+            eprint!(
+                "{}simulated {done}/{n} ({rate:.0} runs/s){}",
+                if tty { "\r" } else { "" },
+                if tty && done < n { "" } else { "\n" }
+            );
             last_report = Instant::now();
         }
         true
@@ -141,6 +150,12 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     for f in &meta.failed {
         eprintln!("row {} failed: {}", f.row, f.reason);
     }
-    eprintln!("wrote {} rows ({} failed) to {} in {:.2} s", meta.n_rows, meta.failed.len(), args.out.display(), meta.wall_seconds);
+    eprintln!(
+        "wrote {} rows ({} failed) to {} in {:.2} s",
+        meta.n_rows,
+        meta.failed.len(),
+        args.out.display(),
+        meta.wall_seconds
+    );
     Ok(())
 }

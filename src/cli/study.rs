@@ -2,8 +2,8 @@
 //! on unseen simulations (Fig. 2), robustness to training noise (Fig. 4) and the effect of
 //! training-set size (Fig. 5). Each prints a table and writes JSON and SVG figures.
 
-use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
 use crate::discrepancy::workflow::spearman_per_measure as rho;
+use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
 use crate::plot::{self, html::Page};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
@@ -69,7 +69,6 @@ fn simulated(model: &Model, rows: usize, seed: u64) -> Dataset {
     }
 }
 
-
 fn write(out: &Path, name: &str, text: &str) -> Result<()> {
     std::fs::create_dir_all(out)?;
     std::fs::write(out.join(name), text)?;
@@ -81,13 +80,27 @@ fn corner(npe: &Npe, samples: &[Vec<f64>], truth: Option<&[f64]>, map: &[f64], t
         .params()
         .iter()
         .enumerate()
-        .map(|(k, p)| plot::Dim { name: &p.name, unit: &p.unit, low: p.low, high: p.high, log: p.scale == npe::Scale::Log10, truth: truth.map(|t| t[k]), map: Some(map[k]) })
+        .map(|(k, p)| plot::Dim {
+            name: &p.name,
+            unit: &p.unit,
+            low: p.low,
+            high: p.high,
+            log: p.scale == npe::Scale::Log10,
+            truth: truth.map(|t| t[k]),
+            map: Some(map[k]),
+        })
         .collect();
     plot::corner(title, &dims, samples)
 }
 
 /// Posterior summary of one observation: CV per parameter and ρ of the MAP re-simulation.
-fn infer_one(model: &Model, npe: &Npe, x: &[f64], truth_x: &[f64], seed: u64) -> Result<(npe::Inference, Vec<f64>, Vec<f64>)> {
+fn infer_one(
+    model: &Model,
+    npe: &Npe,
+    x: &[f64],
+    truth_x: &[f64],
+    seed: u64,
+) -> Result<(npe::Inference, Vec<f64>, Vec<f64>)> {
     let inf = npe.infer(&Obs { x, present: None }, 1000, seed)?;
     let map_x = run_rows(model, &Design::default(), &[inf.map.clone()], 0, None).remove(0)?;
     let r = rho(&map_x, truth_x);
@@ -116,23 +129,66 @@ pub fn run(a: StudyArgs) -> Result<()> {
                 rhos.push(r);
                 let nf = model.frequencies().len();
                 for (m, out) in rms.iter_mut().enumerate() {
-                    let ss: f64 = (m * nf..(m + 1) * nf).map(|i| (crate::discrepancy::fit::feature_residual(i, nf, map_x[i], x0[i]) / noise.std[i]).powi(2)).sum();
+                    let ss: f64 = (m * nf..(m + 1) * nf)
+                        .map(|i| {
+                            (crate::discrepancy::fit::feature_residual(i, nf, map_x[i], x0[i]) / noise.std[i]).powi(2)
+                        })
+                        .sum();
                     out.push((ss / nf as f64).sqrt());
                 }
                 if i < 5 {
                     let f = model.frequencies();
                     // Five posterior draws re-simulated, and the observation's noise band.
-                    let draws: Vec<Vec<f64>> = run_rows(&model, &Design::default(), &inf.samples[..5.min(inf.samples.len())], 0, None).into_iter().filter_map(|r| r.ok()).collect();
+                    let draws: Vec<Vec<f64>> =
+                        run_rows(&model, &Design::default(), &inf.samples[..5.min(inf.samples.len())], 0, None)
+                            .into_iter()
+                            .filter_map(|r| r.ok())
+                            .collect();
                     let (lo, hi) = plot::plus_minus(&x, &noise.std);
-                    let mut series = vec![plot::Series { x: &x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("noisy simulation (observation)") }];
+                    let mut series = vec![plot::Series {
+                        x: &x,
+                        color: plot::OBS,
+                        width: 2.0,
+                        opacity: 1.0,
+                        label: Some("noisy simulation (observation)"),
+                    }];
                     for (k, d) in draws.iter().enumerate() {
-                        series.push(plot::Series { x: d, color: plot::DRAW, width: 1.0, opacity: 0.5, label: (k == 0).then_some("posterior draws re-simulated") });
+                        series.push(plot::Series {
+                            x: d,
+                            color: plot::DRAW,
+                            width: 1.0,
+                            opacity: 0.5,
+                            label: (k == 0).then_some("posterior draws re-simulated"),
+                        });
                     }
-                    series.push(plot::Series { x: x0, color: plot::TRUTH, width: 1.5, opacity: 1.0, label: Some("ground truth") });
-                    series.push(plot::Series { x: &map_x, color: plot::MAP, width: 1.5, opacity: 1.0, label: Some("MAP re-simulation") });
-                    let band = [plot::Band { lo: &lo, hi: &hi, color: plot::NOISE, label: "observation ± test–retest STD" }];
-                    write(&a.out, &format!("validate_{i}_spectra.svg"), &plot::spectra(&format!("Unseen simulation {i}"), f, &band, &series))?;
-                    write(&a.out, &format!("validate_{i}_corner.svg"), &corner(&npe, &inf.samples, Some(t), &inf.map, &format!("Posterior, unseen simulation {i}")))?;
+                    series.push(plot::Series {
+                        x: x0,
+                        color: plot::TRUTH,
+                        width: 1.5,
+                        opacity: 1.0,
+                        label: Some("ground truth"),
+                    });
+                    series.push(plot::Series {
+                        x: &map_x,
+                        color: plot::MAP,
+                        width: 1.5,
+                        opacity: 1.0,
+                        label: Some("MAP re-simulation"),
+                    });
+                    let band =
+                        [plot::Band {
+                            lo: &lo, hi: &hi, color: plot::NOISE, label: "observation ± test–retest STD"
+                        }];
+                    write(
+                        &a.out,
+                        &format!("validate_{i}_spectra.svg"),
+                        &plot::spectra(&format!("Unseen simulation {i}"), f, &band, &series),
+                    )?;
+                    write(
+                        &a.out,
+                        &format!("validate_{i}_corner.svg"),
+                        &corner(&npe, &inf.samples, Some(t), &inf.map, &format!("Posterior, unseen simulation {i}")),
+                    )?;
                 }
             }
             let n = rhos.len() as f64;
@@ -142,9 +198,16 @@ pub fn run(a: StudyArgs) -> Result<()> {
                 v.sort_by(f64::total_cmp);
                 v[v.len() / 2]
             };
-            println!("validate: {} unseen simulations, 1× noise; mean Spearman ρ (MAP re-simulation vs truth) {all:.4} (study: 0.998)", rhos.len());
+            println!(
+                "validate: {} unseen simulations, 1× noise; mean Spearman ρ (MAP re-simulation vs truth) {all:.4} (study: 0.998)",
+                rhos.len()
+            );
             for (m, r) in MEASURES.iter().zip(&mean_rho) {
-                println!("  ρ {:<11} {r:.4}   median RMS (MAP − truth)/σ {:.2}", m.name, med(rms[MEASURES.iter().position(|x| x.name == m.name).unwrap_or(0)].clone()));
+                println!(
+                    "  ρ {:<11} {r:.4}   median RMS (MAP − truth)/σ {:.2}",
+                    m.name,
+                    med(rms[MEASURES.iter().position(|x| x.name == m.name).unwrap_or(0)].clone())
+                );
             }
             println!("{:<14} {:>10} {:>14}", "parameter", "median CV", "in 90 % int.");
             for k in 0..7 {
@@ -157,12 +220,38 @@ pub fn run(a: StudyArgs) -> Result<()> {
             write(&a.out, "validate.json", &serde_json::to_string_pretty(&doc)?)?;
             let mut p = Page::new("otofit study validate: unseen simulations");
             p.text(&format!("{} unseen prior draws, simulated, 1× test–retest noise added, inferred with {}; MAP re-simulated and compared with the noise-free truth. Study (Motallebzadeh et al. 2025, Fig. 2): mean ρ 0.998.", rhos.len(), a.model.display()));
-            p.heading("MAP re-simulation vs truth").table(&["measure", "mean Spearman ρ", "median RMS residual / σ"], MEASURES.iter().zip(&mean_rho).zip(&rms_med).map(|((m, r), e)| vec![m.name.into(), format!("{r:.4}"), format!("{e:.2}")]).chain([vec!["all".into(), format!("{all:.4}"), String::new()]]).collect());
-            p.heading("Parameters").table(&["parameter", "median CV", "truth inside 90 % interval"], (0..7).map(|k| vec![names[k].into(), format!("{:.3}", med(cvs[k].clone())), format!("{:.1} %", 100.0 * inside[k] as f64 / n)]).collect());
+            p.heading("MAP re-simulation vs truth").table(
+                &["measure", "mean Spearman ρ", "median RMS residual / σ"],
+                MEASURES
+                    .iter()
+                    .zip(&mean_rho)
+                    .zip(&rms_med)
+                    .map(|((m, r), e)| vec![m.name.into(), format!("{r:.4}"), format!("{e:.2}")])
+                    .chain([vec!["all".into(), format!("{all:.4}"), String::new()]])
+                    .collect(),
+            );
+            p.heading("Parameters").table(
+                &["parameter", "median CV", "truth inside 90 % interval"],
+                (0..7)
+                    .map(|k| {
+                        vec![
+                            names[k].into(),
+                            format!("{:.3}", med(cvs[k].clone())),
+                            format!("{:.1} %", 100.0 * inside[k] as f64 / n),
+                        ]
+                    })
+                    .collect(),
+            );
             p.heading("Five unseen simulations");
             for i in 0..rhos.len().min(5) {
-                p.figure(&format!("validate_{i}_spectra.svg"), &format!("simulation {i}: observation ± STD, five posterior draws, truth, MAP re-simulation"));
-                p.figure(&format!("validate_{i}_corner.svg"), &format!("simulation {i}: posterior, truth (green), MAP (red)"));
+                p.figure(
+                    &format!("validate_{i}_spectra.svg"),
+                    &format!("simulation {i}: observation ± STD, five posterior draws, truth, MAP re-simulation"),
+                );
+                p.figure(
+                    &format!("validate_{i}_corner.svg"),
+                    &format!("simulation {i}: posterior, truth (green), MAP (red)"),
+                );
             }
             write(&a.out, "report.html", &p.render())?;
         }
@@ -188,22 +277,60 @@ pub fn run(a: StudyArgs) -> Result<()> {
             let (mut table, mut figs, mut runs) = (vec![], vec![], vec![]);
             for &size in &sizes {
                 for &level in &levels {
-                    let sub = Dataset { theta: ds.theta[..size].to_vec(), x: ds.x[..size].to_vec(), ..simulated(&model, 0, 0) };
-                    let s = TrainSettings { noise_scale: level, seed: a.seed, max_epochs: a.max_epochs, ..TrainSettings::default() };
+                    let sub = Dataset {
+                        theta: ds.theta[..size].to_vec(),
+                        x: ds.x[..size].to_vec(),
+                        ..simulated(&model, 0, 0)
+                    };
+                    let s = TrainSettings {
+                        noise_scale: level,
+                        seed: a.seed,
+                        max_epochs: a.max_epochs,
+                        ..TrainSettings::default()
+                    };
                     let npe = npe::train(&sub, &s, &mut |_| true)?;
                     let (inf, _, r) = infer_one(&model, &npe, &x, &x0, 1)?;
                     let label = format!("n{size}_noise{level}");
-                    write(&a.out, &format!("{label}_corner.svg"), &corner(&npe, &inf.samples, Some(&truth), &inf.map, &format!("{size} simulations, {level}× noise")))?;
+                    write(
+                        &a.out,
+                        &format!("{label}_corner.svg"),
+                        &corner(
+                            &npe,
+                            &inf.samples,
+                            Some(&truth),
+                            &inf.map,
+                            &format!("{size} simulations, {level}× noise"),
+                        ),
+                    )?;
                     let mean_rho = r.iter().sum::<f64>() / r.len() as f64;
                     let cv: Vec<f64> = inf.summaries.iter().map(|s| s.cv).collect();
                     // Width in decades of the 90 % interval: robust where CV saturates
                     // (log-uniform posteriors as wide as the prior have CV > 1).
                     let width = inf.summaries.iter().map(|s| (s.q95 / s.q05).log10()).sum::<f64>() / 7.0;
-                    println!("{size:>6} simulations, noise {level:>4}×: mean 90 % width {width:.3} decades, mean CV {:.3}, mean ρ {mean_rho:.3}, epochs {}  CV per parameter {:?}", cv.iter().sum::<f64>() / 7.0, npe.header.training.epochs, cv.iter().map(|c| (c * 1000.0).round() / 1000.0).collect::<Vec<_>>());
-                    let run_label = if matches!(a.name, StudyName::Noise) { format!("{level}× noise") } else { format!("{size} simulations") };
+                    println!(
+                        "{size:>6} simulations, noise {level:>4}×: mean 90 % width {width:.3} decades, mean CV {:.3}, mean ρ {mean_rho:.3}, epochs {}  CV per parameter {:?}",
+                        cv.iter().sum::<f64>() / 7.0,
+                        npe.header.training.epochs,
+                        cv.iter().map(|c| (c * 1000.0).round() / 1000.0).collect::<Vec<_>>()
+                    );
+                    let run_label = if matches!(a.name, StudyName::Noise) {
+                        format!("{level}× noise")
+                    } else {
+                        format!("{size} simulations")
+                    };
                     runs.push((run_label, inf.summaries.iter().map(|s| [s.q05, s.median, s.q95]).collect::<Vec<_>>()));
-                    figs.push((format!("{label}_corner.svg"), format!("{size} simulations, {level}× noise: posterior, truth (green), MAP (red)")));
-                    table.push(vec![size.to_string(), format!("{level}×"), format!("{width:.3}"), format!("{:.3}", cv.iter().sum::<f64>() / 7.0), format!("{mean_rho:.3}"), npe.header.training.epochs.to_string()]);
+                    figs.push((
+                        format!("{label}_corner.svg"),
+                        format!("{size} simulations, {level}× noise: posterior, truth (green), MAP (red)"),
+                    ));
+                    table.push(vec![
+                        size.to_string(),
+                        format!("{level}×"),
+                        format!("{width:.3}"),
+                        format!("{:.3}", cv.iter().sum::<f64>() / 7.0),
+                        format!("{mean_rho:.3}"),
+                        npe.header.training.epochs.to_string(),
+                    ]);
                     rows.push(json!({ "train_rows": size, "noise_scale": level, "cv": names.iter().zip(&cv).collect::<Vec<_>>(), "mean_cv": cv.iter().sum::<f64>() / 7.0, "mean_width_decades": width, "rho": r, "mean_rho": mean_rho, "epochs": npe.header.training.epochs }));
                 }
             }
@@ -211,10 +338,34 @@ pub fn run(a: StudyArgs) -> Result<()> {
             write(&a.out, name, &serde_json::to_string_pretty(&json!({ "truth": truth, "runs": rows }))?)?;
             let noise_study = matches!(a.name, StudyName::Noise);
             let stem = if noise_study { "noise" } else { "size" };
-            let dims: Vec<plot::Dim<'_>> = PARAMS.iter().zip(&truth).map(|(p, &t)| plot::Dim { name: p.name, unit: p.unit, low: p.low, high: p.high, log: p.scale == crate::sim::params::Scale::Log10, truth: Some(t), map: None }).collect();
+            let dims: Vec<plot::Dim<'_>> = PARAMS
+                .iter()
+                .zip(&truth)
+                .map(|(p, &t)| plot::Dim {
+                    name: p.name,
+                    unit: p.unit,
+                    low: p.low,
+                    high: p.high,
+                    log: p.scale == crate::sim::params::Scale::Log10,
+                    truth: Some(t),
+                    map: None,
+                })
+                .collect();
             let run_refs: Vec<(&str, Vec<[f64; 3]>)> = runs.iter().map(|(l, q)| (l.as_str(), q.clone())).collect();
-            write(&a.out, &format!("{stem}_intervals.svg"), &plot::intervals(&format!("Posterior 90 % intervals, one observation ({stem} study)"), &dims, &run_refs))?;
-            let mut p = Page::new(if noise_study { "otofit study noise: training noise 0.1×, 1×, 10×" } else { "otofit study size: 100×, 10×, 1× fewer simulations" });
+            write(
+                &a.out,
+                &format!("{stem}_intervals.svg"),
+                &plot::intervals(
+                    &format!("Posterior 90 % intervals, one observation ({stem} study)"),
+                    &dims,
+                    &run_refs,
+                ),
+            )?;
+            let mut p = Page::new(if noise_study {
+                "otofit study noise: training noise 0.1×, 1×, 10×"
+            } else {
+                "otofit study size: 100×, 10×, 1× fewer simulations"
+            });
             p.text(if noise_study {
                 "One observation (a prior draw with 1× noise) inferred by models trained with the noise model scaled 0.1×, 1× and 10×. Study (Fig. 4): CV about 7× larger from 1× to 10×; ρ 0.96 → 0.94."
             } else {
@@ -249,7 +400,8 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     // a model that cannot fit this ear from an estimator that extrapolates badly.
     let mut starts = vec![inf.map.clone()];
     starts.extend(inf.samples.iter().step_by(inf.samples.len() / 4).take(4).cloned());
-    let best = crate::discrepancy::fit::fit(model, &Design::default(), &starts, &obs, 40).ok_or_else(|| anyhow::anyhow!("least-squares fit failed to simulate"))?;
+    let best = crate::discrepancy::fit::fit(model, &Design::default(), &starts, &obs, 40)
+        .ok_or_else(|| anyhow::anyhow!("least-squares fit failed to simulate"))?;
     let best_x = run_rows(model, &Design::default(), &[best.row.clone()], 0, None).remove(0)?;
     let best_rho = rho(&best_x, &r.x);
     let map_rho: Vec<f64> = c.spearman.iter().map(|(_, v)| *v).collect();
@@ -258,19 +410,51 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     let differential = npe::normal::read(&names, &inf.samples);
 
     let (lo_obs, hi_obs) = plot::plus_minus(&r.x, &r.std);
-    let mut series = vec![plot::Series { x: &r.x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("reference ear (normative means)") }];
+    let mut series = vec![plot::Series {
+        x: &r.x,
+        color: plot::OBS,
+        width: 2.0,
+        opacity: 1.0,
+        label: Some("reference ear (normative means)"),
+    }];
     for (k, d) in c.draws_x.iter().enumerate() {
-        series.push(plot::Series { x: d, color: plot::DRAW, width: 1.0, opacity: 0.5, label: (k == 0).then_some("posterior draws re-simulated") });
+        series.push(plot::Series {
+            x: d,
+            color: plot::DRAW,
+            width: 1.0,
+            opacity: 0.5,
+            label: (k == 0).then_some("posterior draws re-simulated"),
+        });
     }
-    series.push(plot::Series { x: &c.map_x, color: plot::MAP, width: 1.5, opacity: 1.0, label: Some("MAP re-simulation") });
-    series.push(plot::Series { x: &best_x, color: plot::TRUTH, width: 1.5, opacity: 1.0, label: Some("least-squares fit") });
+    series.push(plot::Series {
+        x: &c.map_x,
+        color: plot::MAP,
+        width: 1.5,
+        opacity: 1.0,
+        label: Some("MAP re-simulation"),
+    });
+    series.push(plot::Series {
+        x: &best_x,
+        color: plot::TRUTH,
+        width: 1.5,
+        opacity: 1.0,
+        label: Some("least-squares fit"),
+    });
     let bands = [
         plot::Band { lo: &lo_obs, hi: &hi_obs, color: plot::NOISE, label: "reference ± test–retest STD" },
         plot::Band { lo: &c.lo, hi: &c.hi, color: plot::BAND, label: "90 % posterior-predictive band" },
     ];
-    write(out, "reference_spectra.svg", &plot::spectra("Reference ear: normative means, MAP and posterior draws re-simulated", f, &bands, &series))?;
+    write(
+        out,
+        "reference_spectra.svg",
+        &plot::spectra("Reference ear: normative means, MAP and posterior draws re-simulated", f, &bands, &series),
+    )?;
     write(out, "reference_corner.svg", &corner(npe, &inf.samples, None, &inf.map, "Posterior, reference ear"))?;
-    write(out, "reference_residuals.svg", &plot::residual_map("Reference ear: standardised residuals (reference − predictive mean) / σ", f, &c.z))?;
+    write(
+        out,
+        "reference_residuals.svg",
+        &plot::residual_map("Reference ear: standardised residuals (reference − predictive mean) / σ", f, &c.z),
+    )?;
 
     println!("reference: measured-like ear (reference/ear.json), model {}", path.display());
     println!("{:<11} {:>9} {:>19} {:>19}", "measure", "ρ (MAP)", "ρ (5 draws, mean)", "ρ (least squares)");
@@ -279,7 +463,9 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
         println!("{:<11} {:>9.3} {:>19.3} {:>19.3}", ms.name, map_rho[m], d, best_rho[m]);
     }
     let best_abs = best_rho.iter().map(|v| v.abs()).sum::<f64>() / best_rho.len() as f64;
-    println!("mean |ρ|: MAP re-simulation {mean_abs:.3}, least-squares fit {best_abs:.3} (study, one temporal bone: 0.964)");
+    println!(
+        "mean |ρ|: MAP re-simulation {mean_abs:.3}, least-squares fit {best_abs:.3} (study, one temporal bone: 0.964)"
+    );
     println!("reduced χ²: posterior-predictive {:.2}, least-squares fit {:.2}", c.reduced_chi2, best.reduced_chi2());
     for b in &c.bands {
         println!("  misfit: {}", b.describe());
@@ -305,18 +491,43 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     p.text("Normative mean spectra (reference/ear.json, citations below) inferred as one observation, MAP and five posterior draws re-simulated; a least-squares fit shows the best the simulator can do. Study (one temporal bone, Fig. 3): mean |ρ| 0.964.");
     p.heading("Spearman ρ against the reference").table(
         &["measure", "MAP", "5 draws (mean)", "least squares"],
-        MEASURES.iter().enumerate().map(|(m, ms)| vec![ms.name.into(), format!("{:.3}", map_rho[m]), format!("{:.3}", draws_rho.iter().map(|r| r[m]).sum::<f64>() / draws_rho.len().max(1) as f64), format!("{:.3}", best_rho[m])]).collect(),
+        MEASURES
+            .iter()
+            .enumerate()
+            .map(|(m, ms)| {
+                vec![
+                    ms.name.into(),
+                    format!("{:.3}", map_rho[m]),
+                    format!("{:.3}", draws_rho.iter().map(|r| r[m]).sum::<f64>() / draws_rho.len().max(1) as f64),
+                    format!("{:.3}", best_rho[m]),
+                ]
+            })
+            .collect(),
     );
     p.text(&format!("Mean |ρ|: MAP {mean_abs:.3}, least squares {best_abs:.3}. Reduced χ²: posterior-predictive {:.2}, least squares {:.2}.", c.reduced_chi2, best.reduced_chi2()));
     p.heading("Posterior and normal ranges (information, not a diagnosis)").table(
         &["parameter", "MAP", "90 % interval", "CV", "P(below)", "P(within)", "P(above)", "reading", "associated with"],
-        inf.summaries.iter().zip(&differential).map(|(s, d)| vec![
-            format!("{} ({})", s.name, s.unit), format!("{:.3e}", s.map), format!("{:.3e} … {:.3e}", s.q05, s.q95), format!("{:.3}", s.cv),
-            format!("{:.2}", d.p_below), format!("{:.2}", d.p_within), format!("{:.2}", d.p_above), d.reading.to_string(), d.associated_with.unwrap_or("").to_string(),
-        ]).collect(),
+        inf.summaries
+            .iter()
+            .zip(&differential)
+            .map(|(s, d)| {
+                vec![
+                    format!("{} ({})", s.name, s.unit),
+                    format!("{:.3e}", s.map),
+                    format!("{:.3e} … {:.3e}", s.q05, s.q95),
+                    format!("{:.3}", s.cv),
+                    format!("{:.2}", d.p_below),
+                    format!("{:.2}", d.p_within),
+                    format!("{:.2}", d.p_above),
+                    d.reading.to_string(),
+                    d.associated_with.unwrap_or("").to_string(),
+                ]
+            })
+            .collect(),
     );
     if !c.bands.is_empty() {
-        p.heading("Where the reference and the model disagree").table(&["band"], c.bands.iter().map(|b| vec![b.describe()]).collect());
+        p.heading("Where the reference and the model disagree")
+            .table(&["band"], c.bands.iter().map(|b| vec![b.describe()]).collect());
     }
     p.figure("reference_spectra.svg", "reference ± STD, MAP, five draws, least-squares fit, 90 % predictive band");
     p.figure("reference_residuals.svg", "standardised residuals per measure and frequency");

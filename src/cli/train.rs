@@ -54,7 +54,13 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if let Some(p) = &args.noise_table {
         ds.noise_std = crate::dataset::read_noise_table(p, &ds.feature_names).context("--noise-table")?;
     }
-    eprintln!("{} rows ({} skipped), {} parameters, {} features", ds.theta.len(), ds.skipped, ds.params.len(), ds.feature_names.len());
+    eprintln!(
+        "{} rows ({} skipped), {} parameters, {} features",
+        ds.theta.len(),
+        ds.skipped,
+        ds.params.len(),
+        ds.feature_names.len()
+    );
     let settings = TrainSettings {
         embedding: matches!(args.embedding, Embedding::Mlp),
         noise_scale: args.noise_scale,
@@ -66,11 +72,21 @@ pub fn run(args: TrainArgs) -> Result<()> {
     };
     let model = npe::train(&ds, &settings, &mut |r| {
         let m = if args.ensemble > 1 { format!("member {} ", r.member) } else { String::new() };
-        eprintln!("{m}epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)", r.epoch, r.train_loss, r.val_loss, r.best_val_loss, r.seconds);
+        eprintln!(
+            "{m}epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)",
+            r.epoch, r.train_loss, r.val_loss, r.best_val_loss, r.seconds
+        );
         true
     })?;
     model.save(&args.out)?;
     let t = &model.header.training;
-    eprintln!("wrote {} (best epoch {} of {}, val loss {:.4}, {:.1} s)", args.out.display(), t.best_epoch, t.epochs, t.best_val_loss, t.wall_seconds);
+    eprintln!(
+        "wrote {} (best epoch {} of {}, val loss {:.4}, {:.1} s)",
+        args.out.display(),
+        t.best_epoch,
+        t.epochs,
+        t.best_val_loss,
+        t.wall_seconds
+    );
     Ok(())
 }

@@ -68,7 +68,10 @@ fn chi2(r: &[f64]) -> f64 {
 /// Fits from each start (rows in natural units) and keeps the best.
 pub fn fit(model: &Model, design: &Design, starts: &[Vec<f64>], obs: &Observation, max_iter: usize) -> Option<Fit> {
     let mut runner = model.runner();
-    starts.iter().filter_map(|s| fit_one(&mut runner, design, s, obs, max_iter)).min_by(|a, b| a.chi2.total_cmp(&b.chi2))
+    starts
+        .iter()
+        .filter_map(|s| fit_one(&mut runner, design, s, obs, max_iter))
+        .min_by(|a, b| a.chi2.total_cmp(&b.chi2))
 }
 
 fn fit_one(runner: &mut Runner<'_>, design: &Design, start: &[f64], obs: &Observation, max_iter: usize) -> Option<Fit> {

@@ -75,7 +75,10 @@ mod tests {
         z[40 + 8] = 5.0;
         let b = locate(&z, &freqs, 2.5, 3);
         assert_eq!(b.len(), 1);
-        assert_eq!((b[0].measure, b[0].f_lo_hz, b[0].f_hi_hz, b[0].sign, b[0].n_features), ("vst_mag", 300.0, 600.0, -1, 4));
+        assert_eq!(
+            (b[0].measure, b[0].f_lo_hz, b[0].f_hi_hz, b[0].sign, b[0].n_features),
+            ("vst_mag", 300.0, 600.0, -1, 4)
+        );
         assert!(b[0].describe().contains("below the model from 300 to 600 Hz"));
     }
 }

@@ -45,7 +45,14 @@ impl Candidate {
 
 /// Fits the base design extended by each candidate effect, starting from `base_row`
 /// (the base model's MAP or best fit); best first.
-pub fn rank_candidates(model: &Model, base: &Design, base_row: &[f64], base_chi2: f64, obs: &Observation, candidates: &[usize]) -> Vec<Candidate> {
+pub fn rank_candidates(
+    model: &Model,
+    base: &Design,
+    base_row: &[f64],
+    base_chi2: f64,
+    obs: &Observation,
+    candidates: &[usize],
+) -> Vec<Candidate> {
     use rayon::prelude::*;
     let mut out: Vec<Candidate> = candidates
         .par_iter()
@@ -59,7 +66,10 @@ pub fn rank_candidates(model: &Model, base: &Design, base_row: &[f64], base_chi2
             let nominal = crate::sim::Theta::nominal().0;
             let starts: Vec<Vec<f64>> = [base_row, &nominal[..]]
                 .iter()
-                .flat_map(|b| [0.15, 0.5, 0.85].map(|q| b.iter().copied().chain(std::iter::once(spec.from_unit(q))).collect::<Vec<f64>>()))
+                .flat_map(|b| {
+                    [0.15, 0.5, 0.85]
+                        .map(|q| b.iter().copied().chain(std::iter::once(spec.from_unit(q))).collect::<Vec<f64>>())
+                })
                 .collect();
             let f = fit(model, &design, &starts, obs, 60)?;
             let k = design.width() - 1;
@@ -86,13 +96,19 @@ pub fn rank_candidates(model: &Model, base: &Design, base_row: &[f64], base_chi2
 /// the base parameters, so the base model is refitted from each candidate's base part
 /// and the best base fit kept. Without this the χ² drop would credit the effect with
 /// what was only a better optimum of the base model.
-pub fn fit_and_rank(model: &Model, obs: &Observation, base_starts: &[Vec<f64>], candidates: &[usize]) -> Option<(Fit, Vec<Candidate>)> {
+pub fn fit_and_rank(
+    model: &Model,
+    obs: &Observation,
+    base_starts: &[Vec<f64>],
+    candidates: &[usize],
+) -> Option<(Fit, Vec<Candidate>)> {
     use rayon::prelude::*;
     let design = Design::default();
     let mut base = fit(model, &design, base_starts, obs, 60)?;
     for _round in 0..2 {
         let ranked = rank_candidates(model, &design, &base.row, base.chi2, obs, candidates);
-        let refits: Vec<Fit> = ranked.par_iter().filter_map(|c| fit(model, &design, &[c.fit.row[BASE].to_vec()], obs, 60)).collect();
+        let refits: Vec<Fit> =
+            ranked.par_iter().filter_map(|c| fit(model, &design, &[c.fit.row[BASE].to_vec()], obs, 60)).collect();
         match refits.into_iter().min_by(|a, b| a.chi2.total_cmp(&b.chi2)) {
             Some(better) if better.chi2 < base.chi2 - 1e-6 * base.chi2 => base = better,
             _ => return Some((base, ranked)),

@@ -5,10 +5,10 @@
 use super::{Band, Observation, Thresholds, Verdict, fit, fit_and_rank, locate};
 use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
 use crate::plot;
+use crate::sim::Model;
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
 use crate::sim::params::{EFFECTS, N_PARAMS, ParamSpec, Scale};
-use crate::sim::Model;
 use anyhow::{Result, bail};
 use serde::Serialize;
 
@@ -32,7 +32,16 @@ pub struct Settings {
 
 impl Default for Settings {
     fn default() -> Self {
-        Settings { candidates: (0..EFFECTS.len()).collect(), extend: true, draws: 200, null_cases: 40, train_rows: 10_000, max_epochs: 300, seed: 0, thresholds: None }
+        Settings {
+            candidates: (0..EFFECTS.len()).collect(),
+            extend: true,
+            draws: 200,
+            null_cases: 40,
+            train_rows: 10_000,
+            max_epochs: 300,
+            seed: 0,
+            thresholds: None,
+        }
     }
 }
 
@@ -141,7 +150,16 @@ pub fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], ob
     let freqs = model.frequencies();
     let spearman = MEASURES.iter().map(|ms| ms.name.to_string()).zip(spearman_per_measure(&map_x, &obs.x)).collect();
     let reduced_chi2 = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
-    Ok(Check { reduced_chi2, bands: locate(&z, freqs, 2.5, 3), z, spearman, map_x, lo, hi, draws_x: sims.into_iter().take(5).collect() })
+    Ok(Check {
+        reduced_chi2,
+        bands: locate(&z, freqs, 2.5, 3),
+        z,
+        spearman,
+        map_x,
+        lo,
+        hi,
+        draws_x: sims.into_iter().take(5).collect(),
+    })
 }
 
 fn to_param(p: &ParamSpec) -> npe::Param {
@@ -155,7 +173,15 @@ fn to_param(p: &ParamSpec) -> npe::Param {
 }
 
 /// Simulates a training set for `design` and trains an estimator on it.
-pub fn train_for(model: &Model, design: &Design, noise: &Noise, rows: usize, max_epochs: usize, seed: u64, progress: &mut dyn FnMut(&str)) -> Result<Npe> {
+pub fn train_for(
+    model: &Model,
+    design: &Design,
+    noise: &Noise,
+    rows: usize,
+    max_epochs: usize,
+    seed: u64,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Npe> {
     let theta = design.draw(seed, 0, rows);
     let out = run_rows(model, design, &theta, 0, None);
     let (mut t, mut x) = (Vec::new(), Vec::new());
@@ -216,14 +242,32 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -
 
 fn figures(model: &Model, label: &str, obs: &Observation, c: &Check) -> Vec<(String, String)> {
     let f = model.frequencies();
-    let mut series = vec![plot::Series { x: &obs.x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("observation") }];
+    let mut series =
+        vec![plot::Series { x: &obs.x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("observation") }];
     for d in &c.draws_x {
         series.push(plot::Series { x: d, color: plot::DRAW, width: 1.0, opacity: 0.35, label: None });
     }
-    series.push(plot::Series { x: &c.map_x, color: plot::MAP, width: 1.5, opacity: 1.0, label: Some("MAP re-simulation") });
+    series.push(plot::Series {
+        x: &c.map_x,
+        color: plot::MAP,
+        width: 1.5,
+        opacity: 1.0,
+        label: Some("MAP re-simulation"),
+    });
     vec![
-        (format!("spectra_{label}.svg"), plot::spectra(&format!("Spectra {label}: observation, MAP, draws, 90 % predictive band"), f, &[plot::Band { lo: &c.lo, hi: &c.hi, color: plot::BAND, label: "90 % predictive band" }], &series)),
-        (format!("residuals_{label}.svg"), plot::residual_map(&format!("Standardised residuals {label} (observation − prediction)/σ"), f, &c.z)),
+        (
+            format!("spectra_{label}.svg"),
+            plot::spectra(
+                &format!("Spectra {label}: observation, MAP, draws, 90 % predictive band"),
+                f,
+                &[plot::Band { lo: &c.lo, hi: &c.hi, color: plot::BAND, label: "90 % predictive band" }],
+                &series,
+            ),
+        ),
+        (
+            format!("residuals_{label}.svg"),
+            plot::residual_map(&format!("Standardised residuals {label} (observation − prediction)/σ"), f, &c.z),
+        ),
     ]
 }
 
@@ -249,7 +293,8 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     };
     progress("name: fitting candidate effects");
     let median: Vec<f64> = inf.summaries.iter().map(|p| p.median).collect();
-    let (base_fit, ranked) = fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates).ok_or_else(|| anyhow::anyhow!("the base fit failed"))?;
+    let (base_fit, ranked) = fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates)
+        .ok_or_else(|| anyhow::anyhow!("the base fit failed"))?;
     // Alarm: either statistic beyond its null quantile. Candidate: the best effect if its
     // χ² drop beats both the BIC penalty and the null quantile of the best drop.
     let best_drop = ranked.first().map_or(0.0, |c| base_fit.chi2 - c.chi2);
@@ -266,7 +311,8 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         let inf2 = npe2.infer(&Obs { x, present: None }, s.draws.max(200), s.seed)?;
         let c2 = check(model, &design, &inf2.samples[..s.draws.min(inf2.samples.len())], &inf2.map, &obs)?;
         let p = &inf2.summaries[N_PARAMS];
-        effect_posterior = Some(EffectPosterior { effect: name, unit: EFFECTS[e].unit, median: p.median, q05: p.q05, q95: p.q95 });
+        effect_posterior =
+            Some(EffectPosterior { effect: name, unit: EFFECTS[e].unit, median: p.median, q05: p.q05, q95: p.q95 });
         figs.extend(figures(model, "after", &obs, &c2));
         map_after = Some(inf2.map.clone());
         after = Some(c2);
@@ -274,7 +320,10 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     }
     // Named when the candidate's fit explains the data: by its direct fit, or (when the
     // model was extended) by the retrained posterior's predictive check.
-    let explained = |c: &super::Candidate| c.reduced_chi2 <= thresholds.explained || after.as_ref().is_some_and(|a: &Check| a.reduced_chi2 <= thresholds.explained);
+    let explained = |c: &super::Candidate| {
+        c.reduced_chi2 <= thresholds.explained
+            || after.as_ref().is_some_and(|a: &Check| a.reduced_chi2 <= thresholds.explained)
+    };
     let v = match (alarm, ranked.first().filter(|c| Some(c.effect) == candidate)) {
         (false, _) => Verdict::NoDiscrepancy,
         (true, Some(c)) if explained(c) => Verdict::EffectNamed,

@@ -76,8 +76,15 @@ impl Mlp {
                 let w = l.weight.val();
                 let [i, o] = w.dims();
                 let w: Vec<f32> = w.try_into_vec_as::<f32>().expect("weights");
-                let b: Vec<f32> = l.bias.as_ref().map(|b| b.val().try_into_vec_as::<f32>().expect("bias")).unwrap_or_else(|| vec![0.0; o]);
-                plain::Dense { w: faer::Mat::from_fn(i, o, |r, c| w[r * o + c] as f64), b: b.into_iter().map(f64::from).collect() }
+                let b: Vec<f32> = l
+                    .bias
+                    .as_ref()
+                    .map(|b| b.val().try_into_vec_as::<f32>().expect("bias"))
+                    .unwrap_or_else(|| vec![0.0; o]);
+                plain::Dense {
+                    w: faer::Mat::from_fn(i, o, |r, c| w[r * o + c] as f64),
+                    b: b.into_iter().map(f64::from).collect(),
+                }
             })
             .collect()
     }
@@ -106,12 +113,19 @@ impl Flow {
         emb.extend(&cfg.embedding);
         let (dc, dt) = cfg.split();
         let cond = [dc + cfg.context(), cfg.hidden, cfg.hidden, dt * spline::n_params(cfg.bins)];
-        Flow { embedding: Mlp::new(&emb, device), conditioners: (0..cfg.transforms).map(|_| Mlp::new(&cond, device)).collect() }
+        Flow {
+            embedding: Mlp::new(&emb, device),
+            conditioners: (0..cfg.transforms).map(|_| Mlp::new(&cond, device)).collect(),
+        }
     }
 
     /// A plain-Rust copy for inference.
     pub fn plain(&self, cfg: &FlowConfig) -> plain::PlainFlow {
-        plain::PlainFlow { cfg: cfg.clone(), embedding: self.embedding.dense(), conditioners: self.conditioners.iter().map(Mlp::dense).collect() }
+        plain::PlainFlow {
+            cfg: cfg.clone(),
+            embedding: self.embedding.dense(),
+            conditioners: self.conditioners.iter().map(Mlp::dense).collect(),
+        }
     }
 
     pub fn embed(&self, x: Tensor<2>) -> Tensor<2> {
@@ -132,7 +146,10 @@ impl Flow {
         let [b, d] = u.dims();
         let mut logdet = Tensor::<1>::zeros([b], &device);
         for t in 0..cfg.transforms {
-            let perm = Tensor::<1, Int>::from_data(TensorData::new(cfg.permutations[t].iter().map(|&i| i as i64).collect::<Vec<_>>(), [d]), &device);
+            let perm = Tensor::<1, Int>::from_data(
+                TensorData::new(cfg.permutations[t].iter().map(|&i| i as i64).collect::<Vec<_>>(), [d]),
+                &device,
+            );
             u = u.select(1, perm);
             let a = u.clone().narrow(1, 0, dc);
             let x = u.narrow(1, dc, dt);
@@ -141,7 +158,8 @@ impl Flow {
             logdet = logdet + ld.sum_dim(1).reshape([b]);
             u = if dc == 0 { y } else { Tensor::cat(vec![a, y], 1) };
         }
-        let base = (u.powi_scalar(2).sum_dim(1).reshape([b]) * -0.5) - 0.5 * d as f64 * (2.0 * std::f64::consts::PI).ln();
+        let base =
+            (u.powi_scalar(2).sum_dim(1).reshape([b]) * -0.5) - 0.5 * d as f64 * (2.0 * std::f64::consts::PI).ln();
         base + logdet
     }
 
@@ -188,16 +206,29 @@ mod tests {
         let mut opt = AdamConfig::new().init();
         let after = opt.step(1e-3, flow, grads).plain(&cfg);
         let moved = |a: &plain::Dense, b: &plain::Dense| {
-            let w = (0..a.w.nrows()).flat_map(|i| (0..a.w.ncols()).map(move |j| (i, j))).filter(|&(i, j)| a.w[(i, j)] != b.w[(i, j)]).count();
+            let w = (0..a.w.nrows())
+                .flat_map(|i| (0..a.w.ncols()).map(move |j| (i, j)))
+                .filter(|&(i, j)| a.w[(i, j)] != b.w[(i, j)])
+                .count();
             let bias = a.b.iter().zip(&b.b).filter(|(p, q)| p != q).count();
             (w, bias)
         };
         let layers = before.embedding.iter().zip(&after.embedding).map(|(a, b)| ("embedding", a, b));
-        let layers = layers.chain(before.conditioners.iter().zip(&after.conditioners).flat_map(|(a, b)| a.iter().zip(b).map(|(a, b)| ("conditioner", a, b))));
+        let layers = layers.chain(
+            before
+                .conditioners
+                .iter()
+                .zip(&after.conditioners)
+                .flat_map(|(a, b)| a.iter().zip(b).map(|(a, b)| ("conditioner", a, b))),
+        );
         let mut count = 0;
         for (k, (what, a, b)) in layers.enumerate() {
             let (w, bias) = moved(a, b);
-            assert!(w > a.w.nrows() * a.w.ncols() / 2, "{what} layer {k}: only {w} of {} weights moved", a.w.nrows() * a.w.ncols());
+            assert!(
+                w > a.w.nrows() * a.w.ncols() / 2,
+                "{what} layer {k}: only {w} of {} weights moved",
+                a.w.nrows() * a.w.ncols()
+            );
             assert!(bias > 0, "{what} layer {k}: no bias moved");
             count += 1;
         }

@@ -24,7 +24,14 @@ pub struct Dense {
 fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, last: bool) -> Vec<f64> {
     let (o, i) = (w.ncols(), w.nrows());
     let mut y = vec![0.0; o * n];
-    matmul(MatMut::from_column_major_slice_mut(&mut y, o, n), Accum::Replace, w.transpose(), MatRef::from_column_major_slice(x, i, n), 1.0, Par::Seq);
+    matmul(
+        MatMut::from_column_major_slice_mut(&mut y, o, n),
+        Accum::Replace,
+        w.transpose(),
+        MatRef::from_column_major_slice(x, i, n),
+        1.0,
+        Par::Seq,
+    );
     for col in y.chunks_exact_mut(o) {
         for (v, b) in col.iter_mut().zip(bias) {
             *v += b;
@@ -61,7 +68,11 @@ impl PlainFlow {
         }
         let dc = self.cfg.dim / 2;
         // The context rows of each first layer, applied once: bias + h W[dc..].
-        let ctx_bias = self.conditioners.iter().map(|c| batch_forward(c[0].w.as_ref().subrows(dc, h.len()), &c[0].b, &h, 1, true)).collect();
+        let ctx_bias = self
+            .conditioners
+            .iter()
+            .map(|c| batch_forward(c[0].w.as_ref().subrows(dc, h.len()), &c[0].b, &h, 1, true))
+            .collect();
         Bound { flow: self, ctx_bias }
     }
 }
@@ -196,7 +207,11 @@ impl Bound<'_> {
         for ((col, r), ld) in u.chunks_exact_mut(d).zip(raw.chunks_exact(dt * np)).zip(logdet.iter_mut()) {
             for k in 0..dt {
                 let p = &r[k * np..(k + 1) * np];
-                let (y, l) = if inverse { spline_inverse(col[dc + k], p, cfg.bins, cfg.bound) } else { spline_forward(col[dc + k], p, cfg.bins, cfg.bound) };
+                let (y, l) = if inverse {
+                    spline_inverse(col[dc + k], p, cfg.bins, cfg.bound)
+                } else {
+                    spline_forward(col[dc + k], p, cfg.bins, cfg.bound)
+                };
                 col[dc + k] = y;
                 *ld += l;
             }
@@ -250,8 +265,14 @@ mod tests {
         let n = 64;
         let z: Vec<f32> = (0..n * 7).map(|i| ((i * 7919 % 113) as f32 / 113.0 - 0.5) * 5.0).collect();
         let ctx = flow.embed(Tensor::<2>::from_data(TensorData::new(input.clone(), [1, 12]), &dev)).repeat_dim(0, n);
-        let v_burn: Vec<f32> = flow.sample_from(&cfg, Tensor::<2>::from_data(TensorData::new(z.clone(), [n, 7]), &dev), ctx.clone()).try_into_vec_as::<f32>().unwrap();
-        let lp_burn: Vec<f32> = flow.log_prob(&cfg, Tensor::<2>::from_data(TensorData::new(v_burn.clone(), [n, 7]), &dev), ctx).try_into_vec_as::<f32>().unwrap();
+        let v_burn: Vec<f32> = flow
+            .sample_from(&cfg, Tensor::<2>::from_data(TensorData::new(z.clone(), [n, 7]), &dev), ctx.clone())
+            .try_into_vec_as::<f32>()
+            .unwrap();
+        let lp_burn: Vec<f32> = flow
+            .log_prob(&cfg, Tensor::<2>::from_data(TensorData::new(v_burn.clone(), [n, 7]), &dev), ctx)
+            .try_into_vec_as::<f32>()
+            .unwrap();
         let bound = plain.bind(&input.iter().map(|&v| v as f64).collect::<Vec<_>>());
         let (v, lp) = bound.sample(&z.iter().map(|&v| v as f64).collect::<Vec<_>>());
         for (a, b) in v.iter().zip(&v_burn) {

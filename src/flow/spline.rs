@@ -122,7 +122,9 @@ mod tests {
             assert!((a - c).abs() < 1e-4, "{a} vs {c}");
         }
         let eps = 1e-3f32;
-        let shifted = |e: f32| Tensor::<2>::from_data(TensorData::new(xs.iter().map(|v| v + e).collect::<Vec<_>>(), [b, n]), &dev);
+        let shifted = |e: f32| {
+            Tensor::<2>::from_data(TensorData::new(xs.iter().map(|v| v + e).collect::<Vec<_>>(), [b, n]), &dev)
+        };
         let (yp, _) = forward(shifted(eps), raw.clone(), bins, 3.0);
         let (ym, _) = forward(shifted(-eps), raw, bins, 3.0);
         let (y, yp, ym, ld) = (vec2(y), vec2(yp), vec2(ym), vec2(ld));

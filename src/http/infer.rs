@@ -66,7 +66,16 @@ fn resample(field: &str, f: &[f64], v: &[f64], grid: &[f64], errs: &mut Vec<(Str
         return None;
     }
     if f[0] > grid[0] * 1.005 || f[f.len() - 1] < grid[grid.len() - 1] * 0.995 {
-        errs.push((format!("{field}.frequencies_hz"), format!("must cover the model band {:.0}–{:.0} Hz (got {:.0}–{:.0})", grid[0], grid[grid.len() - 1], f[0], f[f.len() - 1])));
+        errs.push((
+            format!("{field}.frequencies_hz"),
+            format!(
+                "must cover the model band {:.0}–{:.0} Hz (got {:.0}–{:.0})",
+                grid[0],
+                grid[grid.len() - 1],
+                f[0],
+                f[f.len() - 1]
+            ),
+        ));
         return None;
     }
     Some(crate::sim::output::interpolate_log_f(f, v, grid))
@@ -74,7 +83,10 @@ fn resample(field: &str, f: &[f64], v: &[f64], grid: &[f64], errs: &mut Vec<(Str
 
 fn check_values(field: &str, v: &[f64], positive: bool, errs: &mut Vec<(String, String)>) {
     if let Some(i) = v.iter().position(|x| !x.is_finite() || (positive && *x <= 0.0)) {
-        errs.push((format!("{field}[{i}]"), if positive { "must be a finite number > 0".into() } else { "must be a finite number".into() }));
+        errs.push((
+            format!("{field}[{i}]"),
+            if positive { "must be a finite number > 0".into() } else { "must be a finite number".into() },
+        ));
     }
 }
 
@@ -84,22 +96,29 @@ fn features(npe: &Npe, m: &Measurements) -> Result<(Vec<f64>, Vec<bool>, Vec<&'s
     let n = grid.len();
     let mut errs = Vec::new();
     if n == 0 || npe.header.feature_names.len() != 5 * n {
-        return Err(Problem::new(StatusCode::CONFLICT, "this model was not trained on otofit's five measures; use the CLI with a feature table"));
+        return Err(Problem::new(
+            StatusCode::CONFLICT,
+            "this model was not trained on otofit's five measures; use the CLI with a feature table",
+        ));
     }
     let mut x = vec![f64::NAN; 5 * n];
     let mut used = Vec::new();
-    let mut magphase = |field: &'static str, mp: &MagPhase, block: usize, x: &mut Vec<f64>, errs: &mut Vec<(String, String)>| {
-        check_values(&format!("measurements.{field}.magnitude"), &mp.magnitude, true, errs);
-        check_values(&format!("measurements.{field}.phase"), &mp.phase, false, errs);
-        let logmag: Vec<f64> = mp.magnitude.iter().map(|v| v.log10()).collect();
-        let phase = crate::sim::output::unwrap(mp.phase.iter().copied());
-        let fld = format!("measurements.{field}");
-        if let (Some(a), Some(b)) = (resample(&fld, &mp.frequencies_hz, &logmag, grid, errs), resample(&fld, &mp.frequencies_hz, &phase, grid, errs)) {
-            x[block * n..(block + 1) * n].copy_from_slice(&a);
-            x[(block + 1) * n..(block + 2) * n].copy_from_slice(&b);
-            used.push(field);
-        }
-    };
+    let mut magphase =
+        |field: &'static str, mp: &MagPhase, block: usize, x: &mut Vec<f64>, errs: &mut Vec<(String, String)>| {
+            check_values(&format!("measurements.{field}.magnitude"), &mp.magnitude, true, errs);
+            check_values(&format!("measurements.{field}.phase"), &mp.phase, false, errs);
+            let logmag: Vec<f64> = mp.magnitude.iter().map(|v| v.log10()).collect();
+            let phase = crate::sim::output::unwrap(mp.phase.iter().copied());
+            let fld = format!("measurements.{field}");
+            if let (Some(a), Some(b)) = (
+                resample(&fld, &mp.frequencies_hz, &logmag, grid, errs),
+                resample(&fld, &mp.frequencies_hz, &phase, grid, errs),
+            ) {
+                x[block * n..(block + 1) * n].copy_from_slice(&a);
+                x[(block + 1) * n..(block + 2) * n].copy_from_slice(&b);
+                used.push(field);
+            }
+        };
     if let Some(mp) = &m.stapes_velocity {
         magphase("stapes_velocity", mp, 0, &mut x, &mut errs);
     }
@@ -120,17 +139,28 @@ fn features(npe: &Npe, m: &Measurements) -> Result<(Vec<f64>, Vec<bool>, Vec<&'s
         return Err(Problem::invalid(errs));
     }
     if used.is_empty() {
-        return Err(Problem::invalid(vec![("measurements".into(), "give at least one of stapes_velocity, impedance, absorbance".into())]));
+        return Err(Problem::invalid(vec![(
+            "measurements".into(),
+            "give at least one of stapes_velocity, impedance, absorbance".into(),
+        )]));
     }
     let present: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
     if !npe.header.mask_groups && present.iter().any(|p| !p) {
-        let missing: Vec<&str> = ["stapes_velocity", "impedance", "absorbance"].into_iter().filter(|f| !used.contains(f)).collect();
-        return Err(Problem::invalid(vec![("measurements".into(), format!("this model needs every measure; missing: {}", missing.join(", ")))]));
+        let missing: Vec<&str> =
+            ["stapes_velocity", "impedance", "absorbance"].into_iter().filter(|f| !used.contains(f)).collect();
+        return Err(Problem::invalid(vec![(
+            "measurements".into(),
+            format!("this model needs every measure; missing: {}", missing.join(", ")),
+        )]));
     }
     Ok((x, present, used))
 }
 
-pub async fn infer(State(st): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Json<serde_json::Value>, Problem> {
+pub async fn infer(
+    State(st): State<AppState>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Json<serde_json::Value>, Problem> {
     let t0 = std::time::Instant::now();
     let req: InferRequest = json_body(&headers, &body)?;
     let n = req.samples.unwrap_or(1000);
@@ -138,15 +168,29 @@ pub async fn infer(State(st): State<AppState>, headers: HeaderMap, body: Bytes) 
         return Err(Problem::invalid(vec![("samples".into(), format!("must be 1..={MAX_SAMPLES}"))]));
     }
     let row = match &req.model {
-        Some(id) => st.ctx.store.model(id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::invalid(vec![("model".into(), format!("no model '{id}'"))]))?,
-        None => st.ctx.store.default_model().await.map_err(Problem::internal)?.ok_or_else(|| Problem::new(StatusCode::SERVICE_UNAVAILABLE, "no default model is registered"))?,
+        Some(id) => st
+            .ctx
+            .store
+            .model(id)
+            .await
+            .map_err(Problem::internal)?
+            .ok_or_else(|| Problem::invalid(vec![("model".into(), format!("no model '{id}'"))]))?,
+        None => st
+            .ctx
+            .store
+            .default_model()
+            .await
+            .map_err(Problem::internal)?
+            .ok_or_else(|| Problem::new(StatusCode::SERVICE_UNAVAILABLE, "no default model is registered"))?,
     };
     let ctx = st.ctx.clone();
     let (id, path) = (row.id.clone(), row.path.clone());
     let npe: Arc<Npe> = tokio::task::spawn_blocking(move || ctx.loaded(&id, std::path::Path::new(&path)))
         .await
         .map_err(Problem::internal)?
-        .map_err(|e| Problem::new(StatusCode::SERVICE_UNAVAILABLE, format!("model '{}' cannot be loaded: {e:#}", row.id)))?;
+        .map_err(|e| {
+            Problem::new(StatusCode::SERVICE_UNAVAILABLE, format!("model '{}' cannot be loaded: {e:#}", row.id))
+        })?;
     let (x, present, used) = features(&npe, &req.measurements)?;
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();

@@ -64,7 +64,13 @@ impl Problem {
     pub fn new(status: StatusCode, detail: impl Into<String>) -> Problem {
         let title = status.canonical_reason().unwrap_or("Error").to_string();
         let slug = title.to_lowercase().replace(' ', "-");
-        Problem { kind: format!("https://otofit.dev/problems/{slug}"), title, status: status.as_u16(), detail: detail.into(), errors: vec![] }
+        Problem {
+            kind: format!("https://otofit.dev/problems/{slug}"),
+            title,
+            status: status.as_u16(),
+            detail: detail.into(),
+            errors: vec![],
+        }
     }
 
     pub fn invalid(errors: Vec<(String, String)>) -> Problem {
@@ -99,7 +105,9 @@ pub fn json_body<T: serde::de::DeserializeOwned>(headers: &axum::http::HeaderMap
 }
 
 /// serde_json with the path of the failing field in the error.
-fn serde_path_to_error<'de, T: serde::de::DeserializeOwned>(de: &mut serde_json::Deserializer<serde_json::de::SliceRead<'de>>) -> Result<T, Problem> {
+fn serde_path_to_error<'de, T: serde::de::DeserializeOwned>(
+    de: &mut serde_json::Deserializer<serde_json::de::SliceRead<'de>>,
+) -> Result<T, Problem> {
     T::deserialize(de).map_err(|e| {
         if e.is_syntax() || e.is_eof() {
             Problem::new(StatusCode::BAD_REQUEST, format!("malformed JSON: {e}"))
@@ -119,7 +127,8 @@ async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response 
     if st.key_hashes.is_empty() || req.uri().path() == "/health" {
         return next.run(req).await;
     }
-    let key = req.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
+    let key =
+        req.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
     let ok = key.is_some_and(|k| {
         use sha2::Digest;
         let h: [u8; 32] = sha2::Sha256::digest(k.as_bytes()).into();
@@ -128,7 +137,8 @@ async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response 
     if ok {
         next.run(req).await
     } else {
-        let mut r = Problem::new(StatusCode::UNAUTHORIZED, "a valid API key is required (Authorization: Bearer <key>)").into_response();
+        let mut r = Problem::new(StatusCode::UNAUTHORIZED, "a valid API key is required (Authorization: Bearer <key>)")
+            .into_response();
         r.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
         r
     }
@@ -137,7 +147,8 @@ async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response 
 async fn too_large(req: Request, next: Next) -> Response {
     let r = next.run(req).await;
     if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        return Problem::new(StatusCode::PAYLOAD_TOO_LARGE, format!("request body over {MAX_BODY} bytes")).into_response();
+        return Problem::new(StatusCode::PAYLOAD_TOO_LARGE, format!("request body over {MAX_BODY} bytes"))
+            .into_response();
     }
     r
 }

@@ -2,11 +2,11 @@
 
 use super::{AppState, Problem, json_body};
 use crate::jobs::{self, KINDS};
+use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use axum::Json;
 use serde::Deserialize;
 use serde_json::json;
 
@@ -82,24 +82,34 @@ fn job_doc(j: &crate::store::JobRow) -> serde_json::Value {
 pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Response, Problem> {
     let req: NewJob = json_body(&headers, &body)?;
     if !KINDS.contains(&req.kind.as_str()) {
-        return Err(Problem::invalid(vec![("kind".into(), format!("unknown job kind '{}' (known: {})", req.kind, KINDS.join(", ")))]));
+        return Err(Problem::invalid(vec![(
+            "kind".into(),
+            format!("unknown job kind '{}' (known: {})", req.kind, KINDS.join(", ")),
+        )]));
     }
     jobs::validate(&req.kind, &req.params).map_err(Problem::invalid)?;
     if req.kind == "train" {
         let ds = req.params["dataset"].as_str().unwrap_or_default();
         let ok = matches!(st.ctx.store.job(ds).await.map_err(Problem::internal)?, Some(j) if j.kind == "simulate" && j.state == "succeeded");
         if !ok {
-            return Err(Problem::invalid(vec![("params.dataset".into(), format!("'{ds}' is not a succeeded simulate job"))]));
+            return Err(Problem::invalid(vec![(
+                "params.dataset".into(),
+                format!("'{ds}' is not a succeeded simulate job"),
+            )]));
         }
     }
     if st.ctx.store.count_active().await.map_err(Problem::internal)? >= st.ctx.max_queue {
-        return Err(Problem::new(StatusCode::TOO_MANY_REQUESTS, format!("the queue is full ({} active jobs); retry later", st.ctx.max_queue)));
+        return Err(Problem::new(
+            StatusCode::TOO_MANY_REQUESTS,
+            format!("the queue is full ({} active jobs); retry later", st.ctx.max_queue),
+        ));
     }
     let id = jobs::new_id();
     st.ctx.store.insert_job(&id, &req.kind, &req.params, 3).await.map_err(Problem::internal)?;
     st.ctx.notify.notify_one();
     tracing::info!(job = %id, kind = %req.kind, "job queued");
-    let job = st.ctx.store.job(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
+    let job =
+        st.ctx.store.job(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
     let mut r = (StatusCode::ACCEPTED, Json(job_doc(&job))).into_response();
     r.headers_mut().insert(header::LOCATION, HeaderValue::from_str(&format!("/jobs/{id}")).map_err(Problem::internal)?);
     Ok(r)
@@ -111,7 +121,10 @@ pub struct JobQuery {
     limit: Option<i64>,
 }
 
-pub async fn list_jobs(State(st): State<AppState>, Query(q): Query<JobQuery>) -> Result<Json<serde_json::Value>, Problem> {
+pub async fn list_jobs(
+    State(st): State<AppState>,
+    Query(q): Query<JobQuery>,
+) -> Result<Json<serde_json::Value>, Problem> {
     const STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
     if let Some(s) = &q.state {
         if !STATES.contains(&s.as_str()) {
@@ -133,9 +146,17 @@ pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Resu
 pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
     match st.ctx.store.job(&id).await.map_err(Problem::internal)? {
         None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'"))),
-        Some(j) if ["succeeded", "failed", "cancelled"].contains(&j.state.as_str()) => Err(Problem::new(StatusCode::CONFLICT, format!("job '{id}' already ended ({})", j.state))),
+        Some(j) if ["succeeded", "failed", "cancelled"].contains(&j.state.as_str()) => {
+            Err(Problem::new(StatusCode::CONFLICT, format!("job '{id}' already ended ({})", j.state)))
+        }
         Some(_) => {
-            let j = st.ctx.store.cancel(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
+            let j = st
+                .ctx
+                .store
+                .cancel(&id)
+                .await
+                .map_err(Problem::internal)?
+                .ok_or_else(|| Problem::internal("job vanished"))?;
             Ok((StatusCode::ACCEPTED, Json(job_doc(&j))).into_response())
         }
     }
@@ -144,12 +165,17 @@ pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> R
 async fn dataset_job(st: &AppState, id: &str) -> Result<(), Problem> {
     match st.ctx.store.job(id).await.map_err(Problem::internal)? {
         Some(j) if j.kind == "simulate" && j.state == "succeeded" => Ok(()),
-        Some(j) if j.kind == "simulate" => Err(Problem::new(StatusCode::CONFLICT, format!("dataset '{id}' is not ready (job {})", j.state))),
+        Some(j) if j.kind == "simulate" => {
+            Err(Problem::new(StatusCode::CONFLICT, format!("dataset '{id}' is not ready (job {})", j.state)))
+        }
         _ => Err(Problem::new(StatusCode::NOT_FOUND, format!("no dataset '{id}'"))),
     }
 }
 
-pub async fn get_dataset(State(st): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, Problem> {
+pub async fn get_dataset(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, Problem> {
     dataset_job(&st, &id).await?;
     let meta = tokio::fs::read(st.ctx.dataset_dir(&id).join("meta.json")).await.map_err(Problem::internal)?;
     let meta: serde_json::Value = serde_json::from_slice(&meta).map_err(Problem::internal)?;
@@ -161,11 +187,16 @@ pub async fn get_dataset(State(st): State<AppState>, Path(id): Path<String>) -> 
     })))
 }
 
-pub async fn get_dataset_file(State(st): State<AppState>, Path((id, file)): Path<(String, String)>) -> Result<Response, Problem> {
+pub async fn get_dataset_file(
+    State(st): State<AppState>,
+    Path((id, file)): Path<(String, String)>,
+) -> Result<Response, Problem> {
     let ct = match file.as_str() {
         "theta.csv" | "x.csv" => "text/csv",
         "meta.json" => "application/json",
-        _ => return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{file}' (theta.csv, x.csv, meta.json)"))),
+        _ => {
+            return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{file}' (theta.csv, x.csv, meta.json)")));
+        }
     };
     dataset_job(&st, &id).await?;
     let bytes = tokio::fs::read(st.ctx.dataset_dir(&id).join(&file)).await.map_err(Problem::internal)?;
@@ -175,7 +206,10 @@ pub async fn get_dataset_file(State(st): State<AppState>, Path((id, file)): Path
 }
 
 /// A file a job wrote: its report page (report.html), report.json or SVG figures.
-pub async fn get_job_file(State(st): State<AppState>, Path((id, name)): Path<(String, String)>) -> Result<Response, Problem> {
+pub async fn get_job_file(
+    State(st): State<AppState>,
+    Path((id, name)): Path<(String, String)>,
+) -> Result<Response, Problem> {
     let ct = match name.rsplit('.').next() {
         Some("svg") => "image/svg+xml",
         Some("html") => "text/html; charset=utf-8",
@@ -189,7 +223,9 @@ pub async fn get_job_file(State(st): State<AppState>, Path((id, name)): Path<(St
         return Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'")));
     }
     let path = st.ctx.data_dir.join("reports").join(&id).join(&name);
-    let bytes = tokio::fs::read(&path).await.map_err(|_| Problem::new(StatusCode::NOT_FOUND, format!("job '{id}' has no file '{name}'")))?;
+    let bytes = tokio::fs::read(&path)
+        .await
+        .map_err(|_| Problem::new(StatusCode::NOT_FOUND, format!("job '{id}' has no file '{name}'")))?;
     let mut r = bytes.into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
     Ok(r)

@@ -68,11 +68,16 @@ impl Dataset {
         let meta_path = dir.join("meta.json");
         let prior_path = dir.join("prior.json");
         let (params, meta) = if meta_path.exists() {
-            let m: Meta = serde_json::from_slice(&std::fs::read(&meta_path)?).with_context(|| format!("{}: not a dataset meta.json", meta_path.display()))?;
+            let m: Meta = serde_json::from_slice(&std::fs::read(&meta_path)?)
+                .with_context(|| format!("{}: not a dataset meta.json", meta_path.display()))?;
             (m.parameters.clone(), Some(m))
         } else if prior_path.exists() {
-            let p: PriorFile = serde_json::from_slice(&std::fs::read(&prior_path)?)
-                .with_context(|| format!("{}: expected {{\"parameters\":[{{\"name\",\"low\",\"high\",\"scale\",\"unit\"}}]}}", prior_path.display()))?;
+            let p: PriorFile = serde_json::from_slice(&std::fs::read(&prior_path)?).with_context(|| {
+                format!(
+                    "{}: expected {{\"parameters\":[{{\"name\",\"low\",\"high\",\"scale\",\"unit\"}}]}}",
+                    prior_path.display()
+                )
+            })?;
             (p.parameters, None)
         } else {
             bail!("{}: neither meta.json nor prior.json found", dir.display());
@@ -88,7 +93,12 @@ impl Dataset {
         // theta.csv columns in prior order, by name.
         let cols: Vec<usize> = params
             .iter()
-            .map(|p| tt.header.iter().position(|h| *h == p.name).with_context(|| format!("{}: theta.csv has no column '{}'", dir.display(), p.name)))
+            .map(|p| {
+                tt.header
+                    .iter()
+                    .position(|h| *h == p.name)
+                    .with_context(|| format!("{}: theta.csv has no column '{}'", dir.display(), p.name))
+            })
             .collect::<Result<_>>()?;
         let nf = xt.header.len();
         let (mut theta, mut x, mut skipped) = (Vec::new(), Vec::new(), 0);
@@ -112,7 +122,8 @@ impl Dataset {
             }
             if m.features.len() == nf {
                 for g in m.groups {
-                    let features: Vec<usize> = (0..nf).filter(|&i| g.measures.contains(&m.features[i].measure)).collect();
+                    let features: Vec<usize> =
+                        (0..nf).filter(|&i| g.measures.contains(&m.features[i].measure)).collect();
                     if !features.is_empty() {
                         groups.push(Group { name: g.name, features });
                     }

@@ -14,7 +14,6 @@ pub use train::{EpochReport, TrainSettings, train};
 
 use crate::flow::plain::{Bound, PlainFlow};
 use crate::flow::{Flow, FlowConfig};
-use rayon::prelude::*;
 use anyhow::{Context, Result, bail};
 use burn::module::Module;
 use burn::prelude::*;
@@ -22,6 +21,7 @@ use burn::store::ModuleRecord;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -195,7 +195,10 @@ impl Npe {
         }
         let header: Header = serde_json::from_slice(&bytes[start..start + n]).context("checkpoint header")?;
         if header.format_version != FORMAT_VERSION && header.format_version != 1 {
-            bail!("checkpoint format {} is not supported (this otofit reads formats 1 and {FORMAT_VERSION})", header.format_version);
+            bail!(
+                "checkpoint format {} is not supported (this otofit reads formats 1 and {FORMAT_VERSION})",
+                header.format_version
+            );
         }
         let (d, f) = (header.params.len(), header.feature_names.len());
         let g = if header.mask_groups { header.groups.len() } else { 0 };
@@ -209,7 +212,10 @@ impl Npe {
         if !shapes_ok {
             bail!("checkpoint header shapes disagree ({d} parameters, {f} features)");
         }
-        let record = |b: &[u8]| ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec())).map_err(|e| anyhow::anyhow!("weights: {e:?}"));
+        let record = |b: &[u8]| {
+            ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec()))
+                .map_err(|e| anyhow::anyhow!("weights: {e:?}"))
+        };
         let mut rest = &bytes[start + n..];
         let records = if header.format_version == 1 {
             vec![record(rest)?]
@@ -248,9 +254,16 @@ impl Npe {
             bail!("observation has {} features, the model expects {f}", obs.x.len());
         }
         let present = |i: usize| obs.present.is_none_or(|p| p[i]);
-        let mut row: Vec<f32> = (0..f)
-            .map(|i| if present(i) && obs.x[i].is_finite() { ((obs.x[i] - h.x_mean[i]) / h.x_std[i]) as f32 } else { 0.0 })
-            .collect();
+        let mut row: Vec<f32> =
+            (0..f)
+                .map(|i| {
+                    if present(i) && obs.x[i].is_finite() {
+                        ((obs.x[i] - h.x_mean[i]) / h.x_std[i]) as f32
+                    } else {
+                        0.0
+                    }
+                })
+                .collect();
         if h.mask_groups {
             let mut any = false;
             for g in &h.groups {
@@ -259,7 +272,10 @@ impl Npe {
                 row.push(if on { 1.0 } else { 0.0 });
             }
             if !any {
-                bail!("no complete feature group present (groups: {})", h.groups.iter().map(|g| g.name.as_str()).collect::<Vec<_>>().join(", "));
+                bail!(
+                    "no complete feature group present (groups: {})",
+                    h.groups.iter().map(|g| g.name.as_str()).collect::<Vec<_>>().join(", ")
+                );
             }
             // Features outside every group must be present.
             for i in 0..f {
@@ -300,7 +316,8 @@ impl Npe {
         // Blocks of 128 rows: buffers stay in cache (and under the allocator's mmap
         // threshold); rayon spreads them over the cores; block b comes from member b mod K.
         let z: Vec<f64> = z.into_iter().map(f64::from).collect();
-        let blocks: Vec<(Vec<f64>, Vec<f64>)> = z.par_chunks(d * 128).enumerate().map(|(b, c)| bound.sample(b, c)).collect();
+        let blocks: Vec<(Vec<f64>, Vec<f64>)> =
+            z.par_chunks(d * 128).enumerate().map(|(b, c)| bound.sample(b, c)).collect();
         let mut v = Vec::with_capacity(n);
         let mut lp = Vec::with_capacity(n);
         for (m, l) in blocks {

@@ -15,13 +15,62 @@ pub struct NormalRange {
 }
 
 pub const NORMAL: [NormalRange; 7] = [
-    NormalRange { name: "E_eardrum", low: 2e6, high: 2e8, source: "Aernouts 2012 (2–3 MPa) … Gan 2016 (200 MPa)", below: "a flaccid or atrophic eardrum (healed perforation, atelectasis)", above: "a stiff, thickened eardrum (tympanosclerosis)" },
-    NormalRange { name: "E_ligaments", low: 5e4, high: 2.1e7, source: "Sun 2002 superior ligament (0.049 MPa, clipped to the prior floor 0.05) … Gan 2004 AML (21 MPa)", below: "lax suspensory ligaments", above: "malleus fixation (anterior mallear ligament ossification)" },
-    NormalRange { name: "E_tendons", low: 5.2e5, high: 5e6, source: "Gan 2004 stapedial tendon (0.52 MPa) … Homma 2010 TTT (5 MPa)", below: "slack middle-ear muscles", above: "contracted tensor tympani or stapedius (reflex, spasm)" },
-    NormalRange { name: "E_sal", low: 1e5, high: 1.1e6, source: "Gan 2016 (0.1 MPa) … Kwacz 2015 (1.1 MPa)", below: "a lax annular ligament — or a missing effect bent into it (run diagnose)", above: "stapes fixation (otosclerosis)" },
-    NormalRange { name: "E_joints", low: 4.4e5, high: 7e6, source: "Gan 2004 ISJ (0.44 MPa) … Homma 2010 IMJ (7 MPa)", below: "ossicular discontinuity or joint erosion (e.g. incudostapedial)", above: "joint ankylosis or fixation" },
-    NormalRange { name: "damping_beta", low: 7.5e-5, high: 1.5e-4, source: "Gan-lab FE (7.5e-5 s soft tissue, 1e-4 s TM, 1.5e-4 s bone)", below: "unusually low losses", above: "middle-ear effusion or inflammation" },
-    NormalRange { name: "cochlear_load", low: 2.1e10, high: 3.5e10, source: "Aibara 2001 (21 GΩ) … Zwislocki (35 GΩ)", below: "a third-window lesion (e.g. superior canal dehiscence)", above: "raised cochlear impedance (e.g. a round-window obstruction)" },
+    NormalRange {
+        name: "E_eardrum",
+        low: 2e6,
+        high: 2e8,
+        source: "Aernouts 2012 (2–3 MPa) … Gan 2016 (200 MPa)",
+        below: "a flaccid or atrophic eardrum (healed perforation, atelectasis)",
+        above: "a stiff, thickened eardrum (tympanosclerosis)",
+    },
+    NormalRange {
+        name: "E_ligaments",
+        low: 5e4,
+        high: 2.1e7,
+        source: "Sun 2002 superior ligament (0.049 MPa, clipped to the prior floor 0.05) … Gan 2004 AML (21 MPa)",
+        below: "lax suspensory ligaments",
+        above: "malleus fixation (anterior mallear ligament ossification)",
+    },
+    NormalRange {
+        name: "E_tendons",
+        low: 5.2e5,
+        high: 5e6,
+        source: "Gan 2004 stapedial tendon (0.52 MPa) … Homma 2010 TTT (5 MPa)",
+        below: "slack middle-ear muscles",
+        above: "contracted tensor tympani or stapedius (reflex, spasm)",
+    },
+    NormalRange {
+        name: "E_sal",
+        low: 1e5,
+        high: 1.1e6,
+        source: "Gan 2016 (0.1 MPa) … Kwacz 2015 (1.1 MPa)",
+        below: "a lax annular ligament — or a missing effect bent into it (run diagnose)",
+        above: "stapes fixation (otosclerosis)",
+    },
+    NormalRange {
+        name: "E_joints",
+        low: 4.4e5,
+        high: 7e6,
+        source: "Gan 2004 ISJ (0.44 MPa) … Homma 2010 IMJ (7 MPa)",
+        below: "ossicular discontinuity or joint erosion (e.g. incudostapedial)",
+        above: "joint ankylosis or fixation",
+    },
+    NormalRange {
+        name: "damping_beta",
+        low: 7.5e-5,
+        high: 1.5e-4,
+        source: "Gan-lab FE (7.5e-5 s soft tissue, 1e-4 s TM, 1.5e-4 s bone)",
+        below: "unusually low losses",
+        above: "middle-ear effusion or inflammation",
+    },
+    NormalRange {
+        name: "cochlear_load",
+        low: 2.1e10,
+        high: 3.5e10,
+        source: "Aibara 2001 (21 GΩ) … Zwislocki (35 GΩ)",
+        below: "a third-window lesion (e.g. superior canal dehiscence)",
+        above: "raised cochlear impedance (e.g. a round-window obstruction)",
+    },
 ];
 
 #[derive(Clone, Debug, Serialize)]
@@ -58,7 +107,17 @@ pub fn read(names: &[&str], samples: &[Vec<f64>]) -> Vec<Differential> {
             } else {
                 ("above", Some(r.above))
             };
-            Some(Differential { name: name.to_string(), normal_low: r.low, normal_high: r.high, p_below: below, p_within: within, p_above: above, reading, associated_with, source: r.source })
+            Some(Differential {
+                name: name.to_string(),
+                normal_low: r.low,
+                normal_high: r.high,
+                p_below: below,
+                p_within: within,
+                p_above: above,
+                reading,
+                associated_with,
+                source: r.source,
+            })
         })
         .collect()
 }

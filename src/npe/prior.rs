@@ -32,7 +32,10 @@ impl Param {
     pub fn validate(&self) -> Result<(), String> {
         let ok = self.low.is_finite() && self.high.is_finite() && self.low < self.high;
         if !ok || (self.scale == Scale::Log10 && self.low <= 0.0) {
-            return Err(format!("parameter '{}': bounds [{}, {}] are not a valid {:?} box", self.name, self.low, self.high, self.scale));
+            return Err(format!(
+                "parameter '{}': bounds [{}, {}] are not a valid {:?} box",
+                self.name, self.low, self.high, self.scale
+            ));
         }
         Ok(())
     }
@@ -81,7 +84,11 @@ mod tests {
         ];
         for p in &ps {
             for q in [0.001, 0.3, 0.5, 0.97] {
-                let v = if p.scale == Scale::Log10 { 10f64.powf(p.low.log10() + q * (p.high.log10() - p.low.log10())) } else { p.low + q * (p.high - p.low) };
+                let v = if p.scale == Scale::Log10 {
+                    10f64.powf(p.low.log10() + q * (p.high.log10() - p.low.log10()))
+                } else {
+                    p.low + q * (p.high - p.low)
+                };
                 assert!((p.from_u(p.to_u(v)) - v).abs() < 1e-9 * v.abs().max(1.0));
                 let h = 1e-6 * v.abs().max(1.0);
                 let fd = ((p.to_u(v + h) - p.to_u(v - h)) / (2.0 * h)).abs().ln();

@@ -34,7 +34,18 @@ pub struct TrainSettings {
 
 impl Default for TrainSettings {
     fn default() -> Self {
-        TrainSettings { embedding: true, noise_scale: 1.0, seed: 0, max_epochs: 300, patience: 20, batch: 200, lr: 5e-4, mask_groups: false, val_fraction: 0.1, ensemble: 1 }
+        TrainSettings {
+            embedding: true,
+            noise_scale: 1.0,
+            seed: 0,
+            max_epochs: 300,
+            patience: 20,
+            batch: 200,
+            lr: 5e-4,
+            mask_groups: false,
+            val_fraction: 0.1,
+            ensemble: 1,
+        }
     }
 }
 
@@ -74,7 +85,8 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
     let (val_idx, train_idx) = idx.split_at(n_val);
 
     // Standardisation from the training rows; x spread includes the training noise.
-    let u_rows: Vec<Vec<f64>> = ds.theta.iter().map(|t| ds.params.iter().zip(t).map(|(p, v)| p.to_u(*v)).collect()).collect();
+    let u_rows: Vec<Vec<f64>> =
+        ds.theta.iter().map(|t| ds.params.iter().zip(t).map(|(p, v)| p.to_u(*v)).collect()).collect();
     let train_u: Vec<Vec<f64>> = train_idx.iter().map(|&i| u_rows[i].clone()).collect();
     let train_x: Vec<Vec<f64>> = train_idx.iter().map(|&i| ds.x[i].clone()).collect();
     let (mut u_mean, mut u_std, mut x_mean, mut x_std) = (vec![], vec![], vec![], vec![]);
@@ -149,10 +161,13 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
 
     // Validation inputs with one fixed noise draw.
     let mut val_rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x5EED);
-    let val_batches: Vec<(Vec<f32>, Vec<f32>, usize)> = val_idx.chunks(1000).map(|c| {
-        let (v, i) = batch(c, &mut val_rng);
-        (v, i, c.len())
-    }).collect();
+    let val_batches: Vec<(Vec<f32>, Vec<f32>, usize)> = val_idx
+        .chunks(1000)
+        .map(|c| {
+            let (v, i) = batch(c, &mut val_rng);
+            (v, i, c.len())
+        })
+        .collect();
 
     // Member 0 uses the seed and the batch stream exactly as a single model does, so a
     // one-member ensemble is the single model.
@@ -199,7 +214,14 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
             if val_loss < best.0 {
                 best = (val_loss, epoch, Some(valid.into_record()));
             }
-            let report = EpochReport { member, epoch, train_loss: sum / count.max(1) as f64, val_loss, best_val_loss: best.0, seconds: t0.elapsed().as_secs_f64() };
+            let report = EpochReport {
+                member,
+                epoch,
+                train_loss: sum / count.max(1) as f64,
+                val_loss,
+                best_val_loss: best.0,
+                seconds: t0.elapsed().as_secs_f64(),
+            };
             if !progress(&report) {
                 stopped = true;
                 break;

@@ -57,15 +57,24 @@ impl Canvas {
     }
 
     pub fn rect(&mut self, x: f64, y: f64, w: f64, h: f64, fill: &str, opacity: f64) {
-        let _ = writeln!(self.body, r#"<rect x="{x:.1}" y="{y:.1}" width="{w:.1}" height="{h:.1}" fill="{fill}" fill-opacity="{opacity:.2}"/>"#);
+        let _ = writeln!(
+            self.body,
+            r#"<rect x="{x:.1}" y="{y:.1}" width="{w:.1}" height="{h:.1}" fill="{fill}" fill-opacity="{opacity:.2}"/>"#
+        );
     }
 
     pub fn frame(&mut self, x: f64, y: f64, w: f64, h: f64) {
-        let _ = writeln!(self.body, r##"<rect x="{x:.1}" y="{y:.1}" width="{w:.1}" height="{h:.1}" fill="none" stroke="#999"/>"##);
+        let _ = writeln!(
+            self.body,
+            r##"<rect x="{x:.1}" y="{y:.1}" width="{w:.1}" height="{h:.1}" fill="none" stroke="#999"/>"##
+        );
     }
 
     pub fn vline(&mut self, x: f64, y0: f64, y1: f64, color: &str) {
-        let _ = writeln!(self.body, r#"<line x1="{x:.1}" y1="{y0:.1}" x2="{x:.1}" y2="{y1:.1}" stroke="{color}" stroke-width="1.5"/>"#);
+        let _ = writeln!(
+            self.body,
+            r#"<line x1="{x:.1}" y1="{y0:.1}" x2="{x:.1}" y2="{y1:.1}" stroke="{color}" stroke-width="1.5"/>"#
+        );
     }
 
     pub fn dot(&mut self, x: f64, y: f64, r: f64, color: &str) {
@@ -73,11 +82,20 @@ impl Canvas {
     }
 
     pub fn text(&mut self, x: f64, y: f64, size: f64, anchor: &str, s: &str) {
-        let _ = writeln!(self.body, r#"<text x="{x:.1}" y="{y:.1}" font-size="{size}" text-anchor="{anchor}" font-family="sans-serif">{}</text>"#, escape(s));
+        let _ = writeln!(
+            self.body,
+            r#"<text x="{x:.1}" y="{y:.1}" font-size="{size}" text-anchor="{anchor}" font-family="sans-serif">{}</text>"#,
+            escape(s)
+        );
     }
 
     pub fn line(&mut self, ax: &Axes, xs: &[f64], ys: &[f64], color: &str, width: f64, opacity: f64) {
-        let pts: Vec<String> = xs.iter().zip(ys).filter(|(_, y)| y.is_finite()).map(|(&x, &y)| format!("{:.1},{:.1}", ax.px(x), ax.py(y))).collect();
+        let pts: Vec<String> = xs
+            .iter()
+            .zip(ys)
+            .filter(|(_, y)| y.is_finite())
+            .map(|(&x, &y)| format!("{:.1},{:.1}", ax.px(x), ax.py(y)))
+            .collect();
         let _ = writeln!(
             self.body,
             r#"<polyline points="{}" fill="none" stroke="{color}" stroke-width="{width}" stroke-opacity="{opacity:.2}"/>"#,
@@ -86,9 +104,14 @@ impl Canvas {
     }
 
     pub fn band(&mut self, ax: &Axes, xs: &[f64], lo: &[f64], hi: &[f64], color: &str, opacity: f64) {
-        let mut pts: Vec<String> = xs.iter().zip(hi).map(|(&x, &y)| format!("{:.1},{:.1}", ax.px(x), ax.py(y))).collect();
+        let mut pts: Vec<String> =
+            xs.iter().zip(hi).map(|(&x, &y)| format!("{:.1},{:.1}", ax.px(x), ax.py(y))).collect();
         pts.extend(xs.iter().zip(lo).rev().map(|(&x, &y)| format!("{:.1},{:.1}", ax.px(x), ax.py(y))));
-        let _ = writeln!(self.body, r#"<polygon points="{}" fill="{color}" fill-opacity="{opacity:.2}" stroke="none"/>"#, pts.join(" "));
+        let _ = writeln!(
+            self.body,
+            r#"<polygon points="{}" fill="{color}" fill-opacity="{opacity:.2}" stroke="none"/>"#,
+            pts.join(" ")
+        );
     }
 
     /// Frame, ticks and labels (log-x ticks at 1-2-5 decades).
@@ -118,7 +141,12 @@ impl Canvas {
         }
         for t in ticks(ax.yr.0, ax.yr.1) {
             let y = ax.py(t);
-            let _ = writeln!(self.body, r##"<line x1="{:.1}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}" stroke="#444"/>"##, ax.x - 4.0, ax.x);
+            let _ = writeln!(
+                self.body,
+                r##"<line x1="{:.1}" y1="{y:.1}" x2="{:.1}" y2="{y:.1}" stroke="#444"/>"##,
+                ax.x - 4.0,
+                ax.x
+            );
             self.text(ax.x - 6.0, y + 3.5, 10.0, "end", &format!("{}", (t * 1e6).round() / 1e6));
         }
         self.text(ax.x + ax.w / 2.0, ax.y + ax.h + 32.0, 11.0, "middle", xlabel);

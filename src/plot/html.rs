@@ -74,7 +74,12 @@ impl Page {
                     h.push_str("</table>\n");
                 }
                 Block::Figure(file, caption) => {
-                    let _ = writeln!(h, "<figure><a href=\"{f}\"><img src=\"{f}\" alt=\"{c}\"></a><figcaption>{c}</figcaption></figure>", f = escape(file), c = escape(caption));
+                    let _ = writeln!(
+                        h,
+                        "<figure><a href=\"{f}\"><img src=\"{f}\" alt=\"{c}\"></a><figcaption>{c}</figcaption></figure>",
+                        f = escape(file),
+                        c = escape(caption)
+                    );
                 }
             }
         }

@@ -4,8 +4,8 @@
 mod canvas;
 pub mod html;
 mod pages;
-pub use pages::{Resimulation, resimulation};
 pub use canvas::{Axes, Canvas};
+pub use pages::{Resimulation, resimulation};
 
 use crate::sim::output::MEASURES;
 
@@ -27,7 +27,7 @@ pub fn plus_minus(x: &[f64], s: &[f64]) -> (Vec<f64>, Vec<f64>) {
 fn display(measure: usize, v: f64) -> f64 {
     match MEASURES[measure].name {
         "vst_mag" => 20.0 * (v + 3.0), // log10(m/s/Pa) → dB re 1 mm/s/Pa
-        "zec_mag" => v,                 // log10(Pa·s/m³)
+        "zec_mag" => v,                // log10(Pa·s/m³)
         "vst_phase" | "zec_phase" => v.to_degrees(),
         _ => v,
     }
@@ -85,7 +85,8 @@ pub fn spectra(title: &str, freqs: &[f64], bands: &[Band<'_>], series: &[Series<
             }
         }
         let pad = 0.05 * (hi - lo).max(1e-6);
-        let ax = Axes::new(x0 + 60.0, y0 + 10.0, pw - 80.0, ph - 60.0, (freqs[0], freqs[n - 1]), (lo - pad, hi + pad), true);
+        let ax =
+            Axes::new(x0 + 60.0, y0 + 10.0, pw - 80.0, ph - 60.0, (freqs[0], freqs[n - 1]), (lo - pad, hi + pad), true);
         c.axes(&ax, "frequency (Hz)", label(m));
         for b in bands {
             c.band(&ax, freqs, &shown(b.lo), &shown(b.hi), b.color, 0.2);
@@ -205,14 +206,25 @@ pub fn corner(title: &str, dims: &[Dim<'_>], samples: &[Vec<f64>]) -> String {
                 }
                 for (vx, vy, color) in [(dims[j].truth, dims[i].truth, TRUTH), (dims[j].map, dims[i].map, MAP)] {
                     if let (Some(vx), Some(vy)) = (vx, vy) {
-                        c.dot(x0 + 2.0 + (cell - 4.0) * unit(j, vx), y0 + cell - 2.0 - (cell - 4.0) * unit(i, vy), 3.5, color);
+                        c.dot(
+                            x0 + 2.0 + (cell - 4.0) * unit(j, vx),
+                            y0 + cell - 2.0 - (cell - 4.0) * unit(i, vy),
+                            3.5,
+                            color,
+                        );
                     }
                 }
             }
         }
         let x = left + cell * (i as f64 + 0.5);
         c.text(x, top + cell * d as f64 + 16.0, 10.0, "middle", dims[i].name);
-        c.text(x, top + cell * d as f64 + 28.0, 9.0, "middle", &format!("{}{}", if dims[i].log { "log axis, " } else { "" }, dims[i].unit));
+        c.text(
+            x,
+            top + cell * d as f64 + 28.0,
+            9.0,
+            "middle",
+            &format!("{}{}", if dims[i].log { "log axis, " } else { "" }, dims[i].unit),
+        );
     }
     c.text(left, top + cell * d as f64 + 48.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
     c.finish()
@@ -271,7 +283,12 @@ mod tests {
         let x: Vec<f64> = (0..250).map(|i| (i as f64 * 0.1).sin()).collect();
         let lo: Vec<f64> = x.iter().map(|v| v - 0.1).collect();
         let hi: Vec<f64> = x.iter().map(|v| v + 0.1).collect();
-        let s = spectra("t", &freqs, &[Band { lo: &lo, hi: &hi, color: BAND, label: "band" }], &[Series { x: &x, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") }]);
+        let s = spectra(
+            "t",
+            &freqs,
+            &[Band { lo: &lo, hi: &hi, color: BAND, label: "band" }],
+            &[Series { x: &x, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") }],
+        );
         well_formed(&s);
         assert_eq!(s.matches("<polyline").count(), 5);
         well_formed(&residual_map("r", &freqs, &x));

@@ -1,7 +1,7 @@
 //! Report pages composed from figures and tables, shared by the CLI and the service.
 
 use super::html::Page;
-use super::{MAP, OBS, DRAW, Series, spectra};
+use super::{DRAW, MAP, OBS, Series, spectra};
 use crate::discrepancy::workflow::spearman_per_measure;
 use crate::sim::PARAMS;
 use crate::sim::output::MEASURES;
@@ -20,7 +20,13 @@ pub fn resimulation(freqs: &[f64], theta: &[Vec<f64>], x: &[&[f64]], obs: Option
         series.push(Series { x: o, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") });
     }
     for (k, row) in x.iter().enumerate().skip(1).take(20) {
-        series.push(Series { x: row, color: DRAW, width: 1.0, opacity: 0.5, label: (k == 1).then_some("other rows (e.g. posterior draws)") });
+        series.push(Series {
+            x: row,
+            color: DRAW,
+            width: 1.0,
+            opacity: 0.5,
+            label: (k == 1).then_some("other rows (e.g. posterior draws)"),
+        });
     }
     if let Some(first) = x.first() {
         series.push(Series { x: first, color: MAP, width: 1.5, opacity: 1.0, label: Some("first row (e.g. the MAP)") });
@@ -31,13 +37,30 @@ pub fn resimulation(freqs: &[f64], theta: &[Vec<f64>], x: &[&[f64]], obs: Option
     p.text(&format!("{} rows re-simulated, {} succeeded.", theta.len(), x.len()));
     let mut head = vec!["row"];
     head.extend(PARAMS.iter().map(|p| p.name));
-    p.heading("Parameter rows").table(&head, theta.iter().enumerate().map(|(i, r)| std::iter::once(i.to_string()).chain(r.iter().map(|v| format!("{v:.3e}"))).collect()).collect());
+    p.heading("Parameter rows").table(
+        &head,
+        theta
+            .iter()
+            .enumerate()
+            .map(|(i, r)| std::iter::once(i.to_string()).chain(r.iter().map(|v| format!("{v:.3e}"))).collect())
+            .collect(),
+    );
     if let Some(rho) = &rho {
         let mut head = vec!["row"];
         head.extend(MEASURES.iter().map(|m| m.name));
         head.push("mean");
-        p.heading("Spearman ρ against the observation")
-            .table(&head, rho.iter().enumerate().map(|(i, r)| std::iter::once(i.to_string()).chain(r.iter().map(|v| format!("{v:.3}"))).chain(std::iter::once(format!("{:.3}", r.iter().sum::<f64>() / r.len() as f64))).collect()).collect());
+        p.heading("Spearman ρ against the observation").table(
+            &head,
+            rho.iter()
+                .enumerate()
+                .map(|(i, r)| {
+                    std::iter::once(i.to_string())
+                        .chain(r.iter().map(|v| format!("{v:.3}")))
+                        .chain(std::iter::once(format!("{:.3}", r.iter().sum::<f64>() / r.len() as f64)))
+                        .collect()
+                })
+                .collect(),
+        );
     }
     p.figure("spectra.svg", "re-simulated spectra (first row red, others blue), observation black");
     Resimulation { svg, html: p.render(), rho }

@@ -144,7 +144,8 @@ mod tests {
         let n1 = run_rows(&model, &d, &rows, 0, Some(&noise));
         let n2 = run_rows(&model, &d, &rows[2..], 2, Some(&noise));
         assert_eq!(n1[2].as_ref().unwrap(), n2[0].as_ref().unwrap());
-        let dev: f64 = n1[0].as_ref().unwrap().iter().zip(par[0].as_ref().unwrap()).map(|(a, b)| a - b).map(|d| d * d).sum();
+        let dev: f64 =
+            n1[0].as_ref().unwrap().iter().zip(par[0].as_ref().unwrap()).map(|(a, b)| a - b).map(|d| d * d).sum();
         assert!(dev > 0.0);
     }
 }

@@ -46,11 +46,8 @@ pub struct CanalMesh {
 }
 
 // 3-point Gauss–Legendre on [0, 1]: exact for the quartic integrands of a cone.
-const GAUSS3: [(f64, f64); 3] = [
-    (0.112_701_665_379_258_3, 5.0 / 18.0),
-    (0.5, 8.0 / 18.0),
-    (0.887_298_334_620_741_7, 5.0 / 18.0),
-];
+const GAUSS3: [(f64, f64); 3] =
+    [(0.112_701_665_379_258_3, 5.0 / 18.0), (0.5, 8.0 / 18.0), (0.887_298_334_620_741_7, 5.0 / 18.0)];
 
 impl CanalMesh {
     /// Meshes [0, length] with elements no longer than `h_max`, putting nodes exactly at
@@ -286,8 +283,7 @@ mod tests {
         let air = Air::at_celsius(22.0);
         let load = Load::Impedance(c64::new(1.0e7, -2.0e7));
         let exact = exact_zin(&air, 8000.0, load);
-        let errs: Vec<f64> =
-            [4, 8, 16, 32].iter().map(|&n| rel(fe_zin(n, &air, 8000.0, load), exact)).collect();
+        let errs: Vec<f64> = [4, 8, 16, 32].iter().map(|&n| rel(fe_zin(n, &air, 8000.0, load), exact)).collect();
         for w in errs.windows(2) {
             let order = (w[0] / w[1]).log2();
             assert!((order - 2.0).abs() < 0.25, "observed order {order:.2} from {errs:?}");

@@ -358,7 +358,8 @@ impl Model {
         // Eardrum elements, assembled densely over the local DOFs (interior + umbo).
         let mat = ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho };
         let nl = n_interior + 1;
-        let (mut kd, mut md, mut bd) = (faer::Mat::<f64>::zeros(nl, nl), faer::Mat::<f64>::zeros(nl, nl), vec![0.0; nl]);
+        let (mut kd, mut md, mut bd) =
+            (faer::Mat::<f64>::zeros(nl, nl), faer::Mat::<f64>::zeros(nl, nl), vec![0.0; nl]);
         for el in 0..nodes.len() - 1 {
             let se = ShellElement::new(nodes[el], nodes[el + 1], &mat);
             let map: [Option<usize>; 6] = std::array::from_fn(|i| tm_local(el + i / 3, i % 3));
@@ -376,8 +377,14 @@ impl Model {
         let drum = if config.reduce_drum {
             let ni = n_interior;
             let col = |a: &faer::Mat<f64>| (0..ni).map(|i| a[(i, ni)]).collect::<Vec<f64>>();
-            let modes = DrumModes::new(&kd.submatrix(0, 0, ni, ni).to_owned(), &md.submatrix(0, 0, ni, ni).to_owned(), &col(&kd), &col(&md), &bd[..ni])
-                .map_err(SimError::Setup)?;
+            let modes = DrumModes::new(
+                &kd.submatrix(0, 0, ni, ni).to_owned(),
+                &md.submatrix(0, 0, ni, ni).to_owned(),
+                &col(&kd),
+                &col(&md),
+                &bd[..ni],
+            )
+            .map_err(SimError::Setup)?;
             sb.add(blocks.tm, dofs.umbo, dofs.umbo, kd[(ni, ni)]);
             sb.add(blocks.mass, dofs.umbo, dofs.umbo, md[(ni, ni)]);
             b[dofs.umbo] = bd[ni];
@@ -462,7 +469,9 @@ impl Model {
 
         let system = sb.build().map_err(|e| SimError::Setup(format!("symbolic LU: {e:?}")))?;
         let kept = |x: f64| canal_nodes.iter().position(|&i| (canal.x[i] - x).abs() < 1e-9);
-        let zec_node = kept(g.zec_plane).filter(|&k| k + 1 < n_canal).ok_or_else(|| SimError::Setup("the Zec plane must lie inside the canal".into()))?;
+        let zec_node = kept(g.zec_plane)
+            .filter(|&k| k + 1 < n_canal)
+            .ok_or_else(|| SimError::Setup("the Zec plane must lie inside the canal".into()))?;
         let mic_node = kept(mic_x).ok_or_else(|| SimError::Setup("no node at the microphone".into()))?;
         Ok(Model { config, air, canal, dofs, system, blocks, b, drum, zec_node, mic_node })
     }
@@ -489,7 +498,11 @@ impl Model {
         let rayleigh = c64::new(1.0, w * theta.damping_beta());
         // Power-law viscoelastic eardrum, E·(jω/ω0)^n, ω0 = 2π·1 kHz.
         let n = fx.tm_exponent();
-        let visco = if n == 0.0 { c64::new(1.0, 0.0) } else { c64::from_polar((w / (2.0 * PI * 1000.0)).powf(n), n * PI / 2.0) };
+        let visco = if n == 0.0 {
+            c64::new(1.0, 0.0)
+        } else {
+            c64::from_polar((w / (2.0 * PI * 1000.0)).powf(n), n * PI / 2.0)
+        };
         coef[bl.tm] = rayleigh * visco * theta.e_eardrum();
         coef[bl.ligaments] = rayleigh * theta.e_ligaments();
         coef[bl.tendons] = rayleigh * theta.e_tendons();

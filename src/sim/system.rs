@@ -60,11 +60,8 @@ impl SystemBuilder {
         for c in 0..self.n {
             col_ptr[c + 1] += col_ptr[c];
         }
-        let blocks = self
-            .blocks
-            .into_iter()
-            .map(|b| b.into_iter().map(|(r, c, v)| (slots[&(c, r)], v)).collect())
-            .collect();
+        let blocks =
+            self.blocks.into_iter().map(|b| b.into_iter().map(|(r, c, v)| (slots[&(c, r)], v)).collect()).collect();
         let sym = SymbolicSparseColMatRef::new_checked(self.n, self.n, &col_ptr, None, &row_idx);
         let symbolic = factorize_symbolic_lu(sym, Default::default())?;
         Ok(System { n: self.n, col_ptr, row_idx, blocks, symbolic: Arc::new(symbolic) })
@@ -145,7 +142,13 @@ impl System {
     }
 
     /// Solves (Σ_b coef[b]·B_b) x = rhs into `ws.x`. `rhs` entries are (row, value).
-    pub fn solve(&self, coef: &[c64], rhs: &[(usize, c64)], ws: &mut Workspace, freq_hz: f64) -> Result<(), SolveError> {
+    pub fn solve(
+        &self,
+        coef: &[c64],
+        rhs: &[(usize, c64)],
+        ws: &mut Workspace,
+        freq_hz: f64,
+    ) -> Result<(), SolveError> {
         assert_eq!(coef.len(), self.blocks.len());
         ws.values.fill(c64::new(0.0, 0.0));
         for (block, &k) in self.blocks.iter().zip(coef) {

@@ -53,7 +53,8 @@ fn stapes_velocity_inside_the_astm_soft_gate() {
     // Goode 1994 as a cross-check: the model runs 6–11 dB above it at 2–4 kHz (too little
     // high-frequency loss in an axisymmetric drum; README), so bound the RMS and the worst.
     let gd = &n["vst_goode1994"];
-    let d: Vec<f64> = floats(&gd["frequency_hz"]).into_iter().zip(floats(&gd["value"])).map(|(f, v)| b.vst_db(f) - v).collect();
+    let d: Vec<f64> =
+        floats(&gd["frequency_hz"]).into_iter().zip(floats(&gd["value"])).map(|(f, v)| b.vst_db(f) - v).collect();
     let rms = (d.iter().map(|x| x * x).sum::<f64>() / d.len() as f64).sqrt();
     let worst = d.iter().fold(0.0f64, |m, x| m.max(x.abs()));
     eprintln!("vst vs Goode 1994: rms {rms:.1} dB, worst {worst:.1} dB");
@@ -109,7 +110,8 @@ fn ear_canal_impedance_inside_the_normative_range() {
     // The quarter-wave minimum of the path from the measurement plane to the drum.
     let g = otofit::sim::Geometry::default();
     let f_qw = 344.0 / (4.0 * (g.canal_length - g.zec_plane));
-    let (i_min, _) = b.x[100..150].iter().enumerate().skip(25).fold((0, f64::MAX), |m, (i, &v)| if v < m.1 { (i, v) } else { m });
+    let (i_min, _) =
+        b.x[100..150].iter().enumerate().skip(25).fold((0, f64::MAX), |m, (i, &v)| if v < m.1 { (i, v) } else { m });
     let f_min = b.freqs[i_min];
     assert!(f_min > 0.8 * f_qw && f_min < 1.25 * f_qw, "|Zec| minimum at {f_min:.0} Hz, quarter wave {f_qw:.0} Hz");
 }

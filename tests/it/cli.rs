@@ -19,12 +19,27 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     let d = scratch("sim");
     let (a, b) = (d.join("a"), d.join("b"));
     for out in [&a, &b] {
-        let o = otofit(&["simulate", "--n", "12", "--seed", "4", "--noise-scale", "1", "--vary", "cavity", "--out", out.to_str().unwrap()]);
+        let o = otofit(&[
+            "simulate",
+            "--n",
+            "12",
+            "--seed",
+            "4",
+            "--noise-scale",
+            "1",
+            "--vary",
+            "cavity",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     }
     let theta = std::fs::read_to_string(a.join("theta.csv")).unwrap();
     let x = std::fs::read_to_string(a.join("x.csv")).unwrap();
-    assert_eq!(theta.lines().next().unwrap(), "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,cavity");
+    assert_eq!(
+        theta.lines().next().unwrap(),
+        "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,cavity"
+    );
     assert_eq!(theta.lines().count(), 13);
     assert_eq!(x.lines().count(), 13);
     assert_eq!(x.lines().next().unwrap().split(',').count(), 250);
@@ -85,8 +100,21 @@ fn train_infer_and_calibrate_from_the_command_line() {
     };
     s(&["simulate", "--n", "400", "--seed", "1", "--out", data.to_str().unwrap()]);
     s(&["simulate", "--n", "20", "--seed", "2", "--out", held.to_str().unwrap()]);
-    let o = s(&["train", "--data", data.to_str().unwrap(), "--out", model.to_str().unwrap(), "--max-epochs", "3", "--mask-groups"]);
-    assert_eq!(String::from_utf8_lossy(&o.stderr).lines().filter(|l| l.starts_with("epoch ")).count(), 3, "one progress line per epoch");
+    let o = s(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+        "--max-epochs",
+        "3",
+        "--mask-groups",
+    ]);
+    assert_eq!(
+        String::from_utf8_lossy(&o.stderr).lines().filter(|l| l.starts_with("epoch ")).count(),
+        3,
+        "one progress line per epoch"
+    );
     // Observation: the first two held-out rows, absorbance only (a subset: mask model).
     let x = std::fs::read_to_string(held.join("x.csv")).unwrap();
     let mut lines = x.lines();
@@ -94,9 +122,28 @@ fn train_infer_and_calibrate_from_the_command_line() {
     let keep: Vec<usize> = (0..header.len()).filter(|&i| header[i].starts_with("absorbance@")).collect();
     let pick = |l: &str| keep.iter().map(|&i| l.split(',').nth(i).unwrap().to_string()).collect::<Vec<_>>().join(",");
     let obs = d.join("obs.csv");
-    std::fs::write(&obs, format!("{}\n{}\n{}\n", keep.iter().map(|&i| header[i]).collect::<Vec<_>>().join(","), pick(lines.next().unwrap()), pick(lines.next().unwrap()))).unwrap();
+    std::fs::write(
+        &obs,
+        format!(
+            "{}\n{}\n{}\n",
+            keep.iter().map(|&i| header[i]).collect::<Vec<_>>().join(","),
+            pick(lines.next().unwrap()),
+            pick(lines.next().unwrap())
+        ),
+    )
+    .unwrap();
     let samples = d.join("samples.csv");
-    let o = s(&["infer", "--model", model.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--samples", "100", "--out", samples.to_str().unwrap()]);
+    let o = s(&[
+        "infer",
+        "--model",
+        model.to_str().unwrap(),
+        "--obs",
+        obs.to_str().unwrap(),
+        "--samples",
+        "100",
+        "--out",
+        samples.to_str().unwrap(),
+    ]);
     let out = String::from_utf8_lossy(&o.stdout);
     assert_eq!(out.lines().count(), 2, "one JSON object per observation");
     let first: serde_json::Value = serde_json::from_str(out.lines().next().unwrap()).unwrap();
@@ -105,15 +152,41 @@ fn train_infer_and_calibrate_from_the_command_line() {
     let csv = std::fs::read_to_string(&samples).unwrap();
     assert!(csv.starts_with("obs,E_eardrum,"));
     assert_eq!(csv.lines().count(), 201);
-    let o = s(&["calibrate", "--model", model.to_str().unwrap(), "--data", held.to_str().unwrap(), "--n", "10", "--samples", "50"]);
+    let o = s(&[
+        "calibrate",
+        "--model",
+        model.to_str().unwrap(),
+        "--data",
+        held.to_str().unwrap(),
+        "--n",
+        "10",
+        "--samples",
+        "50",
+    ]);
     let cal: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(cal["levels"].as_array().unwrap().len(), 19);
     // Errors name the problem.
     let bad = d.join("bad.csv");
     std::fs::write(&bad, "absorbance@999.0\n0.5\n").unwrap();
-    let o = otofit(&["infer", "--model", model.to_str().unwrap(), "--obs", bad.to_str().unwrap(), "--out", samples.to_str().unwrap()]);
+    let o = otofit(&[
+        "infer",
+        "--model",
+        model.to_str().unwrap(),
+        "--obs",
+        bad.to_str().unwrap(),
+        "--out",
+        samples.to_str().unwrap(),
+    ]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("'absorbance@999.0' is not a feature"));
-    let o = otofit(&["infer", "--model", obs.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--out", samples.to_str().unwrap()]);
+    let o = otofit(&[
+        "infer",
+        "--model",
+        obs.to_str().unwrap(),
+        "--obs",
+        obs.to_str().unwrap(),
+        "--out",
+        samples.to_str().unwrap(),
+    ]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("not a usable otofit model"));
 }
 
@@ -132,12 +205,32 @@ fn any_simulators_table_trains_with_a_prior_json_and_bad_tables_are_named() {
     std::fs::write(data.join("theta.csv"), &theta).unwrap();
     std::fs::write(data.join("x.csv"), &x).unwrap();
     let model = d.join("m.otofit");
-    let o = otofit(&["train", "--data", data.to_str().unwrap(), "--out", model.to_str().unwrap(), "--max-epochs", "2", "--embedding", "none"]);
+    let o = otofit(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--out",
+        model.to_str().unwrap(),
+        "--max-epochs",
+        "2",
+        "--embedding",
+        "none",
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let obs = d.join("obs.csv");
     std::fs::write(&obs, "y0,y1,y2\n1.0,0.5,0.5\n").unwrap();
     let out = d.join("s.csv");
-    let o = otofit(&["infer", "--model", model.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--samples", "500", "--out", out.to_str().unwrap()]);
+    let o = otofit(&[
+        "infer",
+        "--model",
+        model.to_str().unwrap(),
+        "--obs",
+        obs.to_str().unwrap(),
+        "--samples",
+        "500",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     for line in std::fs::read_to_string(&out).unwrap().lines().skip(1) {
         let v: Vec<f64> = line.split(',').map(|s| s.parse().unwrap()).collect();
@@ -163,7 +256,15 @@ fn any_simulators_table_trains_with_a_prior_json_and_bad_tables_are_named() {
         assert!(!o.status.success() && err.contains(needle), "{file}: {err}");
     }
     std::fs::write(&obs, "y0,y1,y2\n1.0,NaN,0.5\n").unwrap();
-    let o = otofit(&["infer", "--model", model.to_str().unwrap(), "--obs", obs.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let o = otofit(&[
+        "infer",
+        "--model",
+        model.to_str().unwrap(),
+        "--obs",
+        obs.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("feature 'y1' is missing or not finite"));
 }
 
@@ -233,19 +334,46 @@ fn reference_ear_is_an_observation_and_a_noise_table() {
     let table = std::fs::read_to_string(&std).unwrap();
     let shipped: Vec<f64> = table.lines().nth(1).unwrap().split(',').map(|c| c.parse().unwrap()).collect();
     assert_eq!(written, shipped, "meta.json records the noise table used");
-    s(&["train", "--data", data.to_str().unwrap(), "--noise-table", &std, "--max-epochs", "1", "--out", d.join("m.otofit").to_str().unwrap()]);
+    s(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--noise-table",
+        &std,
+        "--max-epochs",
+        "1",
+        "--out",
+        d.join("m.otofit").to_str().unwrap(),
+    ]);
     let bad = d.join("bad_std.csv");
     std::fs::write(&bad, "absorbance@200.0\n0.03\n").unwrap();
-    let o = otofit(&["train", "--data", data.to_str().unwrap(), "--noise-table", bad.to_str().unwrap(), "--out", d.join("m2.otofit").to_str().unwrap()]);
+    let o = otofit(&[
+        "train",
+        "--data",
+        data.to_str().unwrap(),
+        "--noise-table",
+        bad.to_str().unwrap(),
+        "--out",
+        d.join("m2.otofit").to_str().unwrap(),
+    ]);
     assert!(!o.status.success());
-    assert!(String::from_utf8_lossy(&o.stderr).contains("column 'vst_mag@200.0' missing"), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("column 'vst_mag@200.0' missing"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
 }
 
 #[test]
 fn the_docker_build_copies_every_file_compiled_into_the_binary() {
     let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let docker = std::fs::read_to_string(root.join("Dockerfile")).unwrap();
-    let copied: Vec<&str> = docker.lines().filter_map(|l| l.strip_prefix("COPY ")).filter(|l| !l.starts_with("--from")).flat_map(|l| l.split_whitespace()).collect();
+    let copied: Vec<&str> = docker
+        .lines()
+        .filter_map(|l| l.strip_prefix("COPY "))
+        .filter(|l| !l.starts_with("--from"))
+        .flat_map(|l| l.split_whitespace())
+        .collect();
     let mut stack = vec![root.join("src")];
     let mut checked = 0;
     while let Some(dir) = stack.pop() {
@@ -260,8 +388,21 @@ fn the_docker_build_copies_every_file_compiled_into_the_binary() {
                 let rel = part.split('"').next().unwrap();
                 let target = p.parent().unwrap().join(rel);
                 let target = target.canonicalize().unwrap_or_else(|_| panic!("{}: {rel} does not exist", p.display()));
-                let top = target.strip_prefix(root.canonicalize().unwrap()).unwrap().components().next().unwrap().as_os_str().to_str().unwrap().to_string();
-                assert!(copied.iter().any(|c| c.trim_end_matches('/') == top), "Dockerfile does not COPY {top} (needed by {})", p.display());
+                let top = target
+                    .strip_prefix(root.canonicalize().unwrap())
+                    .unwrap()
+                    .components()
+                    .next()
+                    .unwrap()
+                    .as_os_str()
+                    .to_str()
+                    .unwrap()
+                    .to_string();
+                assert!(
+                    copied.iter().any(|c| c.trim_end_matches('/') == top),
+                    "Dockerfile does not COPY {top} (needed by {})",
+                    p.display()
+                );
                 checked += 1;
             }
         }

@@ -24,7 +24,15 @@ fn observation(model: &Model, effect: Option<(&str, f64)>, seed: u64) -> Vec<f64
 }
 
 fn settings(candidates: Vec<usize>) -> Settings {
-    Settings { candidates, draws: 100, null_cases: 12, train_rows: 2000, max_epochs: 25, seed: 1, ..Settings::default() }
+    Settings {
+        candidates,
+        draws: 100,
+        null_cases: 12,
+        train_rows: 2000,
+        max_epochs: 25,
+        seed: 1,
+        ..Settings::default()
+    }
 }
 
 #[test]
@@ -32,12 +40,22 @@ fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, Some(("probe_leak", 3e-4)), 5);
     let r = diagnose(&model, &base(), &x, &settings((0..6).collect()), &mut |_| {}).unwrap();
-    assert_eq!(r.verdict, Verdict::EffectNamed, "candidates {:?}", r.candidates.iter().map(|c| (c.effect, c.score)).collect::<Vec<_>>());
+    assert_eq!(
+        r.verdict,
+        Verdict::EffectNamed,
+        "candidates {:?}",
+        r.candidates.iter().map(|c| (c.effect, c.score)).collect::<Vec<_>>()
+    );
     assert_eq!(r.named, Some("probe_leak"));
     let p = r.effect_posterior.as_ref().unwrap();
     assert!(p.q05 <= 3e-4 && 3e-4 <= p.q95, "90 % interval [{}, {}]", p.q05, p.q95);
     let after = r.after.as_ref().unwrap();
-    assert!(after.reduced_chi2 < 1.5 && after.reduced_chi2 < r.before.reduced_chi2 / 5.0, "χ²ν {} → {}", r.before.reduced_chi2, after.reduced_chi2);
+    assert!(
+        after.reduced_chi2 < 1.5 && after.reduced_chi2 < r.before.reduced_chi2 / 5.0,
+        "χ²ν {} → {}",
+        r.before.reduced_chi2,
+        after.reduced_chi2
+    );
     assert!(r.before.bands.iter().any(|b| b.measure == "zec_phase" && b.f_lo_hz < 300.0));
     assert_eq!(r.figures.len(), 4);
 }
@@ -47,7 +65,14 @@ fn stays_quiet_without_an_effect() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, None, 6);
     let r = diagnose(&model, &base(), &x, &settings((0..6).collect()), &mut |_| {}).unwrap();
-    assert_eq!(r.verdict, Verdict::NoDiscrepancy, "χ²ν {} (alarm {}), best {:?}", r.before.reduced_chi2, r.thresholds.base_reduced_chi2, r.candidates.first().map(|c| (c.effect, c.score)));
+    assert_eq!(
+        r.verdict,
+        Verdict::NoDiscrepancy,
+        "χ²ν {} (alarm {}), best {:?}",
+        r.before.reduced_chi2,
+        r.thresholds.base_reduced_chi2,
+        r.candidates.first().map(|c| (c.effect, c.score))
+    );
     assert!(r.after.is_none());
 }
 
@@ -58,5 +83,9 @@ fn says_unexplained_when_the_effect_is_not_a_candidate() {
     let without_leak = vec![0, 4, 5]; // cavity, ldv_angle, cochlear_mass
     let r = diagnose(&model, &base(), &x, &settings(without_leak), &mut |_| {}).unwrap();
     assert_eq!(r.verdict, Verdict::Unexplained);
-    assert!(r.before.bands.iter().any(|b| b.measure == "zec_phase" && b.sign > 0 && b.f_lo_hz < 300.0), "{:?}", r.before.bands);
+    assert!(
+        r.before.bands.iter().any(|b| b.measure == "zec_phase" && b.sign > 0 && b.f_lo_hz < 300.0),
+        "{:?}",
+        r.before.bands
+    );
 }

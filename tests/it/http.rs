@@ -18,7 +18,11 @@ fn default_model() -> PathBuf {
 
 async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Arc<Ctx>) {
     static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-    let dir = std::env::temp_dir().join(format!("otofit-http-{}-{}", std::process::id(), N.fetch_add(1, std::sync::atomic::Ordering::SeqCst)));
+    let dir = std::env::temp_dir().join(format!(
+        "otofit-http-{}-{}",
+        std::process::id(),
+        N.fetch_add(1, std::sync::atomic::Ordering::SeqCst)
+    ));
     let _ = std::fs::remove_dir_all(&dir);
     let ctx = otofit::cli::serve::open(&dir, &default_model(), max_queue).await.unwrap();
     if dispatch {
@@ -27,7 +31,12 @@ async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Ar
     (router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) }), ctx)
 }
 
-async fn call(app: &Router, method: &str, uri: &str, body: Option<Value>) -> (StatusCode, axum::http::HeaderMap, Value) {
+async fn call(
+    app: &Router,
+    method: &str,
+    uri: &str,
+    body: Option<Value>,
+) -> (StatusCode, axum::http::HeaderMap, Value) {
     let mut req = Request::builder().method(method).uri(uri);
     if body.is_some() {
         req = req.header(header::CONTENT_TYPE, "application/json");
@@ -73,7 +82,10 @@ fn spec_examples() -> Vec<(String, Value)> {
             path = line.trim().trim_end_matches(':').to_string();
         }
         if let Some(ex) = line.trim().strip_prefix("example: ") {
-            out.push((path.clone(), serde_json::from_str(ex).unwrap_or_else(|e| panic!("example under {path} is not JSON: {e}"))));
+            out.push((
+                path.clone(),
+                serde_json::from_str(ex).unwrap_or_else(|e| panic!("example under {path} is not JSON: {e}")),
+            ));
         }
     }
     out
@@ -123,7 +135,10 @@ async fn spec_examples_are_answered_as_documented() {
     for (path, ex) in &examples {
         if path == "/health" {
             let (_, _, b) = call(&app, "GET", "/health", None).await;
-            assert_eq!(b.as_object().unwrap().keys().collect::<Vec<_>>(), ex.as_object().unwrap().keys().collect::<Vec<_>>());
+            assert_eq!(
+                b.as_object().unwrap().keys().collect::<Vec<_>>(),
+                ex.as_object().unwrap().keys().collect::<Vec<_>>()
+            );
         }
     }
     let (status, _, body) = call(&app, "GET", "/ready", None).await;
@@ -142,24 +157,43 @@ async fn bad_requests_get_problems_that_name_the_field() {
     let narrow = json!({"measurements": {"absorbance": {"frequencies_hz": [500.0, 4000.0], "values": [0.1, 0.5]}}});
     let (_, _, p) = call(&app, "POST", "/infer", Some(narrow)).await;
     assert!(p["errors"][0]["message"].as_str().unwrap().contains("must cover"), "{p}");
-    let nan = json!({"measurements": {"absorbance": {"frequencies_hz": [200.0, 8000.0], "values": [0.1]}}, "samples": 0});
+    let nan =
+        json!({"measurements": {"absorbance": {"frequencies_hz": [200.0, 8000.0], "values": [0.1]}}, "samples": 0});
     let (status, _, p) = call(&app, "POST", "/infer", Some(nan)).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
     let (status, _, p) = call(&app, "POST", "/infer", Some(json!({"measurements": {"wbt": {}}}))).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     assert!(p["errors"][0]["field"] == "wbt", "{p}");
-    let req = Request::builder().method("POST").uri("/infer").header(header::CONTENT_TYPE, "application/json").body(Body::from("{not json")).unwrap();
+    let req = Request::builder()
+        .method("POST")
+        .uri("/infer")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from("{not json"))
+        .unwrap();
     assert_eq!(raw(&app, req).await.0, StatusCode::BAD_REQUEST);
-    let req = Request::builder().method("POST").uri("/infer").header(header::CONTENT_TYPE, "text/plain").body(Body::from("{}")).unwrap();
+    let req = Request::builder()
+        .method("POST")
+        .uri("/infer")
+        .header(header::CONTENT_TYPE, "text/plain")
+        .body(Body::from("{}"))
+        .unwrap();
     assert_eq!(raw(&app, req).await.0, StatusCode::UNSUPPORTED_MEDIA_TYPE);
     let big = vec![b' '; otofit::http::MAX_BODY + 10];
-    let req = Request::builder().method("POST").uri("/infer").header(header::CONTENT_TYPE, "application/json").body(Body::from(big)).unwrap();
+    let req = Request::builder()
+        .method("POST")
+        .uri("/infer")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(big))
+        .unwrap();
     let (status, _, p) = raw(&app, req).await;
     assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE, "{p}");
-    let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 5, "effects": {"cavity": 1.0}}}))).await;
+    let (status, _, p) =
+        call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 5, "effects": {"cavity": 1.0}}})))
+            .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     assert_eq!(p["errors"][0]["field"], "params.effects.cavity", "{p}");
-    let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": "nope"}}))).await;
+    let (status, _, p) =
+        call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": "nope"}}))).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.dataset")));
     assert_eq!(call(&app, "GET", "/jobs/nope", None).await.0, StatusCode::NOT_FOUND);
     assert_eq!(call(&app, "GET", "/jobs?state=done", None).await.0, StatusCode::UNPROCESSABLE_ENTITY);
@@ -180,36 +214,69 @@ async fn wait(app: &Router, id: &str) -> Value {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn simulate_train_and_infer_through_jobs() {
     let (app, _) = app(vec![], 8, true).await;
-    let (_, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 120, "seed": 3}}))).await;
+    let (_, _, j) =
+        call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 120, "seed": 3}}))).await;
     let id = j["id"].as_str().unwrap().to_string();
     let done = wait(&app, &id).await;
     assert_eq!(done["state"], "succeeded", "{done}");
     assert_eq!(done["progress"], 1.0);
     let (_, _, ds) = call(&app, "GET", &format!("/datasets/{id}"), None).await;
     assert_eq!(ds["rows"], 120);
-    let res = app.clone().oneshot(Request::get(format!("/datasets/{id}/x.csv")).body(Body::empty()).unwrap()).await.unwrap();
+    let res =
+        app.clone().oneshot(Request::get(format!("/datasets/{id}/x.csv")).body(Body::empty()).unwrap()).await.unwrap();
     let csv = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
     assert_eq!(String::from_utf8_lossy(&csv).lines().count(), 121);
-    let (_, _, t) = call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": id, "max_epochs": 2, "ensemble": 2}}))).await;
+    let (_, _, t) = call(
+        &app,
+        "POST",
+        "/jobs",
+        Some(json!({"kind": "train", "params": {"dataset": id, "max_epochs": 2, "ensemble": 2}})),
+    )
+    .await;
     let tid = t["id"].as_str().unwrap().to_string();
     let done = wait(&app, &tid).await;
     assert_eq!(done["state"], "succeeded", "{done}");
     let (status, _, m) = call(&app, "GET", &format!("/models/{tid}"), None).await;
-    assert_eq!((status, m["training"]["epochs"].as_u64(), m["members"].as_u64()), (StatusCode::OK, Some(4), Some(2)), "two members of two epochs: {m}");
-    let (_, _, r) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": [[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]]}}))).await;
+    assert_eq!(
+        (status, m["training"]["epochs"].as_u64(), m["members"].as_u64()),
+        (StatusCode::OK, Some(4), Some(2)),
+        "two members of two epochs: {m}"
+    );
+    let (_, _, r) = call(
+        &app,
+        "POST",
+        "/jobs",
+        Some(json!({"kind": "resimulate", "params": {"theta": [[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]]}})),
+    )
+    .await;
     let done = wait(&app, r["id"].as_str().unwrap()).await;
     assert_eq!(done["result"]["x"][0].as_array().unwrap().len(), 250, "{done}");
     // With the observation: ρ per row and measure, a figure and a report page.
     let obs = done["result"]["x"][0].clone();
     let theta = json!([[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10], [2e7, 5e6, 2e6, 1e6, 6e6, 7.5e-5, 2.1e10]]);
-    let (_, _, r) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": theta, "observation": obs}}))).await;
+    let (_, _, r) = call(
+        &app,
+        "POST",
+        "/jobs",
+        Some(json!({"kind": "resimulate", "params": {"theta": theta, "observation": obs}})),
+    )
+    .await;
     let done = wait(&app, r["id"].as_str().unwrap()).await;
     let rho = &done["result"]["rho"];
-    assert!(rho[0].as_array().unwrap().iter().all(|v| (v.as_f64().unwrap() - 1.0).abs() < 1e-12), "same row, same spectra: {rho}");
+    assert!(
+        rho[0].as_array().unwrap().iter().all(|v| (v.as_f64().unwrap() - 1.0).abs() < 1e-12),
+        "same row, same spectra: {rho}"
+    );
     assert!(rho[1][0].as_f64().unwrap() < 1.0, "a stiffer annular ligament changes vst: {rho}");
     let page = text(&app, done["result"]["report"].as_str().unwrap()).await;
     assert!(page.contains("<img src=\"spectra.svg\"") && page.contains("E_sal"));
-    let (_, _, bad) = call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": theta, "observation": [1.0]}}))).await;
+    let (_, _, bad) = call(
+        &app,
+        "POST",
+        "/jobs",
+        Some(json!({"kind": "resimulate", "params": {"theta": theta, "observation": [1.0]}})),
+    )
+    .await;
     assert_eq!(bad["errors"][0]["field"], "params.observation", "{bad}");
 }
 
@@ -224,7 +291,8 @@ async fn text(app: &Router, uri: &str) -> String {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancel_recover_and_queue_limits() {
     let (app, ctx) = app(vec![], 2, true).await;
-    let (_, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 100000, "seed": 1}}))).await;
+    let (_, _, j) =
+        call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 100000, "seed": 1}}))).await;
     let id = j["id"].as_str().unwrap().to_string();
     tokio::time::sleep(std::time::Duration::from_millis(400)).await;
     let (status, _, _) = call(&app, "POST", &format!("/jobs/{id}/cancel"), None).await;
@@ -236,14 +304,24 @@ async fn cancel_recover_and_queue_limits() {
     // Queue bound: two queued jobs fill a queue of 2 (no dispatcher claims them here).
     let (app2, ctx2) = self::app(vec![], 2, false).await;
     for _ in 0..2 {
-        assert_eq!(call(&app2, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 10}}))).await.0, StatusCode::ACCEPTED);
+        assert_eq!(
+            call(&app2, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 10}}))).await.0,
+            StatusCode::ACCEPTED
+        );
     }
-    assert_eq!(call(&app2, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 10}}))).await.0, StatusCode::TOO_MANY_REQUESTS);
+    assert_eq!(
+        call(&app2, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 10}}))).await.0,
+        StatusCode::TOO_MANY_REQUESTS
+    );
     // Crash recovery: a job left running is re-queued, or failed after its last attempt.
     let store = &ctx2.store;
     let first = store.claim().await.unwrap().unwrap();
     let second = store.claim().await.unwrap().unwrap();
-    sqlx::query("UPDATE jobs SET attempts = max_attempts WHERE id = ?").bind(&second.id).execute(&store.pool).await.unwrap();
+    sqlx::query("UPDATE jobs SET attempts = max_attempts WHERE id = ?")
+        .bind(&second.id)
+        .execute(&store.pool)
+        .await
+        .unwrap();
     assert_eq!(store.recover().await.unwrap(), (1, 1));
     assert_eq!(store.job(&first.id).await.unwrap().unwrap().state, "queued");
     let failed = store.job(&second.id).await.unwrap().unwrap();
@@ -258,7 +336,9 @@ async fn api_keys_guard_every_route_but_health() {
     let (app, _) = app(vec![hash], 8, false).await;
     assert_eq!(call(&app, "GET", "/health", None).await.0, StatusCode::OK);
     assert_eq!(call(&app, "GET", "/models", None).await.0, StatusCode::UNAUTHORIZED);
-    let with = |key: &str| Request::get("/models").header(header::AUTHORIZATION, format!("Bearer {key}")).body(Body::empty()).unwrap();
+    let with = |key: &str| {
+        Request::get("/models").header(header::AUTHORIZATION, format!("Bearer {key}")).body(Body::empty()).unwrap()
+    };
     assert_eq!(raw(&app, with("wrong")).await.0, StatusCode::UNAUTHORIZED);
     assert_eq!(raw(&app, with("s3cret")).await.0, StatusCode::OK);
     assert_eq!(otofit::cli::serve::parse_key_hashes(&[hex::encode(hash)]).unwrap(), vec![hash]);
@@ -290,7 +370,9 @@ async fn diagnose_job_writes_a_report_with_figures() {
         let name = f.as_str().unwrap().rsplit('/').next().unwrap();
         assert!(page.contains(&format!("<img src=\"{name}\"")), "{name} not on the page");
     }
-    let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": {"x": [1.0], "candidates": ["wall"]}}))).await;
+    let (status, _, p) =
+        call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": {"x": [1.0], "candidates": ["wall"]}})))
+            .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     assert_eq!(p["errors"][0]["field"], "params.candidates[0]", "{p}");
 }
@@ -300,7 +382,10 @@ fn http(port: u16, method: &str, path: &str, body: Option<&str>) -> Option<(u16,
     use std::io::{Read, Write};
     let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
     let b = body.unwrap_or("");
-    let req = format!("{method} {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{b}", b.len());
+    let req = format!(
+        "{method} {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{b}",
+        b.len()
+    );
     s.write_all(req.as_bytes()).ok()?;
     let mut out = String::new();
     s.read_to_string(&mut out).ok()?;
@@ -311,7 +396,15 @@ fn http(port: u16, method: &str, path: &str, body: Option<&str>) -> Option<(u16,
 
 fn start(port: u16, dir: &std::path::Path) -> std::process::Child {
     let child = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
-        .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap(), "--default-model", default_model().to_str().unwrap()])
+        .args([
+            "serve",
+            "--addr",
+            &format!("127.0.0.1:{port}"),
+            "--data-dir",
+            dir.to_str().unwrap(),
+            "--default-model",
+            default_model().to_str().unwrap(),
+        ])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
@@ -331,7 +424,8 @@ fn a_job_killed_with_sigkill_is_requeued_and_completes_after_restart() {
     let dir = std::env::temp_dir().join(format!("otofit-kill-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let mut server = start(port, &dir);
-    let (status, job) = http(port, "POST", "/jobs", Some(r#"{"kind":"simulate","params":{"n":40000,"seed":2}}"#)).unwrap();
+    let (status, job) =
+        http(port, "POST", "/jobs", Some(r#"{"kind":"simulate","params":{"n":40000,"seed":2}}"#)).unwrap();
     assert_eq!(status, 202, "{job}");
     let id = job["id"].as_str().unwrap().to_string();
     let path = format!("/jobs/{id}");

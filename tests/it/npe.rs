@@ -10,7 +10,10 @@ const SIGMA: f64 = 0.3;
 /// x = Aθ (noise comes from the noise model during training), θ uniform on [−4, 4]².
 fn linear_gaussian(n: usize, seed: u64) -> Dataset {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let params: Vec<Param> = ["a", "b"].iter().map(|n| Param { name: n.to_string(), unit: "1".into(), scale: Scale::Linear, low: -4.0, high: 4.0 }).collect();
+    let params: Vec<Param> = ["a", "b"]
+        .iter()
+        .map(|n| Param { name: n.to_string(), unit: "1".into(), scale: Scale::Linear, low: -4.0, high: 4.0 })
+        .collect();
     let theta: Vec<Vec<f64>> = (0..n).map(|_| vec![rng.random_range(-4.0..4.0), rng.random_range(-4.0..4.0)]).collect();
     let x = theta.iter().map(|t| A.iter().map(|r| r[0] * t[0] + r[1] * t[1]).collect()).collect();
     Dataset {
@@ -67,7 +70,10 @@ fn recovers_the_analytic_linear_gaussian_posterior() {
         let inf = model.infer(&Obs { x: &x, present: None }, 4000, case).unwrap();
         for k in 0..2 {
             let s = &inf.summaries[k];
-            eprintln!("case {case} θ{k}: mean {:.3} (exact {:.3}), std {:.3} (exact {:.3}), map {:.3}", s.mean, mean[k], s.std, std[k], s.map);
+            eprintln!(
+                "case {case} θ{k}: mean {:.3} (exact {:.3}), std {:.3} (exact {:.3}), map {:.3}",
+                s.mean, mean[k], s.std, std[k], s.map
+            );
             assert!((s.mean - mean[k]).abs() < 0.25 * std[k], "case {case} θ{k}: mean {} vs {}", s.mean, mean[k]);
             assert!((s.std / std[k] - 1.0).abs() < 0.25, "case {case} θ{k}: std {} vs {}", s.std, std[k]);
             assert!((s.map - mean[k]).abs() < 0.3 * std[k], "case {case} θ{k}: map {} vs {}", s.map, mean[k]);
@@ -84,7 +90,9 @@ fn coverage_on_held_out_simulations_is_not_overconfident() {
         .theta
         .iter()
         .zip(&held.x)
-        .map(|(t, x)| (t.clone(), x.iter().map(|v| v + SIGMA * rng.sample::<f64, _>(rand_distr::StandardNormal)).collect()))
+        .map(|(t, x)| {
+            (t.clone(), x.iter().map(|v| v + SIGMA * rng.sample::<f64, _>(rand_distr::StandardNormal)).collect())
+        })
         .collect();
     let cal = npe::calibrate::calibrate(model, &rows, 300, 1).unwrap();
     for (l, c) in cal.levels.iter().zip(&cal.coverage) {
@@ -137,7 +145,8 @@ fn ensembles_store_every_member_and_format_1_still_loads() {
     let lp = loaded.log_prob(&obs, &a[..5]).unwrap();
     assert!(lp.iter().all(|v| v.is_finite()));
     // The shipped default model is a format-1 file: it must keep loading.
-    let default = Npe::load(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit"))).unwrap();
+    let default =
+        Npe::load(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit"))).unwrap();
     assert_eq!((default.header.format_version, default.header.members), (1, 1));
 }
 

@@ -17,7 +17,10 @@ fn with_effect(name: &str, value: f64) -> Effects {
 
 /// Largest |a − b| over the features of measure k in the band [f_lo, f_hi].
 fn max_diff(freqs: &[f64], a: &[f64], b: &[f64], k: usize, f_lo: f64, f_hi: f64) -> f64 {
-    (0..freqs.len()).filter(|&i| freqs[i] >= f_lo && freqs[i] <= f_hi).map(|i| (a[50 * k + i] - b[50 * k + i]).abs()).fold(0.0, f64::max)
+    (0..freqs.len())
+        .filter(|&i| freqs[i] >= f_lo && freqs[i] <= f_hi)
+        .map(|i| (a[50 * k + i] - b[50 * k + i]).abs())
+        .fold(0.0, f64::max)
 }
 
 fn mean_diff(freqs: &[f64], a: &[f64], b: &[f64], k: usize, f_lo: f64, f_hi: f64) -> f64 {
@@ -65,7 +68,10 @@ fn rigid_chain_moves_the_stapes_by_the_lever_ratio() {
     let d = &model.dofs;
     let ratio = (x[d.x_incus] + x[d.theta_i] * g.arm_lp) / x[d.umbo];
     let expected = g.arm_lp / g.arm_umbo;
-    assert!((ratio.re - expected).abs() < 1e-3 * expected && ratio.im.abs() < 1e-3 * expected, "ratio {ratio}, expected {expected}");
+    assert!(
+        (ratio.re - expected).abs() < 1e-3 * expected && ratio.im.abs() < 1e-3 * expected,
+        "ratio {ratio}, expected {expected}"
+    );
 }
 
 #[test]
