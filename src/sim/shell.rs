@@ -263,6 +263,41 @@ pub(crate) mod tests {
     }
 
     #[test]
+    fn pressurised_sphere_matches_membrane_theory() {
+        // Independent closed form for the membrane part (the plate tests above see bending
+        // only). A thin spherical shell of radius R under internal pressure q carries it by
+        // membrane action alone: equilibrium of a hemisphere gives N_φ = N_θ = qR/2, biaxial
+        // plane stress gives ε = (1 − ν)N/(Eh), so the normal displacement is uniform,
+        // w = εR = qR²(1 − ν)/(2Eh), and no curvature changes (Timoshenko & Woinowsky-Krieger,
+        // Theory of Plates and Shells, 2nd ed. 1959, membrane theory of shells of revolution;
+        // Roark's Formulas for Stress and Strain, thin-walled spherical vessel:
+        // ΔR = qR²(1 − ν)/(2Et)). The upper hemisphere then sweeps ΔV = 2πR²·w =
+        // πqR⁴(1 − ν)/(Eh): inversely proportional to the membrane stiffness Eh/(1 − ν²).
+        // Meridian from the pole (u_r = β = 0) to the equator (u_z = β = 0 by the mirror
+        // symmetry of the whole sphere), drum-like R, h, E and ν.
+        let (radius, e): (f64, f64) = (4.4e-3, 20e6);
+        let mat = ShellMaterial { h: 60e-6, nu: 0.485, rho: 1100.0 };
+        let exact = PI * radius.powi(4) * (1.0 - mat.nu) / (e * mat.h);
+        let mut errs = vec![];
+        for n_el in [20, 40, 80] {
+            let nodes: Vec<(f64, f64)> = (0..=n_el)
+                .map(|i| {
+                    let phi = 0.5 * PI * i as f64 / n_el as f64;
+                    (radius * phi.sin(), radius * phi.cos())
+                })
+                .collect();
+            let last = nodes.len() - 1;
+            let (k, _, b) = assemble_dense(&nodes, &mat, e, |n, d| (n == 0 && d != 1) || (n == last && d != 0));
+            let u = solve(&k, &b);
+            let vol: f64 = b.iter().zip(&u).map(|(x, y)| x * y).sum();
+            errs.push(vol / exact - 1.0);
+        }
+        eprintln!("sphere volume compliance, relative error at 20/40/80 elements: {errs:?}");
+        assert!(errs[2].abs() < 5e-4, "ΔV off by {errs:?} (exact {exact:e} m³/Pa)");
+        assert!(errs[1].abs() > 3.0 * errs[2].abs(), "no convergence: {errs:?}");
+    }
+
+    #[test]
     fn curvature_stiffens_the_membrane() {
         // A cone of growing depth is stiffer than the flat plate (membrane action).
         let mat = ShellMaterial { h: 80e-6, nu: 0.485, rho: 1100.0 };
