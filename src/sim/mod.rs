@@ -17,7 +17,7 @@ pub mod params;
 pub mod shell;
 pub mod system;
 
-pub use model::{Geometry, Model, ModelConfig, Preset, Response, Runner, SimError, log_grid};
+pub use model::{Geometry, Model, ModelConfig, PowerBalance, Preset, Response, Runner, SimError, log_grid};
 pub use params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, PARAMS, Theta};
 
 /// Simulates one parameter set into its feature vector.

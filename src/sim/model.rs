@@ -539,13 +539,35 @@ pub struct Runner<'m> {
     coef: Vec<c64>,
 }
 
-/// Power balance of one solve (W, for a unit probe volume velocity).
+/// Power balance of one solve (W, for a unit probe volume velocity): what enters at the
+/// probe, what the canal walls dissipate, what enters the middle ear at the drum, and
+/// where the middle ear dissipates it: probe = canal + into_drum and into_drum =
+/// mechanical (the cavity stores, never dissipates). The probe leak and the probe offset
+/// act on Z_ec after the solve and are not part of it.
 #[derive(Clone, Copy, Debug)]
 pub struct PowerBalance {
+    pub freq_hz: f64,
     pub probe: f64,
     pub canal: f64,
     pub into_drum: f64,
+    /// All middle-ear dissipation: the sum of the six parts below.
     pub mechanical: f64,
+    /// The eardrum's loss (Rayleigh and, when on, viscoelastic), interior and disc.
+    pub drum: f64,
+    /// Rayleigh loss in the ossicular soft tissue, per stiffness block.
+    pub ligaments: f64,
+    pub tendons: f64,
+    pub joints: f64,
+    pub sal: f64,
+    /// Power delivered to the cochlear load ½·Re(Z_c)·A_fp²·|v_piston|².
+    pub cochlea: f64,
+}
+
+impl PowerBalance {
+    /// Fraction of the power entering the middle ear that reaches the cochlea.
+    pub fn cochlear_share(&self) -> f64 {
+        self.cochlea / self.into_drum
+    }
 }
 
 impl Runner<'_> {
@@ -627,20 +649,33 @@ impl Runner<'_> {
         }
         let mut vol: c64 = m.b.iter().zip(x).map(|(bi, xi)| *xi * *bi).sum();
         let bl = &m.blocks;
-        let mut mechanical: f64 = [bl.tm, bl.ligaments, bl.tendons, bl.joints, bl.sal, bl.cochlea]
-            .iter()
-            .map(|&b| 0.5 * w * self.coef[b].im * m.system.quadratic_form(b, &self.ws).re)
-            .sum();
-        if let Some(drum) = &m.drum {
+        let loss = |b: usize| 0.5 * w * self.coef[b].im * m.system.quadratic_form(b, &self.ws).re;
+        let mut drum = loss(bl.tm);
+        if let Some(modes) = &m.drum {
             // The condensed interior: recover its modal amplitudes for volume and losses.
             let c = m.drum_coefficients(&self.coef, w);
             let u = x[m.dofs.umbo];
-            let eta = drum.interior(&c, [u, x[m.dofs.n_canal - 1], x[m.dofs.p_cavity]]);
-            let (v_int, e_int) = drum.volume_and_energy(&eta, u);
+            let eta = modes.interior(&c, [u, x[m.dofs.n_canal - 1], x[m.dofs.p_cavity]]);
+            let (v_int, e_int) = modes.volume_and_energy(&eta, u);
             vol += v_int;
-            mechanical += 0.5 * w * self.coef[bl.tm].im * e_int.re;
+            drum += 0.5 * w * self.coef[bl.tm].im * e_int.re;
         }
         let into_drum = 0.5 * (x[m.dofs.n_canal - 1].conj() * c64::new(0.0, w) * vol).re;
-        PowerBalance { probe, canal, into_drum, mechanical }
+        let (ligaments, tendons, joints) = (loss(bl.ligaments), loss(bl.tendons), loss(bl.joints));
+        let (sal, cochlea) = (loss(bl.sal), loss(bl.cochlea));
+        let mechanical = drum + ligaments + tendons + joints + sal + cochlea;
+        PowerBalance { freq_hz, probe, canal, into_drum, mechanical, drum, ligaments, tendons, joints, sal, cochlea }
+    }
+
+    /// The power balance at every frequency of the model's grid (one solve each).
+    pub fn power_budget(&mut self, theta: &Theta, fx: &Effects) -> Result<Vec<PowerBalance>, SimError> {
+        let freqs = self.model.config.frequencies.clone();
+        freqs
+            .iter()
+            .map(|&f| {
+                self.solve_at(theta, fx, f)?;
+                Ok(self.power_balance(f))
+            })
+            .collect()
     }
 }
