@@ -3,10 +3,33 @@
 
 use otofit::sim::{self, Effects, Model, ModelConfig, Theta};
 use serde_json::Value;
+use std::f64::consts::PI;
+
+fn data(file: &str) -> Value {
+    let text = std::fs::read_to_string(format!("{}/tests/data/{file}", env!("CARGO_MANIFEST_DIR"))).unwrap();
+    serde_json::from_str(&text).unwrap()
+}
 
 fn normative() -> Value {
-    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/normative.json")).unwrap();
-    serde_json::from_str(&text).unwrap()
+    data("normative.json")
+}
+
+/// Checks a named known miss of tests/data/known_misses.json: the model misses a
+/// published target, and the measured value must still be the recorded one within its
+/// tolerance. A regression fails, and so does an improvement (then update the file, and
+/// when the target is met remove the entry and the `#[ignore]` of the target test).
+pub(crate) fn known_miss(name: &str, measured: f64) {
+    let table = data("known_misses.json");
+    let e = &table[name];
+    let (recorded, tol) = (e["measured"].as_f64(), e["tolerance"].as_f64());
+    let (Some(recorded), Some(tol)) = (recorded, tol) else { panic!("no known miss '{name}' in known_misses.json") };
+    eprintln!("known miss {name}: {measured:.2} (recorded {recorded} ± {tol}; target {})", e["target"]);
+    assert!(
+        (measured - recorded).abs() <= tol,
+        "known miss {name} moved: measured {measured:.3}, recorded {recorded} ± {tol}, target {}; \
+         update tests/data/known_misses.json",
+        e["target"]
+    );
 }
 
 fn floats(v: &Value) -> Vec<f64> {
@@ -50,15 +73,69 @@ fn stapes_velocity_inside_the_astm_soft_gate() {
         eprintln!("vst {} Hz: {v:.1} dB", fs[k]);
         assert!(v >= lo[k] && v <= hi[k], "vst at {} Hz = {v:.1} dB outside [{}, {}]", fs[k], lo[k], hi[k]);
     }
-    // Goode 1994 as a cross-check: the model runs 6–11 dB above it at 2–4 kHz (too little
-    // high-frequency loss in an axisymmetric drum; README), so bound the RMS and the worst.
+}
+
+/// Model minus Goode 1994 at Goode's frequencies, dB.
+fn vst_minus_goode(b: &Baseline, n: &Value) -> Vec<(f64, f64)> {
     let gd = &n["vst_goode1994"];
-    let d: Vec<f64> =
-        floats(&gd["frequency_hz"]).into_iter().zip(floats(&gd["value"])).map(|(f, v)| b.vst_db(f) - v).collect();
+    floats(&gd["frequency_hz"]).into_iter().zip(floats(&gd["value"])).map(|(f, v)| (f, b.vst_db(f) - v)).collect()
+}
+
+#[test]
+#[ignore = "known miss: stapes velocity 5.3-10.6 dB above Goode 1994 at 1.4-6.5 kHz (tests/data/known_misses.json)"]
+fn stapes_velocity_within_5_db_of_goode_1994() {
+    let (b, n) = (Baseline::new(), normative());
+    let tol = n["vst_goode1994"]["target_within_db"].as_f64().unwrap();
+    for (f, d) in vst_minus_goode(&b, &n) {
+        assert!(d.abs() <= tol, "vst at {f} Hz is {d:+.1} dB off Goode 1994 (target ±{tol} dB)");
+    }
+}
+
+#[test]
+fn known_miss_stapes_velocity_vs_goode_1994() {
+    let (b, n) = (Baseline::new(), normative());
+    let d: Vec<f64> = vst_minus_goode(&b, &n).into_iter().map(|(_, d)| d).collect();
+    eprintln!("vst − Goode 1994, dB: {d:.1?}");
     let rms = (d.iter().map(|x| x * x).sum::<f64>() / d.len() as f64).sqrt();
-    let worst = d.iter().fold(0.0f64, |m, x| m.max(x.abs()));
-    eprintln!("vst vs Goode 1994: rms {rms:.1} dB, worst {worst:.1} dB");
-    assert!(rms <= 8.0 && worst <= 12.0, "vst vs Goode: rms {rms:.1} dB, worst {worst:.1} dB ({d:.1?})");
+    known_miss("vst_goode1994_rms_db", rms);
+    known_miss("vst_goode1994_worst_db", d.iter().fold(0.0f64, |m, x| m.max(x.abs())));
+}
+
+/// Phase of V_st/P at 8 kHz (unwrapped from 200 Hz, degrees) and the group delay
+/// −dφ/dω (µs) at each frequency of `at`, by a central difference over ±0.5 %.
+fn vst_phase_8k_and_group_delays(at: &[f64]) -> (f64, Vec<f64>) {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let mut runner = model.runner();
+    let (theta, fx) = (Theta::nominal(), Effects::default());
+    let x = sim::simulate(&mut runner, &theta, &fx).unwrap();
+    assert_eq!(model.frequencies()[49], 8000.0);
+    let mut v = |f: f64| runner.response_at(&theta, &fx, f).unwrap().vst_over_p;
+    let delays = at.iter().map(|&f| -(v(1.005 * f) / v(0.995 * f)).arg() / (2.0 * PI * 0.01 * f) * 1e6).collect();
+    (x[99].to_degrees(), delays)
+}
+
+#[test]
+#[ignore = "known miss: vst phase -156° at 8 kHz, group delay 157/49/18 µs at 2/4/8 kHz (tests/data/known_misses.json)"]
+fn stapes_velocity_phase_and_group_delay_at_high_frequency() {
+    let p = &normative()["vst_phase"];
+    let (range, gd) = (floats(&p["at_8khz_deg"]), &p["group_delay_us"]);
+    let (fs, gd_range) = (floats(&gd["frequency_hz"]), floats(&gd["range"]));
+    let (phase, delays) = vst_phase_8k_and_group_delays(&fs);
+    assert!(phase >= range[0] && phase <= range[1], "phase at 8 kHz {phase:.0}° outside {range:?}");
+    for (f, d) in fs.iter().zip(&delays) {
+        assert!(*d >= gd_range[0] && *d <= gd_range[1], "group delay at {f} Hz {d:.0} µs outside {gd_range:?}");
+    }
+}
+
+#[test]
+fn known_miss_stapes_velocity_phase_and_group_delay_at_high_frequency() {
+    let (phase, delays) = vst_phase_8k_and_group_delays(&[2000.0, 4000.0, 8000.0]);
+    known_miss("vst_phase_8khz_deg", phase);
+    for (name, d) in
+        ["vst_group_delay_2khz_us", "vst_group_delay_4khz_us", "vst_group_delay_8khz_us"].iter().zip(delays)
+    {
+        known_miss(name, d);
+    }
 }
 
 #[test]
@@ -99,13 +176,18 @@ fn ear_canal_impedance_inside_the_normative_range() {
     let fs = floats(&z["frequency_hz"]);
     let (mlo, mhi) = (floats(&z["mag_low"]), floats(&z["mag_high"]));
     let (plo, phi) = (floats(&z["phase_low_deg"]), floats(&z["phase_high_deg"]));
-    let miss = floats(&z["phase_known_miss_deg"]);
+    let misses = data("known_misses.json");
     for k in 0..fs.len() {
         let m = 10f64.powf(b.get(2, fs[k]));
         let p = b.get(3, fs[k]).to_degrees();
         eprintln!("zec {} Hz: {m:.2e} {p:.0}°", fs[k]);
         assert!(m >= mlo[k] && m <= mhi[k], "|Zec| at {} Hz = {m:.2e}", fs[k]);
-        assert!(p >= plo[k] - miss[k] && p <= phi[k] + miss[k], "Zec phase at {} Hz = {p:.0}°", fs[k]);
+        let name = format!("zec_phase_{}hz_deg", fs[k]);
+        if misses.get(&name).is_some() {
+            known_miss(&name, p);
+        } else {
+            assert!(p >= plo[k] && p <= phi[k], "Zec phase at {} Hz = {p:.0}°", fs[k]);
+        }
     }
     // The quarter-wave minimum of the path from the measurement plane to the drum.
     let g = otofit::sim::Geometry::default();
@@ -114,4 +196,16 @@ fn ear_canal_impedance_inside_the_normative_range() {
         b.x[100..150].iter().enumerate().skip(25).fold((0, f64::MAX), |m, (i, &v)| if v < m.1 { (i, v) } else { m });
     let f_min = b.freqs[i_min];
     assert!(f_min > 0.8 * f_qw && f_min < 1.25 * f_qw, "|Zec| minimum at {f_min:.0} Hz, quarter wave {f_qw:.0} Hz");
+}
+
+#[test]
+#[ignore = "known miss: Zec phase -79° at 500 Hz and -66° at 1 kHz, more compliance-like than the live bands"]
+fn ear_canal_impedance_phase_inside_the_live_bands() {
+    let (b, n) = (Baseline::new(), normative());
+    let z = &n["zec"];
+    let (fs, plo, phi) = (floats(&z["frequency_hz"]), floats(&z["phase_low_deg"]), floats(&z["phase_high_deg"]));
+    for k in 0..fs.len() {
+        let p = b.get(3, fs[k]).to_degrees();
+        assert!(p >= plo[k] && p <= phi[k], "Zec phase at {} Hz = {p:.0}° outside [{}, {}]", fs[k], plo[k], phi[k]);
+    }
 }

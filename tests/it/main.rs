@@ -4,4 +4,5 @@ mod cli;
 mod discrepancy;
 mod http;
 mod npe;
+mod physics;
 mod sim;

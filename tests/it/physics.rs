@@ -1,0 +1,122 @@
+//! Checks that fail when the physics is wrong: the canal's viscothermal attenuation
+//! against Kirchhoff's wide-tube formula (written here from the physics, with air
+//! properties from the ideal-gas law and Sutherland's law rather than the simulator's
+//! fits), and the nominal ear's power budget (probe → canal → drum → ossicles → cochlea).
+//! The membrane closed form is in `src/sim/shell.rs` (`pressurised_sphere_...`), the
+//! passivity checks of every effect in `sim.rs`.
+
+use crate::baseline::known_miss;
+use faer::c64;
+use otofit::sim::canal::{Area, CanalMesh};
+use otofit::sim::{Effects, Geometry, Model, ModelConfig, Preset, Theta};
+use std::f64::consts::PI;
+
+/// Air at `celsius` and 1 atm from first principles: ideal gas (R_s = 287.05 J/kg/K,
+/// γ = 1.4 for a diatomic gas), Sutherland's viscosity law (μ_ref = 1.716e-5 Pa·s at
+/// 273.15 K, S = 110.4 K; White, Viscous Fluid Flow, 3rd ed., Table 1-2) and Pr = 0.71.
+/// Returns (ρ, c, ν = μ/ρ, γ, Pr).
+fn textbook_air(celsius: f64) -> (f64, f64, f64, f64, f64) {
+    let t = 273.15 + celsius;
+    let (r_s, gamma) = (287.05, 1.4);
+    let rho = 101_325.0 / (r_s * t);
+    let mu = 1.716e-5 * (t / 273.15).powf(1.5) * (273.15 + 110.4) / (t + 110.4);
+    (rho, (gamma * r_s * t).sqrt(), mu / rho, gamma, 0.71)
+}
+
+/// Attenuation Re Γ (Np/m) of the FE canal (the simulator's own mesh density) over a
+/// uniform tube of radius `r` and length λ/4: the condensed two-port of a uniform line
+/// is [U_in, −U_out] = Y·[p_0, p_L] with Y₁₁ = coth(ΓL)/Z_c and Y₁₂ = −1/(Z_c sinh ΓL),
+/// so cosh ΓL = −Y₁₁/Y₁₂ whatever the loss model inside the elements.
+fn fe_attenuation(preset: Preset, r: f64, f: f64) -> f64 {
+    let air = preset.air();
+    let l = air.c / (4.0 * f);
+    let mesh = CanalMesh::new(l, &Area::Uniform(PI * r * r), Geometry::default().canal_h, &[]);
+    let y = mesh.condense(&air, 2.0 * PI * f, 0, mesh.n_nodes() - 1);
+    let cosh: c64 = -y[0] / y[1];
+    cosh.acosh().re / l
+}
+
+#[test]
+fn canal_attenuation_matches_kirchhoff_wide_tube_formula() {
+    // Kirchhoff (1868, Ann. Phys. 134:177) for plane waves in a circular tube of radius r
+    // whose viscous and thermal boundary layers are thin (δ_v = √(2ν/ω) ≪ r):
+    //   α = (1/(r c))·√(ων/2)·(1 + (γ − 1)/√Pr)   [Np/m],
+    // the first term viscous, the second thermal. Its relative error is of order δ_v/r
+    // (2.9 % at r = 2.5 mm, 1 kHz, 37 °C; 0.5 % at 5 mm, 8 kHz), so the tolerance is
+    // δ_v/r + 0.5 %. Halving either loss (−34 % or −16 %), a wrong boundary-layer radius
+    // (a missing √Pr: −5 %) or a viscosity off by 10 % (±5 %) fails.
+    let mut worst: f64 = 0.0;
+    for (preset, celsius) in [(Preset::TemporalBone, 22.0), (Preset::Live, 37.0)] {
+        let (_, c, nu, gamma, pr) = textbook_air(celsius);
+        for r in [2.5e-3, (44e-6 / PI).sqrt(), 5e-3] {
+            for f in [1000.0, 2000.0, 4000.0, 8000.0] {
+                let w = 2.0 * PI * f;
+                let kirchhoff = (w * nu / 2.0).sqrt() / (r * c) * (1.0 + (gamma - 1.0) / pr.sqrt());
+                let tol = (2.0 * nu / w).sqrt() / r + 0.005;
+                let fe = fe_attenuation(preset, r, f);
+                let dev = fe / kirchhoff - 1.0;
+                eprintln!(
+                    "{celsius} °C, r {:.2} mm, {f} Hz: α FE {fe:.4}, Kirchhoff {kirchhoff:.4} Np/m ({:+.2} %, tol {:.2} %)",
+                    r * 1e3,
+                    100.0 * dev,
+                    100.0 * tol
+                );
+                worst = worst.max(dev.abs() / tol);
+                assert!(dev.abs() < tol, "α at r = {r} m, {f} Hz, {celsius} °C: FE {fe} vs Kirchhoff {kirchhoff} Np/m");
+            }
+        }
+    }
+    eprintln!("worst |α_FE/α_Kirchhoff − 1| / tolerance = {worst:.2}");
+}
+
+#[test]
+fn power_budget_of_the_nominal_ear() {
+    // Per frequency: power in at the probe = canal walls + into the middle ear at the drum,
+    // and into the drum = drum + ligaments + tendons + joints + SAL + cochlea, every part
+    // ≥ 0. Prints the table of docs/simulator.md ("Power budget").
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let budget = model.runner().power_budget(&Theta::nominal(), &Effects::default()).unwrap();
+    eprintln!("     f Hz   canal%  drum-in%   drum%   lig+tend%  joints%   SAL%   cochlea%   (of probe | of drum-in)");
+    for p in &budget {
+        let parts = [p.drum, p.ligaments, p.tendons, p.joints, p.sal, p.cochlea];
+        assert!(parts.iter().chain([&p.canal]).all(|&v| v >= 0.0), "{p:?}");
+        let sum: f64 = parts.iter().sum();
+        assert!((p.probe - p.canal - p.into_drum).abs() < 1e-9 * p.probe, "canal balance {p:?}");
+        assert!((p.into_drum - sum).abs() < 1e-9 * p.probe, "middle-ear balance {p:?}");
+        let (of_probe, of_me) = (|v: f64| 100.0 * v / p.probe, |v: f64| 100.0 * v / p.into_drum);
+        eprintln!(
+            "{:9.0} {:8.1} {:9.1} {:8.1} {:10.2} {:8.3} {:7.2} {:9.1}",
+            p.freq_hz,
+            of_probe(p.canal),
+            of_probe(p.into_drum),
+            of_me(p.drum),
+            of_me(p.ligaments + p.tendons),
+            of_me(p.joints),
+            of_me(p.sal),
+            of_me(p.cochlea)
+        );
+    }
+    // The cochlea's share of the power entering the middle ear, against the issue's
+    // target (≥ 30 % at 1–4 kHz); recorded as named known misses.
+    for (f, name) in
+        [(1000.0, "cochlear_share_1khz_pct"), (2000.0, "cochlear_share_2khz_pct"), (4000.0, "cochlear_share_4khz_pct")]
+    {
+        known_miss(name, 100.0 * share_at(&model, f));
+    }
+}
+
+fn share_at(model: &Model, f: f64) -> f64 {
+    let mut runner = model.runner();
+    runner.solve_at(&Theta::nominal(), &Effects::default(), f).unwrap();
+    runner.power_balance(f).cochlear_share()
+}
+
+#[test]
+#[ignore = "known miss: the cochlea receives 16 / 8.4 / 4.2 % of the middle-ear input at 1 / 2 / 4 kHz (tests/data/known_misses.json)"]
+fn cochlea_receives_at_least_30_percent_at_1_to_4_khz() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    for f in [1000.0, 1500.0, 2000.0, 3000.0, 4000.0] {
+        let share = share_at(&model, f);
+        assert!(share >= 0.30, "cochlear share at {f} Hz: {:.1} %", 100.0 * share);
+    }
+}
