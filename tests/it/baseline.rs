@@ -63,6 +63,27 @@ impl Baseline {
     }
 }
 
+/// The nominal ear's 250 features as recorded in tests/data/nominal_features.json: the
+/// simulator the shipped default model was trained on (models/README.md). Any change of
+/// simulator output fails here, physical or not; if it is meant, retrain the default
+/// model and re-record with `OTOFIT_RECORD_NOMINAL=1 cargo test --test it nominal_features`.
+#[test]
+fn nominal_features_are_those_the_default_model_was_trained_on() {
+    let b = Baseline::new();
+    if std::env::var_os("OTOFIT_RECORD_NOMINAL").is_some() {
+        let about = "Features of Theta::nominal without effects on the default grid (measure-major, \
+                     sim::output::feature_names), recorded by baseline::nominal_features_are_those_the_default_model_was_trained_on.";
+        let v = serde_json::json!({ "_about": about, "features": b.x });
+        let path = format!("{}/tests/data/nominal_features.json", env!("CARGO_MANIFEST_DIR"));
+        std::fs::write(path, serde_json::to_string_pretty(&v).unwrap() + "\n").unwrap();
+    }
+    let recorded = floats(&data("nominal_features.json")["features"]);
+    let names = sim::output::feature_names(&b.freqs);
+    let (i, d) =
+        (0..b.x.len()).map(|i| (i, (b.x[i] - recorded[i]).abs())).fold((0, 0.0), |m, c| if c.1 > m.1 { c } else { m });
+    assert!(d < 1e-8, "{} = {} but {} was recorded (|Δ| = {d:e})", names[i], b.x[i], recorded[i]);
+}
+
 #[test]
 fn stapes_velocity_inside_the_astm_soft_gate() {
     let (b, n) = (Baseline::new(), normative());
