@@ -161,6 +161,35 @@ fn effects_of(map: &BTreeMap<String, f64>, errs: &mut Vec<FieldError>) -> Effect
     fx
 }
 
+/// How far outside its prior box a requested parameter may lie: one decade each way
+/// (log parameters) is far enough for any what-if, and keeps values such as 1e-308,
+/// which no ear has and which break the solver's and the figures' arithmetic, out.
+const THETA_SLACK_DECADES: f64 = 1.0;
+
+/// Checks the seven parameter values of `params.theta` rows (effects columns are checked
+/// by the simulator's own range guard).
+fn theta_values(rows: &[Vec<f64>], errs: &mut Vec<FieldError>) {
+    for (i, row) in rows.iter().enumerate() {
+        for (k, (v, p)) in row.iter().zip(PARAMS.iter()).enumerate() {
+            let slack = 10f64.powf(THETA_SLACK_DECADES);
+            let (lo, hi) = match p.scale {
+                crate::sim::params::Scale::Log10 => (p.low / slack, p.high * slack),
+                crate::sim::params::Scale::Linear => (p.low - (p.high - p.low), p.high + (p.high - p.low)),
+            };
+            if !v.is_finite() || *v < lo || *v > hi {
+                errs.push((
+                    format!("params.theta[{i}][{k}]"),
+                    format!(
+                        "{} = {v:e} {} is outside {lo:e}..={hi:e} (the prior box ±{THETA_SLACK_DECADES} decade)",
+                        p.name, p.unit
+                    ),
+                ));
+                return;
+            }
+        }
+    }
+}
+
 /// Checks a job's params before it is queued, naming each bad field.
 pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldError>> {
     let de = |e: serde_json::Error| vec![("params".to_string(), e.to_string())];
@@ -188,6 +217,8 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
                             format!("params.theta[{i}]"),
                             format!("needs {w} values (the 7 parameters, then the varied effects)"),
                         ));
+                    } else {
+                        theta_values(rows, &mut errs);
                     }
                 }
                 (Some(_), Some(_)) => errs.push(("params".into(), "give either n or theta, not both".into())),
@@ -221,6 +252,8 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
                     format!("params.theta[{i}]"),
                     format!("needs {N_PARAMS} values: {}", PARAMS.map(|p| p.name).join(", ")),
                 ));
+            } else {
+                theta_values(&p.theta, &mut errs);
             }
             if let Some(x) = &p.observation {
                 let n = 5 * crate::sim::ModelConfig::default().frequencies.len();

@@ -36,19 +36,43 @@ fn escape(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;")
 }
 
-/// "Nice" tick values covering [lo, hi].
+/// Most ticks an axis gets; a guard, not a layout choice.
+const MAX_TICKS: usize = 12;
+
+/// "Nice" tick values covering [lo, hi]. Degenerate ranges (non-finite, or a span below
+/// the resolution of the numbers themselves) get their end points only: stepping by a
+/// step smaller than one ulp of `t` would never advance.
 fn ticks(lo: f64, hi: f64) -> Vec<f64> {
-    let span = (hi - lo).abs().max(1e-12);
-    let raw = span / 5.0;
-    let mag = 10f64.powf(raw.log10().floor());
-    let step = [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * mag).find(|s| span / s <= 6.0).unwrap_or(10.0 * mag);
-    let mut t = (lo / step).ceil() * step;
-    let mut out = Vec::new();
-    while t <= hi + 1e-9 * span {
-        out.push(if t.abs() < 1e-12 * span { 0.0 } else { t });
-        t += step;
+    if !lo.is_finite() || !hi.is_finite() || hi < lo {
+        return Vec::new();
     }
-    out
+    let span = hi - lo;
+    let scale = lo.abs().max(hi.abs());
+    if span <= 1e-9 * scale || span < f64::MIN_POSITIVE * 1e6 {
+        return if span == 0.0 { vec![lo] } else { vec![lo, hi] };
+    }
+    let mag = 10f64.powf((span / 5.0).log10().floor());
+    let step = [1.0, 2.0, 5.0, 10.0].iter().map(|m| m * mag).find(|s| span / s <= 6.0).unwrap_or(10.0 * mag);
+    let first = (lo / step).ceil();
+    (0..MAX_TICKS)
+        .map(|i| (first + i as f64) * step)
+        .take_while(|t| *t <= hi + 1e-9 * span)
+        .map(|t| if t.abs() < 1e-12 * span { 0.0 } else { t })
+        .collect()
+}
+
+/// 1-2-5 ticks per decade over [lo, hi] (positive, finite; at most `MAX_TICKS` decades).
+fn log_ticks(lo: f64, hi: f64) -> Vec<f64> {
+    if !(lo > 0.0 && hi >= lo && hi.is_finite()) {
+        return Vec::new();
+    }
+    let first = 10f64.powf(lo.log10().floor());
+    (0..MAX_TICKS as i32)
+        .map(|k| first * 10f64.powi(k))
+        .take_while(|d| *d <= hi)
+        .flat_map(|d| [1.0, 2.0, 5.0].map(|m| m * d))
+        .filter(|t| *t >= lo * 0.999 && *t <= hi * 1.001)
+        .collect()
 }
 
 impl Canvas {
@@ -117,22 +141,7 @@ impl Canvas {
     /// Frame, ticks and labels (log-x ticks at 1-2-5 decades).
     pub fn axes(&mut self, ax: &Axes, xlabel: &str, ylabel: &str) {
         self.frame(ax.x, ax.y, ax.w, ax.h);
-        let xt: Vec<f64> = if ax.log_x {
-            let mut v = Vec::new();
-            let mut d = 10f64.powf(ax.xr.0.log10().floor());
-            while d <= ax.xr.1 {
-                for m in [1.0, 2.0, 5.0] {
-                    let t = m * d;
-                    if t >= ax.xr.0 * 0.999 && t <= ax.xr.1 * 1.001 {
-                        v.push(t);
-                    }
-                }
-                d *= 10.0;
-            }
-            v
-        } else {
-            ticks(ax.xr.0, ax.xr.1)
-        };
+        let xt: Vec<f64> = if ax.log_x { log_ticks(ax.xr.0, ax.xr.1) } else { ticks(ax.xr.0, ax.xr.1) };
         for t in xt {
             let x = ax.px(t);
             self.vline(x, ax.y + ax.h, ax.y + ax.h + 4.0, "#444");
@@ -163,5 +172,33 @@ impl Canvas {
             "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{:.0}\" height=\"{:.0}\" viewBox=\"0 0 {:.0} {:.0}\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n{}</svg>\n",
             self.w, self.h, self.w, self.h, self.body
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{log_ticks, ticks};
+
+    #[test]
+    fn ticks_end_for_ranges_below_the_resolution_of_their_values() {
+        // The poison pill of issue 13: t + step == t never advanced the old loop.
+        for (lo, hi) in [(1e20, 1e20 + 32768.0), (1e300, 1e300 * (1.0 + 1e-15)), (1e-308, 2e-308), (0.0, 0.0)] {
+            let t = ticks(lo, hi);
+            assert!(t.len() <= 2, "{lo}..{hi}: {t:?}");
+        }
+        assert!(ticks(f64::NAN, 1.0).is_empty());
+        assert!(ticks(0.0, f64::INFINITY).is_empty());
+        assert!(ticks(1.0, 0.0).is_empty());
+        assert!(log_ticks(0.0, 1.0).is_empty());
+        assert!(log_ticks(1.0, f64::INFINITY).is_empty());
+        assert!(log_ticks(1e-300, 1e300).len() <= 3 * 12);
+    }
+
+    #[test]
+    fn ticks_cover_ordinary_ranges_with_nice_steps() {
+        assert_eq!(ticks(0.0, 1.0), vec![0.0, 0.2, 0.4, 0.6000000000000001, 0.8, 1.0]);
+        assert_eq!(ticks(-40.0, 10.0), vec![-40.0, -30.0, -20.0, -10.0, 0.0, 10.0]);
+        assert!(ticks(3.0, 1e6).len() <= 12);
+        assert_eq!(log_ticks(200.0, 8000.0), vec![200.0, 500.0, 1000.0, 2000.0, 5000.0]);
     }
 }
