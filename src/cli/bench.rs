@@ -44,6 +44,17 @@ pub enum BenchWhat {
         #[arg(long)]
         held: Option<std::path::PathBuf>,
     },
+    /// The trust layer: fit-check false alarms on the model's own ears, detection of
+    /// strong hidden effects, readings of ears at the centre of the normal ranges.
+    Fit {
+        #[arg(long, default_value = "models/default.otofit")]
+        model: std::path::PathBuf,
+        /// Cases per group (null, each effect, centre ears).
+        #[arg(long, default_value_t = 100)]
+        cases: usize,
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+    },
     /// Discrepancy naming on hidden-effect cases (simulator-only pipeline).
     Discrepancy {
         /// Hidden cases per effect.
@@ -62,6 +73,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Sim { runs } => sim(runs),
         BenchWhat::Npe { data, model, held } => npe_bench(data, &model, held),
         BenchWhat::Infer { clients, requests, samples } => infer(clients, requests, samples),
+        BenchWhat::Fit { model, cases, seed } => super::bench_fit::run(&model, cases, seed),
         BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
     }
 }

@@ -59,6 +59,16 @@ pub fn run(args: InferArgs) -> Result<()> {
     for (r, row) in table.rows.iter().enumerate() {
         let (x, present) =
             align(&model, &table.header, row).with_context(|| format!("{}: row {}", args.obs.display(), r + 1))?;
+        if crate::discrepancy::fitcheck::simulator_for(&model).is_ok()
+            && let Some((_, i, v)) = crate::sim::output::implausible(&x, &present).first()
+        {
+            bail!(
+                "{}: row {}: {} = {v} is outside the physical range of a human ear (phases in rad, magnitudes as log10 of m/s/Pa and Pa·s/m³)",
+                args.obs.display(),
+                r + 1,
+                model.header.feature_names[*i]
+            );
+        }
         let inf = model
             .infer(&Obs { x: &x, present: Some(&present) }, args.samples, args.seed)
             .with_context(|| format!("observation {}", r + 1))?;
@@ -70,8 +80,17 @@ pub fn run(args: InferArgs) -> Result<()> {
             out.push_str(&vals.join(","));
             out.push('\n');
         }
-        let differential = crate::npe::normal::read(&names, &inf.samples);
-        let json = serde_json::json!({ "observation": r, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
+        let mut differential = crate::npe::normal::read(model.params(), &inf.samples);
+        let fit = match crate::discrepancy::fitcheck::fit_check(&model, &x, &present, &inf) {
+            Ok(f) => {
+                if f.ok == Some(false) {
+                    crate::npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
+                }
+                serde_json::json!(f)
+            }
+            Err(e) => serde_json::json!({ "ok": null, "reason": e.to_string() }),
+        };
+        let json = serde_json::json!({ "observation": r, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
         writeln!(stdout.lock(), "{json}")?;
     }
     let tmp = args.out.with_extension("tmp");

@@ -3,6 +3,7 @@
 use clap::{Parser, Subcommand};
 
 pub mod bench;
+mod bench_fit;
 pub mod calibrate;
 pub mod diagnose;
 pub mod infer;

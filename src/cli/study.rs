@@ -41,10 +41,6 @@ pub struct StudyArgs {
     pub seed: u64,
 }
 
-fn to_param(p: &crate::sim::params::ParamSpec) -> npe::Param {
-    npe::Param { name: p.name.into(), unit: p.unit.into(), scale: npe::Scale::Log10, low: p.low, high: p.high }
-}
-
 /// Noise-free simulations of prior draws as an in-memory dataset.
 fn simulated(model: &Model, rows: usize, seed: u64) -> Dataset {
     let d = Design::default();
@@ -58,7 +54,7 @@ fn simulated(model: &Model, rows: usize, seed: u64) -> Dataset {
         }
     }
     Dataset {
-        params: PARAMS.iter().map(to_param).collect(),
+        params: PARAMS.iter().map(npe::Param::from).collect(),
         feature_names: feature_names(model.frequencies()),
         frequencies_hz: model.frequencies().to_vec(),
         groups: vec![],
@@ -406,8 +402,7 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     let best_rho = rho(&best_x, &r.x);
     let map_rho: Vec<f64> = c.spearman.iter().map(|(_, v)| *v).collect();
     let mean_abs = map_rho.iter().map(|v| v.abs()).sum::<f64>() / map_rho.len() as f64;
-    let names: Vec<&str> = npe.params().iter().map(|p| p.name.as_str()).collect();
-    let differential = npe::normal::read(&names, &inf.samples);
+    let differential = npe::normal::read(npe.params(), &inf.samples);
 
     let (lo_obs, hi_obs) = plot::plus_minus(&r.x, &r.std);
     let mut series = vec![plot::Series {

@@ -3,6 +3,7 @@
 //! the gap shrinks. Synchronous and free of I/O; the CLI and the service drive it.
 
 pub mod fit;
+pub mod fitcheck;
 pub mod locate;
 mod report;
 pub mod workflow;

@@ -8,7 +8,7 @@ use crate::plot;
 use crate::sim::Model;
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
-use crate::sim::params::{EFFECTS, N_PARAMS, ParamSpec, Scale};
+use crate::sim::params::{EFFECTS, N_PARAMS};
 use anyhow::{Result, bail};
 use serde::Serialize;
 
@@ -126,6 +126,19 @@ pub fn spearman_per_measure(a: &[f64], b: &[f64]) -> Vec<f64> {
 
 /// Re-simulates posterior draws (rows in `design` order) and compares with `obs`.
 pub fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], obs: &Observation) -> Result<Check> {
+    check_present(model, design, draws, map, obs, None)
+}
+
+/// `check` over the features marked present (`None`: all); absent features get z = 0
+/// and stay out of the reduced χ² and the Spearman ρ.
+pub fn check_present(
+    model: &Model,
+    design: &Design,
+    draws: &[Vec<f64>],
+    map: &[f64],
+    obs: &Observation,
+    present: Option<&[bool]>,
+) -> Result<Check> {
     let sims: Vec<Vec<f64>> = run_rows(model, design, draws, 0, None).into_iter().filter_map(|r| r.ok()).collect();
     if sims.len() < draws.len() / 2 {
         bail!("most posterior draws failed to simulate");
@@ -141,15 +154,24 @@ pub fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], ob
         let mean = d.iter().sum::<f64>() / n;
         let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
         let centre = map_x[i] + mean;
-        z.push(wrap(i, nf, obs.x[i] - centre) / (var + obs.sigma[i].powi(2)).sqrt());
+        let on = present.is_none_or(|p| p[i]) && obs.x[i].is_finite();
+        z.push(if on { wrap(i, nf, obs.x[i] - centre) / (var + obs.sigma[i].powi(2)).sqrt() } else { 0.0 });
         let mut sorted = d.clone();
         sorted.sort_by(f64::total_cmp);
         lo.push(map_x[i] + sorted[(0.05 * (n - 1.0)) as usize] - 1.645 * obs.sigma[i]);
         hi.push(map_x[i] + sorted[(0.95 * (n - 1.0)) as usize] + 1.645 * obs.sigma[i]);
     }
     let freqs = model.frequencies();
-    let spearman = MEASURES.iter().map(|ms| ms.name.to_string()).zip(spearman_per_measure(&map_x, &obs.x)).collect();
-    let reduced_chi2 = z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64;
+    let on = |i: usize| present.is_none_or(|p| p[i]) && obs.x[i].is_finite();
+    let spearman = MEASURES
+        .iter()
+        .enumerate()
+        .zip(spearman_per_measure(&map_x, &obs.x))
+        .filter(|((m, _), _)| (m * nf..(m + 1) * nf).all(on))
+        .map(|((_, ms), r)| (ms.name.to_string(), r))
+        .collect();
+    let used = (0..z.len()).filter(|&i| on(i)).count().max(1);
+    let reduced_chi2 = z.iter().map(|v| v * v).sum::<f64>() / used as f64;
     Ok(Check {
         reduced_chi2,
         bands: locate(&z, freqs, 2.5, 3),
@@ -160,16 +182,6 @@ pub fn check(model: &Model, design: &Design, draws: &[Vec<f64>], map: &[f64], ob
         hi,
         draws_x: sims.into_iter().take(5).collect(),
     })
-}
-
-fn to_param(p: &ParamSpec) -> npe::Param {
-    npe::Param {
-        name: p.name.to_string(),
-        unit: p.unit.to_string(),
-        scale: if p.scale == Scale::Log10 { npe::Scale::Log10 } else { npe::Scale::Linear },
-        low: p.low,
-        high: p.high,
-    }
 }
 
 /// Simulates a training set for `design` and trains an estimator on it.
@@ -194,7 +206,7 @@ pub fn train_for(
         }
     }
     let ds = Dataset {
-        params: design.columns().iter().map(to_param).collect(),
+        params: design.columns().iter().map(npe::Param::from).collect(),
         feature_names: feature_names(model.frequencies()),
         frequencies_hz: model.frequencies().to_vec(),
         groups: vec![],

@@ -43,6 +43,11 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
             d["accepts_subsets"] = json!(h.mask_groups);
             d["training"] = json!(h.training);
             d["members"] = json!(h.members);
+            d["calibration"] = json!({
+                "temperature": h.temperature,
+                "fit_null": h.fit_null,
+                "note": "temperature: standard deviation of the flow's base distribution, tuned on held-out simulations so that joint credible regions hold the truth at their level; fit_null: thresholds of the fit check (null quantiles on held-out simulations), null when uncalibrated",
+            });
             d
         }
         Err(e) => {

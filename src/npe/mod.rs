@@ -52,10 +52,42 @@ pub struct Header {
     /// Flows in the equal-weight ensemble (trained from different seeds).
     #[serde(default = "one")]
     pub members: usize,
+    /// Standard deviation of the flow's base distribution at inference (1 = as trained),
+    /// set by `otofit calibrate --tune` so that held-out coverage matches its level.
+    #[serde(default = "unit_temperature")]
+    pub temperature: f64,
+    /// Null distribution of the fit check, measured on held-out simulations; `None` for
+    /// models that have not been calibrated (their fit check says so).
+    #[serde(default)]
+    pub fit_null: Option<FitNull>,
 }
 
 fn one() -> usize {
     1
+}
+
+fn unit_temperature() -> f64 {
+    1.0
+}
+
+/// What the fit check and the input-typicality check compare an observation against:
+/// quantiles of their statistics over held-out simulations of the model's own simulator
+/// (with its training noise), so that the false-alarm rate is measured, not assumed.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct FitNull {
+    /// The quantile used as threshold (e.g. 0.99: 1 % of the model's own ears fail).
+    pub quantile: f64,
+    /// Threshold on the posterior-predictive reduced χ².
+    pub reduced_chi2: f64,
+    /// Threshold on the input score: mean of squared standardised features.
+    pub input_score: f64,
+    /// Threshold on the worst measure's own reduced χ² (a misfit confined to one measure
+    /// is diluted in the overall mean); 0 in checkpoints written before it existed.
+    #[serde(default)]
+    pub measure_chi2: f64,
+    /// Held-out cases and posterior draws per case behind the thresholds.
+    pub cases: usize,
+    pub draws: usize,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -212,6 +244,9 @@ impl Npe {
         if !shapes_ok {
             bail!("checkpoint header shapes disagree ({d} parameters, {f} features)");
         }
+        if !(header.temperature.is_finite() && (0.1..=10.0).contains(&header.temperature)) {
+            bail!("checkpoint temperature {} is outside 0.1..=10", header.temperature);
+        }
         let record = |b: &[u8]| {
             ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec()))
                 .map_err(|e| anyhow::anyhow!("weights: {e:?}"))
@@ -301,7 +336,7 @@ impl Npe {
     }
 
     /// log |dv/dθ| summed over parameters (v: standardised u).
-    fn log_jacobian(&self, theta: &[f64]) -> f64 {
+    pub(crate) fn log_jacobian(&self, theta: &[f64]) -> f64 {
         let h = &self.header;
         h.params.iter().enumerate().map(|(k, p)| p.log_jacobian(theta[k]) - h.u_std[k].ln()).sum()
     }
@@ -329,7 +364,8 @@ impl Npe {
 
     fn bind(&self, input: &[f32]) -> Mixture<'_> {
         let x: Vec<f64> = input.iter().map(|&v| v as f64).collect();
-        Mixture { members: self.plains.iter().map(|p| p.bind(&x)).collect() }
+        let t = self.header.temperature;
+        Mixture { members: self.plains.iter().map(|p| p.bind(&x).with_temperature(t)).collect() }
     }
 
     /// Posterior samples in natural units.

@@ -3,6 +3,7 @@
 //! probability below, within and above, and the conditions a deviation is associated
 //! with. Information for a clinician, not a diagnosis.
 
+use super::Param;
 use serde::Serialize;
 
 pub struct NormalRange {
@@ -73,6 +74,15 @@ pub const NORMAL: [NormalRange; 7] = [
     },
 ];
 
+/// A side is read only when the posterior puts at least this much probability on it.
+pub const CONFIDENT: f64 = 0.8;
+/// A posterior informs a reading when its 90 % interval is narrower than the normal range
+/// or than this fraction of the prior box (on the parameter's scale).
+pub const INFORMATIVE_PRIOR_FRACTION: f64 = 0.5;
+/// A posterior whose median lies within this fraction of the box from a bound is piled
+/// against it: the model cannot represent the value, so no reading is made from it.
+pub const BOUND_FRACTION: f64 = 0.025;
+
 #[derive(Clone, Debug, Serialize)]
 pub struct Differential {
     pub name: String,
@@ -81,34 +91,78 @@ pub struct Differential {
     pub p_below: f64,
     pub p_within: f64,
     pub p_above: f64,
-    /// "below", "within" or "above": the most probable of the three.
+    /// "below", "within" or "above" when the posterior is informative and puts at least
+    /// `CONFIDENT` on that side; "undetermined" when it does not; "unreliable" when the
+    /// model does not fit the observation (then no reading is made at all).
     pub reading: &'static str,
-    /// What a deviation in the most probable direction is associated with (if not within).
+    /// What a deviation in the read direction is associated with (below / above only).
     pub associated_with: Option<&'static str>,
+    /// Why the reading is undetermined or unreliable.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// "low" or "high" when the posterior is piled against that prior bound.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub at_prior_bound: Option<&'static str>,
     pub source: &'static str,
 }
 
-/// Reads posterior samples (columns in `names` order) against the normal ranges; columns
-/// without a range are skipped.
-pub fn read(names: &[&str], samples: &[Vec<f64>]) -> Vec<Differential> {
-    let n = samples.len().max(1) as f64;
-    names
+fn quantile(sorted: &[f64], q: f64) -> f64 {
+    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+}
+
+/// Reads posterior samples (columns in `params` order) against the normal ranges;
+/// parameters without a range are skipped.
+pub fn read(params: &[Param], samples: &[Vec<f64>]) -> Vec<Differential> {
+    if samples.is_empty() {
+        return Vec::new();
+    }
+    let n = samples.len() as f64;
+    params
         .iter()
         .enumerate()
-        .filter_map(|(k, name)| {
-            let r = NORMAL.iter().find(|r| r.name == *name)?;
+        .filter_map(|(k, p)| {
+            let r = NORMAL.iter().find(|r| r.name == p.name)?;
             let below = samples.iter().filter(|s| s[k] < r.low).count() as f64 / n;
             let above = samples.iter().filter(|s| s[k] > r.high).count() as f64 / n;
             let within = 1.0 - below - above;
-            let (reading, associated_with) = if within >= below && within >= above {
-                ("within", None)
-            } else if below > above {
-                ("below", Some(r.below))
+            let mut pos: Vec<f64> = samples.iter().map(|s| p.position(s[k])).collect();
+            pos.sort_by(f64::total_cmp);
+            let width90 = quantile(&pos, 0.95) - quantile(&pos, 0.05);
+            let normal_width = p.position(r.high) - p.position(r.low);
+            let median = quantile(&pos, 0.5);
+            let at_prior_bound = if median < BOUND_FRACTION {
+                Some("low")
+            } else if median > 1.0 - BOUND_FRACTION {
+                Some("high")
             } else {
-                ("above", Some(r.above))
+                None
+            };
+            let informative = width90 < normal_width.max(INFORMATIVE_PRIOR_FRACTION);
+            let (reading, associated_with, reason) = if let Some(side) = at_prior_bound {
+                let why = format!(
+                    "the posterior is piled against the prior's {side} bound: the model cannot represent this \
+                     ear's value (run a diagnose job to look for a missing effect)"
+                );
+                ("undetermined", None, Some(why))
+            } else if !informative {
+                let why = format!(
+                    "the data do not pin this parameter down: its 90 % interval spans {:.0} % of the prior box",
+                    100.0 * width90
+                );
+                ("undetermined", None, Some(why))
+            } else if within >= CONFIDENT {
+                ("within", None, None)
+            } else if below >= CONFIDENT {
+                ("below", Some(r.below), None)
+            } else if above >= CONFIDENT {
+                ("above", Some(r.above), None)
+            } else {
+                let why =
+                    format!("no side reaches P ≥ {CONFIDENT}: the posterior straddles a limit of the normal range");
+                ("undetermined", None, Some(why))
             };
             Some(Differential {
-                name: name.to_string(),
+                name: p.name.clone(),
                 normal_low: r.low,
                 normal_high: r.high,
                 p_below: below,
@@ -116,10 +170,22 @@ pub fn read(names: &[&str], samples: &[Vec<f64>]) -> Vec<Differential> {
                 p_above: above,
                 reading,
                 associated_with,
+                reason,
+                at_prior_bound,
                 source: r.source,
             })
         })
         .collect()
+}
+
+/// Withdraws every reading: the model does not fit the observation, so no parameter value
+/// it infers can be read against a normal range.
+pub fn withdraw(readings: &mut [Differential], why: &str) {
+    for d in readings {
+        d.reading = "unreliable";
+        d.associated_with = None;
+        d.reason = Some(why.to_string());
+    }
 }
 
 #[cfg(test)]
@@ -133,10 +199,48 @@ mod tests {
             assert!(p.low <= r.low && r.low < r.high && r.high <= p.high, "{}", r.name);
             assert!(r.low <= p.nominal && p.nominal <= r.high, "nominal {} outside its normal range", r.name);
         }
+        let params: Vec<Param> = crate::sim::PARAMS.iter().map(Param::from).collect();
+        let sal = std::slice::from_ref(&params[3]);
         let stiff: Vec<Vec<f64>> = (0..100).map(|i| vec![2e6 + 1e4 * i as f64]).collect();
-        let d = read(&["E_sal"], &stiff);
+        let d = read(sal, &stiff);
         assert_eq!((d[0].reading, d[0].p_above), ("above", 1.0));
         assert!(d[0].associated_with.unwrap().contains("otosclerosis"));
-        assert!(read(&["other"], &stiff).is_empty());
+        let other = Param { name: "other".into(), ..params[3].clone() };
+        assert!(read(&[other], &stiff).is_empty());
+    }
+
+    fn draws(p: &Param, lo: f64, hi: f64) -> Vec<Vec<f64>> {
+        // Evenly spread over [lo, hi] on the parameter's scale.
+        (0..200).map(|i| vec![lerp(p, lo, hi, i as f64 / 199.0)]).collect()
+    }
+
+    fn lerp(p: &Param, lo: f64, hi: f64, q: f64) -> f64 {
+        match p.scale {
+            crate::npe::Scale::Log10 => 10f64.powf(lo.log10() + q * (hi.log10() - lo.log10())),
+            crate::npe::Scale::Linear => lo + q * (hi - lo),
+        }
+    }
+
+    #[test]
+    fn uninformative_straddling_and_bound_hugging_posteriors_are_not_read() {
+        let params: Vec<Param> = crate::sim::PARAMS.iter().map(Param::from).collect();
+        let tendons = std::slice::from_ref(&params[2]);
+        // The prior itself: mostly "within" by mass, but it says nothing.
+        let prior = draws(&params[2], params[2].low, params[2].high);
+        let d = &read(tendons, &prior)[0];
+        assert_eq!(d.reading, "undetermined", "{d:?}");
+        assert!(d.reason.as_ref().unwrap().contains("pin"), "{d:?}");
+        // Narrow, but half above and half within (the openapi example's E_tendons).
+        let straddle = draws(&params[2], 3e6, 8e6);
+        assert_eq!(read(tendons, &straddle)[0].reading, "undetermined");
+        // Narrow and inside: within.
+        assert_eq!(read(tendons, &draws(&params[2], 1e6, 3e6))[0].reading, "within");
+        // Piled against the upper bound: never a P = 1 reading.
+        let hug = draws(&params[2], params[2].high * 0.97, params[2].high);
+        let d = &read(tendons, &hug)[0];
+        assert_eq!((d.reading, d.at_prior_bound, d.p_above), ("undetermined", Some("high"), 1.0), "{d:?}");
+        let mut all = read(&params, &vec![params.iter().map(|p| lerp(p, p.low, p.high, 0.5)).collect(); 10]);
+        withdraw(&mut all, "model does not fit");
+        assert!(all.iter().all(|d| d.reading == "unreliable" && d.associated_with.is_none()));
     }
 }

@@ -21,6 +21,17 @@ pub struct Param {
     pub high: f64,
 }
 
+impl From<&crate::sim::params::ParamSpec> for Param {
+    /// The simulator's parameter as a prior dimension (one definition for every caller).
+    fn from(p: &crate::sim::params::ParamSpec) -> Param {
+        let scale = match p.scale {
+            crate::sim::params::Scale::Log10 => Scale::Log10,
+            crate::sim::params::Scale::Linear => Scale::Linear,
+        };
+        Param { name: p.name.into(), unit: p.unit.into(), scale, low: p.low, high: p.high }
+    }
+}
+
 impl Param {
     fn t(&self, v: f64) -> f64 {
         match self.scale {
@@ -38,6 +49,11 @@ impl Param {
             ));
         }
         Ok(())
+    }
+
+    /// Position of `v` in the box on the parameter's scale: 0 at `low`, 1 at `high`.
+    pub fn position(&self, v: f64) -> f64 {
+        (self.t(v) - self.t(self.low)) / (self.t(self.high) - self.t(self.low))
     }
 
     /// θ → u. Values on or outside the bounds are pulled in by 1e-6 of the box.

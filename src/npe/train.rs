@@ -119,6 +119,8 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         flow: cfg.clone(),
         training: TrainingSummary { seed: s.seed, train_rows: train_idx.len(), val_rows: n_val, ..Default::default() },
         members: 1,
+        temperature: 1.0,
+        fit_null: None,
     };
 
     let device = Device::flex().autodiff();

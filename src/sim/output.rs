@@ -3,6 +3,7 @@
 
 use super::model::Response;
 use serde::Serialize;
+use std::f64::consts::PI;
 
 /// One measure (a block of the feature vector).
 #[derive(Clone, Copy, Debug, Serialize)]
@@ -11,15 +12,38 @@ pub struct Measure {
     pub unit: &'static str,
     /// Test–retest standard deviation at ≤ 2 kHz (simulator.md noise model).
     pub noise_std: f64,
+    /// The physical envelope of the feature (its unit): values outside cannot come from a
+    /// human ear measured in these units, whatever the pathology, and they hold every
+    /// simulation of the prior box (20,000 draws: velocity 2e-10…7e-3 m/s/Pa, phase
+    /// −13.7…+4.6 rad, |Z| 2e5…8e8, Z phase ±1.56 rad). Velocity 1e-11 to 1e-2 m/s/Pa
+    /// (10 mm/s/Pa); impedance 1e5–1e10 Pa·s/m³ (the canal's own Z0 is ~1e7); a passive
+    /// impedance's phase within ±90° (+20° for probe calibration error); unwrapped
+    /// velocity phase −1080…+360°; absorbance 0–1 (±0.05 for calibration error).
+    pub envelope: (f64, f64),
 }
 
 pub const MEASURES: [Measure; 5] = [
-    Measure { name: "vst_mag", unit: "log10(m/s/Pa)", noise_std: 0.075 },
-    Measure { name: "vst_phase", unit: "rad", noise_std: 0.10 },
-    Measure { name: "zec_mag", unit: "log10(Pa·s/m³)", noise_std: 0.05 },
-    Measure { name: "zec_phase", unit: "rad", noise_std: 0.05 },
-    Measure { name: "absorbance", unit: "1", noise_std: 0.03 },
+    Measure { name: "vst_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-11.0, -2.0) },
+    Measure { name: "vst_phase", unit: "rad", noise_std: 0.10, envelope: (-6.0 * PI, 2.0 * PI) },
+    Measure { name: "zec_mag", unit: "log10(Pa·s/m³)", noise_std: 0.05, envelope: (5.0, 10.0) },
+    Measure { name: "zec_phase", unit: "rad", noise_std: 0.05, envelope: (-0.5 * PI - 0.35, 0.5 * PI + 0.35) },
+    Measure { name: "absorbance", unit: "1", noise_std: 0.03, envelope: (-0.05, 1.05) },
 ];
+
+/// The first feature of each measure outside its physical envelope, as (measure index,
+/// feature index, value); absent features (`present[i]` false) are skipped.
+pub fn implausible(x: &[f64], present: &[bool]) -> Vec<(usize, usize, f64)> {
+    let n = x.len() / MEASURES.len();
+    MEASURES
+        .iter()
+        .enumerate()
+        .filter_map(|(m, ms)| {
+            (m * n..(m + 1) * n)
+                .find(|&i| present[i] && !(ms.envelope.0..=ms.envelope.1).contains(&x[i]))
+                .map(|i| (m, i, x[i]))
+        })
+        .collect()
+}
 
 /// Feature groups a model can be asked to work without (modalities).
 pub const GROUPS: [(&str, &[&str]); 3] = [

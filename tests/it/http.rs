@@ -453,3 +453,144 @@ fn a_job_killed_with_sigkill_is_requeued_and_completes_after_restart() {
     let x = std::fs::read_to_string(dir.join("datasets").join(&id).join("x.csv")).unwrap();
     assert_eq!(x.lines().count(), 40_001, "the dataset is complete, not a mix of two runs");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn poison_pill_theta_is_refused_and_extreme_allowed_rows_finish() {
+    let (app, _ctx) = app(vec![], 8, true).await;
+    // Issue 13: these values once looped the figure code forever, allocating without bound.
+    let pill = json!({"kind": "resimulate", "params": {"theta": [vec![1e-308; 7]]}});
+    let (status, _, body) = call(&app, "POST", "/jobs", Some(pill)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert!(body.to_string().contains("params.theta[0][0]"), "{body}");
+    let pill = json!({"kind": "simulate", "params": {"theta": [[1e6, 5e6, 2e6, 2e5, 6e6, 7.5e-5, f64::MAX]]}});
+    let (status, _, body) = call(&app, "POST", "/jobs", Some(pill)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    assert!(body.to_string().contains("params.theta[0][6]"), "{body}");
+    // The most extreme rows still accepted (the prior box ± one decade) run to the end.
+    let lows: Vec<f64> = otofit::sim::params::PARAMS
+        .iter()
+        .map(|p| if p.scale == otofit::sim::params::Scale::Log10 { p.low / 10.0 } else { p.low })
+        .collect();
+    let highs: Vec<f64> = otofit::sim::params::PARAMS
+        .iter()
+        .map(|p| if p.scale == otofit::sim::params::Scale::Log10 { p.high * 10.0 } else { p.high })
+        .collect();
+    let job = json!({"kind": "resimulate", "params": {"theta": [lows, highs]}});
+    let (status, _, body) = call(&app, "POST", "/jobs", Some(job)).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{body}");
+    let done = tokio::time::timeout(std::time::Duration::from_secs(60), wait(&app, body["id"].as_str().unwrap()))
+        .await
+        .expect("the job finishes");
+    assert_eq!(done["state"], "succeeded", "{done}");
+}
+
+/// The openapi.yaml /infer example (the nominal ear, noise-free, SI units and radians).
+fn nominal_request() -> Value {
+    spec_examples().into_iter().find(|(p, _)| p == "/infer").unwrap().1
+}
+
+fn scaled(mut req: Value, measure: &str, key: &str, k: f64) -> Value {
+    let v: Vec<f64> =
+        req["measurements"][measure][key].as_array().unwrap().iter().map(|x| x.as_f64().unwrap() * k).collect();
+    req["measurements"][measure][key] = json!(v);
+    req
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn wrong_units_are_rejected_with_the_field_or_converted_when_declared() {
+    let (app, _) = app(vec![], 8, false).await;
+    let deg = 180.0 / std::f64::consts::PI;
+    // Degrees sent as radians: rejected, the field named, the unit suggested.
+    for measure in ["impedance", "stapes_velocity"] {
+        let (status, _, p) = call(&app, "POST", "/infer", Some(scaled(nominal_request(), measure, "phase", deg))).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+        assert_eq!(p["errors"][0]["field"], format!("measurements.{measure}.phase"), "{p}");
+        assert!(p["errors"][0]["message"].as_str().unwrap().contains("phase_unit"), "{p}");
+    }
+    // Impedance in MΩ, velocity in mm/s/Pa: rejected with a hint.
+    let (status, _, p) =
+        call(&app, "POST", "/infer", Some(scaled(nominal_request(), "impedance", "magnitude", 1e-6))).await;
+    assert_eq!(
+        (status, p["errors"][0]["field"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("measurements.impedance.magnitude"))
+    );
+    assert!(p["errors"][0]["message"].as_str().unwrap().contains("MOhm"), "{p}");
+    let (status, _, p) =
+        call(&app, "POST", "/infer", Some(scaled(nominal_request(), "stapes_velocity", "magnitude", 1e3))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert!(p["errors"][0]["message"].as_str().unwrap().contains("mm/s/Pa"), "{p}");
+    // 1e308, absorbance −0.3 and 1.2: rejected.
+    let mut huge = nominal_request();
+    huge["measurements"]["impedance"]["magnitude"][5] = json!(1e308);
+    assert_eq!(call(&app, "POST", "/infer", Some(huge)).await.0, StatusCode::UNPROCESSABLE_ENTITY);
+    for bad in [-0.3, 1.2] {
+        let mut req = nominal_request();
+        req["measurements"]["absorbance"]["values"][7] = json!(bad);
+        let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+        assert_eq!(p["errors"][0]["field"], "measurements.absorbance.values[7]", "{p}");
+    }
+    // The same ear in degrees, MΩ and dB re 1 mm/s/Pa, declared: the same answer as in SI.
+    let (_, _, si) = call(&app, "POST", "/infer", Some(nominal_request())).await;
+    let mut req = scaled(scaled(nominal_request(), "impedance", "phase", deg), "impedance", "magnitude", 1e-6);
+    req["measurements"]["impedance"]["phase_unit"] = json!("deg");
+    req["measurements"]["impedance"]["magnitude_unit"] = json!("MOhm");
+    let db: Vec<f64> = req["measurements"]["stapes_velocity"]["magnitude"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| 20.0 * (v.as_f64().unwrap() / 1e-3).log10())
+        .collect();
+    req["measurements"]["stapes_velocity"]["magnitude"] = json!(db);
+    req["measurements"]["stapes_velocity"]["magnitude_unit"] = json!("dB re 1 mm/s/Pa");
+    let (status, _, other) = call(&app, "POST", "/infer", Some(req.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{other}");
+    for k in 0..7 {
+        let (a, b) =
+            (si["parameters"][k]["median"].as_f64().unwrap(), other["parameters"][k]["median"].as_f64().unwrap());
+        assert!((a / b - 1.0).abs() < 1e-3, "parameter {k}: {a} vs {b}");
+    }
+    req["measurements"]["impedance"]["magnitude_unit"] = json!("furlongs");
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(
+        (status, p["errors"][0]["field"].as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, Some("measurements.impedance.magnitude_unit"))
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_inference_carries_a_fit_check_and_withdraws_readings_when_the_model_does_not_fit() {
+    let (app, _) = app(vec![], 8, false).await;
+    // The nominal ear: the model fits it, and no parameter is read as abnormal.
+    let (status, _, body) = call(&app, "POST", "/infer", Some(nominal_request())).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let fit = &body["fit"];
+    assert_eq!(fit["ok"], true, "{fit}");
+    assert!(fit["reduced_chi2"].as_f64().unwrap() <= fit["threshold"].as_f64().unwrap(), "{fit}");
+    for d in body["differential"].as_array().unwrap() {
+        assert!(["within", "undetermined"].contains(&d["reading"].as_str().unwrap()), "{d}");
+    }
+    assert!(body.get("next").is_none());
+    // The same ear behind a 0.5 mm probe leak, which the seven parameters cannot mimic.
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let mut fx = otofit::sim::Effects::default();
+    fx.set("probe_leak", 0.5e-3).unwrap();
+    let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &fx).unwrap();
+    let n = model.frequencies().len();
+    let f = model.frequencies().to_vec();
+    let mag = |b: usize| x[b * n..(b + 1) * n].iter().map(|v| 10f64.powf(*v)).collect::<Vec<f64>>();
+    let req = json!({"measurements": {
+        "stapes_velocity": {"frequencies_hz": f, "magnitude": mag(0), "phase": x[n..2 * n]},
+        "impedance": {"frequencies_hz": f, "magnitude": mag(2), "phase": x[3 * n..4 * n]},
+        "absorbance": {"frequencies_hz": f, "values": x[4 * n..]},
+    }});
+    let (status, _, body) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["fit"]["ok"], false, "{}", body["fit"]);
+    assert!(!body["fit"]["bands"].as_array().unwrap().is_empty(), "{}", body["fit"]);
+    for d in body["differential"].as_array().unwrap() {
+        assert_eq!(d["reading"], "unreliable", "{d}");
+        assert!(d["associated_with"].is_null(), "{d}");
+    }
+    assert_eq!(body["next"]["body"]["kind"], "diagnose", "{}", body["next"]);
+}

@@ -1,0 +1,225 @@
+//! The fit check that goes with every inference: does the model reproduce the observation
+//! at all? The MAP and a few posterior draws are re-simulated (a run costs ~0.2 ms) and
+//! the posterior-predictive reduced χ² and the located misfit bands are compared with
+//! their null distribution, measured on held-out simulations when the model is
+//! calibrated (`FitNull` in the checkpoint). A second, cheaper statistic asks whether the
+//! observation looks like the training inputs at all (mean squared standardised feature).
+//! When either fails, no parameter is read against a normal range.
+
+use super::workflow::check_present;
+use super::{Band, Observation};
+use crate::npe::{FitNull, Inference, Npe, Obs};
+use crate::sim::batch::{Design, Noise, run_rows};
+use crate::sim::output::feature_names;
+use crate::sim::{Model, ModelConfig, PARAMS};
+use serde::Serialize;
+use std::sync::OnceLock;
+
+/// Posterior draws re-simulated besides the MAP.
+pub const DRAWS: usize = 20;
+/// Posterior samples per held-out case when the null is measured (the MAP search starts
+/// from the best of them, as in a request).
+pub const NULL_SAMPLES: usize = 500;
+/// The null quantile used as threshold: 1 % of the model's own simulated ears fail.
+pub const NULL_QUANTILE: f64 = 0.99;
+
+/// The result of the fit check, as the API reports it.
+#[derive(Clone, Debug, Serialize)]
+pub struct FitCheck {
+    /// Posterior-predictive reduced χ² over the features given.
+    pub reduced_chi2: f64,
+    /// Its null quantile (`None`: the model was never calibrated).
+    pub threshold: Option<f64>,
+    /// `reduced_chi2 ≤ threshold` and the input looks like the training data (`None`:
+    /// uncalibrated model, nothing to compare with).
+    pub ok: Option<bool>,
+    /// The worst measure's own reduced χ² (name, value) and its null quantile.
+    pub worst_measure: Option<(String, f64)>,
+    pub measure_threshold: Option<f64>,
+    /// Where the observation leaves the 90 % posterior-predictive band (|z| > 2.5 over at
+    /// least 3 neighbouring frequencies), measure × band × sign.
+    pub bands: Vec<Band>,
+    /// Spearman ρ per measure between the MAP re-simulation and the observation.
+    pub spearman: Vec<(String, f64)>,
+    /// Mean squared standardised input feature (≈ 1 for training-like inputs), and its
+    /// null quantile.
+    pub input_score: f64,
+    pub input_threshold: Option<f64>,
+    /// Features compared and posterior draws re-simulated.
+    pub features: usize,
+    pub draws: usize,
+    /// Why `ok` is false, in words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+}
+
+/// Errors of the fit check.
+#[derive(Debug, thiserror::Error)]
+pub enum FitCheckError {
+    /// The model was trained on another simulator's features: nothing to re-simulate.
+    #[error("the model's features or parameters are not otofit's simulator's; no fit check")]
+    NotOtofit,
+    #[error("the simulator could not be built: {0}")]
+    Simulator(String),
+    #[error("{0}")]
+    Inference(String),
+}
+
+/// The simulator a model was trained on, built once per process for the default grid.
+pub fn simulator_for(npe: &Npe) -> Result<&'static Model, FitCheckError> {
+    static DEFAULT: OnceLock<Result<Model, String>> = OnceLock::new();
+    let model = DEFAULT
+        .get_or_init(|| Model::new(ModelConfig::default()).map_err(|e| e.to_string()))
+        .as_ref()
+        .map_err(|e| FitCheckError::Simulator(e.clone()))?;
+    let h = &npe.header;
+    let same_params =
+        h.params.len() == PARAMS.len() && h.params.iter().zip(PARAMS.iter()).all(|(a, b)| a.name == b.name);
+    if !same_params || h.feature_names != feature_names(model.frequencies()) {
+        return Err(FitCheckError::NotOtofit);
+    }
+    Ok(model)
+}
+
+/// Per-feature noise standard deviation the model was trained with (1× when trained
+/// noise-free: the measurement itself is never noise-free).
+fn sigma(npe: &Npe) -> Vec<f64> {
+    let s = sigma_scale(npe);
+    npe.header.noise_std.iter().map(|v| (v * s).max(1e-9)).collect()
+}
+
+/// Mean squared standardised feature over the present ones.
+pub fn input_score(npe: &Npe, x: &[f64], present: &[bool]) -> f64 {
+    let h = &npe.header;
+    let (mut sum, mut n) = (0.0, 0usize);
+    for i in 0..x.len() {
+        if present[i] && x[i].is_finite() {
+            sum += ((x[i] - h.x_mean[i]) / h.x_std[i]).powi(2);
+            n += 1;
+        }
+    }
+    sum / n.max(1) as f64
+}
+
+/// The worst measure's reduced χ² over the present features (z of absent ones is 0).
+fn worst_measure(z: &[f64], present: &[bool]) -> Option<(String, f64)> {
+    use crate::sim::output::MEASURES;
+    let n = z.len() / MEASURES.len();
+    MEASURES
+        .iter()
+        .enumerate()
+        .filter_map(|(m, ms)| {
+            let idx: Vec<usize> = (m * n..(m + 1) * n).filter(|&i| present[i]).collect();
+            (!idx.is_empty())
+                .then(|| (ms.name.to_string(), idx.iter().map(|&i| z[i] * z[i]).sum::<f64>() / idx.len() as f64))
+        })
+        .max_by(|a, b| a.1.total_cmp(&b.1))
+}
+
+/// The raw statistics (reduced χ², bands, ρ, input score) for one inference.
+fn statistics(
+    model: &Model,
+    npe: &Npe,
+    x: &[f64],
+    present: &[bool],
+    inf: &Inference,
+) -> Result<(super::workflow::Check, f64), FitCheckError> {
+    let obs = Observation { x: x.to_vec(), sigma: sigma(npe) };
+    let draws = &inf.samples[..DRAWS.min(inf.samples.len())];
+    let c = check_present(model, &Design::default(), draws, &inf.map, &obs, Some(present))
+        .map_err(|e| FitCheckError::Inference(e.to_string()))?;
+    Ok((c, input_score(npe, x, present)))
+}
+
+/// Checks one inference against the model's null.
+pub fn fit_check(npe: &Npe, x: &[f64], present: &[bool], inf: &Inference) -> Result<FitCheck, FitCheckError> {
+    let model = simulator_for(npe)?;
+    let (c, score) = statistics(model, npe, x, present, inf)?;
+    let null = npe.header.fit_null.as_ref();
+    let worst = worst_measure(&c.z, present);
+    let measure_threshold = null.filter(|n| n.measure_chi2 > 0.0).map(|n| n.measure_chi2);
+    let measure_ok = measure_threshold.map(|t| worst.as_ref().is_none_or(|w| w.1 <= t));
+    let chi_ok = null.map(|n| c.reduced_chi2 <= n.reduced_chi2).zip(measure_ok.or(Some(true))).map(|(a, b)| a && b);
+    let input_ok = null.map(|n| score <= n.input_score);
+    let ok = chi_ok.zip(input_ok).map(|(a, b)| a && b);
+    let overall_ok = null.map(|n| c.reduced_chi2 <= n.reduced_chi2);
+    let reason = match (overall_ok, chi_ok, input_ok) {
+        (Some(true), Some(false), _) => {
+            let (name, v) = worst.clone().unwrap_or_default();
+            Some(format!(
+                "the model does not reproduce the {name} measurements: their reduced χ² {v:.2} exceeds {:.2}, which \
+                 only {:.0} % of the model's own simulated ears exceed",
+                measure_threshold.unwrap_or(f64::NAN),
+                100.0 * (1.0 - NULL_QUANTILE)
+            ))
+        }
+        (Some(false), _, _) => Some(format!(
+            "the model does not reproduce these measurements: posterior-predictive reduced χ² {:.2} exceeds {:.2}, \
+             which only {:.0} % of the model's own simulated ears exceed",
+            c.reduced_chi2,
+            null.map_or(f64::NAN, |n| n.reduced_chi2),
+            100.0 * (1.0 - NULL_QUANTILE)
+        )),
+        (_, _, Some(false)) => Some(format!(
+            "these measurements lie outside what the model was trained on (input score {score:.1} > {:.1})",
+            null.map_or(f64::NAN, |n| n.input_score)
+        )),
+        _ => None,
+    };
+    Ok(FitCheck {
+        reduced_chi2: c.reduced_chi2,
+        threshold: null.map(|n| n.reduced_chi2),
+        ok,
+        worst_measure: worst,
+        measure_threshold,
+        bands: c.bands,
+        spearman: c.spearman,
+        input_score: score,
+        input_threshold: null.map(|n| n.input_score),
+        features: present.iter().filter(|&&p| p).count(),
+        draws: DRAWS.min(inf.samples.len()),
+        reason,
+    })
+}
+
+fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(f64::INFINITY)
+}
+
+/// Measures the null on `cases` fresh prior draws simulated with the model's training
+/// noise (held out by construction: seeds the training never used), every feature given.
+pub fn null(npe: &Npe, cases: usize, seed: u64) -> Result<FitNull, FitCheckError> {
+    let model = simulator_for(npe)?;
+    let design = Design::default();
+    let rows = design.draw(seed ^ 0x00F1_7C4E, 0, cases);
+    let noise = Noise { std: npe.header.noise_std.clone(), scale: sigma_scale(npe), seed: seed ^ 0x00F1_7C4E };
+    let sims = run_rows(model, &design, &rows, 0, Some(&noise));
+    let (mut chi, mut scores, mut worst) = (Vec::new(), Vec::new(), Vec::new());
+    for (k, x) in sims.into_iter().enumerate() {
+        let Ok(x) = x else { continue };
+        let present = vec![true; x.len()];
+        let inf = npe
+            .infer(&Obs { x: &x, present: None }, NULL_SAMPLES, seed.wrapping_add(k as u64))
+            .map_err(|e| FitCheckError::Inference(format!("{e:#}")))?;
+        let (c, score) = statistics(model, npe, &x, &present, &inf)?;
+        chi.push(c.reduced_chi2);
+        scores.push(score);
+        worst.push(worst_measure(&c.z, &present).map_or(0.0, |w| w.1));
+    }
+    if chi.len() < cases / 2 {
+        return Err(FitCheckError::Inference("most null cases failed to simulate".into()));
+    }
+    Ok(FitNull {
+        quantile: NULL_QUANTILE,
+        reduced_chi2: quantile(chi.clone(), NULL_QUANTILE),
+        input_score: quantile(scores, NULL_QUANTILE),
+        measure_chi2: quantile(worst, NULL_QUANTILE),
+        cases: chi.len(),
+        draws: DRAWS,
+    })
+}
+
+fn sigma_scale(npe: &Npe) -> f64 {
+    if npe.header.noise_scale > 0.0 { npe.header.noise_scale } else { 1.0 }
+}
