@@ -525,12 +525,12 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     if let Err(e) = outcome {
         tracing::error!(job = %job.id, error = %e, "job state not saved");
     }
-    if job.kind == "train" || job.kind == "diagnose" {
-        if let Ok(Some(j)) = ctx.store.job(&job.id).await {
-            let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
-            if j.state == "succeeded" && path.exists() {
-                let _ = ctx.store.add_model(&job.id, &path.display().to_string(), false, Some(&job.id)).await;
-            }
+    if (job.kind == "train" || job.kind == "diagnose")
+        && let Ok(Some(j)) = ctx.store.job(&job.id).await
+    {
+        let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
+        if j.state == "succeeded" && path.exists() {
+            let _ = ctx.store.add_model(&job.id, &path.display().to_string(), false, Some(&job.id)).await;
         }
     }
     tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");

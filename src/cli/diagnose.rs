@@ -156,7 +156,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         "{:<16} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  other verdicts",
         "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit"
     );
-    for e in 0..N_EFFECTS {
+    for (e, effect) in EFFECTS.iter().enumerate() {
         let (mut n, mut named, mut vis, mut named_vis, mut covered) = (0, 0, 0, 0, 0);
         let (mut before, mut after) = (Vec::new(), Vec::new());
         let mut other: std::collections::BTreeMap<String, usize> = Default::default();
@@ -167,7 +167,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
             let visible = strength > VISIBLE;
             vis += usize::from(visible);
             before.push(r.before.reduced_chi2);
-            if r.named == Some(EFFECTS[e].name) {
+            if r.named == Some(effect.name) {
                 named += 1;
                 named_vis += usize::from(visible);
                 let c = &r.candidates[0];
@@ -185,7 +185,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         };
         println!(
             "{:<16} {:>5} {:>8.0} {:>7} {:>11.0} {:>10.0} {:>9.2} {:>9.2}  {:?}",
-            EFFECTS[e].name,
+            effect.name,
             n,
             100.0 * named as f64 / n.max(1) as f64,
             vis,

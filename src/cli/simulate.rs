@@ -79,7 +79,7 @@ fn effect_index(name: &str, flag: &str) -> Result<usize> {
 }
 
 /// Reads given rows and works out which effects vary per row.
-fn read_rows(path: &PathBuf, design: &mut Design) -> Result<Vec<Vec<f64>>> {
+fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>>> {
     let table = dataset::read_csv(path)?;
     let col = |name: &str| table.header.iter().position(|h| h == name);
     let mut cols = Vec::new();

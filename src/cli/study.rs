@@ -98,7 +98,7 @@ fn infer_one(
     seed: u64,
 ) -> Result<(npe::Inference, Vec<f64>, Vec<f64>)> {
     let inf = npe.infer(&Obs { x, present: None }, 1000, seed)?;
-    let map_x = run_rows(model, &Design::default(), &[inf.map.clone()], 0, None).remove(0)?;
+    let map_x = run_rows(model, &Design::default(), std::slice::from_ref(&inf.map), 0, None).remove(0)?;
     let r = rho(&map_x, truth_x);
     Ok((inf, map_x, r))
 }
@@ -267,7 +267,7 @@ pub fn run(a: StudyArgs) -> Result<()> {
             let ds = simulated(&model, *sizes.last().unwrap(), a.seed);
             // The same observation for every model: a mid-prior ear with 1× noise.
             let truth = Design::default().draw(a.seed ^ 0x0B5E, 0, 1).remove(0);
-            let x0 = run_rows(&model, &Design::default(), &[truth.clone()], 0, None).remove(0)?;
+            let x0 = run_rows(&model, &Design::default(), std::slice::from_ref(&truth), 0, None).remove(0)?;
             let x = noise.apply(&x0, 0);
             let mut rows = vec![];
             let (mut table, mut figs, mut runs) = (vec![], vec![], vec![]);
@@ -398,7 +398,7 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     starts.extend(inf.samples.iter().step_by(inf.samples.len() / 4).take(4).cloned());
     let best = crate::discrepancy::fit::fit(model, &Design::default(), &starts, &obs, 40)
         .ok_or_else(|| anyhow::anyhow!("least-squares fit failed to simulate"))?;
-    let best_x = run_rows(model, &Design::default(), &[best.row.clone()], 0, None).remove(0)?;
+    let best_x = run_rows(model, &Design::default(), std::slice::from_ref(&best.row), 0, None).remove(0)?;
     let best_rho = rho(&best_x, &r.x);
     let map_rho: Vec<f64> = c.spearman.iter().map(|(_, v)| *v).collect();
     let mean_abs = map_rho.iter().map(|v| v.abs()).sum::<f64>() / map_rho.len() as f64;

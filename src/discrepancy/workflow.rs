@@ -198,11 +198,11 @@ pub fn train_for(
     let out = run_rows(model, design, &theta, 0, None);
     let (mut t, mut x) = (Vec::new(), Vec::new());
     for (row, r) in theta.into_iter().zip(out) {
-        if let Ok(v) = r {
-            if v.iter().all(|f| f.is_finite()) {
-                t.push(row);
-                x.push(v);
-            }
+        if let Ok(v) = r
+            && v.iter().all(|f| f.is_finite())
+        {
+            t.push(row);
+            x.push(v);
         }
     }
     let ds = Dataset {
@@ -241,7 +241,7 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -
         let inf = base.infer(&Obs { x: &obs.x, present: None }, s.draws, s.seed + k as u64)?;
         let c = check(model, &design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
         chi.push(c.reduced_chi2);
-        if let Some((b, ranked)) = fit_and_rank(model, &obs, &[inf.map.clone()], &s.candidates) {
+        if let Some((b, ranked)) = fit_and_rank(model, &obs, std::slice::from_ref(&inf.map), &s.candidates) {
             drops.push(ranked.first().map_or(0.0, |c| b.chi2 - c.chi2));
         }
     }

@@ -188,7 +188,10 @@ fn plausible(x: &[f64], grid: &[f64], errs: &mut Vec<(String, String)>) {
 }
 
 /// The model's feature vector and presence flags from the measurements.
-fn features(npe: &Npe, m: &Measurements) -> Result<(Vec<f64>, Vec<bool>, Vec<&'static str>), Problem> {
+/// Features on the model grid, which are present, and the measures used.
+type Features = (Vec<f64>, Vec<bool>, Vec<&'static str>);
+
+fn features(npe: &Npe, m: &Measurements) -> Result<Features, Problem> {
     let grid = &npe.header.frequencies_hz;
     let n = grid.len();
     let mut errs = Vec::new();

@@ -131,10 +131,10 @@ pub async fn list_jobs(
     Query(q): Query<JobQuery>,
 ) -> Result<Json<serde_json::Value>, Problem> {
     const STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
-    if let Some(s) = &q.state {
-        if !STATES.contains(&s.as_str()) {
-            return Err(Problem::invalid(vec![("state".into(), format!("must be one of {}", STATES.join(", ")))]));
-        }
+    if let Some(s) = &q.state
+        && !STATES.contains(&s.as_str())
+    {
+        return Err(Problem::invalid(vec![("state".into(), format!("must be one of {}", STATES.join(", ")))]));
     }
     let limit = q.limit.unwrap_or(100).clamp(1, 1000);
     let rows = st.ctx.store.jobs(q.state.as_deref(), limit).await.map_err(Problem::internal)?;

@@ -104,9 +104,9 @@ impl DrumModes {
     pub fn volume_and_energy(&self, eta: &[c64], u: c64) -> (c64, c64) {
         let mut vol = c64::new(0.0, 0.0);
         let mut energy = c64::new(0.0, 0.0);
-        for k in 0..eta.len() {
-            vol += eta[k] * self.bb[k];
-            energy += eta[k].conj() * eta[k] + (eta[k].conj() * u + u.conj() * eta[k]) * self.kb[k];
+        for ((e, bb), kb) in eta.iter().zip(&self.bb).zip(&self.kb) {
+            vol += e * bb;
+            energy += e.conj() * e + (e.conj() * u + u.conj() * e) * kb;
         }
         (vol, energy)
     }

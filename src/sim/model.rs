@@ -366,8 +366,8 @@ impl Model {
             for i in 0..6 {
                 let Some(li) = map[i] else { continue };
                 bd[li] += se.b[i];
-                for j in 0..6 {
-                    let Some(lj) = map[j] else { continue };
+                for (j, lj) in map.iter().enumerate() {
+                    let Some(lj) = *lj else { continue };
                     kd[(li, lj)] += se.k_unit[i][j];
                     md[(li, lj)] += se.m[i][j];
                 }
