@@ -144,10 +144,20 @@ fn ensembles_store_every_member_and_format_1_still_loads() {
     assert_eq!(loaded.sample(&obs, 300, 1).unwrap(), a);
     let lp = loaded.log_prob(&obs, &a[..5]).unwrap();
     assert!(lp.iter().all(|v| v.is_finite()));
-    // The shipped default model is a format-1 file: it must keep loading.
-    let default =
-        Npe::load(std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit"))).unwrap();
-    assert_eq!((default.header.format_version, default.header.members), (1, 1));
+    // Format 1 (one record, no length prefix; files written before ensembles) keeps loading.
+    single.save(&dir.join("s.otofit")).unwrap();
+    let v2 = std::fs::read(dir.join("s.otofit")).unwrap();
+    let n = u64::from_le_bytes(v2[11..19].try_into().unwrap()) as usize;
+    let header =
+        String::from_utf8(v2[19..19 + n].to_vec()).unwrap().replace("\"format_version\":2", "\"format_version\":1");
+    let mut v1 = v2[..11].to_vec();
+    v1.extend_from_slice(&(header.len() as u64).to_le_bytes());
+    v1.extend_from_slice(header.as_bytes());
+    v1.extend_from_slice(&v2[19 + n + 8..]);
+    let old = Npe::from_bytes(&v1).unwrap();
+    assert_eq!((old.header.format_version, old.header.members), (1, 1));
+    assert_eq!(old.sample(&obs, 50, 1).unwrap(), single.sample(&obs, 50, 1).unwrap());
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
