@@ -165,22 +165,30 @@ impl Store {
             .map(|r| r.get("n"))
     }
 
-    pub async fn insert_job(
+    /// Queues a job if fewer than `limit` jobs are queued or running. The count and the
+    /// insert are one statement (SQLite takes the write lock before it reads), so
+    /// concurrent posts cannot overshoot the limit. Returns whether the job was queued.
+    pub async fn insert_job_within(
         &self,
         id: &str,
         kind: &str,
         params: &serde_json::Value,
         max_attempts: i64,
-    ) -> Result<(), sqlx::Error> {
-        sqlx::query("INSERT INTO jobs (id, kind, params, max_attempts, created_at) VALUES (?, ?, ?, ?, ?)")
-            .bind(id)
-            .bind(kind)
-            .bind(params.to_string())
-            .bind(max_attempts)
-            .bind(now())
-            .execute(&self.pool)
-            .await?;
-        Ok(())
+        limit: i64,
+    ) -> Result<bool, sqlx::Error> {
+        let done = sqlx::query(
+            "INSERT INTO jobs (id, kind, params, max_attempts, created_at) SELECT ?, ?, ?, ?, ?
+             WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < ?",
+        )
+        .bind(id)
+        .bind(kind)
+        .bind(params.to_string())
+        .bind(max_attempts)
+        .bind(now())
+        .bind(limit)
+        .execute(&self.pool)
+        .await?;
+        Ok(done.rows_affected() == 1)
     }
 
     pub async fn job(&self, id: &str) -> Result<Option<JobRow>, sqlx::Error> {

@@ -103,14 +103,19 @@ pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: By
             )]));
         }
     }
-    if st.ctx.store.count_active().await.map_err(Problem::internal)? >= st.ctx.max_queue {
+    let id = jobs::new_id();
+    if !st
+        .ctx
+        .store
+        .insert_job_within(&id, &req.kind, &req.params, 3, st.ctx.max_queue)
+        .await
+        .map_err(Problem::internal)?
+    {
         return Err(Problem::new(
             StatusCode::TOO_MANY_REQUESTS,
             format!("the queue is full ({} active jobs); retry later", st.ctx.max_queue),
         ));
     }
-    let id = jobs::new_id();
-    st.ctx.store.insert_job(&id, &req.kind, &req.params, 3).await.map_err(Problem::internal)?;
     st.ctx.notify.notify_one();
     tracing::info!(job = %id, kind = %req.kind, "job queued");
     let job =

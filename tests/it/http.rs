@@ -594,3 +594,35 @@ async fn every_inference_carries_a_fit_check_and_withdraws_readings_when_the_mod
     }
     assert_eq!(body["next"]["body"]["kind"], "diagnose", "{}", body["next"]);
 }
+
+/// Issue 13.6: the queue limit holds under concurrent posts (the count and the insert
+/// are one statement).
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_job_posts_never_exceed_the_queue_limit() {
+    let (app, ctx) = app(vec![], 8, false).await;
+    let job = json!({"kind": "simulate", "params": {"n": 10}});
+    for _ in 0..7 {
+        assert_eq!(call(&app, "POST", "/jobs", Some(job.clone())).await.0, StatusCode::ACCEPTED);
+    }
+    for round in 0..3 {
+        let posts: Vec<_> = (0..40)
+            .map(|_| {
+                let (app, job) = (app.clone(), job.clone());
+                tokio::spawn(async move { call(&app, "POST", "/jobs", Some(job)).await.0 })
+            })
+            .collect();
+        let mut accepted = 0;
+        for p in posts {
+            match p.await.unwrap() {
+                StatusCode::ACCEPTED => accepted += 1,
+                StatusCode::TOO_MANY_REQUESTS => {}
+                other => panic!("unexpected {other}"),
+            }
+        }
+        let active: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')")
+            .fetch_one(&ctx.store.pool)
+            .await
+            .unwrap();
+        assert_eq!((round, accepted, active), (round, usize::from(round == 0), 8), "limit 8 with 7 active");
+    }
+}
