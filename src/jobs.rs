@@ -151,6 +151,22 @@ pub const MAX_RESIMULATE: usize = 1_000;
 /// A validation problem: the JSON path of the field and what is wrong with it.
 pub type FieldError = (String, String);
 
+/// Longest id a job may name (models, datasets).
+pub const MAX_ID: usize = 64;
+
+/// An id that names a row of the store: ASCII letters, digits, `_` and `-`, 1..=64 long.
+/// Ids are looked up, never joined into a path, but a plain id keeps that true for
+/// anything that might (`../../etc/model` is refused before it gets near the disk).
+pub fn is_plain_id(id: &str) -> bool {
+    (1..=MAX_ID).contains(&id.len()) && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+fn plain_id(field: &str, id: &str, errs: &mut Vec<FieldError>) {
+    if !is_plain_id(id) {
+        errs.push((field.into(), format!("must be a plain id (1..={MAX_ID} of A-Z a-z 0-9 _ -)")));
+    }
+}
+
 fn effects_of(map: &BTreeMap<String, f64>, errs: &mut Vec<FieldError>) -> Effects {
     let mut fx = Effects::default();
     for (name, v) in map {
@@ -231,6 +247,7 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
         }
         "train" => {
             let p: TrainParams = serde_json::from_value(params.clone()).map_err(de)?;
+            plain_id("params.dataset", &p.dataset, &mut errs);
             if p.max_epochs == 0 || p.max_epochs > 5000 {
                 errs.push(("params.max_epochs".into(), "must be 1..=5000".into()));
             }
@@ -269,6 +286,9 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
         }
         "diagnose" => {
             let p: DiagnoseParams = serde_json::from_value(params.clone()).map_err(de)?;
+            if let Some(m) = &p.model {
+                plain_id("params.model", m, &mut errs);
+            }
             if let Some(i) = p.x.iter().position(|v| !v.is_finite()) {
                 errs.push((format!("params.x[{i}]"), "must be a finite number".into()));
             }
@@ -402,12 +422,8 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
         "diagnose" => {
             use crate::discrepancy::workflow::{Settings, diagnose};
             let p: DiagnoseParams = serde_json::from_value(job.params.clone())?;
-            let (id, path) = match &p.model {
-                Some(id) => (id.clone(), ctx.data_dir.join("models").join(format!("{id}.otofit"))),
-                None => ("default".to_string(), PathBuf::new()),
-            };
-            let path = if p.model.is_none() { default_model_path(ctx)? } else { path };
-            let base = ctx.loaded(&id, &path)?;
+            let id = p.model.as_deref().unwrap_or("default");
+            let base = registered_model(ctx, id)?;
             if p.x.len() != base.header.feature_names.len() {
                 bail!(
                     "params.x has {} values; model '{id}' has {} features",
@@ -457,10 +473,42 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
     }
 }
 
-fn default_model_path(ctx: &Ctx) -> Result<PathBuf> {
+/// A model by its id, looked up in the store (never a path built from the id). Errors
+/// name the id, not the file: job errors are shown to clients.
+pub fn registered_model(ctx: &Ctx, id: &str) -> Result<Arc<Npe>> {
+    let unknown = || anyhow!("model '{id}' is not registered");
+    if !is_plain_id(id) {
+        return Err(unknown());
+    }
     let rt = tokio::runtime::Handle::current();
-    let row = rt.block_on(ctx.store.default_model())?.ok_or_else(|| anyhow!("no default model is registered"))?;
-    Ok(PathBuf::from(row.path))
+    let row = rt.block_on(ctx.store.model(id))?.ok_or_else(unknown)?;
+    ctx.loaded(&row.id, Path::new(&row.path)).map_err(|e| {
+        tracing::error!(model = %id, error = %format!("{e:#}"), "model cannot be loaded");
+        anyhow!("model '{id}' cannot be loaded (the server log says why)")
+    })
+}
+
+/// An error message for clients: the server's own directories replaced by names.
+fn scrub(ctx: &Ctx, msg: &str) -> String {
+    let mut out = msg.to_string();
+    let mut dirs: Vec<(PathBuf, &str)> = vec![];
+    if ctx.data_dir.is_absolute() {
+        dirs.push((ctx.data_dir.clone(), "DATA_DIR"));
+    }
+    if let Ok(d) = std::fs::canonicalize(&ctx.data_dir) {
+        dirs.push((d, "DATA_DIR"));
+    }
+    if let Ok(d) = std::env::current_dir() {
+        dirs.push((d, "."));
+    }
+    dirs.sort_by_key(|(d, _)| std::cmp::Reverse(d.as_os_str().len()));
+    for (d, name) in dirs {
+        let d = d.display().to_string();
+        if d.len() > 1 {
+            out = out.replace(&d, name);
+        }
+    }
+    out
 }
 
 /// The dispatcher: claims and runs jobs until shutdown.
@@ -520,7 +568,7 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         // A cancelled training still returns its best weights: that is a result.
         Ok(Ok(doc)) => store.finish(&job.id, "succeeded", None, Some(&doc)).await,
         Ok(Err(e)) if cancelled || e.is::<Stopped>() => store.finish(&job.id, "cancelled", None, None).await,
-        Ok(Err(e)) => store.finish(&job.id, "failed", Some(&format!("{e:#}")), None).await,
+        Ok(Err(e)) => store.finish(&job.id, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await,
     };
     if let Err(e) = outcome {
         tracing::error!(job = %job.id, error = %e, "job state not saved");

@@ -103,6 +103,9 @@ pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: By
             )]));
         }
     }
+    if req.kind == "diagnose" {
+        diagnose_model(&st, &req.params).await?;
+    }
     let id = jobs::new_id();
     if !st
         .ctx
@@ -123,6 +126,29 @@ pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: By
     let mut r = (StatusCode::ACCEPTED, Json(job_doc(&job))).into_response();
     r.headers_mut().insert(header::LOCATION, HeaderValue::from_str(&format!("/jobs/{id}")).map_err(Problem::internal)?);
     Ok(r)
+}
+
+/// A diagnose job's base model (`params.model`, else the default) must be registered and
+/// take as many features as `params.x` has: both answered now, not when the job runs.
+async fn diagnose_model(st: &AppState, params: &serde_json::Value) -> Result<(), Problem> {
+    let (field, id) = match params["model"].as_str() {
+        Some(m) => ("params.model", m.to_string()),
+        None => ("params", "default".to_string()),
+    };
+    let ctx = st.ctx.clone();
+    let id2 = id.clone();
+    let npe = tokio::task::spawn_blocking(move || jobs::registered_model(&ctx, &id2))
+        .await
+        .map_err(Problem::internal)?
+        .map_err(|e| Problem::invalid(vec![(field.into(), format!("{e:#}"))]))?;
+    let (n, want) = (params["x"].as_array().map_or(0, Vec::len), npe.header.feature_names.len());
+    if n != want {
+        return Err(Problem::invalid(vec![(
+            "params.x".into(),
+            format!("has {n} values; model '{id}' takes {want} features (GET /models/{id} lists them)"),
+        )]));
+    }
+    Ok(())
 }
 
 #[derive(Deserialize)]

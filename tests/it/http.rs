@@ -626,3 +626,54 @@ async fn concurrent_job_posts_never_exceed_the_queue_limit() {
         assert_eq!((round, accepted, active), (round, usize::from(round == 0), 8), "limit 8 with 7 active");
     }
 }
+
+/// Issue 13.5: a diagnose job's model is an id looked up in the store, never a path;
+/// `default` is the registered default model; errors name the id, not server paths.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn diagnose_models_are_registered_ids_never_paths() {
+    let (app, _) = app(vec![], 8, false).await;
+    let diag =
+        |model: Value, x: Value| json!({"kind": "diagnose", "params": {"model": model, "x": x, "extend": false}});
+    for bad in ["../../../../etc/model", "/etc/passwd", "a/b", "", &"m".repeat(65)] {
+        let (status, _, p) = call(&app, "POST", "/jobs", Some(diag(json!(bad), json!([1.0])))).await;
+        assert_eq!(
+            (status, p["errors"][0]["field"].as_str()),
+            (StatusCode::UNPROCESSABLE_ENTITY, Some("params.model"))
+        );
+    }
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(diag(json!("ghost"), json!([1.0])))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert_eq!(p["errors"][0]["message"], "model 'ghost' is not registered", "{p}");
+    // The default model answers by its id before any /infer has loaded it; a wrong-length x
+    // is refused now, not when the job runs.
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(diag(json!("default"), json!([1.0])))).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.x")));
+    assert!(p["errors"][0]["message"].as_str().unwrap().contains("model 'default' takes 250"), "{p}");
+    // Jobs queued without that check (an older server) fail naming the id, no path.
+    let (_, ctx2) = self::app(vec![], 8, false).await;
+    let dir = ctx2.data_dir.display().to_string();
+    let cases = [
+        ("t1", "../../../../etc/model", "model '../../../../etc/model' is not registered"),
+        ("t2", "ghost", "model 'ghost' is not registered"),
+        ("t3", "default", "params.x has 1 values; model 'default' has 250 features"),
+    ];
+    for (id, model, _) in cases {
+        let params = json!({"model": model, "x": [1.0]});
+        assert!(ctx2.store.insert_job_within(id, "diagnose", &params, 1, 8).await.unwrap());
+    }
+    tokio::spawn(jobs::dispatcher(ctx2.clone()));
+    for (id, _, want) in cases {
+        let mut job = None;
+        for _ in 0..100 {
+            let j = ctx2.store.job(id).await.unwrap().unwrap();
+            if j.state == "failed" {
+                job = Some(j);
+                break;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        }
+        let err = job.expect("the job fails").error.unwrap();
+        assert_eq!(err, want);
+        assert!(!err.contains(&dir) && !err.contains("/tmp") && !err.contains(".otofit"), "{err}");
+    }
+}
