@@ -29,6 +29,8 @@ pub struct Ctx {
     pub shutdown: AtomicBool,
     models: RwLock<HashMap<String, Arc<Npe>>>,
     pub max_queue: i64,
+    /// The data directory's lock, held as long as this context lives (see `with_lock`).
+    data_lock: Option<std::fs::File>,
 }
 
 impl Ctx {
@@ -40,7 +42,14 @@ impl Ctx {
             shutdown: AtomicBool::new(false),
             models: RwLock::new(HashMap::new()),
             max_queue,
+            data_lock: None,
         }
+    }
+
+    /// Keeps `lock` (the data directory's lock file, locked) for the life of the context.
+    pub fn with_lock(mut self, lock: std::fs::File) -> Ctx {
+        self.data_lock = Some(lock);
+        self
     }
 
     /// A registered model, loaded once and shared.
@@ -442,6 +451,7 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 max_epochs: p.max_epochs,
                 null_cases: p.null_cases,
                 seed: p.seed,
+                cancel: Some(r.cancel.clone()),
                 ..Settings::default()
             };
             let model = Model::new(ModelConfig::default())?;
@@ -449,7 +459,12 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             let report = diagnose(&model, &base, &p.x, &s, &mut |m| {
                 let k = steps.iter().position(|s| m.contains(s)).unwrap_or(0);
                 let _ = r.report(k as f64 / steps.len() as f64, m.to_string());
-            })?;
+            })
+            .map_err(|e| if e.is::<crate::discrepancy::workflow::Cancelled>() { Stopped.into() } else { e })?;
+            // Fencing: a job cancelled or interrupted meanwhile writes no report and no model.
+            if r.cancel.load(Ordering::Relaxed) {
+                bail!(Stopped);
+            }
             let dir = ctx.data_dir.join("reports").join(&job.id);
             std::fs::create_dir_all(&dir)?;
             for (name, svg) in &report.figures {

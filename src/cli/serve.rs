@@ -33,9 +33,43 @@ pub struct ServeArgs {
     pub log_json: bool,
 }
 
-/// Opens the store, recovers interrupted jobs and registers the default model.
+/// Takes the data directory for this process: an exclusive lock (flock) on
+/// `DATA_DIR/otofit.lock`, which holds the owner's pid. The kernel releases it when the
+/// process ends, however it ends, so a crash never leaves a stale lock behind.
+pub fn lock_data_dir(data_dir: &Path) -> Result<std::fs::File> {
+    use std::io::Write;
+    let path = data_dir.join("otofit.lock");
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .read(true)
+        .write(true)
+        .open(&path)
+        .with_context(|| format!("cannot open {}", path.display()))?;
+    match f.try_lock() {
+        Ok(()) => {}
+        Err(std::fs::TryLockError::WouldBlock) => {
+            let pid = std::fs::read_to_string(&path).unwrap_or_default();
+            bail!(
+                "the data directory {} is in use by another otofit process (pid {}); stop it or use another --data-dir",
+                data_dir.display(),
+                pid.trim()
+            );
+        }
+        Err(std::fs::TryLockError::Error(e)) => {
+            return Err(e).with_context(|| format!("cannot lock {}", path.display()));
+        }
+    }
+    f.set_len(0)?;
+    write!(f, "{}", std::process::id())?;
+    Ok(f)
+}
+
+/// Locks the data directory, opens the store, recovers interrupted jobs and registers the
+/// default model.
 pub async fn open(data_dir: &Path, default_model: &Path, max_queue: i64) -> Result<Arc<Ctx>> {
     std::fs::create_dir_all(data_dir).with_context(|| format!("cannot create {}", data_dir.display()))?;
+    let lock = lock_data_dir(data_dir)?;
     let store = Store::open(&data_dir.join("otofit.db")).await.context("opening the database")?;
     let (requeued, failed) = store.recover().await?;
     if requeued + failed > 0 {
@@ -47,7 +81,7 @@ pub async fn open(data_dir: &Path, default_model: &Path, max_queue: i64) -> Resu
     } else {
         tracing::warn!(path = %default_model.display(), "default model not found; /infer answers 503 until one is registered");
     }
-    Ok(Arc::new(Ctx::new(store, data_dir.to_path_buf(), max_queue)))
+    Ok(Arc::new(Ctx::new(store, data_dir.to_path_buf(), max_queue).with_lock(lock)))
 }
 
 pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
@@ -76,7 +110,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
         tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
     }
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
-    rt.block_on(async move {
+    let res = rt.block_on(async move {
         let ctx = open(&args.data_dir, &args.default_model, args.max_queue).await?;
         let dispatcher = tokio::spawn(jobs::dispatcher(ctx.clone()));
         let app = http::router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) });
@@ -99,7 +133,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
             bail!("the running job did not stop within 60 s; it will be re-queued at the next start");
         }
         Ok(())
-    })
+    });
+    // Dropping a runtime waits for its blocking tasks; a job that ignored the stop must not
+    // keep the process (and its writes) alive after the grace period.
+    rt.shutdown_timeout(std::time::Duration::from_secs(1));
+    res
 }
 
 async fn shutdown_signal() {

@@ -11,6 +11,8 @@ use crate::sim::output::{MEASURES, feature_names};
 use crate::sim::params::{EFFECTS, N_PARAMS};
 use anyhow::{Result, bail};
 use serde::Serialize;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 #[derive(Clone, Debug)]
 pub struct Settings {
@@ -28,6 +30,25 @@ pub struct Settings {
     pub seed: u64,
     /// Thresholds measured earlier for the same base model (skips the null runs).
     pub thresholds: Option<Thresholds>,
+    /// Set from outside to stop the workflow: checked between steps, null cases,
+    /// simulation chunks and training epochs; the workflow then returns [`Cancelled`].
+    pub cancel: Option<Arc<AtomicBool>>,
+}
+
+/// The workflow stopped because [`Settings::cancel`] was set.
+#[derive(Debug, thiserror::Error)]
+#[error("the diagnosis was cancelled")]
+pub struct Cancelled;
+
+impl Settings {
+    fn cancelled(&self) -> bool {
+        self.cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed))
+    }
+
+    /// `Err(Cancelled)` once cancellation was requested.
+    fn go_on(&self) -> Result<()> {
+        if self.cancelled() { Err(Cancelled.into()) } else { Ok(()) }
+    }
 }
 
 impl Default for Settings {
@@ -41,6 +62,7 @@ impl Default for Settings {
             max_epochs: 300,
             seed: 0,
             thresholds: None,
+            cancel: None,
         }
     }
 }
@@ -184,7 +206,12 @@ pub fn check_present(
     })
 }
 
-/// Simulates a training set for `design` and trains an estimator on it.
+/// Rows simulated between two cancellation checks.
+const CHUNK: usize = 1024;
+
+/// Simulates a training set for `design` and trains an estimator on it, stopping with
+/// [`Cancelled`] between simulation chunks and epochs once `cancelled()` says so.
+#[allow(clippy::too_many_arguments)]
 pub fn train_for(
     model: &Model,
     design: &Design,
@@ -193,9 +220,16 @@ pub fn train_for(
     max_epochs: usize,
     seed: u64,
     progress: &mut dyn FnMut(&str),
+    cancelled: &dyn Fn() -> bool,
 ) -> Result<Npe> {
     let theta = design.draw(seed, 0, rows);
-    let out = run_rows(model, design, &theta, 0, None);
+    let mut out = Vec::with_capacity(theta.len());
+    for (k, chunk) in theta.chunks(CHUNK).enumerate() {
+        if cancelled() {
+            bail!(Cancelled);
+        }
+        out.extend(run_rows(model, design, chunk, k * CHUNK, None));
+    }
     let (mut t, mut x) = (Vec::new(), Vec::new());
     for (row, r) in theta.into_iter().zip(out) {
         if let Ok(v) = r
@@ -216,10 +250,15 @@ pub fn train_for(
         skipped: 0,
     };
     let s = TrainSettings { seed, max_epochs, noise_scale: 1.0, ..TrainSettings::default() };
-    npe::train(&ds, &s, &mut |e| {
+    let npe = npe::train(&ds, &s, &mut |e| {
         progress(&format!("training the extended model: epoch {} val {:.3}", e.epoch, e.val_loss));
-        true
-    })
+        !cancelled()
+    })?;
+    // A training stopped early returns its best weights; a cancelled one returns nothing.
+    if cancelled() {
+        bail!(Cancelled);
+    }
+    Ok(npe)
 }
 
 /// Quantile of the null at which each of the two alarm statistics fires: a Bonferroni
@@ -236,6 +275,7 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -
     let sims = run_rows(model, &design, &rows, 0, Some(&noisy));
     let (mut chi, mut drops) = (Vec::new(), Vec::new());
     for (k, x) in sims.into_iter().enumerate() {
+        s.go_on()?;
         let Ok(x) = x else { continue };
         let obs = Observation { x, sigma: noise.std.clone() };
         let inf = base.infer(&Obs { x: &obs.x, present: None }, s.draws, s.seed + k as u64)?;
@@ -293,6 +333,7 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     let obs = Observation { x: x.to_vec(), sigma: noise.std.clone() };
     progress("fit: base posterior");
     let inf = base.infer(&Obs { x, present: None }, s.draws.max(200), s.seed)?;
+    s.go_on()?;
     progress("check: posterior predictive");
     let base_design = Design::default();
     let before = check(model, &base_design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
@@ -303,12 +344,14 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
             null_thresholds(model, base, &noise, s)?
         }
     };
+    s.go_on()?;
     progress("name: fitting candidate effects");
     let median: Vec<f64> = inf.summaries.iter().map(|p| p.median).collect();
     let (base_fit, ranked) = fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates)
         .ok_or_else(|| anyhow::anyhow!("the base fit failed"))?;
     // Alarm: either statistic beyond its null quantile. Candidate: the best effect if its
     // χ² drop beats both the BIC penalty and the null quantile of the best drop.
+    s.go_on()?;
     let best_drop = ranked.first().map_or(0.0, |c| base_fit.chi2 - c.chi2);
     let alarm = before.reduced_chi2 > thresholds.base_reduced_chi2 || best_drop > thresholds.best_drop;
     let candidate = ranked.first().filter(|c| c.score > 0.0 && best_drop > thresholds.best_drop).map(|c| c.effect);
@@ -319,7 +362,8 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         let e = EFFECTS.iter().position(|x| x.name == name).expect("named effect");
         let design = Design { varied: vec![e], ..Design::default() };
         progress(&format!("add: simulating {} rows with {name} in the prior", s.train_rows));
-        let npe2 = train_for(model, &design, &noise, s.train_rows, s.max_epochs, s.seed, progress)?;
+        let npe2 = train_for(model, &design, &noise, s.train_rows, s.max_epochs, s.seed, progress, &|| s.cancelled())?;
+        s.go_on()?;
         let inf2 = npe2.infer(&Obs { x, present: None }, s.draws.max(200), s.seed)?;
         let c2 = check(model, &design, &inf2.samples[..s.draws.min(inf2.samples.len())], &inf2.map, &obs)?;
         let p = &inf2.summaries[N_PARAMS];
@@ -342,6 +386,7 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         _ => Verdict::Unexplained,
     };
     let named = (v == Verdict::EffectNamed).then_some(candidate).flatten();
+    s.go_on()?;
     Ok(Report {
         verdict: v,
         thresholds,

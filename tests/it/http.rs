@@ -677,3 +677,107 @@ async fn diagnose_models_are_registered_ids_never_paths() {
         assert!(!err.contains(&dir) && !err.contains("/tmp") && !err.contains(".otofit"), "{err}");
     }
 }
+
+/// Issue 13.2: a running diagnose stops within 5 s of its cancel, in whichever step it is
+/// (the null runs, or simulating and training the extended model), and writes nothing after.
+#[test]
+fn a_cancelled_diagnose_stops_within_5_s_and_writes_nothing() {
+    // Its own runtime, dropped without waiting: a diagnose that ignores the cancel must fail
+    // the test now, not when its blocking task ends.
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    let res = rt.block_on(async { tokio::spawn(cancel_diagnoses()).await });
+    rt.shutdown_background();
+    if let Err(e) = res {
+        std::panic::resume_unwind(e.into_panic());
+    }
+}
+
+async fn cancel_diagnoses() {
+    let (app, ctx) = app(vec![], 8, true).await;
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let mut fx = otofit::sim::Effects::default();
+    fx.set("probe_leak", 3e-4).unwrap();
+    let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &fx).unwrap();
+    // (step the cancel waits for, params): a long null, then a long extension.
+    let cases = [
+        ("null", json!({"x": x, "null_cases": 1000, "candidates": ["probe_leak"]})),
+        (
+            "add",
+            json!({"x": x, "null_cases": 5, "candidates": ["probe_leak"], "train_rows": 100000, "max_epochs": 5000}),
+        ),
+        (
+            "training the extended model",
+            json!({"x": x, "null_cases": 5, "candidates": ["probe_leak"], "train_rows": 2000, "max_epochs": 5000}),
+        ),
+    ];
+    for (step, params) in cases {
+        let (status, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": params}))).await;
+        assert_eq!(status, StatusCode::ACCEPTED, "{j}");
+        let id = j["id"].as_str().unwrap().to_string();
+        let t0 = std::time::Instant::now();
+        loop {
+            let (_, _, j) = call(&app, "GET", &format!("/jobs/{id}"), None).await;
+            if j["message"].as_str().unwrap_or("").contains(step) {
+                break;
+            }
+            assert!(t0.elapsed().as_secs() < 300 && j["state"] != "succeeded", "never reached '{step}': {j}");
+            tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
+        let (status, _, _) = call(&app, "POST", &format!("/jobs/{id}/cancel"), None).await;
+        assert_eq!(status, StatusCode::ACCEPTED);
+        let t1 = std::time::Instant::now();
+        let done = tokio::time::timeout(std::time::Duration::from_secs(5), wait(&app, &id)).await;
+        let done = done.unwrap_or_else(|_| panic!("diagnose still running 5 s after cancel (in '{step}')"));
+        assert_eq!(done["state"], "cancelled", "{done}");
+        eprintln!("diagnose cancelled in '{step}' after {:.2} s", t1.elapsed().as_secs_f64());
+        tokio::time::sleep(std::time::Duration::from_millis(1500)).await;
+        assert!(!ctx.data_dir.join("reports").join(&id).exists(), "a report after cancel");
+        assert!(!ctx.data_dir.join("models").join(format!("{id}.otofit")).exists(), "a model after cancel");
+        assert_eq!(call(&app, "GET", &format!("/models/{id}"), None).await.0, StatusCode::NOT_FOUND);
+    }
+}
+
+/// Issue 13.2: one process per data directory; a second `otofit serve` on it refuses to
+/// start and says why.
+#[test]
+fn a_second_server_on_the_same_data_dir_refuses_to_start() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = std::env::temp_dir().join(format!("otofit-lock-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut first = start(port, &dir);
+    assert_eq!(http(port, "GET", "/health", None).unwrap().0, 200);
+    let port2 = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let mut second = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["serve", "--addr", &format!("127.0.0.1:{port2}"), "--data-dir", dir.to_str().unwrap()])
+        .args(["--default-model", default_model().to_str().unwrap()])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut status = None;
+    for _ in 0..100 {
+        status = second.try_wait().unwrap();
+        if status.is_some() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    if status.is_none() {
+        second.kill().unwrap();
+        second.wait().unwrap();
+    }
+    first.kill().unwrap();
+    first.wait().unwrap();
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut second.stderr.take().unwrap(), &mut err).unwrap();
+    assert!(status.is_some_and(|s| !s.success()), "the second server started");
+    assert!(err.contains("is in use by another otofit process") && err.contains(&first.id().to_string()), "{err}");
+    // In-process too; the lock goes with the process (killed above), so the dir is free again.
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let ctx = rt.block_on(otofit::cli::serve::open(&dir, &default_model(), 8)).unwrap();
+    let again = rt.block_on(otofit::cli::serve::open(&dir, &default_model(), 8));
+    assert!(again.err().unwrap().to_string().contains("in use"));
+    drop(ctx);
+    assert!(rt.block_on(otofit::cli::serve::open(&dir, &default_model(), 8)).is_ok());
+}
