@@ -54,6 +54,9 @@ pub enum BenchWhat {
         cases: usize,
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// Feature groups given, comma-separated (e.g. impedance,absorbance: WBT alone); all if empty.
+        #[arg(long, default_value = "")]
+        measures: String,
     },
     /// Discrepancy naming on hidden-effect cases (simulator-only pipeline).
     Discrepancy {
@@ -73,7 +76,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Sim { runs } => sim(runs),
         BenchWhat::Npe { data, model, held } => npe_bench(data, &model, held),
         BenchWhat::Infer { clients, requests, samples } => infer(clients, requests, samples),
-        BenchWhat::Fit { model, cases, seed } => super::bench_fit::run(&model, cases, seed),
+        BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
         BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
     }
 }

@@ -29,10 +29,9 @@ struct Outcome {
     readings: Vec<Differential>,
 }
 
-fn infer_one(npe: &Npe, x: &[f64], seed: u64) -> Result<Outcome> {
-    let present = vec![true; x.len()];
-    let inf = npe.infer(&Obs { x, present: None }, 1000, seed)?;
-    let fit = fit_check(npe, x, &present, &inf)?;
+fn infer_one(npe: &Npe, x: &[f64], present: &[bool], seed: u64) -> Result<Outcome> {
+    let inf = npe.infer(&Obs { x, present: Some(present) }, 1000, seed)?;
+    let fit = fit_check(npe, x, present, &inf)?;
     let worst = fit.worst_measure.as_ref().map_or(0.0, |w| w.1);
     Ok(Outcome { ok: fit.ok, chi2: fit.reduced_chi2, worst, readings: read(npe.params(), &inf.samples) })
 }
@@ -53,7 +52,8 @@ fn simulate(npe: &Npe, design: &Design, rows: &[Vec<f64>], seed: u64) -> Result<
     Ok(run_rows(model, design, rows, 0, Some(&noise)).into_iter().filter_map(|r| r.ok()).collect())
 }
 
-pub fn run(model: &Path, cases: usize, seed: u64) -> Result<()> {
+/// `measures`: the feature groups given (e.g. "impedance,absorbance"); all when empty.
+pub fn run(model: &Path, cases: usize, seed: u64, measures: &str) -> Result<()> {
     if !(5..=10_000).contains(&cases) {
         bail!("--cases must be 5..=10000 (got {cases})");
     }
@@ -61,13 +61,25 @@ pub fn run(model: &Path, cases: usize, seed: u64) -> Result<()> {
     if npe.header.fit_null.is_none() {
         bail!("{} has no fit-check null: run `otofit calibrate --tune` first", model.display());
     }
+    let f = npe.header.feature_names.len();
+    let mut present = vec![measures.is_empty(); f];
+    for name in measures.split(',').filter(|m| !m.is_empty()) {
+        let Some(g) = npe.header.groups.iter().find(|g| g.name == name.trim()) else {
+            let known: Vec<&str> = npe.header.groups.iter().map(|g| g.name.as_str()).collect();
+            bail!("--measures: unknown group '{name}' (known: {})", known.join(", "));
+        };
+        g.features.iter().for_each(|&i| present[i] = true);
+    }
+    if !measures.is_empty() {
+        println!("measures given: {measures}");
+    }
     let base = Design::default();
     // 1. The null: prior draws, no effect, 1× noise (seeds the calibration never used).
     let rows = base.draw(seed ^ 0xBE7C, 0, cases);
     let null: Vec<Outcome> = simulate(&npe, &base, &rows, seed)?
         .iter()
         .enumerate()
-        .map(|(k, x)| infer_one(&npe, x, seed + k as u64))
+        .map(|(k, x)| infer_one(&npe, x, &present, seed + k as u64))
         .collect::<Result<_>>()?;
     let null_ok = rate(&null, |o| o.ok == Some(true));
     println!(
@@ -86,7 +98,7 @@ pub fn run(model: &Path, cases: usize, seed: u64) -> Result<()> {
         let out: Vec<Outcome> = simulate(&npe, &design, &rows, seed ^ 0xEF)?
             .iter()
             .enumerate()
-            .map(|(k, x)| infer_one(&npe, x, seed + k as u64))
+            .map(|(k, x)| infer_one(&npe, x, &present, seed + k as u64))
             .collect::<Result<_>>()?;
         let flagged = rate(&out, |o| o.ok == Some(false));
         let unit = EFFECTS.iter().find(|e| e.name == name).map_or("", |e| e.unit);
@@ -106,9 +118,9 @@ pub fn run(model: &Path, cases: usize, seed: u64) -> Result<()> {
     let model_sim = crate::discrepancy::fitcheck::simulator_for(&npe)?;
     let clean = run_rows(model_sim, &base, std::slice::from_ref(&centre), 0, None).remove(0)?;
     let noise = Noise { std: npe.header.noise_std.clone(), scale: 1.0, seed: seed ^ 0xCE };
-    let mut centred = vec![infer_one(&npe, &clean, seed)?];
+    let mut centred = vec![infer_one(&npe, &clean, &present, seed)?];
     for k in 0..cases {
-        centred.push(infer_one(&npe, &noise.apply(&clean, k), seed + k as u64)?);
+        centred.push(infer_one(&npe, &noise.apply(&clean, k), &present, seed + k as u64)?);
     }
     let benign = |o: &Outcome| o.readings.iter().all(|d| d.reading == "within" || d.reading == "undetermined");
     let centred_ok = rate(&centred, benign);
@@ -123,7 +135,7 @@ pub fn run(model: &Path, cases: usize, seed: u64) -> Result<()> {
     }
     // 4. The nominal ear, noise-free (the openapi.yaml example).
     let nominal = run_rows(model_sim, &base, &[crate::sim::Theta::nominal().0.to_vec()], 0, None).remove(0)?;
-    let nom = infer_one(&npe, &nominal, seed)?;
+    let nom = infer_one(&npe, &nominal, &present, seed)?;
     println!("nominal ear (openapi example): fit.ok {:?}, benign readings {}", nom.ok, benign(&nom));
     for d in &nom.readings {
         println!(
@@ -134,6 +146,7 @@ pub fn run(model: &Path, cases: usize, seed: u64) -> Result<()> {
     let doc = json!({
         "model": model.display().to_string(),
         "cases": cases,
+        "measures": if measures.is_empty() { "all" } else { measures },
         "null_fit_ok": null_ok,
         "hidden_effects": detect,
         "centre_benign": centred_ok,

@@ -104,6 +104,15 @@ fn infer_one(
 }
 
 pub fn run(a: StudyArgs) -> Result<()> {
+    if !(1..=100_000).contains(&a.n) {
+        anyhow::bail!("--n must be 1..=100000 (got {})", a.n);
+    }
+    if !(100..=1_000_000).contains(&a.train_rows) {
+        anyhow::bail!("--train-rows must be 100..=1000000 (got {})", a.train_rows);
+    }
+    if !(1..=5000).contains(&a.max_epochs) {
+        anyhow::bail!("--max-epochs must be 1..=5000 (got {})", a.max_epochs);
+    }
     let model = Model::new(ModelConfig::default())?;
     let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed: a.seed ^ 0x0B5 };
     let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();

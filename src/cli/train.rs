@@ -29,6 +29,10 @@ pub struct TrainArgs {
     /// Drop whole feature groups at random so one network answers any subset.
     #[arg(long)]
     pub mask_groups: bool,
+    /// Also cut the ends of each group's band at random (up to a quarter of the grid) so
+    /// one network answers sub-band measurements (needs --mask-groups).
+    #[arg(long)]
+    pub mask_bands: bool,
     /// Train K flows from different seeds and store them as one equal-weight ensemble.
     #[arg(long, default_value_t = 1)]
     pub ensemble: usize,
@@ -67,6 +71,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         seed: args.seed,
         max_epochs: args.max_epochs,
         mask_groups: args.mask_groups,
+        mask_bands: args.mask_bands,
         ensemble: args.ensemble,
         ..TrainSettings::default()
     };

@@ -8,7 +8,7 @@
 
 use super::workflow::check_present;
 use super::{Band, Observation};
-use crate::npe::{FitNull, Inference, Npe, Obs};
+use crate::npe::{FitNull, Inference, Npe, Obs, SubsetNull};
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::output::feature_names;
 use crate::sim::{Model, ModelConfig, PARAMS};
@@ -131,18 +131,44 @@ fn statistics(
     Ok((c, input_score(npe, x, present)))
 }
 
+/// Names of the feature groups with at least one feature present, sorted.
+fn present_groups(npe: &Npe, present: &[bool]) -> Vec<String> {
+    let mut g: Vec<String> =
+        npe.header.groups.iter().filter(|g| g.features.iter().any(|&i| present[i])).map(|g| g.name.clone()).collect();
+    g.sort();
+    g
+}
+
+/// The thresholds for the groups given: the subset's own when calibrated, else those
+/// measured with every group.
+fn thresholds(npe: &Npe, present: &[bool]) -> Option<SubsetNull> {
+    let null = npe.header.fit_null.as_ref()?;
+    let given = present_groups(npe, present);
+    let all = given.len() == npe.header.groups.len() || npe.header.groups.is_empty();
+    match null.subsets.iter().find(|s| s.groups == given) {
+        Some(s) if !all => Some(s.clone()),
+        _ => Some(SubsetNull {
+            groups: given,
+            reduced_chi2: null.reduced_chi2,
+            measure_chi2: null.measure_chi2,
+            input_score: null.input_score,
+        }),
+    }
+}
+
 /// Checks one inference against the model's null.
 pub fn fit_check(npe: &Npe, x: &[f64], present: &[bool], inf: &Inference) -> Result<FitCheck, FitCheckError> {
     let model = simulator_for(npe)?;
     let (c, score) = statistics(model, npe, x, present, inf)?;
-    let null = npe.header.fit_null.as_ref();
+    let null = thresholds(npe, present);
     let worst = worst_measure(&c.z, present);
-    let measure_threshold = null.filter(|n| n.measure_chi2 > 0.0).map(|n| n.measure_chi2);
+    let measure_threshold = null.as_ref().filter(|n| n.measure_chi2 > 0.0).map(|n| n.measure_chi2);
     let measure_ok = measure_threshold.map(|t| worst.as_ref().is_none_or(|w| w.1 <= t));
-    let chi_ok = null.map(|n| c.reduced_chi2 <= n.reduced_chi2).zip(measure_ok.or(Some(true))).map(|(a, b)| a && b);
-    let input_ok = null.map(|n| score <= n.input_score);
+    let chi_ok =
+        null.as_ref().map(|n| c.reduced_chi2 <= n.reduced_chi2).zip(measure_ok.or(Some(true))).map(|(a, b)| a && b);
+    let input_ok = null.as_ref().map(|n| score <= n.input_score);
     let ok = chi_ok.zip(input_ok).map(|(a, b)| a && b);
-    let overall_ok = null.map(|n| c.reduced_chi2 <= n.reduced_chi2);
+    let overall_ok = null.as_ref().map(|n| c.reduced_chi2 <= n.reduced_chi2);
     let reason = match (overall_ok, chi_ok, input_ok) {
         (Some(true), Some(false), _) => {
             let (name, v) = worst.clone().unwrap_or_default();
@@ -157,25 +183,25 @@ pub fn fit_check(npe: &Npe, x: &[f64], present: &[bool], inf: &Inference) -> Res
             "the model does not reproduce these measurements: posterior-predictive reduced χ² {:.2} exceeds {:.2}, \
              which only {:.0} % of the model's own simulated ears exceed",
             c.reduced_chi2,
-            null.map_or(f64::NAN, |n| n.reduced_chi2),
+            null.as_ref().map_or(f64::NAN, |n| n.reduced_chi2),
             100.0 * (1.0 - NULL_QUANTILE)
         )),
         (_, _, Some(false)) => Some(format!(
             "these measurements lie outside what the model was trained on (input score {score:.1} > {:.1})",
-            null.map_or(f64::NAN, |n| n.input_score)
+            null.as_ref().map_or(f64::NAN, |n| n.input_score)
         )),
         _ => None,
     };
     Ok(FitCheck {
         reduced_chi2: c.reduced_chi2,
-        threshold: null.map(|n| n.reduced_chi2),
+        threshold: null.as_ref().map(|n| n.reduced_chi2),
         ok,
         worst_measure: worst,
         measure_threshold,
         bands: c.bands,
         spearman: c.spearman,
         input_score: score,
-        input_threshold: null.map(|n| n.input_score),
+        input_threshold: null.as_ref().map(|n| n.input_score),
         features: present.iter().filter(|&&p| p).count(),
         draws: DRAWS.min(inf.samples.len()),
         reason,
@@ -194,29 +220,62 @@ pub fn null(npe: &Npe, cases: usize, seed: u64) -> Result<FitNull, FitCheckError
     let design = Design::default();
     let rows = design.draw(seed ^ 0x00F1_7C4E, 0, cases);
     let noise = Noise { std: npe.header.noise_std.clone(), scale: sigma_scale(npe), seed: seed ^ 0x00F1_7C4E };
-    let sims = run_rows(model, &design, &rows, 0, Some(&noise));
-    let (mut chi, mut scores, mut worst) = (Vec::new(), Vec::new(), Vec::new());
-    for (k, x) in sims.into_iter().enumerate() {
-        let Ok(x) = x else { continue };
-        let present = vec![true; x.len()];
-        let inf = npe
-            .infer(&Obs { x: &x, present: None }, NULL_SAMPLES, seed.wrapping_add(k as u64))
-            .map_err(|e| FitCheckError::Inference(format!("{e:#}")))?;
-        let (c, score) = statistics(model, npe, &x, &present, &inf)?;
-        chi.push(c.reduced_chi2);
-        scores.push(score);
-        worst.push(worst_measure(&c.z, &present).map_or(0.0, |w| w.1));
-    }
-    if chi.len() < cases / 2 {
+    let sims: Vec<Vec<f64>> =
+        run_rows(model, &design, &rows, 0, Some(&noise)).into_iter().filter_map(|r| r.ok()).collect();
+    if sims.len() < cases / 2 {
         return Err(FitCheckError::Inference("most null cases failed to simulate".into()));
+    }
+    let f = npe.header.feature_names.len();
+    let full = subset_null(model, npe, &sims, &vec![true; f], seed)?;
+    // Every proper, non-empty subset of groups, for models that accept subsets.
+    let groups = &npe.header.groups;
+    let mut subsets = Vec::new();
+    if npe.header.mask_groups && groups.len() > 1 && groups.len() <= 6 {
+        for bits in 1..(1u32 << groups.len()) - 1 {
+            let mut present = vec![false; f];
+            for (j, g) in groups.iter().enumerate() {
+                if bits & (1 << j) != 0 {
+                    g.features.iter().for_each(|&i| present[i] = true);
+                }
+            }
+            subsets.push(subset_null(model, npe, &sims, &present, seed)?);
+        }
     }
     Ok(FitNull {
         quantile: NULL_QUANTILE,
-        reduced_chi2: quantile(chi.clone(), NULL_QUANTILE),
-        input_score: quantile(scores, NULL_QUANTILE),
-        measure_chi2: quantile(worst, NULL_QUANTILE),
-        cases: chi.len(),
+        reduced_chi2: full.reduced_chi2,
+        input_score: full.input_score,
+        measure_chi2: full.measure_chi2,
+        cases: sims.len(),
         draws: DRAWS,
+        subsets,
+    })
+}
+
+/// The null quantiles with only the features in `present` given.
+fn subset_null(
+    model: &Model,
+    npe: &Npe,
+    sims: &[Vec<f64>],
+    present: &[bool],
+    seed: u64,
+) -> Result<SubsetNull, FitCheckError> {
+    let (mut chi, mut scores, mut worst) = (Vec::new(), Vec::new(), Vec::new());
+    for (k, x) in sims.iter().enumerate() {
+        let obs = Obs { x, present: Some(present) };
+        let inf = npe
+            .infer(&obs, NULL_SAMPLES, seed.wrapping_add(k as u64))
+            .map_err(|e| FitCheckError::Inference(format!("{e:#}")))?;
+        let (c, score) = statistics(model, npe, x, present, &inf)?;
+        chi.push(c.reduced_chi2);
+        scores.push(score);
+        worst.push(worst_measure(&c.z, present).map_or(0.0, |w| w.1));
+    }
+    Ok(SubsetNull {
+        groups: present_groups(npe, present),
+        reduced_chi2: quantile(chi, NULL_QUANTILE),
+        measure_chi2: quantile(worst, NULL_QUANTILE),
+        input_score: quantile(scores, NULL_QUANTILE),
     })
 }
 

@@ -29,6 +29,32 @@ pub struct FlowConfig {
 }
 
 impl FlowConfig {
+    /// Checks settings read from a file: sizes the code can build (bins 2..=31 — the
+    /// spline knots live in fixed arrays — positive widths, a positive tail bound, and
+    /// one permutation of 0..dim per transform).
+    pub fn validate(&self) -> Result<(), String> {
+        let perm_ok = |p: &Vec<usize>| {
+            let mut q = p.clone();
+            q.sort_unstable();
+            q.iter().copied().eq(0..self.dim)
+        };
+        let checks = [
+            (self.dim >= 1 && self.dim <= 1000, "dim must be 1..=1000"),
+            (self.inputs >= 1 && self.inputs <= 100_000, "inputs must be 1..=100000"),
+            ((2..=31).contains(&self.bins), "bins must be 2..=31"),
+            ((1..=64).contains(&self.transforms), "transforms must be 1..=64"),
+            ((1..=4096).contains(&self.hidden), "hidden must be 1..=4096"),
+            (self.embedding.iter().all(|w| (1..=4096).contains(w)), "embedding widths must be 1..=4096"),
+            (self.bound.is_finite() && self.bound > 0.0, "bound must be finite and > 0"),
+            (self.permutations.len() == self.transforms, "one permutation per transform"),
+            (self.permutations.iter().all(perm_ok), "each permutation must reorder 0..dim"),
+        ];
+        match checks.iter().find(|(ok, _)| !ok) {
+            Some((_, why)) => Err(format!("flow settings: {why}")),
+            None => Ok(()),
+        }
+    }
+
     /// The defaults of npe.md: 3×50 embedding, 5 transforms, 2×50 conditioners, 10 bins.
     pub fn new(dim: usize, inputs: usize, embedding: bool) -> FlowConfig {
         let transforms = 5;

@@ -108,8 +108,18 @@ pub struct Values {
     pub values: Vec<f64>,
 }
 
-/// Checks one measured curve and interpolates it in log-frequency onto `grid`.
-fn resample(field: &str, f: &[f64], v: &[f64], grid: &[f64], errs: &mut Vec<(String, String)>) -> Option<Vec<f64>> {
+/// Checks one measured curve and interpolates it in log-frequency onto `grid`. With
+/// `cut = Some(k)` (a band-masked model) the curve may cover a sub-band that leaves out at
+/// most `k` grid points at each end: grid points outside it are NaN (absent), never
+/// extrapolated.
+fn resample(
+    field: &str,
+    f: &[f64],
+    v: &[f64],
+    grid: &[f64],
+    cut: Option<usize>,
+    errs: &mut Vec<(String, String)>,
+) -> Option<Vec<f64>> {
     let before = errs.len();
     if f.len() < 2 {
         errs.push((format!("{field}.frequencies_hz"), "needs at least 2 points".into()));
@@ -124,6 +134,33 @@ fn resample(field: &str, f: &[f64], v: &[f64], grid: &[f64], errs: &mut Vec<(Str
     }
     if errs.len() > before {
         return None;
+    }
+    let inside = |g: f64| g >= f[0] * 0.995 && g <= f[f.len() - 1] * 1.005;
+    if let Some(k) = cut {
+        let lo = grid.iter().position(|&g| inside(g));
+        let hi = grid.iter().rposition(|&g| inside(g));
+        let n = grid.len();
+        match lo.zip(hi) {
+            Some((lo, hi)) if lo <= k && n - 1 - hi <= k => {
+                let mut out = crate::sim::output::interpolate_log_f(f, v, grid);
+                out.iter_mut().zip(grid).filter(|(_, g)| !inside(**g)).for_each(|(o, _)| *o = f64::NAN);
+                return Some(out);
+            }
+            _ => {
+                errs.push((
+                    format!("{field}.frequencies_hz"),
+                    format!(
+                        "must reach from at most {:.0} Hz to at least {:.0} Hz (got {:.0}–{:.0}); this model was trained \
+                         with up to {k} grid points missing at each end and never extrapolates",
+                        grid[k],
+                        grid[n - 1 - k],
+                        f[0],
+                        f[f.len() - 1]
+                    ),
+                ));
+                return None;
+            }
+        }
     }
     if f[0] > grid[0] * 1.005 || f[f.len() - 1] < grid[grid.len() - 1] * 0.995 {
         errs.push((
@@ -187,12 +224,28 @@ fn plausible(x: &[f64], grid: &[f64], errs: &mut Vec<(String, String)>) {
     }
 }
 
+/// The band of each measure given, as (first, last) model-grid frequency used.
+fn bands_used(npe: &Npe, present: &[bool]) -> serde_json::Map<String, serde_json::Value> {
+    let grid = &npe.header.frequencies_hz;
+    let n = grid.len().max(1);
+    crate::sim::output::MEASURES
+        .iter()
+        .enumerate()
+        .filter_map(|(m, ms)| {
+            let on: Vec<usize> = (0..n).filter(|&k| present.get(m * n + k).copied().unwrap_or(false)).collect();
+            let (lo, hi) = (on.first()?, on.last()?);
+            Some((ms.name.to_string(), json!([grid[*lo], grid[*hi]])))
+        })
+        .collect()
+}
+
 /// The model's feature vector and presence flags from the measurements.
 /// Features on the model grid, which are present, and the measures used.
 type Features = (Vec<f64>, Vec<bool>, Vec<&'static str>);
 
 fn features(npe: &Npe, m: &Measurements) -> Result<Features, Problem> {
     let grid = &npe.header.frequencies_hz;
+    let cut = npe.header.mask_bands.then_some(npe.header.band_cut_max);
     let n = grid.len();
     let mut errs = Vec::new();
     if n == 0 || npe.header.feature_names.len() != 5 * n {
@@ -226,8 +279,8 @@ fn features(npe: &Npe, m: &Measurements) -> Result<Features, Problem> {
             let logmag: Vec<f64> = mag.iter().map(|v| v.log10()).collect();
             let phase = crate::sim::output::unwrap(phase.into_iter());
             if let (Some(a), Some(b)) = (
-                resample(&fld, &mp.frequencies_hz, &logmag, grid, errs),
-                resample(&fld, &mp.frequencies_hz, &phase, grid, errs),
+                resample(&fld, &mp.frequencies_hz, &logmag, grid, cut, errs),
+                resample(&fld, &mp.frequencies_hz, &phase, grid, cut, errs),
             ) {
                 x[block * n..(block + 1) * n].copy_from_slice(&a);
                 x[(block + 1) * n..(block + 2) * n].copy_from_slice(&b);
@@ -251,7 +304,7 @@ fn features(npe: &Npe, m: &Measurements) -> Result<Features, Problem> {
                 ),
             ));
         }
-        if let Some(v) = resample("measurements.absorbance", &a.frequencies_hz, &a.values, grid, &mut errs) {
+        if let Some(v) = resample("measurements.absorbance", &a.frequencies_hz, &a.values, grid, cut, &mut errs) {
             x[4 * n..].copy_from_slice(&v);
             used.push("absorbance");
         }
@@ -316,6 +369,7 @@ pub async fn infer(
             Problem::new(StatusCode::SERVICE_UNAVAILABLE, format!("model '{}' cannot be loaded: {e:#}", row.id))
         })?;
     let (x, present, used) = features(&npe, &req.measurements)?;
+    let band_hz = bands_used(&npe, &present);
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
     let (inf, fit) = tokio::task::spawn_blocking(move || {
@@ -359,6 +413,7 @@ pub async fn infer(
             "interpolated": true,
             "note": "each measure was interpolated linearly in log-frequency onto the model grid (magnitudes as log10, phases unwrapped)",
             "grid_hz": npe.header.frequencies_hz,
+            "band_hz": band_hz,
         },
         "samples_count": n,
         "seed": seed,

@@ -40,6 +40,13 @@ pub struct Header {
     pub groups: Vec<Group>,
     /// Whether the network takes group masks (accepts any subset of groups).
     pub mask_groups: bool,
+    /// Whether the network also takes one presence flag per feature, trained with the
+    /// ends of each group's band cut away (up to `band_cut_max` grid points at each end):
+    /// it then accepts observations covering a sub-band, never extrapolated.
+    #[serde(default)]
+    pub mask_bands: bool,
+    #[serde(default)]
+    pub band_cut_max: usize,
     pub x_mean: Vec<f64>,
     pub x_std: Vec<f64>,
     pub u_mean: Vec<f64>,
@@ -88,6 +95,19 @@ pub struct FitNull {
     /// Held-out cases and posterior draws per case behind the thresholds.
     pub cases: usize,
     pub draws: usize,
+    /// The same thresholds when only some feature groups are given (models trained with
+    /// group masks; e.g. wideband tympanometry without stapes velocity).
+    #[serde(default)]
+    pub subsets: Vec<SubsetNull>,
+}
+
+/// Fit-check thresholds for one subset of feature groups (names sorted).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct SubsetNull {
+    pub groups: Vec<String>,
+    pub reduced_chi2: f64,
+    pub measure_chi2: f64,
+    pub input_score: f64,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
@@ -177,6 +197,39 @@ pub struct Summary {
     pub cv: f64,
 }
 
+/// For a band-masked model: the present band (first, last grid index) of group `g`, `None`
+/// when the group is absent; an error when its features are not one contiguous band or
+/// the band is narrower than training covered (never extrapolated).
+fn band_of(h: &Header, g: &data::Group, present: &dyn Fn(usize) -> bool) -> Result<Option<(usize, usize)>> {
+    let n = h.frequencies_hz.len().max(1);
+    let on: Vec<usize> = g.features.iter().copied().filter(|&i| present(i)).collect();
+    if on.is_empty() {
+        return Ok(None);
+    }
+    // The group's features as grid indices, each index with all of its features present.
+    let mut idx: Vec<usize> = on.iter().map(|i| i % n).collect();
+    idx.sort_unstable();
+    idx.dedup();
+    let (lo, hi) = (idx[0], idx[idx.len() - 1]);
+    let per_index = g.features.len() / n.min(g.features.len()).max(1);
+    if on.len() != (hi - lo + 1) * per_index {
+        bail!("group '{}': the measured frequencies must form one contiguous band", g.name);
+    }
+    if lo > h.band_cut_max || n - 1 - hi > h.band_cut_max {
+        let f = |k: usize| h.frequencies_hz.get(k).copied().unwrap_or(f64::NAN);
+        bail!(
+            "group '{}': the band {:.0}–{:.0} Hz is narrower than this model was trained for (it must reach {:.0} Hz and \
+             {:.0} Hz)",
+            g.name,
+            f(lo),
+            f(hi),
+            f(h.band_cut_max),
+            f(n - 1 - h.band_cut_max)
+        );
+    }
+    Ok(Some((lo, hi)))
+}
+
 impl Npe {
     fn from_parts(header: Header, records: Vec<ModuleRecord>) -> Npe {
         let device = Device::flex();
@@ -220,11 +273,13 @@ impl Npe {
         if bytes.len() < MAGIC.len() + 8 || &bytes[..MAGIC.len()] != MAGIC {
             bail!("not an otofit NPE checkpoint (bad magic)");
         }
-        let n = u64::from_le_bytes(bytes[MAGIC.len()..MAGIC.len() + 8].try_into()?) as usize;
+        let n = u64::from_le_bytes(bytes[MAGIC.len()..MAGIC.len() + 8].try_into()?);
         let start = MAGIC.len() + 8;
-        if bytes.len() < start + n {
-            bail!("truncated checkpoint");
-        }
+        // Lengths come from the file: compare without overflowing.
+        let n = match usize::try_from(n) {
+            Ok(n) if n <= bytes.len() - start => n,
+            _ => bail!("truncated checkpoint (header length {n} exceeds the file)"),
+        };
         let header: Header = serde_json::from_slice(&bytes[start..start + n]).context("checkpoint header")?;
         if header.format_version != FORMAT_VERSION && header.format_version != 1 {
             bail!(
@@ -233,7 +288,8 @@ impl Npe {
             );
         }
         let (d, f) = (header.params.len(), header.feature_names.len());
-        let g = if header.mask_groups { header.groups.len() } else { 0 };
+        let g = if header.mask_groups { header.groups.len() } else { 0 }
+            + if header.mask_bands { header.feature_names.len() } else { 0 };
         let shapes_ok = header.flow.dim == d
             && header.flow.inputs == f + g
             && header.x_mean.len() == f
@@ -243,6 +299,11 @@ impl Npe {
             && header.u_std.len() == d;
         if !shapes_ok {
             bail!("checkpoint header shapes disagree ({d} parameters, {f} features)");
+        }
+        header.flow.validate().map_err(anyhow::Error::msg)?;
+        if header.mask_bands && (header.frequencies_hz.is_empty() || header.band_cut_max >= header.frequencies_hz.len())
+        {
+            bail!("checkpoint band masks need a frequency grid longer than band_cut_max");
         }
         if !(header.temperature.is_finite() && (0.1..=10.0).contains(&header.temperature)) {
             bail!("checkpoint temperature {} is outside 0.1..=10", header.temperature);
@@ -260,10 +321,11 @@ impl Npe {
                 if rest.len() < 8 {
                     bail!("truncated checkpoint (member {k} of {})", header.members);
                 }
-                let len = u64::from_le_bytes(rest[..8].try_into()?) as usize;
-                if rest.len() < 8 + len {
-                    bail!("truncated checkpoint (member {k} of {})", header.members);
-                }
+                let len = u64::from_le_bytes(rest[..8].try_into()?);
+                let len = match usize::try_from(len) {
+                    Ok(l) if l <= rest.len() - 8 => l,
+                    _ => bail!("truncated checkpoint (member {k} of {})", header.members),
+                };
                 out.push(record(&rest[8..8 + len])?);
                 rest = &rest[8 + len..];
             }
@@ -302,7 +364,11 @@ impl Npe {
         if h.mask_groups {
             let mut any = false;
             for g in &h.groups {
-                let on = g.features.iter().all(|&i| present(i));
+                let on = if h.mask_bands {
+                    band_of(h, g, &present)?.is_some()
+                } else {
+                    g.features.iter().all(|&i| present(i))
+                };
                 any |= on;
                 row.push(if on { 1.0 } else { 0.0 });
             }
@@ -317,6 +383,9 @@ impl Npe {
                 if !present(i) && !h.groups.iter().any(|g| g.features.contains(&i)) {
                     bail!("feature '{}' is missing", h.feature_names[i]);
                 }
+            }
+            if h.mask_bands {
+                row.extend((0..f).map(|i| if present(i) && obs.x[i].is_finite() { 1.0 } else { 0.0 }));
             }
         } else if let Some(i) = (0..f).find(|&i| !present(i) || !obs.x[i].is_finite()) {
             bail!("feature '{}' is missing or not finite (this model needs every feature)", h.feature_names[i]);

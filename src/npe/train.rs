@@ -26,6 +26,9 @@ pub struct TrainSettings {
     pub batch: usize,
     pub lr: f64,
     pub mask_groups: bool,
+    /// Also cut each kept group's band at random (up to a quarter of the grid at each end)
+    /// and give the network per-feature presence flags: one model for sub-band inputs.
+    pub mask_bands: bool,
     pub val_fraction: f64,
     /// Flows trained from different seeds and averaged as an equal-weight mixture
     /// (wider, better-calibrated joint posteriors; K× the training time).
@@ -43,6 +46,7 @@ impl Default for TrainSettings {
             batch: 200,
             lr: 5e-4,
             mask_groups: false,
+            mask_bands: false,
             val_fraction: 0.1,
             ensemble: 1,
         }
@@ -78,6 +82,11 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
     if s.mask_groups && ds.groups.is_empty() {
         bail!("--mask-groups needs feature groups (declared in meta.json)");
     }
+    let n_freq = ds.frequencies_hz.len();
+    if s.mask_bands && (!s.mask_groups || n_freq < 8 || f % n_freq != 0) {
+        bail!("--mask-bands needs --mask-groups and a frequency grid (meta.json frequencies_hz) of at least 8 points");
+    }
+    let band_cut_max = if s.mask_bands { n_freq / 4 } else { 0 };
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
     let mut idx: Vec<usize> = (0..n).collect();
     idx.shuffle(&mut rng);
@@ -101,7 +110,8 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2)).sqrt().max(1e-9));
     }
     let groups = if s.mask_groups { ds.groups.clone() } else { vec![] };
-    let cfg = FlowConfig::new(d, f + groups.len(), s.embedding);
+    let flags = groups.len() + if s.mask_bands { f } else { 0 };
+    let cfg = FlowConfig::new(d, f + flags, s.embedding);
     let header = Header {
         format_version: FORMAT_VERSION,
         otofit_version: env!("CARGO_PKG_VERSION").into(),
@@ -110,6 +120,8 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         frequencies_hz: ds.frequencies_hz.clone(),
         groups: ds.groups.clone(),
         mask_groups: s.mask_groups,
+        mask_bands: s.mask_bands,
+        band_cut_max,
         x_mean,
         x_std,
         u_mean,
@@ -143,14 +155,25 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
                 let e: f64 = StandardNormal.sample(rng);
                 inp.push(((ds.x[i][k] + s.noise_scale * ds.noise_std[k] * e - h.x_mean[k]) / h.x_std[k]) as f32);
             }
+            let mut here = vec![true; f];
             for (g, &on) in groups.iter().zip(&keep) {
-                if !on {
-                    for &k in &g.features {
+                // A kept group loses the ends of its band with probability 1/2.
+                let (lo, hi) = if on && s.mask_bands && rng.random::<bool>() {
+                    (rng.random_range(0..=band_cut_max), n_freq - 1 - rng.random_range(0..=band_cut_max))
+                } else {
+                    (0, n_freq.saturating_sub(1))
+                };
+                for &k in &g.features {
+                    if !on || (s.mask_bands && !(lo..=hi).contains(&(k % n_freq))) {
                         inp[start + k] = 0.0;
+                        here[k] = false;
                     }
                 }
             }
             inp.extend(keep.iter().map(|&on| if on { 1.0 } else { 0.0 }));
+            if s.mask_bands {
+                inp.extend(here.iter().map(|&on| if on { 1.0f32 } else { 0.0 }));
+            }
         }
         (v, inp)
     };
@@ -180,8 +203,14 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         if stopped {
             break;
         }
-        device.seed(s.seed.wrapping_add(member as u64));
-        let mut flow = Flow::new(&cfg, &device);
+        // The backend's RNG is process-wide: seeding and initialising under one lock keeps
+        // a seed's weights the same when other trainings run beside this one.
+        let mut flow = {
+            static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
+            let _one_at_a_time = INIT.lock().unwrap_or_else(|e| e.into_inner());
+            device.seed(s.seed.wrapping_add(member as u64));
+            Flow::new(&cfg, &device)
+        };
         let mut opt = AdamConfig::new().with_grad_clipping(Some(GradientClippingConfig::Norm(5.0))).init();
         if member > 0 {
             rng = ChaCha8Rng::seed_from_u64(s.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(member as u64)));

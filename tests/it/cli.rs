@@ -409,3 +409,55 @@ fn the_docker_build_copies_every_file_compiled_into_the_binary() {
     }
     assert!(checked >= 3, "found {checked} include_str! uses");
 }
+
+#[test]
+fn infer_reads_wideband_tympanometry_alone_and_refuses_implausible_and_bad_arguments() {
+    let d = scratch("wbt");
+    let model = Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["simulate", "--n", "1", "--seed", "3", "--out", d.join("one").to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(model.status.success());
+    // One simulated ear, its WBT columns only, from the third grid point (232 Hz) up.
+    let x = std::fs::read_to_string(d.join("one/x.csv")).unwrap();
+    let mut lines = x.lines();
+    let (names, values): (Vec<&str>, Vec<&str>) =
+        (lines.next().unwrap().split(',').collect(), lines.next().unwrap().split(',').collect());
+    let keep: Vec<usize> = (0..names.len()).filter(|&i| i >= 100 && i % 50 >= 2).collect();
+    let row = |v: &[&str]| keep.iter().map(|&i| v[i]).collect::<Vec<_>>().join(",");
+    let obs = d.join("wbt.csv");
+    std::fs::write(&obs, format!("{}\n{}\n", row(&names), row(&values))).unwrap();
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let out = d.join("s.csv");
+    let o = otofit(&[
+        "infer",
+        "--model",
+        model,
+        "--obs",
+        obs.to_str().unwrap(),
+        "--samples",
+        "200",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let doc: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(doc["fit"]["features"], 144, "{}", doc["fit"]);
+    assert!(doc["fit"]["ok"].is_boolean(), "{}", doc["fit"]);
+    assert_eq!(std::fs::read_to_string(&out).unwrap().lines().count(), 201);
+    // The noise table is not an ear: refused, the feature named.
+    let std_csv = concat!(env!("CARGO_MANIFEST_DIR"), "/reference/std.csv");
+    let o = otofit(&["infer", "--model", model, "--obs", std_csv, "--out", out.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("outside the physical range"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let held = d.join("one");
+    let o = otofit(&["calibrate", "--model", model, "--data", held.to_str().unwrap(), "--n", "1", "--samples", "0"]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--samples"), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = otofit(&["calibrate", "--model", model, "--data", held.to_str().unwrap(), "--n", "5"]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("exceeds"), "{}", String::from_utf8_lossy(&o.stderr));
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -781,3 +781,47 @@ fn a_second_server_on_the_same_data_dir_refuses_to_start() {
     drop(ctx);
     assert!(rt.block_on(otofit::cli::serve::open(&dir, &default_model(), 8)).is_ok());
 }
+
+/// The nominal ear's impedance and absorbance as a WBT device reports them: its own grid
+/// (1/12 octave from `f0`), magnitude in `unit`, phase in degrees.
+fn wbt_request(f0: f64, f1: f64) -> Value {
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &Default::default()).unwrap();
+    let grid = model.frequencies().to_vec();
+    let n = grid.len();
+    let mut device: Vec<f64> = (0..).map(|k| f0 * 2f64.powf(k as f64 / 12.0)).take_while(|f| *f < f1 * 0.99).collect();
+    device.push(f1);
+    let on = |b: usize| otofit::sim::output::interpolate_log_f(&grid, &x[b * n..(b + 1) * n], &device);
+    json!({"measurements": {
+        "impedance": {
+            "frequencies_hz": device,
+            "magnitude": on(2).iter().map(|v| 10f64.powf(*v) / 1e5).collect::<Vec<f64>>(),
+            "magnitude_unit": "cgs",
+            "phase": on(3).iter().map(|v| v.to_degrees()).collect::<Vec<f64>>(),
+            "phase_unit": "deg",
+        },
+        "absorbance": {"frequencies_hz": device, "values": on(4)},
+    }})
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn wideband_tympanometry_alone_on_a_sub_band_gets_a_posterior() {
+    let (app, _) = app(vec![], 8, false).await;
+    let (status, _, body) = call(&app, "POST", "/infer", Some(wbt_request(226.0, 8000.0))).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["inputs"]["used"], json!(["impedance", "absorbance"]));
+    let band = body["inputs"]["band_hz"]["zec_mag"].as_array().unwrap();
+    assert!(band[0].as_f64().unwrap() > 226.0 && band[1].as_f64().unwrap() == 8000.0, "{band:?}");
+    assert!(body["inputs"]["band_hz"].get("vst_mag").is_none());
+    assert_eq!(body["fit"]["ok"], true, "{}", body["fit"]);
+    for d in body["differential"].as_array().unwrap() {
+        assert!(["within", "undetermined"].contains(&d["reading"].as_str().unwrap()), "{d}");
+    }
+    // A WBT that stops at 6 kHz is still inside what the model was trained for.
+    let (status, _, body) = call(&app, "POST", "/infer", Some(wbt_request(250.0, 6000.0))).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    // 500–3000 Hz leaves out more than training did: refused, never extrapolated.
+    let (status, _, p) = call(&app, "POST", "/infer", Some(wbt_request(500.0, 3000.0))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert_eq!(p["errors"][0]["field"], "measurements.impedance.frequencies_hz", "{p}");
+}

@@ -101,6 +101,17 @@ fn coverage_on_held_out_simulations_is_not_overconfident() {
     }
 }
 
+/// A checkpoint with its JSON header rewritten by `edit` (the length field kept consistent).
+fn with_header(bytes: &[u8], edit: impl Fn(String) -> String) -> Vec<u8> {
+    let n = u64::from_le_bytes(bytes[11..19].try_into().unwrap()) as usize;
+    let header = edit(String::from_utf8(bytes[19..19 + n].to_vec()).unwrap());
+    let mut out = bytes[..11].to_vec();
+    out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    out.extend_from_slice(&bytes[19 + n..]);
+    out
+}
+
 #[test]
 fn checkpoints_round_trip_and_bad_files_are_refused() {
     let model = trained();
@@ -117,8 +128,18 @@ fn checkpoints_round_trip_and_bad_files_are_refused() {
     let err = |b: &[u8]| Npe::from_bytes(b).err().map(|e| format!("{e:#}")).unwrap_or_default();
     assert!(err(b"hello").contains("bad magic"));
     assert!(err(&bytes[..bytes.len() / 2]).contains("weights") || err(&bytes[..bytes.len() / 2]).contains("truncated"));
-    let text = String::from_utf8_lossy(&bytes).replace("\"format_version\":2", "\"format_version\":9");
-    assert!(err(text.as_bytes()).contains("format 9"));
+    // The header rewritten with an unknown format (its length field kept consistent).
+    let v9 = with_header(&bytes, |h| h.replace("\"format_version\":2", "\"format_version\":9"));
+    assert!(err(&v9).contains("format 9"), "{}", err(&v9));
+    // A header length near u64::MAX (issue 15: once a slice panic) is a named error.
+    let mut huge = bytes.clone();
+    huge[11..19].copy_from_slice(&(u64::MAX - 3).to_le_bytes());
+    assert!(err(&huge).contains("header length"), "{}", err(&huge));
+    // Flow settings the code cannot build (bins ≥ 32 tripped an assert, 0 underflowed).
+    for bad in ["\"bins\":40", "\"bins\":0"] {
+        let b = with_header(&bytes, |h| h.replace("\"bins\":10", bad));
+        assert!(err(&b).contains("bins must be 2..=31"), "{bad}: {}", err(&b));
+    }
     let e = model.sample(&Obs { x: &x[..2], present: None }, 5, 0).unwrap_err();
     assert!(e.to_string().contains("expects 3"), "{e}");
 }
@@ -147,13 +168,10 @@ fn ensembles_store_every_member_and_format_1_still_loads() {
     // Format 1 (one record, no length prefix; files written before ensembles) keeps loading.
     single.save(&dir.join("s.otofit")).unwrap();
     let v2 = std::fs::read(dir.join("s.otofit")).unwrap();
-    let n = u64::from_le_bytes(v2[11..19].try_into().unwrap()) as usize;
-    let header =
-        String::from_utf8(v2[19..19 + n].to_vec()).unwrap().replace("\"format_version\":2", "\"format_version\":1");
-    let mut v1 = v2[..11].to_vec();
-    v1.extend_from_slice(&(header.len() as u64).to_le_bytes());
-    v1.extend_from_slice(header.as_bytes());
-    v1.extend_from_slice(&v2[19 + n + 8..]);
+    // Format 1: the same header with format 1, the one record without its length prefix.
+    let mut v1 = with_header(&v2, |h| h.replace("\"format_version\":2", "\"format_version\":1"));
+    let n1 = 19 + u64::from_le_bytes(v1[11..19].try_into().unwrap()) as usize;
+    v1.drain(n1..n1 + 8);
     let old = Npe::from_bytes(&v1).unwrap();
     assert_eq!((old.header.format_version, old.header.members), (1, 1));
     assert_eq!(old.sample(&obs, 50, 1).unwrap(), single.sample(&obs, 50, 1).unwrap());
