@@ -31,6 +31,8 @@ pub struct Ctx {
     pub max_queue: i64,
     /// The data directory's lock, held as long as this context lives (see `with_lock`).
     data_lock: Option<std::fs::File>,
+    /// Slots and deadline of POST /infer.
+    pub infer_gate: crate::http::InferGate,
 }
 
 impl Ctx {
@@ -43,7 +45,14 @@ impl Ctx {
             models: RwLock::new(HashMap::new()),
             max_queue,
             data_lock: None,
+            infer_gate: crate::http::InferGate::new(crate::http::InferLimits::default()),
         }
+    }
+
+    /// Bounds POST /infer by `limits` instead of the defaults.
+    pub fn with_infer_limits(mut self, limits: crate::http::InferLimits) -> Ctx {
+        self.infer_gate = crate::http::InferGate::new(limits);
+        self
     }
 
     /// Keeps `lock` (the data directory's lock file, locked) for the life of the context.

@@ -28,9 +28,37 @@ pub struct ServeArgs {
     /// Most queued + running jobs before POST /jobs answers 429.
     #[arg(long, default_value_t = 64)]
     pub max_queue: i64,
+    /// Most inferences running at once (default: 2 × cores).
+    #[arg(long)]
+    pub infer_concurrency: Option<usize>,
+    /// Most inferences waiting for a slot before POST /infer answers 503 + Retry-After
+    /// (default: 2 × cores).
+    #[arg(long)]
+    pub infer_queue: Option<usize>,
+    /// Seconds an inference may take, waiting included, before it answers 503.
+    #[arg(long, default_value_t = 10.0)]
+    pub infer_deadline: f64,
+    /// Seconds a connection may stay silent (no byte either way: a half-sent request, an
+    /// idle keep-alive) before it is closed; also bounds a request's total time (408).
+    #[arg(long, default_value_t = 30.0)]
+    pub idle_timeout: f64,
     /// Logs as JSON lines.
     #[arg(long)]
     pub log_json: bool,
+}
+
+impl ServeArgs {
+    fn infer_limits(&self) -> Result<http::InferLimits> {
+        let d = http::InferLimits::default();
+        if !(self.infer_deadline > 0.0 && self.infer_deadline < self.idle_timeout) {
+            bail!("--infer-deadline must be > 0 and below --idle-timeout ({} s)", self.idle_timeout);
+        }
+        Ok(http::InferLimits {
+            concurrency: self.infer_concurrency.unwrap_or(d.concurrency).max(1),
+            queue: self.infer_queue.unwrap_or(d.queue),
+            deadline: std::time::Duration::from_secs_f64(self.infer_deadline),
+        })
+    }
 }
 
 /// Takes the data directory for this process: an exclusive lock (flock) on
@@ -66,8 +94,18 @@ pub fn lock_data_dir(data_dir: &Path) -> Result<std::fs::File> {
 }
 
 /// Locks the data directory, opens the store, recovers interrupted jobs and registers the
-/// default model.
+/// default model; /infer gets the default limits.
 pub async fn open(data_dir: &Path, default_model: &Path, max_queue: i64) -> Result<Arc<Ctx>> {
+    open_with(data_dir, default_model, max_queue, http::InferLimits::default()).await
+}
+
+/// `open` with the given /infer limits.
+pub async fn open_with(
+    data_dir: &Path,
+    default_model: &Path,
+    max_queue: i64,
+    infer: http::InferLimits,
+) -> Result<Arc<Ctx>> {
     std::fs::create_dir_all(data_dir).with_context(|| format!("cannot create {}", data_dir.display()))?;
     let lock = lock_data_dir(data_dir)?;
     let store = Store::open(&data_dir.join("otofit.db")).await.context("opening the database")?;
@@ -81,7 +119,7 @@ pub async fn open(data_dir: &Path, default_model: &Path, max_queue: i64) -> Resu
     } else {
         tracing::warn!(path = %default_model.display(), "default model not found; /infer answers 503 until one is registered");
     }
-    Ok(Arc::new(Ctx::new(store, data_dir.to_path_buf(), max_queue).with_lock(lock)))
+    Ok(Arc::new(Ctx::new(store, data_dir.to_path_buf(), max_queue).with_lock(lock).with_infer_limits(infer)))
 }
 
 pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
@@ -106,27 +144,38 @@ pub fn run(args: ServeArgs) -> Result<()> {
         sub.init()
     }
     let keys = parse_key_hashes(&args.api_key_hashes)?;
+    let limits = args.infer_limits()?;
+    let idle = std::time::Duration::from_secs_f64(args.idle_timeout);
     if !args.addr.ip().is_loopback() && keys.is_empty() {
         tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
     }
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
-        let ctx = open(&args.data_dir, &args.default_model, args.max_queue).await?;
+        let ctx = open_with(&args.data_dir, &args.default_model, args.max_queue, limits).await?;
         let dispatcher = tokio::spawn(jobs::dispatcher(ctx.clone()));
         let app = http::router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) });
-        let listener = tokio::net::TcpListener::bind(args.addr)
+        let inner = tokio::net::TcpListener::bind(args.addr)
             .await
             .with_context(|| format!("cannot listen on {}", args.addr))?;
-        tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), "otofit serving");
+        let listener = http::conn::IdleTimeoutListener { inner, idle };
+        tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), ?limits, "otofit serving");
         let c2 = ctx.clone();
-        axum::serve(listener, app)
-            .with_graceful_shutdown(async move {
-                shutdown_signal().await;
-                tracing::info!("shutting down: no new jobs; the running one stops at its next check");
-                c2.shutdown.store(true, Ordering::Relaxed);
-                c2.notify.notify_one();
-            })
-            .await?;
+        let stopping = Arc::new(tokio::sync::Notify::new());
+        let s2 = stopping.clone();
+        let server = axum::serve(listener, http::with_request_timeout(app, idle)).with_graceful_shutdown(async move {
+            shutdown_signal().await;
+            tracing::info!("shutting down: no new jobs; the running one stops at its next check");
+            c2.shutdown.store(true, Ordering::Relaxed);
+            c2.notify.notify_one();
+            s2.notify_one();
+        });
+        // Open connections get one idle period to finish after the signal, no more.
+        tokio::select! {
+            r = server => r?,
+            _ = async { stopping.notified().await; tokio::time::sleep(idle).await } => {
+                tracing::warn!("connections still open {} s after the signal: closing them", idle.as_secs_f64());
+            }
+        }
         ctx.shutdown.store(true, Ordering::Relaxed);
         ctx.notify.notify_one();
         if tokio::time::timeout(std::time::Duration::from_secs(60), dispatcher).await.is_err() {

@@ -2,6 +2,7 @@
 //! problem details; validation errors name the field. openapi.yaml is the contract and
 //! `ROUTES` the list a test checks it against.
 
+pub mod conn;
 mod infer;
 mod resources;
 
@@ -14,6 +15,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use serde::Serialize;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Duration;
 use subtle::ConstantTimeEq;
 
 /// Every route the server answers: (method, path). openapi.yaml must list exactly these.
@@ -34,6 +37,97 @@ pub const ROUTES: [(&str, &str); 13] = [
 ];
 
 pub const MAX_BODY: usize = 2 * 1024 * 1024;
+
+/// Bounds on `POST /infer`: at most `concurrency` inferences run at once, at most `queue`
+/// more wait for a slot (503 + Retry-After beyond that), and each answers within
+/// `deadline` (waiting included) or gets a 503.
+#[derive(Clone, Copy, Debug)]
+pub struct InferLimits {
+    pub concurrency: usize,
+    pub queue: usize,
+    pub deadline: Duration,
+}
+
+impl Default for InferLimits {
+    /// Two inferences per core, as many waiting, 10 s each.
+    fn default() -> Self {
+        let cores = std::thread::available_parallelism().map_or(2, usize::from);
+        InferLimits { concurrency: 2 * cores, queue: 2 * cores, deadline: Duration::from_secs(10) }
+    }
+}
+
+/// The running state of [`InferLimits`]: slots and the count of requests waiting for one.
+pub struct InferGate {
+    pub limits: InferLimits,
+    slots: Arc<tokio::sync::Semaphore>,
+    waiting: AtomicUsize,
+}
+
+impl InferGate {
+    pub fn new(limits: InferLimits) -> InferGate {
+        InferGate {
+            limits,
+            slots: Arc::new(tokio::sync::Semaphore::new(limits.concurrency.max(1))),
+            waiting: AtomicUsize::new(0),
+        }
+    }
+}
+
+/// Counts a waiting request for as long as it waits (also when its client goes away).
+struct Waiting<'a>(&'a AtomicUsize);
+
+impl Drop for Waiting<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::SeqCst);
+    }
+}
+
+fn busy(detail: String, retry_after: u64) -> Response {
+    let mut r = Problem::new(StatusCode::SERVICE_UNAVAILABLE, detail).into_response();
+    r.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(retry_after));
+    r
+}
+
+/// The /infer gate (a layer on that route): a slot or a short wait for one, then the
+/// request runs in its own task holding the slot until its work is done, even when the
+/// client has been answered 503 at the deadline: the bound is on work, not on replies.
+async fn infer_gate(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    let gate = &st.ctx.infer_gate;
+    let InferLimits { concurrency, queue, deadline } = gate.limits;
+    let t0 = tokio::time::Instant::now();
+    let slot = match gate.slots.clone().try_acquire_owned() {
+        Ok(slot) => slot,
+        Err(_) => {
+            if gate.waiting.fetch_add(1, Ordering::SeqCst) >= queue {
+                gate.waiting.fetch_sub(1, Ordering::SeqCst);
+                return busy(format!("{concurrency} inferences running and {queue} waiting; retry shortly"), 1);
+            }
+            let _waiting = Waiting(&gate.waiting);
+            match tokio::time::timeout(deadline, gate.slots.clone().acquire_owned()).await {
+                Ok(Ok(slot)) => slot,
+                _ => return busy(format!("no inference slot within the {} s deadline", deadline.as_secs_f64()), 1),
+            }
+        }
+    };
+    let work = tokio::spawn(async move {
+        let _slot = slot;
+        next.run(req).await
+    });
+    match tokio::time::timeout_at(t0 + deadline, work).await {
+        Ok(Ok(r)) => r,
+        Ok(Err(e)) => Problem::internal(e).into_response(),
+        Err(_) => {
+            tracing::warn!(ms = t0.elapsed().as_millis() as u64, "inference over its deadline");
+            busy(
+                format!(
+                    "the inference took longer than its {} s deadline; retry, or ask for fewer samples",
+                    deadline.as_secs_f64()
+                ),
+                2,
+            )
+        }
+    }
+}
 
 #[derive(Clone)]
 pub struct AppState {
@@ -144,13 +238,47 @@ async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response 
     }
 }
 
-async fn too_large(req: Request, next: Next) -> Response {
+/// Every error answer as problem+json: those of axum itself (405, extractor rejections),
+/// of tower-http (413, 408) and of handlers that are not problems yet. The headers that go
+/// with a status (Allow, Retry-After, WWW-Authenticate) are kept.
+async fn problems(req: Request, next: Next) -> Response {
     let r = next.run(req).await;
-    if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
-        return Problem::new(StatusCode::PAYLOAD_TOO_LARGE, format!("request body over {MAX_BODY} bytes"))
-            .into_response();
+    let status = r.status();
+    let is_problem = r.headers().get(header::CONTENT_TYPE).is_some_and(|v| v == "application/problem+json");
+    if !(status.is_client_error() || status.is_server_error()) || is_problem {
+        return r;
     }
-    r
+    let (parts, body) = r.into_parts();
+    let text = axum::body::to_bytes(body, 4096).await.unwrap_or_default();
+    let text = String::from_utf8_lossy(&text).trim().to_string();
+    let allow = parts.headers.get(header::ALLOW).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
+    let mut p = match status {
+        StatusCode::PAYLOAD_TOO_LARGE => Problem::new(status, format!("request body over {MAX_BODY} bytes")),
+        StatusCode::METHOD_NOT_ALLOWED => Problem::new(status, format!("method not allowed here; allowed: {allow}")),
+        StatusCode::REQUEST_TIMEOUT => Problem::new(status, "the request was not received and answered in time"),
+        _ if text.is_empty() => Problem::new(status, status.canonical_reason().unwrap_or("error")),
+        _ => Problem::new(status, text.clone()),
+    };
+    // Query/path rejections name the parameter: "Failed to deserialize query string: limit: …".
+    if status == StatusCode::BAD_REQUEST
+        && let Some(rest) = text.split_once("query string: ").or_else(|| text.split_once("path parameter")).map(|x| x.1)
+        && let Some((field, message)) = rest.split_once(": ")
+    {
+        p.errors = vec![FieldProblem { field: field.trim().trim_matches('`').to_string(), message: message.into() }];
+    }
+    let mut out = p.into_response();
+    for h in [header::ALLOW, header::RETRY_AFTER, header::WWW_AUTHENTICATE] {
+        if let Some(v) = parts.headers.get(&h) {
+            out.headers_mut().insert(h, v.clone());
+        }
+    }
+    out
+}
+
+/// Bounds every request's total time, body included: 408 after `timeout`.
+pub fn with_request_timeout(app: Router, timeout: Duration) -> Router {
+    app.layer(tower_http::timeout::TimeoutLayer::with_status_code(StatusCode::REQUEST_TIMEOUT, timeout))
+        .layer(middleware::from_fn(problems))
 }
 
 pub fn router(state: AppState) -> Router {
@@ -161,7 +289,7 @@ pub fn router(state: AppState) -> Router {
         .route("/openapi.yaml", get(openapi))
         .route("/models", get(list_models))
         .route("/models/{id}", get(get_model))
-        .route("/infer", post(infer::infer))
+        .route("/infer", post(infer::infer).layer(middleware::from_fn_with_state(state.clone(), infer_gate)))
         .route("/jobs", post(create_job).get(list_jobs))
         .route("/jobs/{id}", get(get_job))
         .route("/jobs/{id}/cancel", post(cancel_job))
@@ -171,7 +299,7 @@ pub fn router(state: AppState) -> Router {
         .fallback(|| async { Problem::new(StatusCode::NOT_FOUND, "no such route") })
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(tower_http::limit::RequestBodyLimitLayer::new(MAX_BODY))
-        .layer(middleware::from_fn(too_large))
+        .layer(middleware::from_fn(problems))
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(state)
 }

@@ -738,6 +738,19 @@ async fn cancel_diagnoses() {
     }
 }
 
+/// The child's exit status if it ends within `secs`; otherwise it is killed and `None`.
+fn exit_within(child: &mut std::process::Child, secs: u64) -> Option<std::process::ExitStatus> {
+    for _ in 0..secs * 10 {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(status);
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    None
+}
+
 /// Issue 13.2: one process per data directory; a second `otofit serve` on it refuses to
 /// start and says why.
 #[test]
@@ -755,18 +768,7 @@ fn a_second_server_on_the_same_data_dir_refuses_to_start() {
         .stderr(std::process::Stdio::piped())
         .spawn()
         .unwrap();
-    let mut status = None;
-    for _ in 0..100 {
-        status = second.try_wait().unwrap();
-        if status.is_some() {
-            break;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(100));
-    }
-    if status.is_none() {
-        second.kill().unwrap();
-        second.wait().unwrap();
-    }
+    let status = exit_within(&mut second, 10);
     first.kill().unwrap();
     first.wait().unwrap();
     let mut err = String::new();
@@ -824,4 +826,103 @@ async fn wideband_tympanometry_alone_on_a_sub_band_gets_a_posterior() {
     let (status, _, p) = call(&app, "POST", "/infer", Some(wbt_request(500.0, 3000.0))).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
     assert_eq!(p["errors"][0]["field"], "measurements.impedance.frequencies_hz", "{p}");
+}
+
+/// A router whose /infer has the given limits (its own data dir).
+async fn limited_app(limits: otofit::http::InferLimits) -> Router {
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    let dir = std::env::temp_dir().join(format!("otofit-limits-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let ctx = otofit::cli::serve::open_with(&dir, &default_model(), 8, limits).await.unwrap();
+    router(AppState { ctx, key_hashes: Arc::new(vec![]) })
+}
+
+/// Issue 13.3: /infer runs at most `concurrency` at once with a short queue, answers 503 +
+/// Retry-After (problem+json) beyond it, and 503 once past its deadline.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn infer_is_bounded_in_concurrency_and_time() {
+    use otofit::http::InferLimits;
+    let secs = std::time::Duration::from_secs;
+    let mut req = nominal_request();
+    req["samples"] = json!(20000);
+    req["return_samples"] = json!(false);
+    let app = limited_app(InferLimits { concurrency: 1, queue: 1, deadline: secs(60) }).await;
+    let calls: Vec<_> = (0..8)
+        .map(|_| {
+            let (app, req) = (app.clone(), req.clone());
+            tokio::spawn(async move { call(&app, "POST", "/infer", Some(req)).await })
+        })
+        .collect();
+    let (mut ok, mut busy) = (0, 0);
+    for c in calls {
+        let (status, headers, body) = c.await.unwrap();
+        match status {
+            StatusCode::OK => ok += 1,
+            StatusCode::SERVICE_UNAVAILABLE => {
+                busy += 1;
+                assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+                assert_eq!(headers[header::RETRY_AFTER], "1");
+                assert!(body["detail"].as_str().unwrap().contains("1 inferences running and 1 waiting"), "{body}");
+            }
+            other => panic!("{other}: {body}"),
+        }
+    }
+    assert!(ok >= 2 && busy >= 1 && ok + busy == 8, "{ok} answered, {busy} turned away");
+    // Past the deadline: 503 with Retry-After, not a connection held open.
+    let app =
+        limited_app(InferLimits { concurrency: 1, queue: 1, deadline: std::time::Duration::from_millis(5) }).await;
+    let (status, headers, body) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert!(headers.contains_key(header::RETRY_AFTER));
+    assert!(body["detail"].as_str().unwrap().contains("deadline"), "{body}");
+}
+
+/// Issue 13.3: a connection that sends half a request is closed after the idle timeout, and
+/// does not hold up a SIGTERM shutdown.
+#[test]
+fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
+    use std::io::{Read, Write};
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = std::env::temp_dir().join(format!("otofit-idle-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut server = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap()])
+        .args(["--default-model", default_model().to_str().unwrap(), "--idle-timeout", "1", "--infer-deadline", "0.5"])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    for _ in 0..100 {
+        if http(port, "GET", "/health", None).is_some() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let half = |bytes: &str| {
+        let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+        s.set_read_timeout(Some(std::time::Duration::from_secs(10))).unwrap();
+        s.write_all(bytes.as_bytes()).unwrap();
+        s
+    };
+    // Half the headers; then full headers and half the body.
+    for bytes in [
+        "POST /jobs HTTP/1.1\r\nHost: t\r\nContent-Le",
+        "POST /jobs HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{\"kind\":",
+    ] {
+        let t0 = std::time::Instant::now();
+        let mut s = half(bytes);
+        let mut out = Vec::new();
+        let _ = s.read_to_end(&mut out); // EOF (or a reset) once the server lets go
+        let waited = t0.elapsed().as_secs_f64();
+        assert!(waited < 5.0, "held {waited:.1} s: {}", String::from_utf8_lossy(&out));
+    }
+    // SIGTERM with a half-sent request open: the server still exits promptly.
+    let _open = half("GET /models HTTP/1.1\r\nHo");
+    std::thread::sleep(std::time::Duration::from_millis(200));
+    let t0 = std::time::Instant::now();
+    std::process::Command::new("kill").args(["-TERM", &server.id().to_string()]).status().unwrap();
+    let exited = exit_within(&mut server, 10);
+    assert!(exited.is_some_and(|s| s.success()), "not stopped 10 s after SIGTERM: {exited:?}");
+    eprintln!("exited {:.2} s after SIGTERM", t0.elapsed().as_secs_f64());
 }
