@@ -235,6 +235,8 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             for (i, v) in p.vary.iter().enumerate() {
                 if Effects::index(v).is_none() {
                     errs.push((format!("params.vary[{i}]"), format!("unknown effect '{v}'")));
+                } else if p.vary[..i].contains(v) {
+                    errs.push((format!("params.vary[{i}]"), format!("'{v}' is already varied")));
                 }
             }
             match (&p.n, &p.theta) {
@@ -306,6 +308,8 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             let p: DiagnoseParams = serde_json::from_value(params.clone()).map_err(de)?;
             if let Some(m) = &p.model {
                 plain_id("params.model", m, &mut errs);
+            } else if params.get("model").is_some() {
+                errs.push(("params.model".into(), "must be a model id, or left out for the default model".into()));
             }
             if let Some(i) = p.x.iter().position(|v| !v.is_finite()) {
                 errs.push((format!("params.x[{i}]"), "must be a finite number".into()));

@@ -191,11 +191,16 @@ impl IntoResponse for Problem {
 /// Parses a JSON body, answering 415 for another content type and 400/422 for bad JSON.
 pub fn json_body<T: serde::de::DeserializeOwned>(headers: &axum::http::HeaderMap, body: &[u8]) -> Result<T, Problem> {
     let ct = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
-    if !ct.starts_with("application/json") {
+    // The media type exactly (any case), parameters such as charset allowed.
+    let media = ct.split(';').next().unwrap_or("").trim();
+    if !media.eq_ignore_ascii_case("application/json") {
         return Err(Problem::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, "send Content-Type: application/json"));
     }
     let de = &mut serde_json::Deserializer::from_slice(body);
-    serde_path_to_error(de)
+    let value = serde_path_to_error(de)?;
+    // One JSON value and nothing after it but whitespace.
+    de.end().map_err(|e| Problem::new(StatusCode::BAD_REQUEST, format!("malformed JSON: {e}")))?;
+    Ok(value)
 }
 
 /// serde_json with the path of the failing field in the error.
@@ -221,8 +226,14 @@ async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response 
     if st.key_hashes.is_empty() || req.uri().path() == "/health" {
         return next.run(req).await;
     }
-    let key =
-        req.headers().get(header::AUTHORIZATION).and_then(|v| v.to_str().ok()).and_then(|v| v.strip_prefix("Bearer "));
+    // The scheme name is case-insensitive (RFC 9110 §11.1).
+    let key = req
+        .headers()
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().split_once(' '))
+        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+        .map(|(_, k)| k.trim());
     let ok = key.is_some_and(|k| {
         use sha2::Digest;
         let h: [u8; 32] = sha2::Sha256::digest(k.as_bytes()).into();

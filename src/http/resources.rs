@@ -167,7 +167,10 @@ pub async fn list_jobs(
     {
         return Err(Problem::invalid(vec![("state".into(), format!("must be one of {}", STATES.join(", ")))]));
     }
-    let limit = q.limit.unwrap_or(100).clamp(1, 1000);
+    let limit = q.limit.unwrap_or(100);
+    if !(1..=1000).contains(&limit) {
+        return Err(Problem::invalid(vec![("limit".into(), format!("must be 1..=1000, got {limit}"))]));
+    }
     let rows = st.ctx.store.jobs(q.state.as_deref(), limit).await.map_err(Problem::internal)?;
     Ok(Json(json!({ "jobs": rows.iter().map(job_doc).collect::<Vec<_>>() })))
 }

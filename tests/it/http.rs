@@ -926,3 +926,55 @@ fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
     assert!(exited.is_some_and(|s| s.success()), "not stopped 10 s after SIGTERM: {exited:?}");
     eprintln!("exited {:.2} s after SIGTERM", t0.elapsed().as_secs_f64());
 }
+
+/// Issue 13.8: contract gaps. Every error is problem+json (405, extractor 400s naming the
+/// parameter); list limits out of range are refused, not clamped; the Bearer scheme is
+/// case-insensitive; a body is one JSON value of exactly application/json.
+#[tokio::test]
+async fn contract_gaps_are_closed() {
+    use sha2::Digest;
+    let (app, _) = app(vec![], 8, false).await;
+    let problem = |h: &axum::http::HeaderMap| h[header::CONTENT_TYPE] == "application/problem+json";
+    let (status, headers, p) = call(&app, "DELETE", "/jobs", None).await;
+    assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED);
+    assert!(problem(&headers) && headers.contains_key(header::ALLOW), "{headers:?}");
+    assert_eq!(p["status"], 405, "{p}");
+    let (status, headers, p) = call(&app, "GET", "/jobs?limit=abc", None).await;
+    assert_eq!((status, problem(&headers)), (StatusCode::BAD_REQUEST, true), "{p}");
+    assert_eq!(p["errors"][0]["field"], "limit", "{p}");
+    for bad in ["0", "-5", "1001"] {
+        let (status, headers, p) = call(&app, "GET", &format!("/jobs?limit={bad}"), None).await;
+        assert_eq!((status, problem(&headers)), (StatusCode::UNPROCESSABLE_ENTITY, true), "limit={bad}: {p}");
+        assert_eq!(p["errors"][0]["field"], "limit", "{p}");
+    }
+    assert_eq!(call(&app, "GET", "/jobs?limit=1000", None).await.0, StatusCode::OK);
+    let post = |ct: &str, body: &str| {
+        Request::post("/jobs").header(header::CONTENT_TYPE, ct).body(Body::from(body.to_string())).unwrap()
+    };
+    let job = r#"{"kind":"simulate","params":{"n":3}}"#;
+    let (status, headers, p) = raw(&app, post("application/json", &format!("{job} trailing"))).await;
+    assert_eq!((status, problem(&headers)), (StatusCode::BAD_REQUEST, true), "{p}");
+    assert_eq!(raw(&app, post("application/json", &format!("{job}{job}"))).await.0, StatusCode::BAD_REQUEST);
+    for ct in ["application/jsonx", "application/json-patch+json", "text/json"] {
+        let (status, headers, _) = raw(&app, post(ct, job)).await;
+        assert_eq!((status, problem(&headers)), (StatusCode::UNSUPPORTED_MEDIA_TYPE, true), "{ct}");
+    }
+    for ct in ["application/json; charset=utf-8", "Application/JSON"] {
+        assert_eq!(raw(&app, post(ct, &format!("{job}\n"))).await.0, StatusCode::ACCEPTED, "{ct}");
+    }
+    let twice = json!({"kind": "simulate", "params": {"n": 3, "vary": ["cavity", "cavity"]}});
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(twice)).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.vary[1]")));
+    let null = json!({"kind": "diagnose", "params": {"model": null, "x": [1.0]}});
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(null)).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.model")));
+    let hash: [u8; 32] = sha2::Sha256::digest(b"s3cret").into();
+    let (keyed, _) = self::app(vec![hash], 8, false).await;
+    for scheme in ["Bearer", "bearer", "BEARER"] {
+        let req = Request::get("/models").header(header::AUTHORIZATION, format!("{scheme} s3cret"));
+        assert_eq!(raw(&keyed, req.body(Body::empty()).unwrap()).await.0, StatusCode::OK, "{scheme}");
+    }
+    let req = Request::get("/models").header(header::AUTHORIZATION, "Basic s3cret").body(Body::empty()).unwrap();
+    let (status, headers, _) = raw(&keyed, req).await;
+    assert_eq!((status, problem(&headers)), (StatusCode::UNAUTHORIZED, true));
+}
