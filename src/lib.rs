@@ -10,6 +10,7 @@ pub mod discrepancy;
 pub mod flow;
 pub mod http;
 pub mod jobs;
+pub mod measurements;
 pub mod npe;
 pub mod plot;
 pub mod reference;

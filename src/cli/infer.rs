@@ -6,17 +6,22 @@ use crate::npe::{Npe, Obs};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::io::Write;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(Args, Debug)]
 pub struct InferArgs {
+    /// Model file (.otofit), e.g. models/default.otofit.
     #[arg(long)]
     pub model: PathBuf,
-    /// CSV: header row naming features, one row per observation.
+    /// Observation(s): a CSV feature table (header = feature names such as
+    /// absorbance@1000.0, one row per observation; absent columns = measures not given), or
+    /// one observation in the POST /infer format (.json, e.g. from `otofit import wai`).
     #[arg(long)]
     pub obs: PathBuf,
+    /// Posterior samples per observation (1..=1000000).
     #[arg(long, default_value_t = 1000)]
     pub samples: usize,
+    /// Seed of the posterior draws (same seed, same samples).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Samples CSV (parameter names; plus `obs` when OBS has several rows).
@@ -42,25 +47,60 @@ pub fn align(model: &Npe, header: &[String], row: &[f64]) -> Result<(Vec<f64>, V
     Ok((x, present))
 }
 
+/// The observations of `path`: a feature table (CSV, header = feature names, one row per
+/// observation) or one observation in the `POST /infer` format (`.json`: the request, or
+/// just its `measurements`), as (features, present) on the model's grid.
+fn observations(model: &Npe, path: &Path) -> Result<Vec<(Vec<f64>, Vec<bool>)>> {
+    if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
+        let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+        let mut doc: serde_json::Value =
+            serde_json::from_str(&text).with_context(|| format!("{}: not JSON", path.display()))?;
+        let m = doc.get_mut("measurements").map(serde_json::Value::take).unwrap_or(doc);
+        let m: crate::measurements::Measurements = serde_json::from_value(m)
+            .with_context(|| format!("{}: not an observation in the POST /infer format", path.display()))?;
+        let (x, present, _) =
+            crate::measurements::features(model, &m).with_context(|| format!("{}", path.display()))?;
+        return Ok(vec![(x, present)]);
+    }
+    let first = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    if first.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{') {
+        bail!(
+            "{}: looks like JSON; name it .json (the POST /infer format) or give a CSV feature table",
+            path.display()
+        );
+    }
+    let table = read_csv(path)?;
+    if table.rows.is_empty() {
+        bail!("{}: no observation rows", path.display());
+    }
+    table
+        .rows
+        .iter()
+        .enumerate()
+        .map(|(r, row)| align(model, &table.header, row).with_context(|| format!("{}: row {}", path.display(), r + 1)))
+        .collect()
+}
+
 pub fn run(args: InferArgs) -> Result<()> {
     if args.samples == 0 || args.samples > 1_000_000 {
         bail!("--samples must be between 1 and 1000000");
     }
-    let model = Npe::load(&args.model)?;
-    let table = read_csv(&args.obs)?;
-    if table.rows.is_empty() {
-        bail!("{}: no observation rows", args.obs.display());
+    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty())
+        && !dir.is_dir()
+    {
+        bail!("--out {}: the folder {} does not exist", args.out.display(), dir.display());
     }
-    let many = table.rows.len() > 1;
+    let model = Npe::load(&args.model)?;
+    let rows = observations(&model, &args.obs)?;
+    let many = rows.len() > 1;
     let names: Vec<&str> = model.params().iter().map(|p| p.name.as_str()).collect();
     let mut out = String::new();
     out.push_str(&if many { format!("obs,{}\n", names.join(",")) } else { format!("{}\n", names.join(",")) });
     let stdout = std::io::stdout();
-    for (r, row) in table.rows.iter().enumerate() {
-        let (x, present) =
-            align(&model, &table.header, row).with_context(|| format!("{}: row {}", args.obs.display(), r + 1))?;
+    for (r, (x, present)) in rows.iter().enumerate() {
+        let (x, present) = (x.as_slice(), present.as_slice());
         if crate::discrepancy::fitcheck::simulator_for(&model).is_ok()
-            && let Some((_, i, v)) = crate::sim::output::implausible(&x, &present).first()
+            && let Some((_, i, v)) = crate::sim::output::implausible(x, present).first()
         {
             bail!(
                 "{}: row {}: {} = {v} is outside the physical range of a human ear (phases in rad, magnitudes as log10 of m/s/Pa and Pa·s/m³)",
@@ -70,7 +110,7 @@ pub fn run(args: InferArgs) -> Result<()> {
             );
         }
         let inf = model
-            .infer(&Obs { x: &x, present: Some(&present) }, args.samples, args.seed)
+            .infer(&Obs { x, present: Some(present) }, args.samples, args.seed)
             .with_context(|| format!("observation {}", r + 1))?;
         for s in &inf.samples {
             let vals: Vec<String> = s.iter().map(|v| format!("{v:e}")).collect();
@@ -81,7 +121,7 @@ pub fn run(args: InferArgs) -> Result<()> {
             out.push('\n');
         }
         let mut differential = crate::npe::normal::read(model.params(), &inf.samples);
-        let fit = match crate::discrepancy::fitcheck::fit_check(&model, &x, &present, &inf) {
+        let fit = match crate::discrepancy::fitcheck::fit_check(&model, x, present, &inf) {
             Ok(f) => {
                 if f.ok == Some(false) {
                     crate::npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());

@@ -6,6 +6,7 @@ pub mod bench;
 mod bench_fit;
 pub mod calibrate;
 pub mod diagnose;
+pub mod import;
 pub mod infer;
 pub mod serve;
 pub mod simulate;
@@ -37,6 +38,8 @@ pub enum Command {
     Calibrate(calibrate::CalibrateArgs),
     /// Measure speed (simulator, ...) on this machine.
     Bench(bench::BenchArgs),
+    /// Convert a device or database export into an observation (JSON, POST /infer format).
+    Import(import::ImportArgs),
 }
 
 pub fn run(cli: Cli) -> anyhow::Result<()> {
@@ -49,5 +52,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Diagnose(args) => diagnose::run(args),
         Command::Infer(args) => infer::run(args),
         Command::Calibrate(args) => calibrate::run(args),
+        Command::Import(args) => import::run(args),
     }
 }

@@ -461,3 +461,66 @@ fn infer_reads_wideband_tympanometry_alone_and_refuses_implausible_and_bad_argum
     assert!(String::from_utf8_lossy(&o.stderr).contains("exceeds"), "{}", String::from_utf8_lossy(&o.stderr));
     let _ = std::fs::remove_dir_all(&d);
 }
+
+#[test]
+fn a_wai_long_layout_export_imports_and_infers_with_the_shipped_model() {
+    // tests/data/wai_long.csv: the nominal ear of this simulator at 1/12 octave from
+    // 226 Hz in the WAI database's long layout (Zmag in Pa·s/m³, Zang in cycles); the
+    // right ear's Zmag is 5 % higher.
+    let d = scratch("wai");
+    let wai = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/wai_long.csv");
+    let obs = d.join("left.json");
+    let o = otofit(&["import", "wai", "--in", wai, "--out", obs.to_str().unwrap()]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--select"), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = otofit(&["import", "wai", "--in", wai, "--select", "Ear=Left", "--out", obs.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&obs).unwrap()).unwrap();
+    assert_eq!(doc["measurements"]["impedance"]["phase_unit"], "cycles");
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let out = d.join("s.csv");
+    let o = otofit(&[
+        "infer",
+        "--model",
+        model,
+        "--obs",
+        obs.to_str().unwrap(),
+        "--samples",
+        "300",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["fit"]["ok"], true, "{}", r["fit"]);
+    assert_eq!(r["fit"]["features"], 144, "{}", r["fit"]);
+    // Cycles declared as radians: physically possible phases, so no refusal — but the model
+    // cannot reproduce them, and says so instead of reading the ear.
+    let o = otofit(&[
+        "import",
+        "wai",
+        "--in",
+        wai,
+        "--select",
+        "Ear=Left",
+        "--zang-unit",
+        "rad",
+        "--out",
+        obs.to_str().unwrap(),
+    ]);
+    assert!(o.status.success());
+    let o = otofit(&["infer", "--model", model, "--obs", obs.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["fit"]["ok"], false, "{}", r["fit"]);
+    assert!(r["differential"].as_array().unwrap().iter().all(|d| d["reading"] == "unreliable"));
+    // A JSON file not named .json, a missing output folder: named before any work.
+    let misnamed = d.join("ear.csv");
+    std::fs::copy(&obs, &misnamed).unwrap();
+    let o = otofit(&["infer", "--model", model, "--obs", misnamed.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("looks like JSON"), "{}", String::from_utf8_lossy(&o.stderr));
+    let nodir = d.join("nodir/s.csv");
+    let o = otofit(&["infer", "--model", model, "--obs", obs.to_str().unwrap(), "--out", nodir.to_str().unwrap()]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("does not exist"), "{}", String::from_utf8_lossy(&o.stderr));
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -1,0 +1,326 @@
+//! Measurements as devices export them — each measure on its own frequency grid, in its
+//! declared units — checked against a human ear's physical range and turned into a
+//! model's feature vector (interpolated in log-frequency onto the model grid, never
+//! extrapolated). Shared by `POST /infer` and `otofit infer --obs file.json`.
+
+use crate::npe::Npe;
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+/// Why measurements cannot become a feature vector.
+#[derive(Debug, thiserror::Error)]
+pub enum MeasurementError {
+    /// The model's features are not otofit's five measures on a frequency grid.
+    #[error("this model was not trained on otofit's five measures; use a feature table")]
+    NotOtofitModel,
+    /// Bad fields: (JSON path, what is wrong).
+    #[error("invalid measurements: {}", .0.iter().map(|(f, m)| format!("{f}: {m}")).collect::<Vec<_>>().join("; "))]
+    Invalid(Vec<(String, String)>),
+}
+
+#[derive(Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Measurements {
+    /// |V_stapes/P_ec| in m/s/Pa and its phase in rad.
+    pub stapes_velocity: Option<MagPhase>,
+    /// Ear-canal impedance |Z| in Pa·s/m³ and its phase in rad.
+    pub impedance: Option<MagPhase>,
+    pub absorbance: Option<Values>,
+}
+
+#[derive(Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct MagPhase {
+    pub frequencies_hz: Vec<f64>,
+    pub magnitude: Vec<f64>,
+    pub phase: Vec<f64>,
+    /// Unit of `magnitude` (default SI: m/s/Pa or Pa·s/m³); see `magnitude_scale`.
+    pub magnitude_unit: Option<String>,
+    /// "rad" (default), "deg" or "cycles".
+    pub phase_unit: Option<String>,
+}
+
+/// Velocity units: (accepted names, factor to m/s/Pa; `None`: decibels re 1 mm/s/Pa).
+const VELOCITY_UNITS: [(&[&str], Option<f64>); 3] =
+    [(&["m/s/Pa", "SI"], Some(1.0)), (&["mm/s/Pa"], Some(1e-3)), (&["dB re 1 mm/s/Pa", "dB"], None)];
+/// Impedance units: SI acoustic ohms, MΩ of them, and CGS acoustic ohms (dyn·s/cm⁵).
+const IMPEDANCE_UNITS: [(&[&str], Option<f64>); 3] = [
+    (&["Pa·s/m³", "Pa*s/m^3", "Pa s/m3", "SI"], Some(1.0)),
+    (&["MOhm", "MΩ"], Some(1e6)),
+    (&["cgs", "dyn·s/cm⁵", "dyn*s/cm^5"], Some(1e5)),
+];
+const PHASE_UNITS: [(&str, f64); 3] =
+    [("rad", 1.0), ("deg", std::f64::consts::PI / 180.0), ("cycles", std::f64::consts::TAU)];
+
+/// Magnitudes in SI from `unit`; an unknown unit is an error naming `field`.
+fn magnitude_si(
+    field: &str,
+    mp: &MagPhase,
+    units: &[(&[&str], Option<f64>)],
+    errs: &mut Vec<(String, String)>,
+) -> Option<Vec<f64>> {
+    let Some(unit) = &mp.magnitude_unit else { return Some(mp.magnitude.clone()) };
+    match units.iter().find(|(names, _)| names.iter().any(|n| n.eq_ignore_ascii_case(unit))) {
+        Some((_, Some(k))) => Some(mp.magnitude.iter().map(|v| v * k).collect()),
+        Some((_, None)) => Some(mp.magnitude.iter().map(|db| 1e-3 * 10f64.powf(db / 20.0)).collect()),
+        None => {
+            let known: Vec<&str> = units.iter().map(|(n, _)| n[0]).collect();
+            errs.push((
+                format!("{field}.magnitude_unit"),
+                format!("unknown unit '{unit}' (known: {})", known.join(", ")),
+            ));
+            None
+        }
+    }
+}
+
+fn phase_rad(field: &str, mp: &MagPhase, errs: &mut Vec<(String, String)>) -> Option<Vec<f64>> {
+    let unit = mp.phase_unit.as_deref().unwrap_or("rad");
+    match PHASE_UNITS.iter().find(|(n, _)| n.eq_ignore_ascii_case(unit)) {
+        Some((_, k)) => Some(mp.phase.iter().map(|v| v * k).collect()),
+        None => {
+            errs.push((format!("{field}.phase_unit"), format!("unknown unit '{unit}' (known: rad, deg, cycles)")));
+            None
+        }
+    }
+}
+
+/// A hint when a magnitude outside the physical envelope looks like another unit.
+fn magnitude_hint(block: usize, v: f64) -> &'static str {
+    match block {
+        0 if v > 1e-2 && v <= 1e2 => "; it looks like mm/s/Pa: send \"magnitude_unit\": \"mm/s/Pa\"",
+        2 if (1e-2..1e5).contains(&v) => {
+            "; it looks like MΩ or CGS acoustic ohms: send \"magnitude_unit\": \"MOhm\" or \"cgs\""
+        }
+        _ => "",
+    }
+}
+
+#[derive(Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct Values {
+    pub frequencies_hz: Vec<f64>,
+    pub values: Vec<f64>,
+}
+
+/// Checks one measured curve and interpolates it in log-frequency onto `grid`. With
+/// `cut = Some(k)` (a band-masked model) the curve may cover a sub-band that leaves out at
+/// most `k` grid points at each end: grid points outside it are NaN (absent), never
+/// extrapolated.
+fn resample(
+    field: &str,
+    f: &[f64],
+    v: &[f64],
+    grid: &[f64],
+    cut: Option<usize>,
+    errs: &mut Vec<(String, String)>,
+) -> Option<Vec<f64>> {
+    let before = errs.len();
+    if f.len() < 2 {
+        errs.push((format!("{field}.frequencies_hz"), "needs at least 2 points".into()));
+    }
+    if v.len() != f.len() {
+        errs.push((field.to_string(), format!("has {} values for {} frequencies", v.len(), f.len())));
+    }
+    if let Some(i) = f.iter().position(|x| !x.is_finite() || *x <= 0.0) {
+        errs.push((format!("{field}.frequencies_hz[{i}]"), "must be a finite frequency > 0".into()));
+    } else if let Some(i) = (1..f.len()).find(|&i| f[i] <= f[i - 1]) {
+        errs.push((format!("{field}.frequencies_hz[{i}]"), "frequencies must increase strictly".into()));
+    }
+    if errs.len() > before {
+        return None;
+    }
+    let inside = |g: f64| g >= f[0] * 0.995 && g <= f[f.len() - 1] * 1.005;
+    if let Some(k) = cut {
+        let lo = grid.iter().position(|&g| inside(g));
+        let hi = grid.iter().rposition(|&g| inside(g));
+        let n = grid.len();
+        match lo.zip(hi) {
+            Some((lo, hi)) if lo <= k && n - 1 - hi <= k => {
+                let mut out = crate::sim::output::interpolate_log_f(f, v, grid);
+                out.iter_mut().zip(grid).filter(|(_, g)| !inside(**g)).for_each(|(o, _)| *o = f64::NAN);
+                return Some(out);
+            }
+            _ => {
+                errs.push((
+                    format!("{field}.frequencies_hz"),
+                    format!(
+                        "must reach from at most {:.0} Hz to at least {:.0} Hz (got {:.0}–{:.0}); this model was trained \
+                         with up to {k} grid points missing at each end and never extrapolates",
+                        grid[k],
+                        grid[n - 1 - k],
+                        f[0],
+                        f[f.len() - 1]
+                    ),
+                ));
+                return None;
+            }
+        }
+    }
+    if f[0] > grid[0] * 1.005 || f[f.len() - 1] < grid[grid.len() - 1] * 0.995 {
+        errs.push((
+            format!("{field}.frequencies_hz"),
+            format!(
+                "must cover the model band {:.0}–{:.0} Hz (got {:.0}–{:.0})",
+                grid[0],
+                grid[grid.len() - 1],
+                f[0],
+                f[f.len() - 1]
+            ),
+        ));
+        return None;
+    }
+    Some(crate::sim::output::interpolate_log_f(f, v, grid))
+}
+
+fn check_values(field: &str, v: &[f64], positive: bool, errs: &mut Vec<(String, String)>) {
+    if let Some(i) = v.iter().position(|x| !x.is_finite() || (positive && *x <= 0.0)) {
+        errs.push((
+            format!("{field}[{i}]"),
+            if positive { "must be a finite number > 0".into() } else { "must be a finite number".into() },
+        ));
+    }
+}
+
+/// Rejects features outside the physical envelope of their measure, naming the request
+/// field and the model-grid frequency, with a hint where the value looks like a unit slip.
+fn plausible(x: &[f64], grid: &[f64], errs: &mut Vec<(String, String)>) {
+    use crate::sim::output::{MEASURES, implausible};
+    let n = grid.len();
+    let present: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
+    for (m, i, v) in implausible(x, &present) {
+        let f = grid[i % n];
+        let (field, shown, range, hint) = match m {
+            0 | 2 => {
+                let (lo, hi) = MEASURES[m].envelope;
+                let field = if m == 0 { "stapes_velocity.magnitude" } else { "impedance.magnitude" };
+                let unit = if m == 0 { "m/s/Pa" } else { "Pa·s/m³" };
+                let shown = format!("{:.3e} {unit}", 10f64.powf(v));
+                (
+                    field,
+                    shown,
+                    format!("{:.0e}–{:.0e} {unit}", 10f64.powf(lo), 10f64.powf(hi)),
+                    magnitude_hint(m, 10f64.powf(v)),
+                )
+            }
+            1 | 3 => {
+                let (lo, hi) = MEASURES[m].envelope;
+                let field = if m == 1 { "stapes_velocity.phase" } else { "impedance.phase" };
+                let hint = if v.abs() <= 1100.0 { "; phases in degrees need \"phase_unit\": \"deg\"" } else { "" };
+                let range = format!("{:.2}…{:.2} rad (unwrapped)", lo, hi);
+                (field, format!("{v:.2} rad"), range, hint)
+            }
+            _ => ("absorbance.values", format!("{v:.3}"), "0–1".into(), ""),
+        };
+        errs.push((
+            format!("measurements.{field}"),
+            format!("{shown} at {f:.0} Hz is outside the physical range {range} of a human ear{hint}"),
+        ));
+    }
+}
+
+/// The band of each measure given, as (first, last) model-grid frequency used.
+pub fn bands_used(npe: &Npe, present: &[bool]) -> serde_json::Map<String, serde_json::Value> {
+    let grid = &npe.header.frequencies_hz;
+    let n = grid.len().max(1);
+    crate::sim::output::MEASURES
+        .iter()
+        .enumerate()
+        .filter_map(|(m, ms)| {
+            let on: Vec<usize> = (0..n).filter(|&k| present.get(m * n + k).copied().unwrap_or(false)).collect();
+            let (lo, hi) = (on.first()?, on.last()?);
+            Some((ms.name.to_string(), json!([grid[*lo], grid[*hi]])))
+        })
+        .collect()
+}
+
+/// The model's feature vector and presence flags from the measurements.
+/// Features on the model grid, which are present, and the measures used.
+pub type Features = (Vec<f64>, Vec<bool>, Vec<&'static str>);
+
+pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementError> {
+    let grid = &npe.header.frequencies_hz;
+    let cut = npe.header.mask_bands.then_some(npe.header.band_cut_max);
+    let n = grid.len();
+    let mut errs = Vec::new();
+    if n == 0 || npe.header.feature_names.len() != 5 * n {
+        return Err(MeasurementError::NotOtofitModel);
+    }
+    let mut x = vec![f64::NAN; 5 * n];
+    let mut used = Vec::new();
+    let mut magphase =
+        |field: &'static str, mp: &MagPhase, block: usize, x: &mut Vec<f64>, errs: &mut Vec<(String, String)>| {
+            let fld = format!("measurements.{field}");
+            let units: &[(&[&str], Option<f64>)] = if block == 0 { &VELOCITY_UNITS } else { &IMPEDANCE_UNITS };
+            let (Some(mag), Some(phase)) = (magnitude_si(&fld, mp, units, errs), phase_rad(&fld, mp, errs)) else {
+                return;
+            };
+            let decibels = mp.magnitude_unit.as_deref().is_some_and(|u| u.starts_with("dB"));
+            if decibels {
+                check_values(&format!("{fld}.magnitude"), &mp.magnitude, false, errs);
+            } else if mp.magnitude.iter().any(|v| *v <= 0.0) && block == 0 {
+                let i = mp.magnitude.iter().position(|v| *v <= 0.0).unwrap_or(0);
+                errs.push((
+                    format!("{fld}.magnitude[{i}]"),
+                    "must be > 0 (for decibels send \"magnitude_unit\": \"dB re 1 mm/s/Pa\")".into(),
+                ));
+            } else {
+                check_values(&format!("{fld}.magnitude"), &mp.magnitude, true, errs);
+            }
+            check_values(&format!("{fld}.phase"), &mp.phase, false, errs);
+            let logmag: Vec<f64> = mag.iter().map(|v| v.log10()).collect();
+            let phase = crate::sim::output::unwrap(phase.into_iter());
+            if let (Some(a), Some(b)) = (
+                resample(&fld, &mp.frequencies_hz, &logmag, grid, cut, errs),
+                resample(&fld, &mp.frequencies_hz, &phase, grid, cut, errs),
+            ) {
+                x[block * n..(block + 1) * n].copy_from_slice(&a);
+                x[(block + 1) * n..(block + 2) * n].copy_from_slice(&b);
+                used.push(field);
+            }
+        };
+    if let Some(mp) = &m.stapes_velocity {
+        magphase("stapes_velocity", mp, 0, &mut x, &mut errs);
+    }
+    if let Some(mp) = &m.impedance {
+        magphase("impedance", mp, 2, &mut x, &mut errs);
+    }
+    if let Some(a) = &m.absorbance {
+        check_values("measurements.absorbance.values", &a.values, false, &mut errs);
+        if let Some(i) = a.values.iter().position(|v| !(-0.05..=1.05).contains(v)) {
+            errs.push((
+                format!("measurements.absorbance.values[{i}]"),
+                format!(
+                    "{} is outside 0–1 (absorbance is a fraction of power; ±0.05 is allowed for calibration error)",
+                    a.values[i]
+                ),
+            ));
+        }
+        if let Some(v) = resample("measurements.absorbance", &a.frequencies_hz, &a.values, grid, cut, &mut errs) {
+            x[4 * n..].copy_from_slice(&v);
+            used.push("absorbance");
+        }
+    }
+    if errs.is_empty() {
+        plausible(&x, grid, &mut errs);
+    }
+    if !errs.is_empty() {
+        return Err(MeasurementError::Invalid(errs));
+    }
+    if used.is_empty() {
+        return Err(MeasurementError::Invalid(vec![(
+            "measurements".into(),
+            "give at least one of stapes_velocity, impedance, absorbance".into(),
+        )]));
+    }
+    let present: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
+    if !npe.header.mask_groups && present.iter().any(|p| !p) {
+        let missing: Vec<&str> =
+            ["stapes_velocity", "impedance", "absorbance"].into_iter().filter(|f| !used.contains(f)).collect();
+        return Err(MeasurementError::Invalid(vec![(
+            "measurements".into(),
+            format!("this model needs every measure; missing: {}", missing.join(", ")),
+        )]));
+    }
+    Ok((x, present, used))
+}
