@@ -156,7 +156,7 @@ async fn bad_requests_get_problems_that_name_the_field() {
     assert_eq!(p["errors"][0]["field"], "measurements.absorbance.frequencies_hz[2]", "{p}");
     let narrow = json!({"measurements": {"absorbance": {"frequencies_hz": [500.0, 4000.0], "values": [0.1, 0.5]}}});
     let (_, _, p) = call(&app, "POST", "/infer", Some(narrow)).await;
-    assert!(p["errors"][0]["message"].as_str().unwrap().contains("must cover"), "{p}");
+    assert!(p["errors"][0]["message"].as_str().unwrap().contains("must reach"), "{p}");
     let nan =
         json!({"measurements": {"absorbance": {"frequencies_hz": [200.0, 8000.0], "values": [0.1]}}, "samples": 0});
     let (status, _, p) = call(&app, "POST", "/infer", Some(nan)).await;
