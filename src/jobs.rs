@@ -601,6 +601,9 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     if let Err(e) = outcome {
         tracing::error!(job = %job.id, error = %e, "job state not saved");
     }
+    if job.kind == "simulate" && !matches!(ctx.store.job(&job.id).await, Ok(Some(j)) if j.state == "succeeded") {
+        remove_temporary_files(&ctx.dataset_dir(&job.id));
+    }
     if (job.kind == "train" || job.kind == "diagnose")
         && let Ok(Some(j)) = ctx.store.job(&job.id).await
     {
@@ -610,6 +613,17 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         }
     }
     tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
+}
+
+/// Removes the `*.tmp` files a simulate job writes before renaming them into place: what
+/// a failed, cancelled or interrupted run leaves behind. Returns how many went.
+pub fn remove_temporary_files(dir: &Path) -> usize {
+    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
+    entries
+        .flatten()
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
+        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .count()
 }
 
 /// A new job id: time-ordered, unguessable enough for a local service.

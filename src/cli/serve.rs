@@ -113,6 +113,17 @@ pub async fn open_with(
     if requeued + failed > 0 {
         tracing::warn!(requeued, failed, "recovered jobs left running by a previous process");
     }
+    // No job runs yet (the lock is ours): temporary files are leftovers of runs that
+    // failed or were killed; a re-queued run writes its own again from the start.
+    let stale: usize = std::fs::read_dir(data_dir.join("datasets"))
+        .into_iter()
+        .flatten()
+        .flatten()
+        .map(|d| jobs::remove_temporary_files(&d.path()))
+        .sum();
+    if stale > 0 {
+        tracing::info!(files = stale, "removed temporary files of interrupted simulate jobs");
+    }
     if default_model.exists() {
         let path = std::fs::canonicalize(default_model)?;
         store.add_model("default", &path.display().to_string(), true, None).await?;

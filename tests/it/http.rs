@@ -978,3 +978,34 @@ async fn contract_gaps_are_closed() {
     let (status, headers, _) = raw(&keyed, req).await;
     assert_eq!((status, problem(&headers)), (StatusCode::UNAUTHORIZED, true));
 }
+
+/// Issue 13.7: a simulate job that fails leaves no temporary files, and a restart removes
+/// those of runs that were killed.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
+    let (_, ctx) = app(vec![], 8, false).await;
+    // x.csv taken by a directory: the final rename fails after the rows were written.
+    let dir = ctx.dataset_dir("blocked");
+    std::fs::create_dir_all(dir.join("x.csv").join("in-the-way")).unwrap();
+    assert!(ctx.store.insert_job_within("blocked", "simulate", &json!({"n": 20}), 1, 8).await.unwrap());
+    tokio::spawn(jobs::dispatcher(ctx.clone()));
+    let mut job = None;
+    for _ in 0..300 {
+        let j = ctx.store.job("blocked").await.unwrap().unwrap();
+        if j.state == "failed" {
+            job = Some(j);
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    let job = job.expect("the job fails");
+    let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(!left.iter().any(|n| n.to_string_lossy().ends_with(".tmp")), "{left:?} after {:?}", job.error);
+    // Leftovers of a killed run go at the next start.
+    let data = std::env::temp_dir().join(format!("otofit-tmp-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&data);
+    std::fs::create_dir_all(data.join("datasets").join("killed")).unwrap();
+    std::fs::write(data.join("datasets").join("killed").join("x.csv.tmp"), "1,2\n").unwrap();
+    let _ctx = otofit::cli::serve::open(&data, &default_model(), 8).await.unwrap();
+    assert!(!data.join("datasets").join("killed").join("x.csv.tmp").exists());
+}
