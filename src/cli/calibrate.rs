@@ -36,6 +36,10 @@ pub struct CalibrateArgs {
     /// Held-out simulations behind the fit check's null (with --tune).
     #[arg(long, default_value_t = 500)]
     pub null_cases: usize,
+    /// Folder for calibration.json and calibration.svg (coverage curve, SBC rank
+    /// histograms); without it the full JSON goes to stdout.
+    #[arg(long)]
+    pub report: Option<PathBuf>,
 }
 
 pub fn run(args: CalibrateArgs) -> Result<()> {
@@ -83,7 +87,32 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         println!("{}", serde_json::to_string_pretty(&tuning)?);
         return Ok(());
     }
+    if let Some(dir) = &args.report {
+        std::fs::create_dir_all(dir).with_context(|| format!("--report {}: cannot create it", dir.display()))?;
+    }
     let cal = calibrate(&model, &rows, args.samples, args.seed)?;
-    println!("{}", serde_json::to_string(&cal)?);
+    let Some(dir) = &args.report else {
+        println!("{}", serde_json::to_string(&cal)?);
+        return Ok(());
+    };
+    println!(
+        "joint HPD coverage on {} held-out rows ({} samples each, temperature {:.3}):",
+        cal.rows, cal.samples_per_row, model.header.temperature
+    );
+    for l in TUNE_LEVELS {
+        let k = cal.levels.iter().position(|v| (v - l).abs() < 1e-9).unwrap_or(0);
+        println!("  {:>3.0} %  {:.3}  ({:+.3})", 100.0 * l, cal.coverage[k], cal.coverage[k] - l);
+    }
+    println!("per parameter: marginal 90 % coverage, SBC rank χ² (10 bins, 9 dof; 99 % quantile 21.7)");
+    for (r, m) in cal.sbc_ranks.iter().zip(&cal.marginal_coverage90) {
+        let (chi2, _) = r.chi2(cal.samples_per_row, 10);
+        println!("  {:<16} {:.3}  {:6.1}{}", r.name, m, chi2, if chi2 > 21.7 { "  (not uniform)" } else { "" });
+    }
+    let ranks: Vec<(&str, Vec<usize>)> = cal.sbc_ranks.iter().map(|r| (r.name.as_str(), r.ranks.clone())).collect();
+    let title = format!("Calibration of {} on {} held-out simulations", args.model.display(), cal.rows);
+    let svg = crate::plot::calibration(&title, &cal.levels, &cal.coverage, &ranks, cal.samples_per_row);
+    std::fs::write(dir.join("calibration.svg"), svg)?;
+    std::fs::write(dir.join("calibration.json"), serde_json::to_vec(&cal)?)?;
+    eprintln!("wrote {0}/calibration.json and {0}/calibration.svg", dir.display());
     Ok(())
 }

@@ -25,6 +25,20 @@ pub struct ParamRanks {
     pub ranks: Vec<usize>,
 }
 
+impl ParamRanks {
+    /// Pearson χ² of the ranks in `bins` equal bins against a uniform histogram (SBC:
+    /// uniform ranks ⇔ calibrated marginal), and its degrees of freedom (bins − 1). For
+    /// 10 bins the 99 % quantile of χ²(9) is 21.7.
+    pub fn chi2(&self, samples: usize, bins: usize) -> (f64, usize) {
+        let mut counts = vec![0.0; bins];
+        for &r in &self.ranks {
+            counts[((r as f64 / (samples + 1) as f64 * bins as f64) as usize).min(bins - 1)] += 1.0;
+        }
+        let e = self.ranks.len() as f64 / bins as f64;
+        (counts.iter().map(|c| (c - e).powi(2) / e.max(1e-12)).sum(), bins - 1)
+    }
+}
+
 /// `rows`: (θ, x) pairs not used in training.
 pub fn calibrate(npe: &Npe, rows: &[(Vec<f64>, Vec<f64>)], samples: usize, seed: u64) -> Result<Calibration> {
     let levels: Vec<f64> = (1..=19).map(|i| i as f64 * 0.05).collect();
@@ -129,4 +143,20 @@ pub fn tune_temperature(
     npe.header.temperature = hi;
     let after = joint_coverage(npe, rows, samples, seed)?;
     Ok(Tuning { temperature: hi, levels: TUNE_LEVELS.to_vec(), coverage_before: before, coverage_after: after })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ParamRanks;
+
+    #[test]
+    fn sbc_chi2_is_small_for_uniform_ranks_and_large_for_skewed_ones() {
+        let uniform = ParamRanks { name: "u".into(), ranks: (0..1000).map(|i| i % 101).collect() };
+        let (c, dof) = uniform.chi2(100, 10);
+        assert_eq!(dof, 9);
+        assert!(c < 5.0, "uniform ranks: χ² {c}");
+        // A posterior biased high puts the truth at low ranks.
+        let skewed = ParamRanks { name: "s".into(), ranks: (0..1000).map(|i| (i % 101) / 2).collect() };
+        assert!(skewed.chi2(100, 10).0 > 100.0);
+    }
 }

@@ -145,7 +145,9 @@ impl Canvas {
         for t in xt {
             let x = ax.px(t);
             self.vline(x, ax.y + ax.h, ax.y + ax.h + 4.0, "#444");
-            let lab = if t >= 1000.0 { format!("{}k", t / 1000.0) } else { format!("{t}") };
+            // Rounded to 6 decimals: 3 × 0.2 prints as 0.6, not 0.6000000000000001.
+            let t6 = (t * 1e6).round() / 1e6;
+            let lab = if t >= 1000.0 { format!("{}k", t / 1000.0) } else { format!("{t6}") };
             self.text(x, ax.y + ax.h + 16.0, 10.0, "middle", &lab);
         }
         for t in ticks(ax.yr.0, ax.yr.1) {

@@ -311,3 +311,49 @@ mod tests {
         assert_eq!(diverging(2.0), "#ff0000");
     }
 }
+
+/// Calibration figure: the joint expected-coverage curve against the diagonal, and one
+/// SBC rank histogram per parameter (counts in `bins` equal bins of rank/(samples + 1),
+/// with the 99 % band of a uniform histogram).
+pub fn calibration(
+    title: &str,
+    levels: &[f64],
+    coverage: &[f64],
+    ranks: &[(&str, Vec<usize>)],
+    samples: usize,
+) -> String {
+    let bins = 10usize;
+    let cols = 4usize;
+    let rows = 1 + ranks.len().div_ceil(cols);
+    let (pw, ph) = (220.0, 180.0);
+    let mut c = Canvas::new(cols as f64 * pw + 40.0, rows as f64 * ph + 50.0);
+    c.text(20.0, 28.0, 16.0, "start", title);
+    let ax = Axes::new(80.0, 50.0, pw - 60.0, ph - 60.0, (0.0, 1.0), (0.0, 1.0), false);
+    c.axes(&ax, "credible level", "coverage");
+    c.line(&ax, &[0.0, 1.0], &[0.0, 1.0], OBS, 1.0, 0.5);
+    c.line(&ax, levels, coverage, MAP, 2.0, 1.0);
+    c.text(ax.x + ax.w + 20.0, ax.y + 12.0, 12.0, "start", "joint HPD coverage on held-out simulations");
+    c.text(ax.x + ax.w + 20.0, ax.y + 30.0, 12.0, "start", "below the diagonal: overconfident");
+    for (k, (name, r)) in ranks.iter().enumerate() {
+        let (col, row) = (k % cols, 1 + k / cols);
+        let (x0, y0) = (20.0 + col as f64 * pw, 40.0 + row as f64 * ph);
+        let mut counts = vec![0.0; bins];
+        for &v in r {
+            let b = ((v as f64 / (samples + 1) as f64) * bins as f64) as usize;
+            counts[b.min(bins - 1)] += 1.0;
+        }
+        let n = r.len().max(1) as f64;
+        let expect = n / bins as f64;
+        let spread = 2.576 * (expect * (1.0 - 1.0 / bins as f64)).sqrt();
+        let top = counts.iter().copied().fold(expect + spread, f64::max) * 1.1;
+        let ax = Axes::new(x0 + 50.0, y0 + 10.0, pw - 70.0, ph - 60.0, (0.0, 1.0), (0.0, top), false);
+        c.axes(&ax, name, "rows");
+        let lo = vec![(expect - spread).max(0.0); 2];
+        c.band(&ax, &[0.0, 1.0], &lo, &[expect + spread; 2], NOISE, 0.25);
+        for (b, &h) in counts.iter().enumerate() {
+            let (x, w) = (ax.px(b as f64 / bins as f64), ax.px(1.0 / bins as f64) - ax.px(0.0));
+            c.rect(x + 1.0, ax.py(h), w - 2.0, ax.py(0.0) - ax.py(h), DRAW, 0.7);
+        }
+    }
+    c.finish()
+}
