@@ -268,50 +268,6 @@ pub fn intervals(title: &str, dims: &[Dim<'_>], runs: &[(&str, Vec<[f64; 3]>)]) 
     c.finish()
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn well_formed(svg: &str) {
-        assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
-        assert!(!svg.contains("NaN") && !svg.contains("inf"), "non-finite coordinates");
-    }
-
-    #[test]
-    fn figures_are_well_formed_svg() {
-        let freqs = crate::sim::log_grid(200.0, 8000.0, 50);
-        let x: Vec<f64> = (0..250).map(|i| (i as f64 * 0.1).sin()).collect();
-        let lo: Vec<f64> = x.iter().map(|v| v - 0.1).collect();
-        let hi: Vec<f64> = x.iter().map(|v| v + 0.1).collect();
-        let s = spectra(
-            "t",
-            &freqs,
-            &[Band { lo: &lo, hi: &hi, color: BAND, label: "band" }],
-            &[Series { x: &x, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") }],
-        );
-        well_formed(&s);
-        assert_eq!(s.matches("<polyline").count(), 5);
-        well_formed(&residual_map("r", &freqs, &x));
-        let dims = [
-            Dim { name: "a", unit: "Pa", low: 1.0, high: 100.0, log: true, truth: Some(10.0), map: Some(12.0) },
-            Dim { name: "b", unit: "s", low: 0.0, high: 1.0, log: false, truth: None, map: Some(0.5) },
-        ];
-        let samples: Vec<Vec<f64>> = (0..200).map(|i| vec![1.0 + i as f64 / 3.0, (i as f64 / 200.0)]).collect();
-        well_formed(&corner("c", &dims, &samples));
-        let runs = [("a", vec![[2.0, 5.0, 9.0], [0.1, 0.5, 0.9]]), ("b", vec![[4.0, 5.0, 6.0], [0.4, 0.5, 0.6]])];
-        let s = intervals("i", &dims, &runs);
-        well_formed(&s);
-        assert_eq!(s.matches("<circle").count(), 4, "one median dot per run and parameter");
-    }
-
-    #[test]
-    fn diverging_colours_span_blue_white_red() {
-        assert_eq!(diverging(-1.0), "#0000ff");
-        assert_eq!(diverging(0.0), "#ffffff");
-        assert_eq!(diverging(2.0), "#ff0000");
-    }
-}
-
 /// Calibration figure: the joint expected-coverage curve against the diagonal, and one
 /// SBC rank histogram per parameter (counts in `bins` equal bins of rank/(samples + 1),
 /// with the 99 % band of a uniform histogram).
@@ -356,4 +312,48 @@ pub fn calibration(
         }
     }
     c.finish()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn well_formed(svg: &str) {
+        assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"));
+        assert!(!svg.contains("NaN") && !svg.contains("inf"), "non-finite coordinates");
+    }
+
+    #[test]
+    fn figures_are_well_formed_svg() {
+        let freqs = crate::sim::log_grid(200.0, 8000.0, 50);
+        let x: Vec<f64> = (0..250).map(|i| (i as f64 * 0.1).sin()).collect();
+        let lo: Vec<f64> = x.iter().map(|v| v - 0.1).collect();
+        let hi: Vec<f64> = x.iter().map(|v| v + 0.1).collect();
+        let s = spectra(
+            "t",
+            &freqs,
+            &[Band { lo: &lo, hi: &hi, color: BAND, label: "band" }],
+            &[Series { x: &x, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") }],
+        );
+        well_formed(&s);
+        assert_eq!(s.matches("<polyline").count(), 5);
+        well_formed(&residual_map("r", &freqs, &x));
+        let dims = [
+            Dim { name: "a", unit: "Pa", low: 1.0, high: 100.0, log: true, truth: Some(10.0), map: Some(12.0) },
+            Dim { name: "b", unit: "s", low: 0.0, high: 1.0, log: false, truth: None, map: Some(0.5) },
+        ];
+        let samples: Vec<Vec<f64>> = (0..200).map(|i| vec![1.0 + i as f64 / 3.0, (i as f64 / 200.0)]).collect();
+        well_formed(&corner("c", &dims, &samples));
+        let runs = [("a", vec![[2.0, 5.0, 9.0], [0.1, 0.5, 0.9]]), ("b", vec![[4.0, 5.0, 6.0], [0.4, 0.5, 0.6]])];
+        let s = intervals("i", &dims, &runs);
+        well_formed(&s);
+        assert_eq!(s.matches("<circle").count(), 4, "one median dot per run and parameter");
+    }
+
+    #[test]
+    fn diverging_colours_span_blue_white_red() {
+        assert_eq!(diverging(-1.0), "#0000ff");
+        assert_eq!(diverging(0.0), "#ffffff");
+        assert_eq!(diverging(2.0), "#ff0000");
+    }
 }
