@@ -524,3 +524,16 @@ fn a_wai_long_layout_export_imports_and_infers_with_the_shipped_model() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("does not exist"), "{}", String::from_utf8_lossy(&o.stderr));
     let _ = std::fs::remove_dir_all(&d);
 }
+
+#[test]
+fn diagnose_refuses_a_null_too_small_to_have_a_threshold() {
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let obs = concat!(env!("CARGO_MANIFEST_DIR"), "/reference/obs.csv");
+    let d = scratch("diag0");
+    for (flag, value) in [("--null-cases", "0"), ("--train-rows", "5"), ("--max-epochs", "0")] {
+        let o = otofit(&["diagnose", "--model", model, "--obs", obs, "--out", d.to_str().unwrap(), flag, value]);
+        assert!(!o.status.success());
+        assert!(String::from_utf8_lossy(&o.stderr).contains(flag), "{flag}: {}", String::from_utf8_lossy(&o.stderr));
+    }
+    let _ = std::fs::remove_dir_all(&d);
+}
