@@ -272,15 +272,22 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -
     let design = Design::default();
     let rows = design.draw(s.seed ^ 0x4E55, 0, s.null_cases);
     let noisy = Noise { seed: s.seed ^ 0x4E55, ..noise.clone() };
-    let sims = run_rows(model, &design, &rows, 0, Some(&noisy));
+    let mut sims = Vec::with_capacity(rows.len());
+    // Smaller chunks than the training set's: each null row costs a full fit afterwards.
+    for (k, chunk) in rows.chunks(CHUNK / 16).enumerate() {
+        s.go_on()?;
+        sims.extend(run_rows(model, &design, chunk, k * (CHUNK / 16), Some(&noisy)));
+    }
     let (mut chi, mut drops) = (Vec::new(), Vec::new());
     for (k, x) in sims.into_iter().enumerate() {
         s.go_on()?;
         let Ok(x) = x else { continue };
         let obs = Observation { x, sigma: noise.std.clone() };
         let inf = base.infer(&Obs { x: &obs.x, present: None }, s.draws, s.seed + k as u64)?;
+        s.go_on()?;
         let c = check(model, &design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
         chi.push(c.reduced_chi2);
+        s.go_on()?;
         if let Some((b, ranked)) = fit_and_rank(model, &obs, std::slice::from_ref(&inf.map), &s.candidates) {
             drops.push(ranked.first().map_or(0.0, |c| b.chi2 - c.chi2));
         }

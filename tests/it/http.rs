@@ -1009,3 +1009,38 @@ async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
     let _ctx = otofit::cli::serve::open(&data, &default_model(), 8).await.unwrap();
     assert!(!data.join("datasets").join("killed").join("x.csv.tmp").exists());
 }
+
+/// Issue 13.2: SIGTERM during a diagnose: the process exits within seconds (not after its
+/// 60 s grace), the job goes back to the queue without counting the attempt, nothing written.
+#[test]
+fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = std::env::temp_dir().join(format!("otofit-term-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut server = start(port, &dir);
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &Default::default()).unwrap();
+    let body = json!({"kind": "diagnose", "params": {"x": x, "null_cases": 1000}}).to_string();
+    let (status, job) = http(port, "POST", "/jobs", Some(&body)).unwrap();
+    assert_eq!(status, 202, "{job}");
+    let path = format!("/jobs/{}", job["id"].as_str().unwrap());
+    for _ in 0..300 {
+        if http(port, "GET", &path, None).unwrap().1["message"].as_str().unwrap_or("").contains("null") {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let t0 = std::time::Instant::now();
+    std::process::Command::new("kill").args(["-TERM", &server.id().to_string()]).status().unwrap();
+    let exited = exit_within(&mut server, 15);
+    let secs = t0.elapsed().as_secs_f64();
+    assert!(exited.is_some_and(|s| s.success()) && secs < 10.0, "{exited:?} after {secs:.1} s");
+    let mut server = start(port, &dir);
+    let (_, after) = http(port, "GET", &path, None).unwrap();
+    server.kill().unwrap();
+    server.wait().unwrap();
+    assert!(["queued", "running"].contains(&after["state"].as_str().unwrap()), "{after}");
+    assert!(after["attempts"].as_i64().unwrap() <= 1, "the interrupted attempt is not counted: {after}");
+    assert!(!dir.join("reports").join(job["id"].as_str().unwrap()).exists());
+    eprintln!("exited {secs:.2} s after SIGTERM");
+}
