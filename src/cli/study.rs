@@ -411,7 +411,15 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     let best_rho = rho(&best_x, &r.x);
     let map_rho: Vec<f64> = c.spearman.iter().map(|(_, v)| *v).collect();
     let mean_abs = map_rho.iter().map(|v| v.abs()).sum::<f64>() / map_rho.len() as f64;
-    let differential = npe::normal::read(npe.params(), &inf.samples);
+    let mut differential = npe::normal::read(npe.params(), &inf.samples);
+    // The fit check every inference carries (with the model's training noise, as a
+    // request would get it; the check above uses the ear's own test-retest STD).
+    let fit = crate::discrepancy::fitcheck::fit_check(npe, &r.x, &vec![true; r.x.len()], &inf);
+    if let Ok(f) = &fit
+        && f.ok == Some(false)
+    {
+        npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
+    }
 
     let (lo_obs, hi_obs) = plot::plus_minus(&r.x, &r.std);
     let mut series = vec![plot::Series {
@@ -471,6 +479,16 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
         "mean |ρ|: MAP re-simulation {mean_abs:.3}, least-squares fit {best_abs:.3} (study, one temporal bone: 0.964)"
     );
     println!("reduced χ²: posterior-predictive {:.2}, least-squares fit {:.2}", c.reduced_chi2, best.reduced_chi2());
+    match &fit {
+        Ok(f) => println!(
+            "fit check: ok {:?} (reduced χ² {:.2}, threshold {:.2}){}",
+            f.ok,
+            f.reduced_chi2,
+            f.threshold.unwrap_or(f64::NAN),
+            if f.ok == Some(false) { ": every reading withdrawn (unreliable)" } else { "" }
+        ),
+        Err(e) => println!("fit check: not available ({e})"),
+    }
     for b in &c.bands {
         println!("  misfit: {}", b.describe());
     }
@@ -488,6 +506,7 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
         "misfit_bands": c.bands,
         "parameters": inf.summaries,
         "differential": differential,
+        "fit": fit.as_ref().ok(),
         "citations": MEASURES.iter().map(|m| m.name).zip(&r.citations).collect::<Vec<_>>(),
     });
     write(out, "reference.json", &serde_json::to_string_pretty(&doc)?)?;
