@@ -42,7 +42,7 @@ const MAX_TICKS: usize = 12;
 /// "Nice" tick values covering [lo, hi]. Degenerate ranges (non-finite, or a span below
 /// the resolution of the numbers themselves) get their end points only: stepping by a
 /// step smaller than one ulp of `t` would never advance.
-fn ticks(lo: f64, hi: f64) -> Vec<f64> {
+pub(crate) fn ticks(lo: f64, hi: f64) -> Vec<f64> {
     if !lo.is_finite() || !hi.is_finite() || hi < lo {
         return Vec::new();
     }

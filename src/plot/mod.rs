@@ -157,13 +157,28 @@ pub struct Dim<'a> {
     pub map: Option<f64>,
 }
 
+/// Tick positions and labels for one corner-plot axis: decades (every second one when
+/// there are more than four) on log axes, "nice" steps on linear ones.
+fn dim_ticks(dim: &Dim<'_>) -> Vec<(f64, String)> {
+    if dim.log {
+        if !(dim.low > 0.0 && dim.high > dim.low && dim.high.is_finite()) {
+            return Vec::new();
+        }
+        let (a, b) = (dim.low.log10().ceil() as i32, dim.high.log10().floor() as i32);
+        let step = if b - a > 4 { 2 } else { 1 };
+        (a..=b).step_by(step as usize).take(12).map(|k| (10f64.powi(k), format!("1e{k}"))).collect()
+    } else {
+        canvas::ticks(dim.low, dim.high).into_iter().map(|t| (t, format!("{}", (t * 1e6).round() / 1e6))).collect()
+    }
+}
+
 /// Corner plot: 1D histograms on the diagonal, 2D histograms below it, the true value
 /// (green) and MAP (red) marked; log axes for log-scale parameters.
 pub fn corner(title: &str, dims: &[Dim<'_>], samples: &[Vec<f64>]) -> String {
     let d = dims.len();
     let cell = 110.0;
     let (left, top) = (60.0, 50.0);
-    let mut c = Canvas::new(left + cell * d as f64 + 20.0, top + cell * d as f64 + 60.0);
+    let mut c = Canvas::new(left + cell * d as f64 + 20.0, top + cell * d as f64 + 70.0);
     c.text(20.0, 28.0, 16.0, "start", title);
     let bins = 24;
     let unit = |k: usize, v: f64| -> f64 {
@@ -216,17 +231,29 @@ pub fn corner(title: &str, dims: &[Dim<'_>], samples: &[Vec<f64>]) -> String {
                 }
             }
         }
+        // Tick values in the parameter's unit: under the bottom row, left of the first column.
+        let bottom = top + cell * d as f64;
+        // Ticks at the very edges would run into the neighbouring cell's labels.
+        for (v, lab) in dim_ticks(&dims[i]).into_iter().filter(|(v, _)| (0.04..0.96).contains(&unit(i, *v))) {
+            let x = left + cell * i as f64 + 2.0 + (cell - 4.0) * unit(i, v);
+            c.vline(x, bottom - 2.0, bottom + 2.0, "#444");
+            c.text(x, bottom + 11.0, 8.0, "middle", &lab);
+            if i > 0 {
+                let y = top + cell * (i as f64 + 1.0) - 2.0 - (cell - 4.0) * unit(i, v);
+                c.text(left - 3.0, y + 3.0, 8.0, "end", &lab);
+            }
+        }
         let x = left + cell * (i as f64 + 0.5);
-        c.text(x, top + cell * d as f64 + 16.0, 10.0, "middle", dims[i].name);
+        c.text(x, bottom + 26.0, 10.0, "middle", dims[i].name);
         c.text(
             x,
-            top + cell * d as f64 + 28.0,
+            bottom + 38.0,
             9.0,
             "middle",
             &format!("{}{}", if dims[i].log { "log axis, " } else { "" }, dims[i].unit),
         );
     }
-    c.text(left, top + cell * d as f64 + 48.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
+    c.text(left, top + cell * d as f64 + 56.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
     c.finish()
 }
 
