@@ -410,7 +410,6 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             model.save(&path)?;
             Ok(serde_json::json!({
                 "model": format!("/models/{}", job.id),
-                "path": path.display().to_string(),
                 "epochs": model.header.training.epochs,
                 "best_val_loss": model.header.training.best_val_loss,
                 "cancelled_early": r.cancel.load(Ordering::Relaxed),

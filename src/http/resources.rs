@@ -51,8 +51,10 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
             d
         }
         Err(e) => {
+            // The cause names server files: it goes to the log, the client gets the id.
+            tracing::error!(model = %m.id, error = %format!("{e:#}"), "model cannot be loaded");
             let mut d = base;
-            d["error"] = json!(format!("{e:#}"));
+            d["error"] = json!(format!("model '{}' cannot be loaded (the server log says why)", m.id));
             d
         }
     }

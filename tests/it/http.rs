@@ -1044,3 +1044,24 @@ fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
     assert!(!dir.join("reports").join(job["id"].as_str().unwrap()).exists());
     eprintln!("exited {secs:.2} s after SIGTERM");
 }
+
+/// Issue 13.5: a model that cannot be loaded is reported by its id; the file's path stays
+/// in the server log.
+#[tokio::test]
+async fn unloadable_models_do_not_show_server_paths() {
+    let (app, ctx) = app(vec![], 8, false).await;
+    let path = ctx.data_dir.join("models").join("broken.otofit");
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    std::fs::write(&path, b"not a checkpoint").unwrap();
+    ctx.store.add_model("broken", &path.display().to_string(), false, None).await.unwrap();
+    let (status, _, m) = call(&app, "GET", "/models/broken", None).await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(m["error"], "model 'broken' cannot be loaded (the server log says why)", "{m}");
+    let (_, _, all) = call(&app, "GET", "/models", None).await;
+    let dir = ctx.data_dir.display().to_string();
+    assert!(!all.to_string().contains(&dir) && !all.to_string().contains("/tmp"), "{all}");
+    let (status, _, p) =
+        call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": {"model": "broken", "x": [1.0]}}))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(p["errors"][0]["message"], "model 'broken' cannot be loaded (the server log says why)", "{p}");
+}
