@@ -27,6 +27,10 @@ pub struct InferArgs {
     /// Samples CSV (parameter names; plus `obs` when OBS has several rows).
     #[arg(long)]
     pub out: PathBuf,
+    /// Folder for one corner plot per observation (corner_<row>.svg: the posterior over the
+    /// prior box, MAP marked, tick values in the parameters' units).
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
 }
 
 /// Lines up an observation table's columns with the model's features.
@@ -90,6 +94,9 @@ pub fn run(args: InferArgs) -> Result<()> {
     {
         bail!("--out {}: the folder {} does not exist", args.out.display(), dir.display());
     }
+    if let Some(dir) = &args.plot {
+        std::fs::create_dir_all(dir).with_context(|| format!("--plot {}: cannot create it", dir.display()))?;
+    }
     let model = Npe::load(&args.model)?;
     let rows = observations(&model, &args.obs)?;
     let many = rows.len() > 1;
@@ -119,6 +126,11 @@ pub fn run(args: InferArgs) -> Result<()> {
             }
             out.push_str(&vals.join(","));
             out.push('\n');
+        }
+        if let Some(dir) = &args.plot {
+            let title = format!("Posterior, {} observation {}", args.obs.display(), r + 1);
+            let svg = super::study::corner(&model, &inf.samples, None, &inf.map, &title);
+            std::fs::write(dir.join(format!("corner_{}.svg", r + 1)), svg)?;
         }
         let mut differential = crate::npe::normal::read(model.params(), &inf.samples);
         let fit = match crate::discrepancy::fitcheck::fit_check(&model, x, present, &inf) {

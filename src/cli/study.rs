@@ -71,7 +71,8 @@ fn write(out: &Path, name: &str, text: &str) -> Result<()> {
     Ok(())
 }
 
-fn corner(npe: &Npe, samples: &[Vec<f64>], truth: Option<&[f64]>, map: &[f64], title: &str) -> String {
+/// Corner plot of posterior samples over the model's prior box (MAP in red, truth in green).
+pub(crate) fn corner(npe: &Npe, samples: &[Vec<f64>], truth: Option<&[f64]>, map: &[f64], title: &str) -> String {
     let dims: Vec<plot::Dim<'_>> = npe
         .params()
         .iter()

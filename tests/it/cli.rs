@@ -489,11 +489,15 @@ fn a_wai_long_layout_export_imports_and_infers_with_the_shipped_model() {
         "300",
         "--out",
         out.to_str().unwrap(),
+        "--plot",
+        d.join("plots").to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(r["fit"]["ok"], true, "{}", r["fit"]);
     assert_eq!(r["fit"]["features"], 144, "{}", r["fit"]);
+    let svg = std::fs::read_to_string(d.join("plots/corner_1.svg")).unwrap();
+    assert!(svg.contains("E_eardrum") && svg.contains(">1e7<"), "the corner plot has tick values");
     // Cycles declared as radians: physically possible phases, so no refusal — but the model
     // cannot reproduce them, and says so instead of reading the ear.
     let o = otofit(&[
