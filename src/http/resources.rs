@@ -41,6 +41,13 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
             d["features"] = json!(h.feature_names.len());
             d["groups"] = json!(h.groups.iter().map(|g| &g.name).collect::<Vec<_>>());
             d["accepts_subsets"] = json!(h.mask_groups);
+            // The narrowest band each measure may cover (band-masked models), never extrapolated.
+            d["accepts_partial_bands"] = json!(h.mask_bands);
+            if h.mask_bands && h.band_cut_max < h.frequencies_hz.len() {
+                let n = h.frequencies_hz.len();
+                d["band_must_reach_hz"] =
+                    json!([h.frequencies_hz[h.band_cut_max], h.frequencies_hz[n - 1 - h.band_cut_max]]);
+            }
             d["training"] = json!(h.training);
             d["members"] = json!(h.members);
             d["calibration"] = json!({
