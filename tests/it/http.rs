@@ -738,6 +738,29 @@ async fn cancel_diagnoses() {
     }
 }
 
+/// A child process killed when the test ends, also when it fails.
+struct Reap(std::process::Child);
+
+impl Drop for Reap {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+impl std::ops::Deref for Reap {
+    type Target = std::process::Child;
+    fn deref(&self) -> &Self::Target {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Reap {
+    fn deref_mut(&mut self) -> &mut Self::Target {
+        &mut self.0
+    }
+}
+
 /// The child's exit status if it ends within `secs`; otherwise it is killed and `None`.
 fn exit_within(child: &mut std::process::Child, secs: u64) -> Option<std::process::ExitStatus> {
     for _ in 0..secs * 10 {
@@ -758,7 +781,7 @@ fn a_second_server_on_the_same_data_dir_refuses_to_start() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let dir = std::env::temp_dir().join(format!("otofit-lock-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let mut first = start(port, &dir);
+    let mut first = Reap(start(port, &dir));
     assert_eq!(http(port, "GET", "/health", None).unwrap().0, 200);
     let port2 = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let mut second = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
@@ -886,13 +909,22 @@ fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let dir = std::env::temp_dir().join(format!("otofit-idle-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let mut server = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
-        .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap()])
-        .args(["--default-model", default_model().to_str().unwrap(), "--idle-timeout", "1", "--infer-deadline", "0.5"])
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::null())
-        .spawn()
-        .unwrap();
+    let mut server = Reap(
+        std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+            .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap()])
+            .args([
+                "--default-model",
+                default_model().to_str().unwrap(),
+                "--idle-timeout",
+                "1",
+                "--infer-deadline",
+                "0.5",
+            ])
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
     for _ in 0..100 {
         if http(port, "GET", "/health", None).is_some() {
             break;
@@ -1017,7 +1049,7 @@ fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let dir = std::env::temp_dir().join(format!("otofit-term-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let mut server = start(port, &dir);
+    let mut server = Reap(start(port, &dir));
     let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
     let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &Default::default()).unwrap();
     let body = json!({"kind": "diagnose", "params": {"x": x, "null_cases": 1000}}).to_string();
@@ -1035,7 +1067,7 @@ fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
     let exited = exit_within(&mut server, 15);
     let secs = t0.elapsed().as_secs_f64();
     assert!(exited.is_some_and(|s| s.success()) && secs < 10.0, "{exited:?} after {secs:.1} s");
-    let mut server = start(port, &dir);
+    let mut server = Reap(start(port, &dir));
     let (_, after) = http(port, "GET", &path, None).unwrap();
     server.kill().unwrap();
     server.wait().unwrap();
@@ -1064,4 +1096,27 @@ async fn unloadable_models_do_not_show_server_paths() {
         call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": {"model": "broken", "x": [1.0]}}))).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
     assert_eq!(p["errors"][0]["message"], "model 'broken' cannot be loaded (the server log says why)", "{p}");
+}
+
+/// Issue 13.8: every operation documents its other errors (401, 405, 408, 500) as
+/// problem+json, and those answers are problem+json.
+#[tokio::test]
+async fn every_operation_documents_its_errors_as_problems() {
+    let ops = spec_operations().len();
+    let defaults = SPEC.lines().filter(|l| *l == "        default: { $ref: \"#/components/responses/Error\" }").count();
+    assert_eq!(defaults, ops, "one default (error) response per operation");
+    use sha2::Digest;
+    let (app, _) = app(vec![sha2::Sha256::digest(b"k").into()], 8, false).await;
+    for (method, path) in ROUTES {
+        let uri = path.replace("{id}", "x").replace("{name}", "report.html").replace("{file}", "x.csv");
+        let (status, headers, p) = call(&app, &method.to_uppercase(), &uri, None).await;
+        let want = if path == "/health" { StatusCode::OK } else { StatusCode::UNAUTHORIZED };
+        assert_eq!(status, want, "{method} {path}");
+        if status != StatusCode::OK {
+            assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json", "{method} {path}");
+            assert_eq!(p["status"], 401);
+        }
+        let (status, headers, _) = call(&app, "PUT", &uri, None).await;
+        assert!(headers[header::CONTENT_TYPE] == "application/problem+json", "PUT {path}: {status}");
+    }
 }
