@@ -588,17 +588,28 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     let shutting_down = ctx.shutdown.load(Ordering::Relaxed);
     let cancelled = cancel.load(Ordering::Relaxed);
     let store = &ctx.store;
+    // Every end is fenced by the attempt this worker claimed (see `Store::finish`).
+    let (id, attempt) = (job.id.as_str(), job.attempts);
     let outcome = match result {
-        Err(e) => store.finish(&job.id, "failed", Some(&format!("worker panicked: {e}")), None).await,
+        Err(e) => store.finish(id, attempt, "failed", Some(&format!("worker panicked: {e}")), None).await,
         // Interrupted by shutdown: back to the queue, the attempt not counted.
-        Ok(_) if cancelled && shutting_down => store.requeue(&job.id).await,
+        Ok(_) if cancelled && shutting_down => store.requeue(id, attempt).await,
         // A cancelled training still returns its best weights: that is a result.
-        Ok(Ok(doc)) => store.finish(&job.id, "succeeded", None, Some(&doc)).await,
-        Ok(Err(e)) if cancelled || e.is::<Stopped>() => store.finish(&job.id, "cancelled", None, None).await,
-        Ok(Err(e)) => store.finish(&job.id, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await,
+        Ok(Ok(doc)) => store.finish(id, attempt, "succeeded", None, Some(&doc)).await,
+        Ok(Err(e)) if cancelled || e.is::<Stopped>() => store.finish(id, attempt, "cancelled", None, None).await,
+        Ok(Err(e)) => store.finish(id, attempt, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await,
     };
-    if let Err(e) = outcome {
-        tracing::error!(job = %job.id, error = %e, "job state not saved");
+    let owned = match outcome {
+        Ok(owned) => owned,
+        Err(e) => {
+            tracing::error!(job = %job.id, error = %e, "job state not saved");
+            false
+        }
+    };
+    if !owned {
+        // Another worker holds the job now: its files and its model are its own.
+        tracing::warn!(job = %job.id, attempt, "the job is no longer this worker's; its outcome is dropped");
+        return;
     }
     if job.kind == "simulate" && !matches!(ctx.store.job(&job.id).await, Ok(Some(j)) if j.state == "succeeded") {
         remove_temporary_files(&ctx.dataset_dir(&job.id));

@@ -232,24 +232,28 @@ impl Store {
         Ok(())
     }
 
-    /// Final state of a running job.
+    /// Final state of a running job, fenced by its attempt: only the worker that claimed
+    /// `attempt` may end it (after a restart re-queued and re-claimed the job, a late
+    /// worker's result is dropped). Returns whether the job was this worker's to end.
     pub async fn finish(
         &self,
         id: &str,
+        attempt: i64,
         state: &str,
         error: Option<&str>,
         result: Option<&serde_json::Value>,
-    ) -> Result<(), sqlx::Error> {
-        sqlx::query("UPDATE jobs SET state = ?, error = ?, result = ?, finished_at = ?, progress = CASE WHEN ? = 'succeeded' THEN 1 ELSE progress END WHERE id = ?")
+    ) -> Result<bool, sqlx::Error> {
+        let done = sqlx::query("UPDATE jobs SET state = ?, error = ?, result = ?, finished_at = ?, progress = CASE WHEN ? = 'succeeded' THEN 1 ELSE progress END WHERE id = ? AND state = 'running' AND attempts = ?")
             .bind(state)
             .bind(error)
             .bind(result.map(|r| r.to_string()))
             .bind(now())
             .bind(state)
             .bind(id)
+            .bind(attempt)
             .execute(&self.pool)
             .await?;
-        Ok(())
+        Ok(done.rows_affected() == 1)
     }
 
     /// Requests cancellation: a queued job ends at once; a running one at its next check.
@@ -296,13 +300,15 @@ impl Store {
         Ok((requeued, failed))
     }
 
-    /// Puts a running job back in the queue (graceful shutdown), not counting the attempt.
-    pub async fn requeue(&self, id: &str) -> Result<(), sqlx::Error> {
-        sqlx::query("UPDATE jobs SET state = 'queued', attempts = attempts - 1, message = 're-queued at shutdown' WHERE id = ? AND state = 'running'")
+    /// Puts a running job back in the queue (graceful shutdown), not counting the attempt;
+    /// fenced by the attempt like `finish`.
+    pub async fn requeue(&self, id: &str, attempt: i64) -> Result<bool, sqlx::Error> {
+        let done = sqlx::query("UPDATE jobs SET state = 'queued', attempts = attempts - 1, message = 're-queued at shutdown' WHERE id = ? AND state = 'running' AND attempts = ?")
             .bind(id)
+            .bind(attempt)
             .execute(&self.pool)
             .await?;
-        Ok(())
+        Ok(done.rows_affected() == 1)
     }
 }
 

@@ -1120,3 +1120,22 @@ async fn every_operation_documents_its_errors_as_problems() {
         assert!(headers[header::CONTENT_TYPE] == "application/problem+json", "PUT {path}: {status}");
     }
 }
+
+/// Issue 13.2 (fencing): a worker whose job was re-queued and claimed again (a restart)
+/// can no longer end it; only the current attempt's worker can.
+#[tokio::test]
+async fn only_the_current_attempt_can_end_a_job() {
+    let (_, ctx) = app(vec![], 8, false).await;
+    let store = &ctx.store;
+    assert!(store.insert_job_within("j", "simulate", &json!({"n": 5}), 3, 8).await.unwrap());
+    let first = store.claim().await.unwrap().unwrap();
+    store.recover().await.unwrap();
+    let second = store.claim().await.unwrap().unwrap();
+    assert_eq!((first.attempts, second.attempts), (1, 2));
+    assert!(!store.finish("j", first.attempts, "succeeded", None, Some(&json!({"late": true}))).await.unwrap());
+    assert!(!store.requeue("j", first.attempts).await.unwrap());
+    let j = store.job("j").await.unwrap().unwrap();
+    assert_eq!((j.state.as_str(), j.result), ("running", None), "the late worker changed nothing");
+    assert!(store.finish("j", second.attempts, "succeeded", None, Some(&json!({"rows": 5}))).await.unwrap());
+    assert_eq!(store.job("j").await.unwrap().unwrap().state, "succeeded");
+}
