@@ -224,13 +224,43 @@ fn theta_values(rows: &[Vec<f64>], errs: &mut Vec<FieldError>) {
     }
 }
 
+/// A job's params as `T`; an error names the full JSON path of the field
+/// (`params.theta[0][1]`, `params.bogus` for an unknown or missing one).
+fn parse<T: serde::de::DeserializeOwned>(params: &serde_json::Value) -> Result<T, Vec<FieldError>> {
+    let bytes = serde_json::to_vec(params).map_err(|e| vec![("params".to_string(), e.to_string())])?;
+    // axum's Json tracks the path (serde_path_to_error): "…target type: theta[0][1]: invalid type: …".
+    axum::Json::<T>::from_bytes(&bytes).map(|j| j.0).map_err(|r| vec![field_error("params", &r.body_text())])
+}
+
+fn field_error(root: &str, text: &str) -> FieldError {
+    let text = text.split_once(": ").map_or(text, |(_, rest)| rest);
+    let (path, message) = match text.split_once(": ") {
+        Some((p, m)) if !p.contains(' ') => (p, m),
+        _ => ("", text),
+    };
+    let mut field = root.to_string();
+    if !path.is_empty() && path != "." {
+        field += if path.starts_with('[') { "" } else { "." };
+        field += path;
+    }
+    let named = message.strip_prefix("unknown field `").or_else(|| message.strip_prefix("missing field `"));
+    // An unknown field's path ends with it already; a missing one's is its parent.
+    if let Some(name) = named.and_then(|r| r.split('`').next())
+        && !field.ends_with(&format!(".{name}"))
+    {
+        field = format!("{field}.{name}");
+    }
+    // The position is in a re-serialised copy of params: no use to the client.
+    let message = message.split(" at line ").next().unwrap_or(message);
+    (field, message.to_string())
+}
+
 /// Checks a job's params before it is queued, naming each bad field.
 pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldError>> {
-    let de = |e: serde_json::Error| vec![("params".to_string(), e.to_string())];
     let mut errs = Vec::new();
     match kind {
         "simulate" => {
-            let p: SimulateParams = serde_json::from_value(params.clone()).map_err(de)?;
+            let p: SimulateParams = parse(params)?;
             effects_of(&p.effects, &mut errs);
             for (i, v) in p.vary.iter().enumerate() {
                 if Effects::index(v).is_none() {
@@ -266,7 +296,7 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             }
         }
         "train" => {
-            let p: TrainParams = serde_json::from_value(params.clone()).map_err(de)?;
+            let p: TrainParams = parse(params)?;
             plain_id("params.dataset", &p.dataset, &mut errs);
             if p.max_epochs == 0 || p.max_epochs > 5000 {
                 errs.push(("params.max_epochs".into(), "must be 1..=5000".into()));
@@ -279,7 +309,7 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             }
         }
         "resimulate" => {
-            let p: ResimulateParams = serde_json::from_value(params.clone()).map_err(de)?;
+            let p: ResimulateParams = parse(params)?;
             effects_of(&p.effects, &mut errs);
             if p.theta.is_empty() || p.theta.len() > MAX_RESIMULATE {
                 errs.push(("params.theta".into(), format!("needs 1..={MAX_RESIMULATE} rows")));
@@ -305,7 +335,7 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             }
         }
         "diagnose" => {
-            let p: DiagnoseParams = serde_json::from_value(params.clone()).map_err(de)?;
+            let p: DiagnoseParams = parse(params)?;
             if let Some(m) = &p.model {
                 plain_id("params.model", m, &mut errs);
             } else if params.get("model").is_some() {

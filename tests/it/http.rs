@@ -1139,3 +1139,24 @@ async fn only_the_current_attempt_can_end_a_job() {
     assert!(store.finish("j", second.attempts, "succeeded", None, Some(&json!({"rows": 5}))).await.unwrap());
     assert_eq!(store.job("j").await.unwrap().unwrap().state, "succeeded");
 }
+
+/// Issue 13.8: a job param of the wrong type, unknown or missing is named by its full
+/// JSON path, not as `params`.
+#[tokio::test]
+async fn job_param_errors_carry_the_full_path() {
+    let (app, _) = app(vec![], 8, false).await;
+    let theta = json!([[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10], [2e7, "soft", 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]]);
+    for (kind, params, field) in [
+        ("resimulate", json!({"theta": theta}), "params.theta[1][1]"),
+        ("simulate", json!({"n": 5, "bogus": 1}), "params.bogus"),
+        ("simulate", json!({"n": -5}), "params.n"),
+        ("train", json!({"dataset": "d", "max_epochs": "many"}), "params.max_epochs"),
+        ("diagnose", json!({"candidates": ["cavity"]}), "params.x"),
+        ("diagnose", json!({"x": [1.0, null]}), "params.x[1]"),
+    ] {
+        let (status, headers, p) = call(&app, "POST", "/jobs", Some(json!({"kind": kind, "params": params}))).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+        assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+        assert_eq!(p["errors"][0]["field"], field, "{p}");
+    }
+}
