@@ -232,7 +232,9 @@ fn parse<T: serde::de::DeserializeOwned>(params: &serde_json::Value) -> Result<T
     axum::Json::<T>::from_bytes(&bytes).map(|j| j.0).map_err(|r| vec![field_error("params", &r.body_text())])
 }
 
-fn field_error(root: &str, text: &str) -> FieldError {
+/// (field, message) from the text of an axum Json data rejection, the field's path under
+/// `root` (which may be empty).
+pub fn field_error(root: &str, text: &str) -> FieldError {
     let text = text.split_once(": ").map_or(text, |(_, rest)| rest);
     let (path, message) = match text.split_once(": ") {
         Some((p, m)) if !p.contains(' ') => (p, m),
@@ -240,13 +242,14 @@ fn field_error(root: &str, text: &str) -> FieldError {
     };
     let mut field = root.to_string();
     if !path.is_empty() && path != "." {
-        field += if path.starts_with('[') { "" } else { "." };
+        field += if path.starts_with('[') || field.is_empty() { "" } else { "." };
         field += path;
     }
     let named = message.strip_prefix("unknown field `").or_else(|| message.strip_prefix("missing field `"));
     // An unknown field's path ends with it already; a missing one's is its parent.
     if let Some(name) = named.and_then(|r| r.split('`').next())
         && !field.ends_with(&format!(".{name}"))
+        && field != name
     {
         field = format!("{field}.{name}");
     }

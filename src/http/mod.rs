@@ -196,30 +196,23 @@ pub fn json_body<T: serde::de::DeserializeOwned>(headers: &axum::http::HeaderMap
     if !media.eq_ignore_ascii_case("application/json") {
         return Err(Problem::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, "send Content-Type: application/json"));
     }
-    let de = &mut serde_json::Deserializer::from_slice(body);
-    let value = serde_path_to_error(de)?;
-    // One JSON value and nothing after it but whitespace.
-    de.end().map_err(|e| Problem::new(StatusCode::BAD_REQUEST, format!("malformed JSON: {e}")))?;
-    Ok(value)
-}
-
-/// serde_json with the path of the failing field in the error.
-fn serde_path_to_error<'de, T: serde::de::DeserializeOwned>(
-    de: &mut serde_json::Deserializer<serde_json::de::SliceRead<'de>>,
-) -> Result<T, Problem> {
-    T::deserialize(de).map_err(|e| {
-        if e.is_syntax() || e.is_eof() {
-            Problem::new(StatusCode::BAD_REQUEST, format!("malformed JSON: {e}"))
-        } else {
-            let field = field_of(&e.to_string());
-            Problem::invalid(vec![(field, e.to_string())])
+    // axum's Json: serde_path_to_error inside, and nothing but whitespace after the value.
+    match axum::Json::<T>::from_bytes(body) {
+        Ok(axum::Json(value)) => Ok(value),
+        Err(axum::extract::rejection::JsonRejection::JsonDataError(e)) => {
+            let (mut field, message) = crate::jobs::field_error("", &e.body_text());
+            // An unknown or missing field is named by itself (`wbt`), as it always was.
+            if let Some(name) = message.split('`').nth(1).filter(|_| message.contains(" field `")) {
+                field = name.to_string();
+            }
+            Err(Problem::invalid(vec![(if field.is_empty() { "body".into() } else { field }, message)]))
         }
-    })
-}
-
-/// Best effort: the field name serde mentions ("missing field `x`", "unknown field `y`").
-fn field_of(msg: &str) -> String {
-    msg.split('`').nth(1).unwrap_or("body").to_string()
+        Err(e) => {
+            let text = e.body_text();
+            let detail = text.split_once(": ").map_or(text.as_str(), |(_, rest)| rest);
+            Err(Problem::new(StatusCode::BAD_REQUEST, format!("malformed JSON: {detail}")))
+        }
+    }
 }
 
 async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response {

@@ -1160,3 +1160,22 @@ async fn job_param_errors_carry_the_full_path() {
         assert_eq!(p["errors"][0]["field"], field, "{p}");
     }
 }
+
+/// Issue 13.8: a body field of the wrong type is named by its JSON path, not `body` or its
+/// value.
+#[tokio::test]
+async fn body_type_errors_carry_the_full_path() {
+    let (app, _) = app(vec![], 8, false).await;
+    let mut bad = nominal_request();
+    bad["measurements"]["absorbance"]["values"][3] = json!("high");
+    let mut negative = nominal_request();
+    negative["samples"] = json!(-5);
+    for (uri, body, field) in [
+        ("/infer", bad, "measurements.absorbance.values[3]"),
+        ("/infer", negative, "samples"),
+        ("/jobs", json!({"kind": 5, "params": {}}), "kind"),
+    ] {
+        let (status, _, p) = call(&app, "POST", uri, Some(body)).await;
+        assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some(field)), "{p}");
+    }
+}
