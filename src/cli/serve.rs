@@ -32,7 +32,7 @@ pub struct ServeArgs {
     #[arg(long)]
     pub infer_concurrency: Option<usize>,
     /// Most inferences waiting for a slot before POST /infer answers 503 + Retry-After
-    /// (default: 2 × cores).
+    /// (default: 32 × cores).
     #[arg(long)]
     pub infer_queue: Option<usize>,
     /// Seconds an inference may take, waiting included, before it answers 503.

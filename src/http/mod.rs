@@ -49,10 +49,12 @@ pub struct InferLimits {
 }
 
 impl Default for InferLimits {
-    /// Two inferences per core, as many waiting, 10 s each.
+    /// Two inferences per core, 32 per core waiting, 10 s each. A request costs ~10–30 ms
+    /// of CPU, so a burst of a few dozen clients waits well under a second instead of
+    /// being turned away; the deadline still bounds every wait.
     fn default() -> Self {
         let cores = std::thread::available_parallelism().map_or(2, usize::from);
-        InferLimits { concurrency: 2 * cores, queue: 2 * cores, deadline: Duration::from_secs(10) }
+        InferLimits { concurrency: 2 * cores, queue: 32 * cores, deadline: Duration::from_secs(10) }
     }
 }
 
