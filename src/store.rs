@@ -158,13 +158,6 @@ impl Store {
             .map(model_from))
     }
 
-    pub async fn count_active(&self) -> Result<i64, sqlx::Error> {
-        sqlx::query("SELECT COUNT(*) AS n FROM jobs WHERE state IN ('queued', 'running')")
-            .fetch_one(&self.pool)
-            .await
-            .map(|r| r.get("n"))
-    }
-
     /// Queues a job if fewer than `limit` jobs are queued or running. The count and the
     /// insert are one statement (SQLite takes the write lock before it reads), so
     /// concurrent posts cannot overshoot the limit. Returns whether the job was queued.

@@ -7,7 +7,7 @@
 //! When either fails, no parameter is read against a normal range.
 
 use super::workflow::check_present;
-use super::{Band, Observation};
+use super::{Band, Observation, null_quantile};
 use crate::npe::{FitNull, Inference, Npe, Obs, SubsetNull};
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::output::feature_names;
@@ -67,15 +67,20 @@ pub enum FitCheckError {
 
 /// The simulator a model was trained on, built once per process for the default grid.
 pub fn simulator_for(npe: &Npe) -> Result<&'static Model, FitCheckError> {
-    static DEFAULT: OnceLock<Result<Model, String>> = OnceLock::new();
-    let model = DEFAULT
-        .get_or_init(|| Model::new(ModelConfig::default()).map_err(|e| e.to_string()))
+    // The model and its feature names, built once: every request compares against them.
+    static DEFAULT: OnceLock<Result<(Model, Vec<String>), String>> = OnceLock::new();
+    let (model, names) = DEFAULT
+        .get_or_init(|| {
+            let m = Model::new(ModelConfig::default()).map_err(|e| e.to_string())?;
+            let names = feature_names(m.frequencies());
+            Ok((m, names))
+        })
         .as_ref()
         .map_err(|e| FitCheckError::Simulator(e.clone()))?;
     let h = &npe.header;
     let same_params =
         h.params.len() == PARAMS.len() && h.params.iter().zip(PARAMS.iter()).all(|(a, b)| a.name == b.name);
-    if !same_params || h.feature_names != feature_names(model.frequencies()) {
+    if !same_params || h.feature_names != *names {
         return Err(FitCheckError::NotOtofit);
     }
     Ok(model)
@@ -208,11 +213,6 @@ pub fn fit_check(npe: &Npe, x: &[f64], present: &[bool], inf: &Inference) -> Res
     })
 }
 
-fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(f64::INFINITY)
-}
-
 /// Measures the null on `cases` fresh prior draws simulated with the model's training
 /// noise (held out by construction: seeds the training never used), every feature given.
 pub fn null(npe: &Npe, cases: usize, seed: u64) -> Result<FitNull, FitCheckError> {
@@ -273,9 +273,9 @@ fn subset_null(
     }
     Ok(SubsetNull {
         groups: present_groups(npe, present),
-        reduced_chi2: quantile(chi, NULL_QUANTILE),
-        measure_chi2: quantile(worst, NULL_QUANTILE),
-        input_score: quantile(scores, NULL_QUANTILE),
+        reduced_chi2: null_quantile(chi, NULL_QUANTILE),
+        measure_chi2: null_quantile(worst, NULL_QUANTILE),
+        input_score: null_quantile(scores, NULL_QUANTILE),
     })
 }
 

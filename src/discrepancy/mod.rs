@@ -16,6 +16,12 @@ use crate::sim::batch::Design;
 use crate::sim::params::{EFFECTS, N_PARAMS};
 use serde::Serialize;
 
+/// Nearest-rank `q` quantile of a null sample; +∞ for an empty sample.
+pub(crate) fn null_quantile(mut v: Vec<f64>, q: f64) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(f64::INFINITY)
+}
+
 /// One candidate effect's extended fit.
 #[derive(Clone, Debug, Serialize)]
 pub struct Candidate {

@@ -292,10 +292,7 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -
             drops.push(ranked.first().map_or(0.0, |c| b.chi2 - c.chi2));
         }
     }
-    let quantile = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(((v.len().max(1) - 1) as f64 * ALARM_QUANTILE).round() as usize).copied().unwrap_or(f64::INFINITY)
-    };
+    let quantile = |v| super::null_quantile(v, ALARM_QUANTILE);
     Ok(Thresholds { base_reduced_chi2: quantile(chi), best_drop: quantile(drops), explained: 1.5 })
 }
 
