@@ -7,7 +7,9 @@ use crate::dataset::{self, Rows};
 use crate::npe::{self, Dataset, Npe, TrainSettings};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::output::feature_names;
-use crate::sim::params::{EFFECTS, Effects, N_PARAMS, PARAMS};
+use crate::sim::params::{EFFECTS, Effects, N_PARAMS, N_TISSUE, PARAMS};
+
+const N_GEOMETRY: usize = N_PARAMS - N_TISSUE;
 use crate::sim::{Model, ModelConfig};
 use crate::store::{JobRow, Store};
 use anyhow::{Context, Result, anyhow, bail};
@@ -200,7 +202,23 @@ fn effects_of(map: &BTreeMap<String, f64>, errs: &mut Vec<FieldError>) -> Effect
 /// which no ear has and which break the solver's and the figures' arithmetic, out.
 const THETA_SLACK_DECADES: f64 = 1.0;
 
-/// Checks the seven parameter values of `params.theta` rows (effects columns are checked
+/// Rows of `params.theta` with the nominal geometry inserted after the tissue columns
+/// where a row gives only those (and then `n_effects` effect columns).
+fn with_geometry(rows: &[Vec<f64>], n_effects: usize) -> Vec<Vec<f64>> {
+    rows.iter()
+        .map(|r| {
+            if r.len() != N_TISSUE + n_effects {
+                return r.clone();
+            }
+            let mut full = r[..N_TISSUE].to_vec();
+            full.extend(PARAMS[N_TISSUE..].iter().map(|p| p.nominal));
+            full.extend_from_slice(&r[N_TISSUE..]);
+            full
+        })
+        .collect()
+}
+
+/// Checks the parameter values of `params.theta` rows (effects columns are checked
 /// by the simulator's own range guard).
 fn theta_values(rows: &[Vec<f64>], errs: &mut Vec<FieldError>) {
     for (i, row) in rows.iter().enumerate() {
@@ -281,13 +299,17 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
                 }
                 (None, Some(rows)) => {
                     let w = N_PARAMS + p.vary.len();
-                    if let Some(i) = rows.iter().position(|r| r.len() != w) {
+                    if let Some(i) = rows.iter().position(|r| r.len() != w && r.len() != w - N_GEOMETRY) {
                         errs.push((
                             format!("params.theta[{i}]"),
-                            format!("needs {w} values (the 7 parameters, then the varied effects)"),
+                            format!(
+                                "needs {w} values (the {N_PARAMS} parameters, then the varied effects) or {} \
+                                 (the {N_TISSUE} tissue parameters with nominal geometry, then the varied effects)",
+                                w - N_GEOMETRY
+                            ),
                         ));
                     } else {
-                        theta_values(rows, &mut errs);
+                        theta_values(&with_geometry(rows, p.vary.len()), &mut errs);
                     }
                 }
                 (Some(_), Some(_)) => errs.push(("params".into(), "give either n or theta, not both".into())),
@@ -317,13 +339,16 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
             if p.theta.is_empty() || p.theta.len() > MAX_RESIMULATE {
                 errs.push(("params.theta".into(), format!("needs 1..={MAX_RESIMULATE} rows")));
             }
-            if let Some(i) = p.theta.iter().position(|r| r.len() != N_PARAMS) {
+            if let Some(i) = p.theta.iter().position(|r| r.len() != N_PARAMS && r.len() != N_TISSUE) {
                 errs.push((
                     format!("params.theta[{i}]"),
-                    format!("needs {N_PARAMS} values: {}", PARAMS.map(|p| p.name).join(", ")),
+                    format!(
+                        "needs {N_PARAMS} values ({}) or the first {N_TISSUE} (nominal geometry)",
+                        PARAMS.map(|p| p.name).join(", ")
+                    ),
                 ));
             } else {
-                theta_values(&p.theta, &mut errs);
+                theta_values(&with_geometry(&p.theta, 0), &mut errs);
             }
             if let Some(x) = &p.observation {
                 let n = 5 * crate::sim::ModelConfig::default().frequencies.len();
@@ -398,7 +423,7 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             let model = Model::new(ModelConfig::default())?;
             let noise = Noise { std: default_noise_std(&model), scale: p.noise_scale, seed: p.seed };
             let rows = match p.theta {
-                Some(t) => Rows::Given(t),
+                Some(t) => Rows::Given(with_geometry(&t, design.varied.len())),
                 None => Rows::Prior { n: p.n.unwrap_or(0), seed: p.seed },
             };
             let dir = ctx.dataset_dir(&job.id);
@@ -453,7 +478,8 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             let mut errs = Vec::new();
             let design = Design { fixed: effects_of(&p.effects, &mut errs), varied: vec![] };
             let model = Model::new(ModelConfig::default())?;
-            let out = run_rows(&model, &design, &p.theta, 0, None);
+            let theta = with_geometry(&p.theta, 0);
+            let out = run_rows(&model, &design, &theta, 0, None);
             let x: Vec<serde_json::Value> = out
                 .iter()
                 .map(|res| match res {
@@ -463,7 +489,7 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 .collect();
             r.report(1.0, format!("{} rows", p.theta.len()));
             let ok: Vec<&[f64]> = out.iter().filter_map(|o| o.as_deref().ok()).collect();
-            let page = crate::plot::resimulation(model.frequencies(), &p.theta, &ok, p.observation.as_deref());
+            let page = crate::plot::resimulation(model.frequencies(), &theta, &ok, p.observation.as_deref());
             let dir = ctx.data_dir.join("reports").join(&job.id);
             std::fs::create_dir_all(&dir)?;
             std::fs::write(dir.join("spectra.svg"), &page.svg)?;

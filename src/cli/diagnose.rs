@@ -2,7 +2,7 @@
 
 use crate::discrepancy::{self, Verdict};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
-use crate::sim::params::{EFFECTS, N_EFFECTS};
+use crate::sim::params::{EFFECTS, N_EFFECTS, N_PARAMS};
 use crate::sim::{Model, ModelConfig};
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -135,21 +135,21 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         let mut r = design.draw(seed, row, 1).remove(0);
         let u = design.draw(seed ^ 0xC0FFEE, row, 1).remove(0);
         let cols = design.columns();
-        for k in 0..7 {
+        for k in 0..N_PARAMS {
             r[k] = cols[k].from_unit(0.1 + 0.8 * unit_of(&cols[k], u[k])); // central 80 % of the prior
         }
         let x = run_rows(&model, &design, &[r.clone()], row, Some(&noise)).remove(0).ok()?;
         let strength = match hidden {
             Some(_) => {
                 let on = run_rows(&model, &design, &[r.clone()], row, None).remove(0).ok()?;
-                let off = run_rows(&model, &Design::default(), &[r[..7].to_vec()], row, None).remove(0).ok()?;
+                let off = run_rows(&model, &Design::default(), &[r[..N_PARAMS].to_vec()], row, None).remove(0).ok()?;
                 (0..on.len())
                     .map(|i| (discrepancy::fit::feature_residual(i, 50, on[i], off[i]) / noise.std[i]).powi(2))
                     .sum()
             }
             None => 0.0,
         };
-        Some((x, hidden.map(|_| r[7]), strength))
+        Some((x, hidden.map(|_| r[N_PARAMS]), strength))
     };
     let mut false_alarms = 0;
     let mut n_clean = 0;

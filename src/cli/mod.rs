@@ -9,6 +9,7 @@ pub mod diagnose;
 pub mod import;
 pub mod infer;
 pub mod serve;
+pub mod explain;
 pub mod simulate;
 pub mod study;
 pub mod train;

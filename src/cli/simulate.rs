@@ -2,7 +2,7 @@
 
 use crate::dataset::{self, Rows};
 use crate::sim::batch::{self, Design, Noise};
-use crate::sim::params::{EFFECTS, Effects, PARAMS};
+use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS};
 use crate::sim::{Model, ModelConfig, Preset};
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
@@ -12,16 +12,22 @@ use std::time::Instant;
 
 #[derive(Args, Debug)]
 pub struct SimulateArgs {
-    /// Number of prior draws (log-uniform box of each parameter).
-    #[arg(long, conflicts_with = "theta", required_unless_present = "theta")]
+    /// Number of prior draws (uniform or log-uniform box of each parameter).
+    #[arg(long, conflicts_with = "theta", required_unless_present_any = ["theta", "explain"])]
     pub n: Option<usize>,
-    /// Simulate these rows instead: CSV whose header names the 7 parameters (natural
-    /// units); extra columns named after effects set that effect per row.
+    /// Simulate these rows instead: CSV whose header names the 7 tissue parameters
+    /// (natural units); the geometry columns (canal_length, canal_area, mic_distance)
+    /// are optional and nominal when absent; extra columns named after effects set that
+    /// effect per row.
     #[arg(long)]
     pub theta: Option<PathBuf>,
     /// Output folder (theta.csv, x.csv, meta.json).
-    #[arg(long)]
-    pub out: PathBuf,
+    #[arg(long, required_unless_present = "explain")]
+    pub out: Option<PathBuf>,
+    /// Print the nominal ear's responses (or the first --theta row's) against published
+    /// norms, with its power budget, instead of writing a dataset.
+    #[arg(long, conflicts_with = "n")]
+    pub explain: bool,
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Effects switched on for every row, e.g. `cavity=2e-6,ldv_angle=20`.
@@ -83,8 +89,14 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
     let table = dataset::read_csv(path)?;
     let col = |name: &str| table.header.iter().position(|h| h == name);
     let mut cols = Vec::new();
-    for p in PARAMS {
+    for p in &PARAMS[..N_TISSUE] {
         cols.push(col(p.name).with_context(|| format!("{}: missing column '{}'", path.display(), p.name))?);
+    }
+    // Geometry columns: all three or none (then nominal).
+    let geometry: Vec<Option<usize>> = PARAMS[N_TISSUE..].iter().map(|p| col(p.name)).collect();
+    if geometry.iter().any(Option::is_some) && geometry.iter().any(Option::is_none) {
+        let names: Vec<&str> = PARAMS[N_TISSUE..].iter().map(|p| p.name).collect();
+        bail!("{}: give all geometry columns ({}) or none (nominal)", path.display(), names.join(", "));
     }
     for h in &table.header {
         if PARAMS.iter().any(|p| p.name == h) {
@@ -95,21 +107,32 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
             design.varied.push(i);
         }
     }
+    let mut effect_cols = Vec::new();
     for &i in &design.varied {
-        cols.push(
+        effect_cols.push(
             col(EFFECTS[i].name)
                 .with_context(|| format!("{}: missing column '{}' (--vary)", path.display(), EFFECTS[i].name))?,
         );
     }
-    Ok(table.rows.iter().map(|r| cols.iter().map(|&c| r[c]).collect()).collect())
+    let nominal = PARAMS[N_TISSUE..].iter().map(|p| p.nominal);
+    Ok(table
+        .rows
+        .iter()
+        .map(|r| {
+            let mut row: Vec<f64> = cols.iter().map(|&c| r[c]).collect();
+            match geometry.iter().map(|c| c.map(|c| r[c])).collect::<Option<Vec<f64>>>() {
+                Some(g) => row.extend(g),
+                None => row.extend(nominal.clone()),
+            }
+            row.extend(effect_cols.iter().map(|&c| r[c]));
+            row
+        })
+        .collect())
 }
 
 pub fn run(args: SimulateArgs) -> Result<()> {
     if !(args.noise_scale.is_finite() && args.noise_scale >= 0.0) {
         bail!("--noise-scale must be a finite number ≥ 0, got {}", args.noise_scale);
-    }
-    if args.out.join("meta.json").exists() && !args.force {
-        bail!("{} already holds a dataset; pass --force to replace it", args.out.display());
     }
     let mut design = Design { fixed: parse_effects(&args.effects)?, varied: Vec::new() };
     for name in args.vary.iter().filter(|s| !s.is_empty()) {
@@ -120,6 +143,17 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         None => None,
     };
     let config = ModelConfig { preset: args.preset.into(), ..ModelConfig::default() };
+    if args.explain {
+        let (theta, fx) = match &given {
+            Some(rows) => design.split(rows.first().context("--theta: no rows")?),
+            None => (crate::sim::Theta::nominal(), design.fixed),
+        };
+        return super::explain::report(config, &theta, &fx);
+    }
+    let out = args.out.context("--out is required")?;
+    if out.join("meta.json").exists() && !args.force {
+        bail!("{} already holds a dataset; pass --force to replace it", out.display());
+    }
     let preset = config.preset;
     let model = Model::new(config)?;
     let std = match &args.noise_table {
@@ -135,7 +169,7 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     let start = Instant::now();
     let tty = std::io::stderr().is_terminal();
     let mut last_report = Instant::now();
-    let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, preset, &args.out, &mut |done, n| {
+    let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, preset, &out, &mut |done, n| {
         if tty || last_report.elapsed().as_secs_f64() > 5.0 || done == n {
             let rate = done as f64 / start.elapsed().as_secs_f64();
             eprint!(
@@ -154,7 +188,7 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         "wrote {} rows ({} failed) to {} in {:.2} s",
         meta.n_rows,
         meta.failed.len(),
-        args.out.display(),
+        out.display(),
         meta.wall_seconds
     );
     Ok(())

@@ -7,7 +7,7 @@ use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
 use crate::plot::{self, html::Page};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
-use crate::sim::{Model, ModelConfig, PARAMS};
+use crate::sim::{Model, ModelConfig, N_PARAMS, PARAMS};
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use serde_json::json;
@@ -121,7 +121,7 @@ pub fn run(a: StudyArgs) -> Result<()> {
         StudyName::Validate => {
             let npe = Npe::load(&a.model)?;
             let held = simulated(&model, a.n, a.seed ^ 0x7E57);
-            let (mut rhos, mut cvs, mut inside) = (vec![], vec![vec![]; 7], vec![0usize; 7]);
+            let (mut rhos, mut cvs, mut inside) = (vec![], vec![vec![]; N_PARAMS], vec![0usize; N_PARAMS]);
             // ρ is blind to offsets (a MAP spectrum 20 dB low can rank-correlate perfectly),
             // so the RMS residual in noise units, per measure, goes beside it.
             let mut rms: Vec<Vec<f64>> = vec![vec![]; MEASURES.len()];
@@ -216,7 +216,7 @@ pub fn run(a: StudyArgs) -> Result<()> {
                 );
             }
             println!("{:<14} {:>10} {:>14}", "parameter", "median CV", "in 90 % int.");
-            for k in 0..7 {
+            for k in 0..N_PARAMS {
                 println!("{:<14} {:>10.3} {:>13.1}%", names[k], med(cvs[k].clone()), 100.0 * inside[k] as f64 / n);
             }
             let rms_med: Vec<f64> = rms.iter().map(|v| med(v.clone())).collect();
@@ -238,7 +238,7 @@ pub fn run(a: StudyArgs) -> Result<()> {
             );
             p.heading("Parameters").table(
                 &["parameter", "median CV", "truth inside 90 % interval"],
-                (0..7)
+                (0..N_PARAMS)
                     .map(|k| {
                         vec![
                             names[k].into(),
@@ -312,10 +312,10 @@ pub fn run(a: StudyArgs) -> Result<()> {
                     let cv: Vec<f64> = inf.summaries.iter().map(|s| s.cv).collect();
                     // Width in decades of the 90 % interval: robust where CV saturates
                     // (log-uniform posteriors as wide as the prior have CV > 1).
-                    let width = inf.summaries.iter().map(|s| (s.q95 / s.q05).log10()).sum::<f64>() / 7.0;
+                    let width = inf.summaries.iter().map(|s| (s.q95 / s.q05).log10()).sum::<f64>() / N_PARAMS as f64;
                     println!(
                         "{size:>6} simulations, noise {level:>4}×: mean 90 % width {width:.3} decades, mean CV {:.3}, mean ρ {mean_rho:.3}, epochs {}  CV per parameter {:?}",
-                        cv.iter().sum::<f64>() / 7.0,
+                        cv.iter().sum::<f64>() / N_PARAMS as f64,
                         npe.header.training.epochs,
                         cv.iter().map(|c| (c * 1000.0).round() / 1000.0).collect::<Vec<_>>()
                     );
@@ -333,11 +333,11 @@ pub fn run(a: StudyArgs) -> Result<()> {
                         size.to_string(),
                         format!("{level}×"),
                         format!("{width:.3}"),
-                        format!("{:.3}", cv.iter().sum::<f64>() / 7.0),
+                        format!("{:.3}", cv.iter().sum::<f64>() / N_PARAMS as f64),
                         format!("{mean_rho:.3}"),
                         npe.header.training.epochs.to_string(),
                     ]);
-                    rows.push(json!({ "train_rows": size, "noise_scale": level, "cv": names.iter().zip(&cv).collect::<Vec<_>>(), "mean_cv": cv.iter().sum::<f64>() / 7.0, "mean_width_decades": width, "rho": r, "mean_rho": mean_rho, "epochs": npe.header.training.epochs }));
+                    rows.push(json!({ "train_rows": size, "noise_scale": level, "cv": names.iter().zip(&cv).collect::<Vec<_>>(), "mean_cv": cv.iter().sum::<f64>() / N_PARAMS as f64, "mean_width_decades": width, "rho": r, "mean_rho": mean_rho, "epochs": npe.header.training.epochs }));
                 }
             }
             let name = if matches!(a.name, StudyName::Noise) { "noise.json" } else { "size.json" };

@@ -102,10 +102,14 @@ pub async fn infer(
         }
         Err(e) => json!({ "ok": null, "reason": e.to_string() }),
     };
+    // The measurement-geometry nuisances are reported apart from the tissue parameters:
+    // they describe the probe's placement, not the ear, and have no normal range.
+    let (geometry, tissue): (Vec<_>, Vec<_>) =
+        inf.summaries.iter().partition(|s| crate::sim::params::is_geometry(&s.name));
     let mut doc = json!({
         "model": row.id,
         "fit": fit,
-        "parameters": inf.summaries,
+        "parameters": tissue,
         "differential": differential,
         "differential_note": "per parameter: the posterior probability below / within / above the normal range; a reading only where the posterior is informative and puts ≥ 0.8 on one side, else undetermined; unreliable for every parameter when the fit check fails. Information, not a diagnosis",
         "map": inf.map,
@@ -122,6 +126,13 @@ pub async fn infer(
     });
     if !next.is_null() {
         doc["next"] = next;
+    }
+    if !geometry.is_empty() {
+        doc["geometry"] = json!(geometry);
+        doc["geometry_note"] = json!(
+            "measurement geometry inferred with the tissue (path from the impedance plane to the eardrum, canal \
+             cross-section, V/P microphone distance): nuisances that keep the tissue posterior unbiased, not findings"
+        );
     }
     if req.return_samples.unwrap_or(true) {
         doc["samples"] = json!(inf.samples);

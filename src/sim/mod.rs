@@ -1,7 +1,8 @@
-//! The FE middle-ear simulator: θ (7 material parameters) + optional effects → 250
-//! features (five measures on a log-frequency grid).
+//! The FE middle-ear simulator: θ (7 tissue parameters and 3 measurement-geometry
+//! nuisances) + optional effects → 250 features (five measures on a log-frequency grid).
 //!
-//! Parts: `canal` (1D Webster-horn FE with viscothermal losses), `shell` (axisymmetric
+//! Parts: the residual canal as an exact viscothermal line (`air`; its FE twin `canal`,
+//! a 1D Webster-horn FE, verifies it), `shell` (axisymmetric
 //! conical shell FE of the eardrum), ossicles as rigid bodies with connector springs,
 //! coupled in `model` and solved by `system` (faer sparse LU, symbolic factorisation
 //! shared by all frequencies and parameter sets). `batch` runs many sets on rayon.
@@ -18,7 +19,7 @@ pub mod shell;
 pub mod system;
 
 pub use model::{Geometry, Model, ModelConfig, PowerBalance, Preset, Response, Runner, SimError, log_grid};
-pub use params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, PARAMS, Theta};
+pub use params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, N_TISSUE, PARAMS, Theta};
 
 /// Simulates one parameter set into its feature vector.
 pub fn simulate(runner: &mut Runner<'_>, theta: &Theta, effects: &Effects) -> Result<Vec<f64>, SimError> {

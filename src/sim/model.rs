@@ -1,15 +1,24 @@
-//! The coupled middle-ear model: canal FE + eardrum shell FE + rigid ossicles with
-//! connector springs, one sparse complex system per frequency.
+//! The coupled middle-ear model: eardrum shell FE + rigid ossicles with connector
+//! springs, one sparse complex system per frequency, driven by a unit volume velocity
+//! into the eardrum; then the residual canal as a uniform viscothermal line whose length
+//! and area are per-run parameters (the measurement geometry).
 //!
-//! Unknowns: canal pressures at the kept nodes (probe, Zec plane, microphone, eardrum; the
-//! interior nodes are condensed per frequency into exact two-ports); eardrum node DOFs (u_r, u_z, β) except the clamped
-//! rim and the rigid umbo disc; ossicle DOFs [w_umbo, θ_malleus, x_incus, θ_incus,
-//! x_stapes, φ_stapes]; the middle-ear cavity pressure. The disc's axial motion is the
-//! umbo's, which is the malleus point at the umbo arm (w_umbo = x_malleus + l_u θ_m).
-//! z points medially; positive canal pressure pushes the drum toward +z.
+//! Unknowns: the pressure on the eardrum; eardrum node DOFs (u_r, u_z, β) except the
+//! clamped rim and the rigid umbo disc (condensed through the drum's modes by default);
+//! ossicle DOFs [w_umbo, θ_malleus, x_incus, θ_incus, x_stapes, φ_stapes]; the
+//! middle-ear cavity pressure. The disc's axial motion is the umbo's, which is the
+//! malleus point at the umbo arm (w_umbo = x_malleus + l_u θ_m). z points medially;
+//! positive canal pressure pushes the drum toward +z.
+//!
+//! Why the canal is a line and not FE (v2): the middle ear sees the canal only through
+//! the pressure on the drum and the volume velocity into it, so one solve per frequency
+//! gives Z_tm and every velocity per unit flow; the canal's exact transfer matrix
+//! (cosh ΓL, Z_c sinh ΓL; …) then maps them to the impedance plane and the microphone for
+//! any length and area at the cost of a few complex numbers. The FE canal
+//! (`canal.rs`) converges to the same line (tests/it/physics.rs) and stays the
+//! verification of it and the path to non-uniform canals.
 
 use super::air::{self, Air};
-use super::canal::{Area, CanalMesh};
 use super::drum::{DrumCoefficients, DrumModes};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
@@ -25,18 +34,10 @@ use std::f64::consts::PI;
 /// chose a 0.3 mm lateral bulge of the generator (the curved radial fibres), 60 µm
 /// thickness (range 40–120 µm), a 0.5 mm umbo disc (0.5–1 mm) and the 15 mm residual
 /// canal (12–15 mm). tests/it/baseline.rs checks the result against tests/data.
+/// The canal's length and area and the microphone distance are not here: they are
+/// per-run parameters (`params::PARAMS`, nominal 12 mm, 44 mm², 2 mm).
 #[derive(Clone, Debug)]
 pub struct Geometry {
-    /// Residual canal, probe (x = 0) to eardrum, m (notes §1.1: 12–15 mm; 15 mm puts the
-    /// baseline |Z_ec| inside the live-ear ranges up to 2 kHz).
-    pub canal_length: f64,
-    pub canal_area: Area,
-    /// Largest canal element, m (≥ 80 elements per wavelength at 8 kHz).
-    pub canal_h: f64,
-    /// Impedance measurement plane, distance from the probe, m (simulator.md: 3 mm).
-    pub zec_plane: f64,
-    /// Microphone for V/P, distance lateral of the eardrum end of the canal, m.
-    pub mic_to_tm: f64,
     /// Eardrum radius, cone depth, thickness, m; density kg/m³; Poisson ratio.
     pub tm_radius: f64,
     pub tm_depth: f64,
@@ -45,6 +46,8 @@ pub struct Geometry {
     pub tm_thickness: f64,
     pub tm_rho: f64,
     pub tm_nu: f64,
+    /// How the eardrum dissipates (see [`DrumLoss`]).
+    pub tm_loss: DrumLoss,
     /// Radius of the rigid disc tied to the umbo, m.
     pub disc_radius: f64,
     pub tm_elements: usize,
@@ -102,17 +105,13 @@ impl Default for Geometry {
         let g_sal = shear * 7.2e-3 * 0.155e-3 / 0.1e-3;
         let half_fp = 1.5e-3; // footplate semi-axis; rocking k = k_sal·a²/3 (thin ellipse)
         Geometry {
-            canal_length: 15e-3,
-            canal_area: Area::Uniform(44e-6),
-            canal_h: 0.5e-3,
-            zec_plane: 3e-3,
-            mic_to_tm: 2e-3,
             tm_radius: 4.4e-3,
             tm_depth: 2.0e-3,
             tm_bulge: 0.3e-3,
             tm_thickness: 60e-6,
             tm_rho: 1100.0,
             tm_nu: nu,
+            tm_loss: DrumLoss::Rayleigh,
             disc_radius: 0.5e-3,
             tm_elements: 20,
             m_malleus: 25e-6,
@@ -144,6 +143,17 @@ impl Default for Geometry {
             g_sal_rock: g_sal * half_fp * half_fp / 3.0,
         }
     }
+}
+
+/// The eardrum's loss model.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum DrumLoss {
+    /// The seed's: E·(1 + jωβ) with the ossicles' damping_beta (a loss growing with
+    /// frequency, which overdamps the drum's modes above ~2 kHz).
+    Rayleigh,
+    /// A frequency-independent loss factor η: E·(1 + jη) (soft tissue's measured
+    /// behaviour over the audio band); damping_beta then acts on the ossicles only.
+    LossFactor(f64),
 }
 
 /// Air temperature preset.
@@ -202,9 +212,8 @@ struct Blocks {
     sal: usize,
     mass: usize,
     cochlea: usize,
-    canal_first: usize, // 4 per canal segment: its condensed 2×2
-    drum_load: usize,   // −b p_L in the mechanics rows
-    drum_flow: usize,   // +jω bᵀq leaving the canal's last node
+    drum_load: usize,   // −b p_drum in the mechanics rows
+    drum_flow: usize,   // jω bᵀq: the flow into the drum (the driven row)
     cavity_load: usize, // +b p_cav in the mechanics rows
     cavity_row: usize,  // (1/C_cav) bᵀq − p_cav = 0
     cavity_diag: usize,
@@ -214,9 +223,8 @@ struct Blocks {
 /// Indices of the named unknowns.
 #[derive(Clone, Debug)]
 pub struct Dofs {
-    /// Kept canal nodes (unknowns 0..n_canal), as mesh node indices in x order.
-    pub canal_nodes: Vec<usize>,
-    pub n_canal: usize,
+    /// Pressure on the eardrum; its row is the flow balance the unit drive enters.
+    pub p_drum: usize,
     pub umbo: usize,
     pub theta_m: usize,
     pub x_incus: usize,
@@ -232,15 +240,12 @@ pub struct Dofs {
 pub struct Model {
     pub config: ModelConfig,
     pub air: Air,
-    pub canal: CanalMesh,
     pub dofs: Dofs,
     system: System,
     blocks: Blocks,
     /// Volume swept per unit of each unknown (zero off the eardrum).
     b: Vec<f64>,
     drum: Option<DrumModes>,
-    zec_node: usize,
-    mic_node: usize,
 }
 
 /// The complex responses at one frequency.
@@ -249,6 +254,8 @@ pub struct Response {
     pub freq_hz: f64,
     /// Measured stapes velocity over canal pressure at the microphone, m/s/Pa.
     pub vst_over_p: c64,
+    /// Umbo velocity over the same pressure, m/s/Pa (clinical LDV through the canal).
+    pub vu_over_p: c64,
     /// Ear-canal impedance at the measurement plane as the probe sees it, Pa·s/m³.
     pub zec: c64,
     /// Characteristic impedance ρc/S at the measurement plane.
@@ -272,28 +279,34 @@ pub enum SimError {
     Setup(String),
 }
 
+/// The residual canal as a uniform line: pressure and flow at distance `l` lateral of
+/// the drum, for pressure `p_l` on the drum and a unit flow into it.
+#[derive(Clone, Copy, Debug)]
+struct Line {
+    gamma: c64,
+    zc: c64,
+    p_l: c64,
+}
+
+impl Line {
+    fn at(&self, l: f64) -> (c64, c64) {
+        let (ch, sh) = ((self.gamma * l).cosh(), (self.gamma * l).sinh());
+        (ch * self.p_l + self.zc * sh, sh * self.p_l / self.zc + ch)
+    }
+}
+
 impl Model {
     pub fn new(config: ModelConfig) -> Result<Model, SimError> {
         let g = &config.geometry;
         let air = config.preset.air();
-        let mic_x = g.canal_length - g.mic_to_tm;
-        let canal = CanalMesh::new(g.canal_length, &g.canal_area, g.canal_h, &[g.zec_plane, mic_x]);
-        let mut canal_nodes = vec![0, canal.n_nodes() - 1];
-        for x in [g.zec_plane, mic_x] {
-            canal_nodes.push(canal.node_at(x).ok_or_else(|| SimError::Setup(format!("no canal node at x = {x} m")))?);
-        }
-        canal_nodes.sort_unstable();
-        canal_nodes.dedup();
-        let n_canal = canal_nodes.len();
         // Eardrum: nodes from the disc edge (index 0) to the clamped rim (last).
         let nodes = cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements);
         let n_free_tm = nodes.len() - 2;
-        let tm_base = n_canal;
+        let tm_base = 1;
         let n_interior = 3 * n_free_tm;
         let osc = tm_base + if config.reduce_drum { 0 } else { n_interior };
         let dofs = Dofs {
-            canal_nodes: canal_nodes.clone(),
-            n_canal,
+            p_drum: 0,
             umbo: osc,
             theta_m: osc + 1,
             x_incus: osc + 2,
@@ -325,13 +338,6 @@ impl Model {
             sal: sb.block(),
             mass: sb.block(),
             cochlea: sb.block(),
-            canal_first: {
-                let first = sb.block();
-                for _ in 1..4 * (n_canal - 1) {
-                    sb.block();
-                }
-                first
-            },
             drum_load: sb.block(),
             drum_flow: sb.block(),
             cavity_load: sb.block(),
@@ -345,15 +351,6 @@ impl Model {
                 first
             },
         };
-
-        // Canal segments between kept nodes: one unit block per two-port entry.
-        for seg in 0..n_canal - 1 {
-            for a in 0..2 {
-                for c in 0..2 {
-                    sb.add(blocks.canal_first + 4 * seg + 2 * a + c, seg + a, seg + c, 1.0);
-                }
-            }
-        }
 
         // Eardrum elements, assembled densely over the local DOFs (interior + umbo).
         let mat = ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho };
@@ -388,8 +385,7 @@ impl Model {
             sb.add(blocks.tm, dofs.umbo, dofs.umbo, kd[(ni, ni)]);
             sb.add(blocks.mass, dofs.umbo, dofs.umbo, md[(ni, ni)]);
             b[dofs.umbo] = bd[ni];
-            let (last, pc) = (n_canal - 1, dofs.p_cavity);
-            let at = [dofs.umbo, last, pc];
+            let at = [dofs.umbo, dofs.p_drum, dofs.p_cavity];
             for i in 0..3 {
                 for j in 0..3 {
                     sb.add(blocks.drum_schur + 3 * i + j, at[i], at[j], 1.0);
@@ -456,9 +452,9 @@ impl Model {
         // Cochlear load on the piston: force = Z_c·A_fp²·velocity.
         sb.add(blocks.cochlea, d.x_stapes, d.x_stapes, g.footplate_area * g.footplate_area);
 
-        // Coupling through b: canal pressure loads the drum; drum volume velocity leaves
-        // the canal's last node; the cavity pressure pushes back.
-        let last = n_canal - 1;
+        // Coupling through b: the canal pressure loads the drum; the drum's volume
+        // velocity is the flow into it; the cavity pressure pushes back.
+        let last = d.p_drum;
         for (i, &bi) in b.iter().enumerate().filter(|(_, bi)| **bi != 0.0) {
             sb.add(blocks.drum_load, i, last, -bi);
             sb.add(blocks.drum_flow, last, i, bi);
@@ -468,12 +464,7 @@ impl Model {
         sb.add(blocks.cavity_diag, d.p_cavity, d.p_cavity, -1.0);
 
         let system = sb.build().map_err(|e| SimError::Setup(format!("symbolic LU: {e:?}")))?;
-        let kept = |x: f64| canal_nodes.iter().position(|&i| (canal.x[i] - x).abs() < 1e-9);
-        let zec_node = kept(g.zec_plane)
-            .filter(|&k| k + 1 < n_canal)
-            .ok_or_else(|| SimError::Setup("the Zec plane must lie inside the canal".into()))?;
-        let mic_node = kept(mic_x).ok_or_else(|| SimError::Setup("no node at the microphone".into()))?;
-        Ok(Model { config, air, canal, dofs, system, blocks, b, drum, zec_node, mic_node })
+        Ok(Model { config, air, dofs, system, blocks, b, drum })
     }
 
     pub fn nnz(&self) -> usize {
@@ -496,6 +487,10 @@ impl Model {
         let bl = &self.blocks;
         let jw = c64::new(0.0, w);
         let rayleigh = c64::new(1.0, w * theta.damping_beta());
+        let drum_loss = match self.config.geometry.tm_loss {
+            DrumLoss::Rayleigh => rayleigh,
+            DrumLoss::LossFactor(eta) => c64::new(1.0, eta),
+        };
         // Power-law viscoelastic eardrum, E·(jω/ω0)^n, ω0 = 2π·1 kHz.
         let n = fx.tm_exponent();
         let visco = if n == 0.0 {
@@ -503,17 +498,13 @@ impl Model {
         } else {
             c64::from_polar((w / (2.0 * PI * 1000.0)).powf(n), n * PI / 2.0)
         };
-        coef[bl.tm] = rayleigh * visco * theta.e_eardrum();
+        coef[bl.tm] = drum_loss * visco * theta.e_eardrum();
         coef[bl.ligaments] = rayleigh * theta.e_ligaments();
         coef[bl.tendons] = rayleigh * theta.e_tendons();
         coef[bl.joints] = rayleigh * theta.e_joints();
         coef[bl.sal] = rayleigh * theta.e_sal();
         coef[bl.mass] = c64::new(-w * w, 0.0);
         coef[bl.cochlea] = jw * c64::new(theta.cochlear_load(), w * fx.cochlear_mass());
-        for (seg, pair) in self.dofs.canal_nodes.windows(2).enumerate() {
-            let s = self.canal.condense(&self.air, w, pair[0], pair[1]);
-            coef[bl.canal_first + 4 * seg..bl.canal_first + 4 * seg + 4].copy_from_slice(&s);
-        }
         coef[bl.drum_load] = c64::new(1.0, 0.0);
         coef[bl.drum_flow] = jw;
         coef[bl.cavity_load] = c64::new(1.0, 0.0);
@@ -571,7 +562,8 @@ impl PowerBalance {
 }
 
 impl Runner<'_> {
-    /// Solves one frequency; the full solution is then in [`Self::solution`].
+    /// Solves one frequency for a unit volume velocity into the eardrum; the full
+    /// solution is then in [`Self::solution`].
     pub fn solve_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
         for (i, v) in theta.0.iter().enumerate() {
             if !(v.is_finite() && *v > 0.0) {
@@ -580,13 +572,20 @@ impl Runner<'_> {
         }
         let w = 2.0 * PI * freq_hz;
         self.model.fill_coefficients(theta, fx, w, &mut self.coef);
-        self.model.system.solve(&self.coef, &[(0, c64::new(1.0, 0.0))], &mut self.ws, freq_hz)?;
+        self.model.system.solve(&self.coef, &[(self.model.dofs.p_drum, c64::new(1.0, 0.0))], &mut self.ws, freq_hz)?;
         Ok(())
     }
 
-    /// The unknowns of the last solve (probe volume velocity 1 m³/s).
+    /// The unknowns of the last solve (unit volume velocity into the eardrum).
     pub fn solution(&self) -> &[c64] {
         &self.ws.x
+    }
+
+    /// The residual canal of `theta` at angular frequency `w`, loaded by the last solve.
+    fn line(&self, theta: &Theta, w: f64) -> Line {
+        let (zs, ys) = self.model.air.line_zy(w, theta.canal_area());
+        let (gamma, zc) = air::line_constants(zs, ys);
+        Line { gamma, zc, p_l: self.ws.x[self.model.dofs.p_drum] }
     }
 
     /// Measured responses at one frequency, effects applied.
@@ -597,23 +596,20 @@ impl Runner<'_> {
         let x = &self.ws.x;
         let w = 2.0 * PI * freq_hz;
         let jw = c64::new(0.0, w);
-        let p = &x[..m.dofs.n_canal];
+        let line = self.line(theta, w);
+        let (p_mic, _) = line.at(theta.mic_distance());
         // Stapes velocity as the LDV sees it: piston·cos θ + rocking at the spot·sin θ.
         let theta_ldv = fx.ldv_angle_deg().to_radians();
         let v_piston = jw * x[m.dofs.x_stapes];
         let v_rock = jw * x[m.dofs.phi_stapes] * g.ldv_spot;
         let v_meas = v_piston * theta_ldv.cos() + v_rock * theta_ldv.sin();
-        let vst_over_p = v_meas / p[m.mic_node];
-        // Impedance at the plane, then moved by the probe offset along a lossy uniform
-        // line of the local area, then shunted by the leak.
-        let s = g.canal_area.at(g.zec_plane, g.canal_length);
-        let seg = &self.coef[m.blocks.canal_first + 4 * m.zec_node..];
-        let mut zec = p[m.zec_node] / (seg[0] * p[m.zec_node] + seg[1] * p[m.zec_node + 1]);
+        // Impedance at the plane, then moved by the probe offset along the same line,
+        // then shunted by the leak.
+        let (p0, u0) = line.at(theta.canal_length());
+        let mut zec = p0 / u0;
         let dx = fx.probe_offset();
         if dx != 0.0 {
-            let (zs, ys) = m.air.line_zy(w, s);
-            let (gamma, zc) = air::line_constants(zs, ys);
-            zec = air::shift_impedance(zec, zc, gamma, dx);
+            zec = air::shift_impedance(zec, line.zc, line.gamma, dx);
         }
         let a = fx.leak_radius();
         if a > 0.0 {
@@ -623,7 +619,13 @@ impl Runner<'_> {
             let z_leak = c64::new(res, w * mass);
             zec = zec * z_leak / (zec + z_leak);
         }
-        Ok(Response { freq_hz, vst_over_p, zec, z0: m.air.z0(s) })
+        Ok(Response {
+            freq_hz,
+            vst_over_p: v_meas / p_mic,
+            vu_over_p: jw * x[m.dofs.umbo] / p_mic,
+            zec,
+            z0: m.air.z0(theta.canal_area()),
+        })
     }
 
     /// All frequencies of the model's grid.
@@ -632,35 +634,52 @@ impl Runner<'_> {
         freqs.iter().map(|&f| self.response_at(theta, fx, f)).collect()
     }
 
-    /// Power balance of the last solve, each term from its own physical formula:
-    /// probe ½Re(p̄₀U₀); canal ½Σ Re(pᴴA_e p); drum ½Re(p̄_L·jω bᵀq); mechanical
-    /// ½ω Σ Im(κ_b)·qᴴB_b q over the stiffness and dashpot blocks.
-    pub fn power_balance(&self, freq_hz: f64) -> PowerBalance {
+    /// Power balance of the last solve, per unit volume velocity at the impedance plane,
+    /// each term from its own physical formula: probe ½Re(p̄₀U₀); canal walls
+    /// ½∫(Re Z′|U|² + Re Y′|p|²)dx along the line (Simpson); drum ½Re(p̄_L·jω bᵀq);
+    /// mechanical ½ω Σ Im(κ_b)·qᴴB_b q over the stiffness and dashpot blocks.
+    pub fn power_balance(&self, theta: &Theta, freq_hz: f64) -> PowerBalance {
         let m = self.model;
         let x = &self.ws.x;
         let w = 2.0 * PI * freq_hz;
-        let probe = 0.5 * x[0].re;
-        let mut canal = 0.0;
-        for e in 0..m.dofs.n_canal - 1 {
-            let a = &self.coef[m.blocks.canal_first + 4 * e..];
-            let (p0, p1) = (x[e], x[e + 1]);
-            let q = p0.conj() * (a[0] * p0 + a[1] * p1) + p1.conj() * (a[2] * p0 + a[3] * p1);
-            canal += 0.5 * q.re;
-        }
+        let line = self.line(theta, w);
+        let (zs, ys) = m.air.line_zy(w, theta.canal_area());
+        let l = theta.canal_length();
+        let (p0, u0) = line.at(l);
+        let scale = 1.0 / u0.norm_sqr();
+        let probe = 0.5 * (p0.conj() * u0).re * scale;
+        let n = 512;
+        let canal = (0..=n)
+            .map(|k| {
+                let (p, u) = line.at(l * k as f64 / n as f64);
+                let weight = if k == 0 || k == n {
+                    1.0
+                } else if k % 2 == 1 {
+                    4.0
+                } else {
+                    2.0
+                };
+                weight * (zs.re * u.norm_sqr() + ys.re * p.norm_sqr())
+            })
+            .sum::<f64>()
+            * l
+            / (3.0 * n as f64)
+            * 0.5
+            * scale;
         let mut vol: c64 = m.b.iter().zip(x).map(|(bi, xi)| *xi * *bi).sum();
         let bl = &m.blocks;
-        let loss = |b: usize| 0.5 * w * self.coef[b].im * m.system.quadratic_form(b, &self.ws).re;
+        let loss = |b: usize| 0.5 * w * self.coef[b].im * m.system.quadratic_form(b, &self.ws).re * scale;
         let mut drum = loss(bl.tm);
         if let Some(modes) = &m.drum {
             // The condensed interior: recover its modal amplitudes for volume and losses.
             let c = m.drum_coefficients(&self.coef, w);
             let u = x[m.dofs.umbo];
-            let eta = modes.interior(&c, [u, x[m.dofs.n_canal - 1], x[m.dofs.p_cavity]]);
+            let eta = modes.interior(&c, [u, x[m.dofs.p_drum], x[m.dofs.p_cavity]]);
             let (v_int, e_int) = modes.volume_and_energy(&eta, u);
             vol += v_int;
-            drum += 0.5 * w * self.coef[bl.tm].im * e_int.re;
+            drum += 0.5 * w * self.coef[bl.tm].im * e_int.re * scale;
         }
-        let into_drum = 0.5 * (x[m.dofs.n_canal - 1].conj() * c64::new(0.0, w) * vol).re;
+        let into_drum = 0.5 * (x[m.dofs.p_drum].conj() * c64::new(0.0, w) * vol).re * scale;
         let (ligaments, tendons, joints) = (loss(bl.ligaments), loss(bl.tendons), loss(bl.joints));
         let (sal, cochlea) = (loss(bl.sal), loss(bl.cochlea));
         let mechanical = drum + ligaments + tendons + joints + sal + cochlea;
@@ -674,7 +693,7 @@ impl Runner<'_> {
             .iter()
             .map(|&f| {
                 self.solve_at(theta, fx, f)?;
-                Ok(self.power_balance(f))
+                Ok(self.power_balance(theta, f))
             })
             .collect()
     }

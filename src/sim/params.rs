@@ -1,5 +1,6 @@
-//! The seven inferred parameters (simulator.md table; sources in physics-notes §2) and
-//! the optional effects (physics-notes §4), with names, units, scales and ranges.
+//! The inferred parameters — seven tissue parameters (simulator.md table; sources in
+//! physics-notes §2) and three measurement-geometry nuisances — and the optional effects
+//! (physics-notes §4), with names, units, scales and ranges.
 
 use serde::Serialize;
 
@@ -36,10 +37,21 @@ impl ParamSpec {
     }
 }
 
-/// Number of inferred parameters.
-pub const N_PARAMS: usize = 7;
+/// Number of inferred parameters: the tissue parameters, then the geometry nuisances.
+pub const N_PARAMS: usize = 10;
+
+/// Number of tissue parameters (the first columns of theta.csv; the only ones read
+/// against normal ranges).
+pub const N_TISSUE: usize = 7;
 
 /// The inferred parameters, in the column order of theta.csv.
+///
+/// The last three are nuisances of the measurement, not of the ear, inferred with the
+/// tissue so that the tissue posterior is not bent to absorb them (issue 11): the path
+/// from the impedance plane to the eardrum (a WBT probe sits a few mm to ~20 mm from the
+/// drum; the temporal-bone study's plane 12–15 mm), the canal cross-section (adult canals
+/// 25–70 mm², physics-notes §1.1) and the distance of the V/P microphone from the drum
+/// (the study's probe tube ≈ 2 mm lateral of the umbo).
 pub const PARAMS: [ParamSpec; N_PARAMS] = [
     ParamSpec { name: "E_eardrum", unit: "Pa", scale: Scale::Log10, low: 1e6, high: 300e6, nominal: 20e6 },
     ParamSpec { name: "E_ligaments", unit: "Pa", scale: Scale::Log10, low: 5e4, high: 5e7, nominal: 5e6 },
@@ -48,7 +60,15 @@ pub const PARAMS: [ParamSpec; N_PARAMS] = [
     ParamSpec { name: "E_joints", unit: "Pa", scale: Scale::Log10, low: 1e5, high: 1e9, nominal: 6e6 },
     ParamSpec { name: "damping_beta", unit: "s", scale: Scale::Log10, low: 7.5e-6, high: 7.5e-4, nominal: 7.5e-5 },
     ParamSpec { name: "cochlear_load", unit: "Pa·s/m³", scale: Scale::Log10, low: 2e9, high: 2e11, nominal: 2.1e10 },
+    ParamSpec { name: "canal_length", unit: "m", scale: Scale::Linear, low: 3e-3, high: 25e-3, nominal: 12e-3 },
+    ParamSpec { name: "canal_area", unit: "m²", scale: Scale::Linear, low: 25e-6, high: 70e-6, nominal: 44e-6 },
+    ParamSpec { name: "mic_distance", unit: "m", scale: Scale::Linear, low: 0.5e-3, high: 4e-3, nominal: 2e-3 },
 ];
+
+/// Whether a parameter name is one of the simulator's geometry nuisances.
+pub fn is_geometry(name: &str) -> bool {
+    PARAMS[N_TISSUE..].iter().any(|p| p.name == name)
+}
 
 /// One parameter set, in the order of [`PARAMS`].
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -78,6 +98,23 @@ impl Theta {
     }
     pub fn cochlear_load(&self) -> f64 {
         self.0[6]
+    }
+    /// Residual canal from the impedance plane to the eardrum, m.
+    pub fn canal_length(&self) -> f64 {
+        self.0[7]
+    }
+    pub fn canal_area(&self) -> f64 {
+        self.0[8]
+    }
+    /// V/P microphone, distance lateral of the eardrum, m.
+    pub fn mic_distance(&self) -> f64 {
+        self.0[9]
+    }
+    /// The tissue parameters with nominal geometry (`simulate --theta` with seven columns).
+    pub fn from_tissue(tissue: &[f64; N_TISSUE]) -> Theta {
+        let mut t = Theta::nominal();
+        t.0[..N_TISSUE].copy_from_slice(tissue);
+        t
     }
 }
 

@@ -211,8 +211,7 @@ fn ear_canal_impedance_inside_the_normative_range() {
         }
     }
     // The quarter-wave minimum of the path from the measurement plane to the drum.
-    let g = otofit::sim::Geometry::default();
-    let f_qw = 344.0 / (4.0 * (g.canal_length - g.zec_plane));
+    let f_qw = 344.0 / (4.0 * Theta::nominal().canal_length());
     let (i_min, _) =
         b.x[100..150].iter().enumerate().skip(25).fold((0, f64::MAX), |m, (i, &v)| if v < m.1 { (i, v) } else { m });
     let f_min = b.freqs[i_min];

@@ -38,7 +38,7 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     let x = std::fs::read_to_string(a.join("x.csv")).unwrap();
     assert_eq!(
         theta.lines().next().unwrap(),
-        "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,cavity"
+        "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance,cavity"
     );
     assert_eq!(theta.lines().count(), 13);
     assert_eq!(x.lines().count(), 13);
@@ -48,7 +48,7 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("meta.json")).unwrap()).unwrap();
     assert_eq!(meta["n_rows"], 12);
     assert_eq!(meta["noise"]["std"].as_array().unwrap().len(), 250);
-    assert_eq!(meta["parameters"][7]["name"], "cavity");
+    assert_eq!(meta["parameters"][10]["name"], "cavity");
     assert!(!a.join("x.csv.tmp").exists());
 }
 
@@ -87,6 +87,30 @@ fn simulate_errors_name_the_bad_input() {
     std::fs::write(&rows, "E_eardrum,E_ligaments\n1,2\n").unwrap();
     let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing column 'E_tendons'"));
+    // Geometry columns: all three or none.
+    std::fs::write(&rows, "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length\n2e7,5e6,2e6,2e5,6e6,7.5e-5,2.1e10,0.01\n").unwrap();
+    let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("canal_area") && err.contains("or none"), "{err}");
+}
+
+#[test]
+fn simulate_explain_reports_norms_and_the_power_budget_of_a_given_row() {
+    let d = scratch("explain");
+    let rows = d.join("rows.csv");
+    // A 4 mm path instead of the nominal 12 mm: the impedance plane's |Z| at 250 Hz rises.
+    std::fs::write(&rows, "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance\n2e7,5e6,2e6,2e5,6e6,7.5e-5,2.1e10,0.004,44e-6,0.002\n").unwrap();
+    let z250 = |args: &[&str]| {
+        let o = otofit(args);
+        let out = String::from_utf8_lossy(&o.stdout).to_string();
+        assert!(o.status.success() && out.contains("cochlear share at 1000 Hz") && out.contains("Goode"), "{out}");
+        let line = out.lines().find(|l| l.trim_start().starts_with("250 Hz") && l.contains("Pa·s/m³")).unwrap();
+        line.split_whitespace().nth(2).unwrap().parse::<f64>().unwrap()
+    };
+    let nominal = z250(&["simulate", "--explain"]);
+    let short = z250(&["simulate", "--explain", "--theta", rows.to_str().unwrap()]);
+    let db = 20.0 * (short / nominal).log10();
+    assert!((2.0..5.0).contains(&db), "4 mm vs 12 mm path: |Z_ec| at 250 Hz {db:+.1} dB (expected about +3.3 dB)");
 }
 
 #[test]

@@ -8,7 +8,7 @@
 use crate::baseline::known_miss;
 use faer::c64;
 use otofit::sim::canal::{Area, CanalMesh};
-use otofit::sim::{Effects, Geometry, Model, ModelConfig, Preset, Theta};
+use otofit::sim::{Effects, Model, ModelConfig, Preset, Theta};
 use std::f64::consts::PI;
 
 /// Air at `celsius` and 1 atm from first principles: ideal gas (R_s = 287.05 J/kg/K,
@@ -23,6 +23,9 @@ fn textbook_air(celsius: f64) -> (f64, f64, f64, f64, f64) {
     (rho, (gamma * r_s * t).sqrt(), mu / rho, gamma, 0.71)
 }
 
+/// The FE canal's element size (v1's model canal: ≥ 80 elements per wavelength at 8 kHz).
+const CANAL_H: f64 = 0.5e-3;
+
 /// Attenuation Re Γ (Np/m) of the FE canal (the simulator's own mesh density) over a
 /// uniform tube of radius `r` and length λ/4: the condensed two-port of a uniform line
 /// is [U_in, −U_out] = Y·[p_0, p_L] with Y₁₁ = coth(ΓL)/Z_c and Y₁₂ = −1/(Z_c sinh ΓL),
@@ -30,7 +33,7 @@ fn textbook_air(celsius: f64) -> (f64, f64, f64, f64, f64) {
 fn fe_attenuation(preset: Preset, r: f64, f: f64) -> f64 {
     let air = preset.air();
     let l = air.c / (4.0 * f);
-    let mesh = CanalMesh::new(l, &Area::Uniform(PI * r * r), Geometry::default().canal_h, &[]);
+    let mesh = CanalMesh::new(l, &Area::Uniform(PI * r * r), CANAL_H, &[]);
     let y = mesh.condense(&air, 2.0 * PI * f, 0, mesh.n_nodes() - 1);
     let cosh: c64 = -y[0] / y[1];
     cosh.acosh().re / l
@@ -67,6 +70,38 @@ fn canal_attenuation_matches_kirchhoff_wide_tube_formula() {
         }
     }
     eprintln!("worst |α_FE/α_Kirchhoff − 1| / tolerance = {worst:.2}");
+}
+
+#[test]
+fn canal_line_of_the_model_equals_the_fe_canal_for_any_geometry() {
+    // The model maps the drum's impedance Z_tm to the impedance plane through the exact
+    // transfer matrix of a uniform line (v2); the FE canal (an independent
+    // discretisation of Webster's equation with its own element loss terms) terminated by
+    // the same Z_tm must give the same Z_ec to the FE's second-order error. A wrong
+    // transfer matrix (e.g. a swapped sinh term) or a wrong area fails by far more.
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let mut runner = model.runner();
+    let fx = Effects::default();
+    let air = model.air;
+    let mut worst: f64 = 0.0;
+    for (l, s) in [(3e-3, 25e-6), (12e-3, 44e-6), (25e-3, 70e-6)] {
+        let mut theta = Theta::nominal();
+        theta.0[7] = l;
+        theta.0[8] = s;
+        let mesh = CanalMesh::new(l, &Area::Uniform(s), CANAL_H / 4.0, &[]);
+        for f in [250.0, 1000.0, 4000.0, 8000.0] {
+            let zec = runner.response_at(&theta, &fx, f).unwrap().zec;
+            let z_tm = runner.solution()[model.dofs.p_drum];
+            let y = mesh.condense(&air, 2.0 * PI * f, 0, mesh.n_nodes() - 1);
+            // [U0, −U_L] = Y [p0, p_L] with U_L = p_L / Z_tm, for p0 = 1.
+            let p_l = -y[2] / (y[3] + 1.0 / z_tm);
+            let z_fe = 1.0 / (y[0] + y[1] * p_l);
+            let dev = ((zec - z_fe) / z_fe).norm();
+            worst = worst.max(dev);
+            assert!(dev < 2e-3, "L {l} m, S {s} m², {f} Hz: line {zec}, FE {z_fe} (|Δ|/|Z| = {dev:.1e})");
+        }
+    }
+    eprintln!("worst |Z_line − Z_FE| / |Z_FE| = {worst:.1e}");
 }
 
 #[test]
@@ -108,7 +143,7 @@ fn power_budget_of_the_nominal_ear() {
 fn share_at(model: &Model, f: f64) -> f64 {
     let mut runner = model.runner();
     runner.solve_at(&Theta::nominal(), &Effects::default(), f).unwrap();
-    runner.power_balance(f).cochlear_share()
+    runner.power_balance(&Theta::nominal(), f).cochlear_share()
 }
 
 #[test]

@@ -68,7 +68,7 @@ fn passive_and_energy_conserving_for_every_effect_at_random_draws() {
             let theta = Theta(std::array::from_fn(|i| PARAMS[i].from_unit(rng.random())));
             for &f in model.frequencies() {
                 let r = runner.response_at(&theta, fx, f).unwrap();
-                let p = runner.power_balance(f);
+                let p = runner.power_balance(&theta, f);
                 let parts = [p.canal, p.drum, p.ligaments, p.tendons, p.joints, p.sal, p.cochlea];
                 let eps = 1e-12 * p.probe.abs();
                 assert!(
@@ -121,21 +121,21 @@ fn rigid_chain_moves_the_stapes_by_the_lever_ratio() {
 
 #[test]
 fn coupled_model_converges_under_mesh_refinement() {
-    // Refine the drum and the canal together; the error against a fine mesh must
-    // shrink at about the elements' second order (factor ≈ 4 per halving).
-    let build = |tm: usize, h: f64| {
+    // Refine the drum (the canal is an exact line since v2; its FE twin converges in
+    // physics.rs); the error against a fine mesh must shrink at about the elements'
+    // second order (factor ≈ 4 per halving).
+    let build = |tm: usize| {
         let mut cfg = ModelConfig::default();
         cfg.geometry.tm_elements = tm;
-        cfg.geometry.canal_h = h;
         Model::new(cfg).unwrap()
     };
     let theta = Theta::nominal();
     let fx = Effects::default();
-    let reference = run(&build(160, 0.0625e-3), &theta, &fx);
-    let errs: Vec<f64> = [(10, 1e-3), (20, 0.5e-3), (40, 0.25e-3)]
+    let reference = run(&build(160), &theta, &fx);
+    let errs: Vec<f64> = [10, 20, 40]
         .iter()
-        .map(|&(tm, h)| {
-            let x = run(&build(tm, h), &theta, &fx);
+        .map(|&tm| {
+            let x = run(&build(tm), &theta, &fx);
             x.iter().zip(&reference).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max)
         })
         .collect();
@@ -242,6 +242,10 @@ fn modal_condensation_of_the_drum_is_exact() {
         let fx = if case % 2 == 0 { with_effect("cavity", 1e-6) } else { with_effect("tm_viscoelastic", 0.25) };
         let (a, b) = (run(&reduced, &theta, &fx), run(&full, &theta, &fx));
         let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
-        assert!(worst < 1e-7, "case {case}: reduced vs full differ by {worst:e}");
+        let at = a.iter().zip(&b).position(|(x, y)| (x - y).abs() == worst).unwrap();
+        // 1e-5: since v2 the unreduced system's driven row (the drum pressure) has no
+        // diagonal of its own (the canal is a line outside the system), and its pivoted
+        // LU leaves ~1e-6 of rounding; a wrong mode or coupling term costs ≥ 1e-3.
+        assert!(worst < 1e-5, "case {case}: reduced vs full differ by {worst:e} at feature {at}");
     }
 }
