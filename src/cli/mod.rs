@@ -3,13 +3,14 @@
 use clap::{Parser, Subcommand};
 
 pub mod bench;
+mod bench_c2st;
 mod bench_fit;
 pub mod calibrate;
 pub mod diagnose;
+pub mod explain;
 pub mod import;
 pub mod infer;
 pub mod serve;
-pub mod explain;
 pub mod simulate;
 pub mod study;
 pub mod train;

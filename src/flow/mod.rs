@@ -8,7 +8,7 @@ pub mod spline;
 
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
-use burn::tensor::activation::relu;
+use burn::tensor::activation::{relu, sigmoid};
 use serde::{Deserialize, Serialize};
 
 /// Architecture; stored in checkpoints.
@@ -24,6 +24,11 @@ pub struct FlowConfig {
     pub hidden: usize,
     pub bins: usize,
     pub bound: f64,
+    /// Conditioner: 0 = an MLP with two hidden layers of `hidden` units; n > 0 = a
+    /// residual net of n blocks (as nflows' ResidualNet in sbi's NSF: each block two
+    /// layers, its output gated by the context, the second layer started near zero).
+    #[serde(default)]
+    pub blocks: usize,
     /// Permutation applied before each transform.
     pub permutations: Vec<Vec<usize>>,
 }
@@ -46,6 +51,7 @@ impl FlowConfig {
             ((1..=4096).contains(&self.hidden), "hidden must be 1..=4096"),
             (self.embedding.iter().all(|w| (1..=4096).contains(w)), "embedding widths must be 1..=4096"),
             (self.bound.is_finite() && self.bound > 0.0, "bound must be finite and > 0"),
+            (self.blocks <= 16, "blocks must be 0..=16"),
             (self.permutations.len() == self.transforms, "one permutation per transform"),
             (self.permutations.iter().all(perm_ok), "each permutation must reorder 0..dim"),
         ];
@@ -68,6 +74,7 @@ impl FlowConfig {
             hidden: 50,
             bins: 10,
             bound: 5.0,
+            blocks: 0,
             permutations,
         }
     }
@@ -139,10 +146,23 @@ impl Flow {
         emb.extend(&cfg.embedding);
         let (dc, dt) = cfg.split();
         let cond = [dc + cfg.context(), cfg.hidden, cfg.hidden, dt * spline::n_params(cfg.bins)];
-        Flow {
-            embedding: Mlp::new(&emb, device),
-            conditioners: (0..cfg.transforms).map(|_| Mlp::new(&cond, device)).collect(),
-        }
+        let conditioner = || {
+            if cfg.blocks == 0 {
+                return Mlp::new(&cond, device);
+            }
+            // Layers in order: input, then per block (first, second, context gate), output.
+            let (h, c) = (cfg.hidden, cfg.context());
+            let small = burn::nn::Initializer::Uniform { min: -1e-3, max: 1e-3 };
+            let mut layers = vec![LinearConfig::new(dc + c, h).init(device)];
+            for _ in 0..cfg.blocks {
+                layers.push(LinearConfig::new(h, h).init(device));
+                layers.push(LinearConfig::new(h, h).with_initializer(small.clone()).init(device));
+                layers.push(LinearConfig::new(c, h).init(device));
+            }
+            layers.push(LinearConfig::new(h, dt * spline::n_params(cfg.bins)).init(device));
+            Mlp { layers }
+        };
+        Flow { embedding: Mlp::new(&emb, device), conditioners: (0..cfg.transforms).map(|_| conditioner()).collect() }
     }
 
     /// A plain-Rust copy for inference.
@@ -161,8 +181,20 @@ impl Flow {
     fn spline_params(&self, cfg: &FlowConfig, t: usize, a: Tensor<2>, ctx: Tensor<2>) -> Tensor<3> {
         let [b, _] = ctx.dims();
         let (dc, dt) = cfg.split();
-        let input = if dc == 0 { ctx } else { Tensor::cat(vec![a, ctx], 1) };
-        self.conditioners[t].forward(input).reshape([b, dt, spline::n_params(cfg.bins)])
+        let input = if dc == 0 { ctx.clone() } else { Tensor::cat(vec![a, ctx.clone()], 1) };
+        let out = if cfg.blocks == 0 {
+            self.conditioners[t].forward(input)
+        } else {
+            let l = &self.conditioners[t].layers;
+            let mut h = l[0].forward(input);
+            for k in 0..cfg.blocks {
+                let r = l[1 + 3 * k].forward(relu(h.clone()));
+                let r = l[2 + 3 * k].forward(relu(r));
+                h = h + r * sigmoid(l[3 + 3 * k].forward(ctx.clone()));
+            }
+            l[l.len() - 1].forward(h)
+        };
+        out.reshape([b, dt, spline::n_params(cfg.bins)])
     }
 
     /// log q(u | context) for standardised parameters u [B, D] and embedded context [B, C].

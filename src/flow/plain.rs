@@ -56,6 +56,8 @@ pub struct PlainFlow {
 pub struct Bound<'a> {
     flow: &'a PlainFlow,
     ctx_bias: Vec<Vec<f64>>,
+    /// Residual conditioners: each block's context gate σ(W h + b), per conditioner.
+    gates: Vec<Vec<Vec<f64>>>,
     /// Standard deviation of the base distribution (1: the flow as trained; > 1 widens
     /// the posterior, the post-hoc recalibration of `npe::calibrate`).
     temperature: f64,
@@ -76,7 +78,20 @@ impl PlainFlow {
             .iter()
             .map(|c| batch_forward(c[0].w.as_ref().subrows(dc, h.len()), &c[0].b, &h, 1, true))
             .collect();
-        Bound { flow: self, ctx_bias, temperature: 1.0 }
+        let gates = self
+            .conditioners
+            .iter()
+            .map(|c| {
+                (0..self.cfg.blocks)
+                    .map(|k| {
+                        let g = &c[3 + 3 * k];
+                        let v = batch_forward(g.w.as_ref(), &g.b, &h, 1, true);
+                        v.into_iter().map(|z| 1.0 / (1.0 + (-z).exp())).collect()
+                    })
+                    .collect()
+            })
+            .collect();
+        Bound { flow: self, ctx_bias, gates, temperature: 1.0 }
     }
 }
 
@@ -199,8 +214,24 @@ impl Bound<'_> {
         let layers = &self.flow.conditioners[t];
         let dc = a.len() / n.max(1);
         // First layer: the untouched rows of W on `a`, plus the folded context term.
-        let mut h = batch_forward(layers[0].w.as_ref().subrows(0, dc), &self.ctx_bias[t], a, n, false);
+        let blocks = self.flow.cfg.blocks;
+        let mut h = batch_forward(layers[0].w.as_ref().subrows(0, dc), &self.ctx_bias[t], a, n, blocks > 0);
         let last = layers.len() - 1;
+        if blocks > 0 {
+            let width = layers[0].w.ncols();
+            for k in 0..blocks {
+                let relu: Vec<f64> = h.iter().map(|v| v.max(0.0)).collect();
+                let (l1, l2) = (&layers[1 + 3 * k], &layers[2 + 3 * k]);
+                let r = batch_forward(l1.w.as_ref(), &l1.b, &relu, n, false);
+                let r = batch_forward(l2.w.as_ref(), &l2.b, &r, n, true);
+                for (hc, rc) in h.chunks_exact_mut(width).zip(r.chunks_exact(width)) {
+                    for ((hv, rv), g) in hc.iter_mut().zip(rc).zip(&self.gates[t][k]) {
+                        *hv += rv * g;
+                    }
+                }
+            }
+            return batch_forward(layers[last].w.as_ref(), &layers[last].b, &h, n, true);
+        }
         for (i, l) in layers.iter().enumerate().skip(1) {
             h = batch_forward(l.w.as_ref(), &l.b, &h, n, i == last);
         }
@@ -270,8 +301,12 @@ mod tests {
 
     #[test]
     fn plain_path_matches_burn() {
+        plain_path_matches_burn_for(FlowConfig::new(7, 12, true));
+        plain_path_matches_burn_for(FlowConfig { blocks: 2, ..FlowConfig::new(7, 12, true) });
+    }
+
+    fn plain_path_matches_burn_for(cfg: FlowConfig) {
         let dev = Device::flex();
-        let cfg = FlowConfig::new(7, 12, true);
         let flow = Flow::new(&cfg, &dev);
         let plain = flow.plain(&cfg);
         let input: Vec<f32> = (0..12).map(|i| (i as f32 * 0.37).sin()).collect();

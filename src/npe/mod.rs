@@ -49,6 +49,10 @@ pub struct Header {
     pub band_cut_max: usize,
     pub x_mean: Vec<f64>,
     pub x_std: Vec<f64>,
+    /// How θ maps to the flow's space before standardisation (`logit` in checkpoints
+    /// written before the choice existed).
+    #[serde(default)]
+    pub theta_map: ThetaMap,
     pub u_mean: Vec<f64>,
     pub u_std: Vec<f64>,
     /// 1× noise model and the scale it was trained with.
@@ -67,6 +71,19 @@ pub struct Header {
     /// models that have not been calibrated (their fit check says so).
     #[serde(default)]
     pub fit_null: Option<FitNull>,
+}
+
+/// The map from θ to the space the flow is trained in (then z-scored).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ThetaMap {
+    /// Logit of each parameter's position in its box: every draw lands inside the box.
+    #[default]
+    Logit,
+    /// The scale coordinate only (log10 on log parameters), as sbi z-scores θ: the
+    /// posterior keeps its shape near the box's edges; draws outside the box are
+    /// rejected at sampling.
+    Scale,
 }
 
 fn one() -> usize {
@@ -396,23 +413,73 @@ impl Npe {
     /// Standardised-u samples → natural θ.
     fn to_theta(&self, v: &[f64]) -> Vec<f64> {
         let h = &self.header;
-        h.params.iter().enumerate().map(|(k, p)| p.from_u(v[k] * h.u_std[k] + h.u_mean[k])).collect()
+        let u = |k: usize| v[k] * h.u_std[k] + h.u_mean[k];
+        match h.theta_map {
+            ThetaMap::Logit => h.params.iter().enumerate().map(|(k, p)| p.from_u(u(k))).collect(),
+            ThetaMap::Scale => h.params.iter().enumerate().map(|(k, p)| p.from_t(u(k))).collect(),
+        }
+    }
+
+    /// Whether a standardised draw maps inside the prior box (always, through the logit).
+    fn inside(&self, v: &[f64]) -> bool {
+        let h = &self.header;
+        h.theta_map == ThetaMap::Logit
+            || h.params.iter().enumerate().all(|(k, p)| p.t_inside(v[k] * h.u_std[k] + h.u_mean[k]))
     }
 
     fn to_v(&self, theta: &[f64]) -> Vec<f32> {
         let h = &self.header;
-        h.params.iter().enumerate().map(|(k, p)| ((p.to_u(theta[k]) - h.u_mean[k]) / h.u_std[k]) as f32).collect()
+        let u = |p: &Param, v: f64| match h.theta_map {
+            ThetaMap::Logit => p.to_u(v),
+            ThetaMap::Scale => p.to_t(v),
+        };
+        h.params.iter().enumerate().map(|(k, p)| ((u(p, theta[k]) - h.u_mean[k]) / h.u_std[k]) as f32).collect()
     }
 
     /// log |dv/dθ| summed over parameters (v: standardised u).
     pub(crate) fn log_jacobian(&self, theta: &[f64]) -> f64 {
         let h = &self.header;
-        h.params.iter().enumerate().map(|(k, p)| p.log_jacobian(theta[k]) - h.u_std[k].ln()).sum()
+        let j = |p: &Param, v: f64| match h.theta_map {
+            ThetaMap::Logit => p.log_jacobian(v),
+            ThetaMap::Scale => p.t_log_jacobian(v),
+        };
+        h.params.iter().enumerate().map(|(k, p)| j(p, theta[k]) - h.u_std[k].ln()).sum()
     }
 
-    /// `n` posterior draws (standardised space), deterministic for `seed`, with their
-    /// log-densities in the flow's space.
+    /// `n` posterior draws inside the prior box (standardised space), deterministic for
+    /// `seed`, with their log-densities in the flow's space. Draws outside the box (only
+    /// with `ThetaMap::Scale`) are replaced by further rounds; after 20 rounds (a flow
+    /// with almost no mass in the box) the rest are kept, clamped into the box later.
     fn draw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
+        let (mut v, mut lp) = self.draw_raw(input, n, seed);
+        if self.header.theta_map == ThetaMap::Logit {
+            return (v, lp);
+        }
+        let (mut out_v, mut out_lp) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for round in 1..=20u64 {
+            for (a, l) in v.into_iter().zip(lp) {
+                if out_v.len() < n && self.inside(&a) {
+                    out_v.push(a);
+                    out_lp.push(l);
+                }
+            }
+            if out_v.len() == n {
+                return (out_v, out_lp);
+            }
+            let need = n - out_v.len();
+            // Enough for the rest at the acceptance seen so far, at least 128.
+            let rate = (out_v.len() as f64 / (n as f64 * round as f64)).max(0.01);
+            let m = ((need as f64 / rate * 1.2) as usize).clamp(128, 100 * n);
+            (v, lp) = self.draw_raw(input, m, seed ^ round.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+        }
+        let rest = n - out_v.len();
+        out_v.extend(v.into_iter().take(rest));
+        out_lp.extend(lp.into_iter().take(rest));
+        (out_v, out_lp)
+    }
+
+    /// `n` draws of the flow (standardised space) with their log-densities.
+    fn draw_raw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
         let d = self.header.params.len();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let z: Vec<f32> = (0..n * d).map(|_| StandardNormal.sample(&mut rng)).collect();

@@ -83,6 +83,34 @@ impl Param {
         (1.0 / (q * (1.0 - q)) / span * dt_dv).ln()
     }
 
+    /// θ → its scale coordinate t (log10 θ on a log scale): the flow's space when θ is
+    /// z-scored directly instead of passed through the logit.
+    pub fn to_t(&self, v: f64) -> f64 {
+        self.t(v)
+    }
+
+    /// t → θ, clamped into the box.
+    pub fn from_t(&self, t: f64) -> f64 {
+        let v = match self.scale {
+            Scale::Linear => t,
+            Scale::Log10 => 10f64.powf(t),
+        };
+        v.clamp(self.low, self.high)
+    }
+
+    /// Whether scale coordinate t lies inside the box.
+    pub fn t_inside(&self, t: f64) -> bool {
+        t >= self.t(self.low) && t <= self.t(self.high)
+    }
+
+    /// log |dt/dθ| at θ.
+    pub fn t_log_jacobian(&self, v: f64) -> f64 {
+        match self.scale {
+            Scale::Linear => 0.0,
+            Scale::Log10 => -(v * std::f64::consts::LN_10).ln(),
+        }
+    }
+
     pub fn contains(&self, v: f64) -> bool {
         v.is_finite() && v >= self.low && v <= self.high
     }

@@ -2,7 +2,7 @@
 //! augmentation, optional group masking, early stopping on a validation split, and the
 //! best-validation weights kept. Deterministic for a seed.
 
-use super::{Dataset, FORMAT_VERSION, Header, Npe, TrainingSummary};
+use super::{Dataset, FORMAT_VERSION, Header, Npe, ThetaMap, TrainingSummary};
 use crate::flow::{Flow, FlowConfig};
 use anyhow::{Result, bail};
 use burn::grad_clipping::GradientClippingConfig;
@@ -30,6 +30,12 @@ pub struct TrainSettings {
     /// and give the network per-feature presence flags: one model for sub-band inputs.
     pub mask_bands: bool,
     pub val_fraction: f64,
+    /// θ → the flow's space: logit of the box position, or the scale coordinate z-scored.
+    pub theta_map: ThetaMap,
+    /// The splines' tail bound B (identity outside [−B, B] in the standardised space).
+    pub tail_bound: f64,
+    /// Residual blocks per conditioner (0: a plain two-hidden-layer MLP).
+    pub blocks: usize,
     /// Flows trained from different seeds and averaged as an equal-weight mixture
     /// (wider, better-calibrated joint posteriors; K× the training time).
     pub ensemble: usize,
@@ -48,6 +54,9 @@ impl Default for TrainSettings {
             mask_groups: false,
             mask_bands: false,
             val_fraction: 0.1,
+            theta_map: ThetaMap::Logit,
+            tail_bound: 5.0,
+            blocks: 0,
             ensemble: 1,
         }
     }
@@ -94,8 +103,20 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
     let (val_idx, train_idx) = idx.split_at(n_val);
 
     // Standardisation from the training rows; x spread includes the training noise.
-    let u_rows: Vec<Vec<f64>> =
-        ds.theta.iter().map(|t| ds.params.iter().zip(t).map(|(p, v)| p.to_u(*v)).collect()).collect();
+    let u_rows: Vec<Vec<f64>> = ds
+        .theta
+        .iter()
+        .map(|t| {
+            ds.params
+                .iter()
+                .zip(t)
+                .map(|(p, v)| match s.theta_map {
+                    ThetaMap::Logit => p.to_u(*v),
+                    ThetaMap::Scale => p.to_t(*v),
+                })
+                .collect()
+        })
+        .collect();
     let train_u: Vec<Vec<f64>> = train_idx.iter().map(|&i| u_rows[i].clone()).collect();
     let train_x: Vec<Vec<f64>> = train_idx.iter().map(|&i| ds.x[i].clone()).collect();
     let (mut u_mean, mut u_std, mut x_mean, mut x_std) = (vec![], vec![], vec![], vec![]);
@@ -111,7 +132,7 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
     }
     let groups = if s.mask_groups { ds.groups.clone() } else { vec![] };
     let flags = groups.len() + if s.mask_bands { f } else { 0 };
-    let cfg = FlowConfig::new(d, f + flags, s.embedding);
+    let cfg = FlowConfig { bound: s.tail_bound, blocks: s.blocks, ..FlowConfig::new(d, f + flags, s.embedding) };
     let header = Header {
         format_version: FORMAT_VERSION,
         otofit_version: env!("CARGO_PKG_VERSION").into(),
@@ -124,6 +145,7 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         band_cut_max,
         x_mean,
         x_std,
+        theta_map: s.theta_map,
         u_mean,
         u_std,
         noise_std: ds.noise_std.clone(),

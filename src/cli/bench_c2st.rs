@@ -1,0 +1,124 @@
+//! `otofit bench c2st`: posterior accuracy (C2ST against reference posteriors) and
+//! training time on standard SBI benchmark tasks, with `otofit train`'s defaults.
+
+use crate::bench::{self, BenchParams, Task, c2st::C2stParams};
+use crate::npe::{ThetaMap, TrainSettings};
+use anyhow::{Result, bail};
+use clap::Args;
+use std::path::PathBuf;
+
+#[derive(Args, Debug)]
+pub struct C2stArgs {
+    /// Tasks, comma-separated (two_moons, gaussian_linear_uniform, slcp, gaussian_mixture).
+    #[arg(long, default_value = "two_moons,gaussian_linear_uniform,slcp,gaussian_mixture")]
+    pub tasks: String,
+    /// Training simulations per task.
+    #[arg(long, default_value_t = 10_000)]
+    pub sims: usize,
+    /// Fixed observations per task.
+    #[arg(long, default_value_t = 3)]
+    pub observations: usize,
+    /// Posterior and reference draws per observation.
+    #[arg(long, default_value_t = 10_000)]
+    pub samples: usize,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Cap on the classifier's epochs (lower: faster, less sensitive; for quick comparisons).
+    #[arg(long, default_value_t = 500)]
+    pub c2st_epochs: usize,
+    /// Results as JSON.
+    #[arg(long, default_value = "c2st.json")]
+    pub json: PathBuf,
+    /// Train without the embedding network (`otofit train --embedding none`).
+    #[arg(long)]
+    pub no_embedding: bool,
+    /// Training settings to compare (defaults: `otofit train`'s).
+    #[arg(long, value_enum)]
+    pub theta_map: Option<ThetaMapArg>,
+    #[arg(long)]
+    pub tail_bound: Option<f64>,
+    /// Residual blocks per conditioner (0: plain MLP).
+    #[arg(long)]
+    pub blocks: Option<usize>,
+    #[arg(long)]
+    pub batch: Option<usize>,
+    #[arg(long)]
+    pub lr: Option<f64>,
+    #[arg(long)]
+    pub patience: Option<usize>,
+    #[arg(long)]
+    pub val_fraction: Option<f64>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum ThetaMapArg {
+    Logit,
+    Scale,
+}
+
+pub fn run(a: C2stArgs) -> Result<()> {
+    let tasks: Vec<Task> = a
+        .tasks
+        .split(',')
+        .map(|s| Task::from_name(s.trim()).ok_or_else(|| anyhow::anyhow!("unknown task '{s}'")))
+        .collect::<Result<_>>()?;
+    if a.sims < 100 || a.observations == 0 || a.samples < 100 {
+        bail!("--sims and --samples must be at least 100, --observations at least 1");
+    }
+    let p = BenchParams {
+        sims: a.sims,
+        observations: a.observations,
+        samples: a.samples,
+        seed: a.seed,
+        c2st: C2stParams { seed: a.seed, max_epochs: a.c2st_epochs, ..Default::default() },
+    };
+    let d = TrainSettings::default();
+    let settings = TrainSettings {
+        embedding: !a.no_embedding,
+        seed: a.seed,
+        theta_map: match a.theta_map {
+            Some(ThetaMapArg::Logit) => ThetaMap::Logit,
+            Some(ThetaMapArg::Scale) => ThetaMap::Scale,
+            None => d.theta_map,
+        },
+        tail_bound: a.tail_bound.unwrap_or(d.tail_bound),
+        blocks: a.blocks.unwrap_or(d.blocks),
+        batch: a.batch.unwrap_or(d.batch),
+        lr: a.lr.unwrap_or(d.lr),
+        patience: a.patience.unwrap_or(d.patience),
+        val_fraction: a.val_fraction.unwrap_or(d.val_fraction),
+        ..d.clone()
+    };
+    eprintln!("{settings:?}");
+    let root = std::env::temp_dir().join(format!("otofit-c2st-{}", std::process::id()));
+    let mut results = Vec::new();
+    println!("{:<24} {:>6} {:>7} {:>9}  per observation", "task", "sims", "C2ST", "train s");
+    for task in tasks {
+        let r = bench::run_task(task, &p, &settings, &root.join(task.name()))?;
+        println!(
+            "{:<24} {:>6} {:>7.3} {:>9.1}  {} (epochs {}, best {}; C2ST {:.0} s)",
+            r.task,
+            r.sims,
+            r.c2st_mean,
+            r.train_seconds,
+            r.c2st.iter().map(|c| format!("{c:.3}")).collect::<Vec<_>>().join(" "),
+            r.epochs,
+            r.best_epoch,
+            r.c2st_seconds
+        );
+        results.push(r);
+    }
+    let _ = std::fs::remove_dir_all(&root);
+    let out = serde_json::json!({
+        "sims": a.sims,
+        "observations": a.observations,
+        "samples": a.samples,
+        "c2st_epochs": a.c2st_epochs,
+        "seed": a.seed,
+        "settings": format!("{settings:?}"),
+        "tasks": results,
+    });
+    std::fs::write(&a.json, serde_json::to_vec_pretty(&out)?)?;
+    println!("wrote {}", a.json.display());
+    Ok(())
+}
