@@ -12,11 +12,13 @@ pub mod air;
 pub mod batch;
 pub mod canal;
 pub mod drum;
+pub mod drum_mesh;
 pub mod model;
 pub mod output;
 pub mod params;
 pub mod shell;
 pub mod system;
+pub mod tri_shell;
 
 pub use model::{Geometry, Model, ModelConfig, PowerBalance, Preset, Response, Runner, SimError, log_grid};
 pub use params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, N_TISSUE, PARAMS, Theta};
