@@ -1,12 +1,12 @@
 //! `otofit simulate --explain`: one ear's responses against the published norms the
-//! baseline tests use (tests/data/normative.json) and its power budget, as a table.
+//! baseline tests use (reference/normative.json) and its power budget, as a table.
 
 use crate::sim::{Effects, Model, ModelConfig, Theta};
 use anyhow::{Context, Result};
 use serde_json::Value;
 use std::f64::consts::PI;
 
-const NORMATIVE: &str = include_str!("../../tests/data/normative.json");
+const NORMATIVE: &str = include_str!("../../reference/normative.json");
 
 fn floats(v: &Value) -> Vec<f64> {
     v.as_array().map(|a| a.iter().filter_map(Value::as_f64).collect()).unwrap_or_default()
@@ -25,7 +25,7 @@ fn mark(inside: bool) -> &'static str {
 
 /// Prints the report for one parameter set.
 pub fn report(config: ModelConfig, theta: &Theta, fx: &Effects) -> Result<()> {
-    let norms: Value = serde_json::from_str(NORMATIVE).context("tests/data/normative.json")?;
+    let norms: Value = serde_json::from_str(NORMATIVE).context("reference/normative.json")?;
     let model = Model::new(config)?;
     let mut runner = model.runner();
     let freqs = model.frequencies().to_vec();

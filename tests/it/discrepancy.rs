@@ -9,6 +9,11 @@ use otofit::sim::{Effects, Model, ModelConfig};
 
 const THETA: [f64; 7] = [3e7, 2e6, 1e6, 4e5, 2e7, 1e-4, 3e10];
 
+/// THETA with the nominal measurement geometry.
+fn row() -> Vec<f64> {
+    otofit::sim::Theta::from_tissue(&THETA).0.to_vec()
+}
+
 fn base() -> Npe {
     Npe::load(&std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")).unwrap()
 }
@@ -20,7 +25,7 @@ fn observation(model: &Model, effect: Option<(&str, f64)>, seed: u64) -> Vec<f64
         fixed.set(name, v).unwrap();
     }
     let noise = Noise { std: default_noise_std(model), scale: 1.0, seed };
-    run_rows(model, &Design { fixed, varied: vec![] }, &[THETA.to_vec()], 0, Some(&noise)).remove(0).unwrap()
+    run_rows(model, &Design { fixed, varied: vec![] }, &[row()], 0, Some(&noise)).remove(0).unwrap()
 }
 
 fn settings(candidates: Vec<usize>) -> Settings {
