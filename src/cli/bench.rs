@@ -166,7 +166,7 @@ fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
     rt.block_on(async move {
         let dir = std::env::temp_dir().join(format!("otofit-bench-{}", std::process::id()));
         let ctx = super::serve::open(&dir, std::path::Path::new("models/default.otofit"), 8).await?;
-        let app = crate::http::router(crate::http::AppState { ctx, key_hashes: std::sync::Arc::new(vec![]) });
+        let app = crate::http::router(crate::http::AppState::new(ctx, vec![]));
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
         tokio::spawn(async move { axum::serve(listener, app).await });

@@ -25,6 +25,11 @@ pub struct ServeArgs {
     /// route but /health needs `Authorization: Bearer <key>`.
     #[arg(long = "api-key-hash", env = "OTOFIT_API_KEY_HASHES", value_delimiter = ',')]
     pub api_key_hashes: Vec<String>,
+    /// A host name clients address this server by (repeat or comma-separate). Without
+    /// API keys the server answers only requests addressed to localhost or an IP address
+    /// (a guard against DNS rebinding); name the others here.
+    #[arg(long = "allowed-host", value_delimiter = ',')]
+    pub allowed_hosts: Vec<String>,
     /// Most queued + running jobs before POST /jobs answers 429.
     #[arg(long, default_value_t = 64)]
     pub max_queue: i64,
@@ -155,6 +160,14 @@ pub fn run(args: ServeArgs) -> Result<()> {
         sub.init()
     }
     let keys = parse_key_hashes(&args.api_key_hashes)?;
+    let mut allowed_hosts = Vec::new();
+    for h in args.allowed_hosts.iter().map(|h| h.trim()).filter(|h| !h.is_empty()) {
+        let valid = h.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '.') && h.len() <= 253;
+        if !valid {
+            bail!("--allowed-host: '{h}' is not a host name (letters, digits, '-' and '.'; no port or scheme)");
+        }
+        allowed_hosts.push(h.to_string());
+    }
     let limits = args.infer_limits()?;
     let idle = std::time::Duration::from_secs_f64(args.idle_timeout);
     if !args.addr.ip().is_loopback() && keys.is_empty() {
@@ -164,7 +177,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let res = rt.block_on(async move {
         let ctx = open_with(&args.data_dir, &args.default_model, args.max_queue, limits).await?;
         let dispatcher = tokio::spawn(jobs::dispatcher(ctx.clone()));
-        let app = http::router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) });
+        let app = http::router(AppState::new(ctx.clone(), keys).with_allowed_hosts(allowed_hosts));
         let inner = tokio::net::TcpListener::bind(args.addr)
             .await
             .with_context(|| format!("cannot listen on {}", args.addr))?;

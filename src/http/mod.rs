@@ -136,6 +136,63 @@ pub struct AppState {
     pub ctx: Arc<Ctx>,
     /// SHA-256 hashes of accepted API keys; empty = no authentication.
     pub key_hashes: Arc<Vec<[u8; 32]>>,
+    /// Host names a keyless server answers besides loopback names and IP literals
+    /// (lower case, without port).
+    pub allowed_hosts: Arc<Vec<String>>,
+}
+
+impl AppState {
+    pub fn new(ctx: Arc<Ctx>, key_hashes: Vec<[u8; 32]>) -> AppState {
+        AppState { ctx, key_hashes: Arc::new(key_hashes), allowed_hosts: Arc::new(vec![]) }
+    }
+
+    pub fn with_allowed_hosts(mut self, hosts: Vec<String>) -> AppState {
+        self.allowed_hosts = Arc::new(hosts.into_iter().map(|h| h.to_ascii_lowercase()).collect());
+        self
+    }
+}
+
+/// The name part of a Host header value: `[::1]:8080` → `::1`, `Example.org:80` →
+/// `Example.org`.
+fn host_name(value: &str) -> &str {
+    match value.strip_prefix('[') {
+        Some(rest) => rest.split(']').next().unwrap_or(rest),
+        None => value.rsplit_once(':').map_or(value, |(name, _)| name),
+    }
+}
+
+/// Whether a keyless server may answer a request addressed to `host`: loopback names and
+/// IP literals (a DNS-rebinding page always addresses its own domain name), and the
+/// names given with `--allowed-host`.
+pub fn host_allowed(host: &str, allowed: &[String]) -> bool {
+    let name = host_name(host.trim()).trim_end_matches('.').to_ascii_lowercase();
+    name == "localhost"
+        || name.ends_with(".localhost")
+        || name.parse::<std::net::IpAddr>().is_ok()
+        || allowed.contains(&name)
+}
+
+/// Keyless servers refuse requests addressed to other host names, so that a web page
+/// cannot drive one on a user's machine through DNS rebinding. Requests without a Host
+/// header (not from a browser) pass; with API keys the key check guards instead.
+async fn host_guard(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    if !st.key_hashes.is_empty() {
+        return next.run(req).await;
+    }
+    let host = req.headers().get(header::HOST).map(|v| v.to_str().unwrap_or("\u{fffd}").to_string());
+    match host {
+        Some(h) if !host_allowed(&h, &st.allowed_hosts) => Problem::new(
+            StatusCode::FORBIDDEN,
+            format!(
+                "this server answers only requests addressed to localhost or an IP address; to serve the host name \
+                 '{}', start it with --allowed-host {} (or with API keys)",
+                host_name(&h),
+                host_name(&h)
+            ),
+        )
+        .into_response(),
+        _ => next.run(req).await,
+    }
 }
 
 /// An RFC 9457 problem.
@@ -304,6 +361,7 @@ pub fn router(state: AppState) -> Router {
         .route("/datasets/{id}/{file}", get(get_dataset_file))
         .fallback(|| async { Problem::new(StatusCode::NOT_FOUND, "no such route") })
         .layer(middleware::from_fn_with_state(state.clone(), auth))
+        .layer(middleware::from_fn_with_state(state.clone(), host_guard))
         .layer(tower_http::limit::RequestBodyLimitLayer::new(MAX_BODY))
         .layer(middleware::from_fn(problems))
         .layer(tower_http::trace::TraceLayer::new_for_http())

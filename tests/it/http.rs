@@ -28,7 +28,7 @@ async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Ar
     if dispatch {
         tokio::spawn(jobs::dispatcher(ctx.clone()));
     }
-    (router(AppState { ctx: ctx.clone(), key_hashes: Arc::new(keys) }), ctx)
+    (router(AppState::new(ctx.clone(), keys)), ctx)
 }
 
 async fn call(
@@ -858,7 +858,7 @@ async fn limited_app(limits: otofit::http::InferLimits) -> Router {
     let dir = std::env::temp_dir().join(format!("otofit-limits-{}-{n}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let ctx = otofit::cli::serve::open_with(&dir, &default_model(), 8, limits).await.unwrap();
-    router(AppState { ctx, key_hashes: Arc::new(vec![]) })
+    router(AppState::new(ctx, vec![]))
 }
 
 /// Issue 13.3: /infer runs at most `concurrency` at once with a short queue, answers 503 +
@@ -1178,4 +1178,31 @@ async fn body_type_errors_carry_the_full_path() {
         let (status, _, p) = call(&app, "POST", uri, Some(body)).await;
         assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some(field)), "{p}");
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn keyless_server_answers_only_loopback_names_ip_literals_and_allowed_hosts() {
+    // DNS rebinding: a page on evil.example resolves its own name to 127.0.0.1 and
+    // drives a keyless local server; its requests carry Host: evil.example.
+    let (app, ctx) = app(vec![], 8, false).await;
+    let get = |app: Router, host: &'static str| async move {
+        let req = Request::builder().uri("/models").header(header::HOST, host).body(Body::empty()).unwrap();
+        let r = app.oneshot(req).await.unwrap();
+        let status = r.status();
+        let body = axum::body::to_bytes(r.into_body(), 1 << 20).await.unwrap();
+        (status, String::from_utf8_lossy(&body).to_string())
+    };
+    for host in ["localhost:8080", "127.0.0.1:8080", "[::1]:8080", "10.1.2.3", "LOCALHOST", "app.localhost:80"] {
+        assert_eq!(get(app.clone(), host).await.0, StatusCode::OK, "{host}");
+    }
+    let (status, body) = get(app.clone(), "evil.example:8080").await;
+    assert_eq!(status, StatusCode::FORBIDDEN, "{body}");
+    assert!(body.contains("--allowed-host evil.example") && body.contains("\"status\":403"), "{body}");
+    // Named with --allowed-host: answered.
+    let allowed = router(AppState::new(ctx.clone(), vec![]).with_allowed_hosts(vec!["Otofit.Lab".into()]));
+    assert_eq!(get(allowed.clone(), "otofit.lab:8080").await.0, StatusCode::OK);
+    assert_eq!(get(allowed, "evil.example").await.0, StatusCode::FORBIDDEN);
+    // With API keys the key check guards instead: any host, but a key is needed.
+    let keyed = router(AppState::new(ctx, vec![[7u8; 32]]));
+    assert_eq!(get(keyed, "evil.example").await.0, StatusCode::UNAUTHORIZED);
 }
