@@ -28,6 +28,18 @@
 //! (|s·μ_k/κ| ≤ 1/4) enter through a geometric series in s·μ/κ whose moments are
 //! precomputed for every split point, so a solve costs O(modes in band) + O(series), and
 //! nothing is truncated beyond double precision (the series' remainder is < 1e-15).
+//!
+//! Integration (not done here; `model.rs` still uses the axisymmetric drum): build
+//! `DrumGeometry::default().modes()` once per model; per solve form [`DrumCoefficients`]
+//! as today (κ = E·loss, s = −ω², jω, ρc²/V) and add [`ManubriumModes::block`] to the rows
+//! (w_umbo force, θ_m moment, the canal's last-node flow row, the cavity row) and columns
+//! (w_umbo, θ_m, p_drum, p_cavity). The block already holds the manubrium's own stiffness,
+//! mass and b couplings, so it replaces the umbo disc's terms and the drum's `drum_load`,
+//! `drum_flow`, `cavity_load` and cavity-row b entries rather than adding to them. The θ_m
+//! column is the malleus rotation itself (u_z = w_umbo + (l − l_u)·θ_m), so the malleus
+//! DOFs (w_umbo, θ_malleus) of `model.rs` connect directly. For the power budget use
+//! [`ManubriumModes::interior`], [`ManubriumModes::unit_stiffness_energy`] and
+//! [`ManubriumModes::volume`].
 
 use super::drum::DrumCoefficients;
 use super::tri_shell::{DRILL_ALPHA, ShellMaterial, TriShell};
@@ -303,7 +315,7 @@ impl DrumMesh {
     /// The drum's matrices over the whole mesh: rim clamped; manubrium nodes u_z = w − s·θ,
     /// θ_x = −θ, other components zero (module docs); every other DOF interior.
     pub fn assemble(&self, mat: &ShellMaterial) -> DrumFe {
-        self.assemble_with(mat, 1.0, |_| false)
+        self.assemble_with(mat, 1.0, DRILL_ALPHA, |_| false)
     }
 
     /// The same matrices from the symmetric half x ≥ 0 (the outline, the cone and the
@@ -314,6 +326,10 @@ impl DrumMesh {
     /// about half the interior DOFs (an eighth of the eigendecomposition's cost). The ring
     /// mesh has nodes on x = 0 on every ring and no triangle crosses it.
     pub fn assemble_half(&self, mat: &ShellMaterial) -> DrumFe {
+        self.assemble_half_with(mat, DRILL_ALPHA)
+    }
+
+    fn assemble_half_with(&self, mat: &ShellMaterial, drill: f64) -> DrumFe {
         let scale = self.nodes.iter().map(|p| p[0].abs().max(p[1].abs())).fold(0.0, f64::max);
         let tol = 1e-9 * scale;
         let keep: Vec<bool> = self.nodes.iter().map(|p| p[0] >= -tol).collect();
@@ -334,11 +350,11 @@ impl DrumMesh {
             }
         }
         let on_plane: Vec<bool> = half.nodes.iter().map(|p| p[0].abs() <= tol).collect();
-        half.assemble_with(mat, 2.0, |node| on_plane[node])
+        half.assemble_with(mat, 2.0, drill, |node| on_plane[node])
     }
 
-    fn assemble_with(&self, mat: &ShellMaterial, weight: f64, mirror: impl Fn(usize) -> bool) -> DrumFe {
-        assemble(&self.nodes, &self.tris, mat, DRILL_ALPHA, weight, |node, c| match self.kind[node] {
+    fn assemble_with(&self, mat: &ShellMaterial, weight: f64, drill: f64, mirror: impl Fn(usize) -> bool) -> DrumFe {
+        assemble(&self.nodes, &self.tris, mat, drill, weight, |node, c| match self.kind[node] {
             NodeKind::Rim => None,
             NodeKind::Manubrium { s } => match c {
                 2 => Some([1.0, -s]),
@@ -605,6 +621,24 @@ impl ManubriumModes {
                 -f / (c.kappa + c.s * self.mu[k])
             })
             .collect()
+    }
+
+    /// qᴴ K_unit q over the whole drum (interior modes, their coupling to the manubrium and
+    /// the manubrium's own block) for modal amplitudes η and malleus values (w, θ): the
+    /// drum dissipates ½ω·Im κ·qᴴK_unit q (the power budget's drum term).
+    pub fn unit_stiffness_energy(&self, eta: &[c64], w: c64, theta: c64) -> f64 {
+        let xb = [w, theta];
+        let mut e = 0.0;
+        for (h, g) in eta.iter().zip(&self.g) {
+            let kx = g[0] * w + g[1] * theta;
+            e += h.norm_sqr() + 2.0 * (h.conj() * kx).re;
+        }
+        for i in 0..2 {
+            for j in 0..2 {
+                e += (xb[i].conj() * xb[j]).re * self.k_bb[i][j];
+            }
+        }
+        e
     }
 
     /// Volume swept by the whole drum, interior modes plus manubrium.
@@ -986,6 +1020,21 @@ mod tests {
             let vol_full: c64 =
                 (0..n).map(|i| x[(i, 0)] * fe.b_i[i]).sum::<c64>() + x[(n, 0)] * fe.b_b[0] + x[(n + 1, 0)] * fe.b_b[1];
             assert!((vol - vol_full).norm() <= 1e-8 * vol_full.norm(), "{vol} vs {vol_full}");
+            // And the same stiffness energy qᴴ K_unit q (the drum's loss in the power budget).
+            let mut e_full = 0.0;
+            let xq = |i: usize| x[(i, 0)];
+            for i in 0..n {
+                let mut kq: c64 = (0..n).map(|j| kd[(i, j)] * xq(j)).sum();
+                kq += fe.k_ib[0][i] * xq(n) + fe.k_ib[1][i] * xq(n + 1);
+                e_full += (xq(i).conj() * kq).re;
+            }
+            for d in 0..2 {
+                let mut kq: c64 = (0..n).map(|j| fe.k_ib[d][j] * xq(j)).sum();
+                kq += fe.k_bb[d][0] * xq(n) + fe.k_bb[d][1] * xq(n + 1);
+                e_full += (xq(n + d).conj() * kq).re;
+            }
+            let e_modal = modes.unit_stiffness_energy(&eta_m, xb[0], xb[1]);
+            assert!((e_modal - e_full).abs() <= 1e-8 * e_full.abs(), "{e_modal:e} vs {e_full:e}");
             // The series shortcut equals the explicit modal sum.
             let be = modes.block_explicit(&c);
             for i in 0..4 {
@@ -1046,6 +1095,23 @@ mod tests {
         let q = a.sp_lu().unwrap().solve(Mat::from_fn(fe.n, 1, |i, _| c64::new(fe.b_i[i], 0.0)));
         let aq: c64 = (0..fe.n).map(|i| (c.kappa * fe.k_ib[0][i] + c.s * fe.m_ib[0][i]) * q[(i, 0)]).sum();
         c64::new(fe.b_b[0], 0.0) - aq
+    }
+
+    #[test]
+    fn drilling_spring_does_not_move_the_drum_answer() {
+        // The drilling stiffness is a numerical device (tri_shell.rs): the blocked force area
+        // of the default drum must not depend on it, ×1/100 or ×100.
+        let geo = DrumGeometry::default();
+        let mesh = geo.mesh();
+        let fes: Vec<DrumFe> =
+            [1e-2, 1.0, 1e2].iter().map(|&k| mesh.assemble_half_with(&geo.material, k * DRILL_ALPHA)).collect();
+        for f in [500.0, 2000.0, 4000.0, 8000.0] {
+            let c = coefficients(20e6, 0.2, f, 0.0);
+            let fa: Vec<c64> = fes.iter().map(|fe| blocked_force_direct(fe, &c)).collect();
+            for x in [fa[0], fa[2]] {
+                assert!((x - fa[1]).norm() < 0.01 * fa[1].norm(), "{f} Hz: {fa:?}");
+            }
+        }
     }
 
     #[test]
