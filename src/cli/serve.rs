@@ -100,6 +100,30 @@ pub fn lock_data_dir(data_dir: &Path) -> Result<std::fs::File> {
 
 /// Locks the data directory, opens the store, recovers interrupted jobs and registers the
 /// default model; /infer gets the default limits.
+/// The first of `given`, then `given` under each of `roots`, that exists (else `given`):
+/// a relative default model is found when `serve` starts outside the repository.
+fn resolve_in(given: &Path, roots: &[PathBuf]) -> PathBuf {
+    if given.exists() || given.is_absolute() {
+        return given.to_path_buf();
+    }
+    roots.iter().map(|r| r.join(given)).find(|p| p.exists()).unwrap_or_else(|| given.to_path_buf())
+}
+
+/// `--default-model` as given, else under the binary's prefix (`bin/../share/otofit/`) or
+/// in the source tree it was built from (`cargo install --path .` from a clone).
+fn resolve_default_model(given: &Path) -> PathBuf {
+    let mut roots = Vec::new();
+    if let Some(bin) = std::env::current_exe().ok().and_then(|e| e.parent().map(Path::to_path_buf)) {
+        roots.push(bin.join("../share/otofit"));
+    }
+    roots.push(PathBuf::from(env!("CARGO_MANIFEST_DIR")));
+    let found = resolve_in(given, &roots);
+    if found != given {
+        tracing::info!(path = %found.display(), "default model found outside the working directory");
+    }
+    found
+}
+
 pub async fn open(data_dir: &Path, default_model: &Path, max_queue: i64) -> Result<Arc<Ctx>> {
     open_with(data_dir, default_model, max_queue, http::InferLimits::default()).await
 }
@@ -175,7 +199,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
     }
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
-        let ctx = open_with(&args.data_dir, &args.default_model, args.max_queue, limits).await?;
+        let default_model = resolve_default_model(&args.default_model);
+        let ctx = open_with(&args.data_dir, &default_model, args.max_queue, limits).await?;
         let dispatcher = tokio::spawn(jobs::dispatcher(ctx.clone()));
         let app = http::router(AppState::new(ctx.clone(), keys).with_allowed_hosts(allowed_hosts));
         let inner = tokio::net::TcpListener::bind(args.addr)
@@ -226,4 +251,22 @@ async fn shutdown_signal() {
     #[cfg(not(unix))]
     let term = std::future::pending::<()>();
     tokio::select! { _ = ctrl_c => {}, _ = term => {} }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_relative_default_model_is_found_under_the_install_roots() {
+        let root = std::env::temp_dir().join(format!("otofit-resolve-{}", std::process::id()));
+        std::fs::create_dir_all(root.join("share/models")).unwrap();
+        std::fs::write(root.join("share/models/m.otofit"), b"x").unwrap();
+        let given = Path::new("models/m.otofit");
+        let roots = [root.join("nowhere"), root.join("share")];
+        assert_eq!(resolve_in(given, &roots), root.join("share/models/m.otofit"));
+        // Not found anywhere: the path as given (the server then warns and answers 503).
+        assert_eq!(resolve_in(Path::new("models/none.otofit"), &roots), Path::new("models/none.otofit"));
+        std::fs::remove_dir_all(&root).unwrap();
+    }
 }
