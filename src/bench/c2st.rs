@@ -1,9 +1,17 @@
 //! Classifier two-sample test (Lopez-Paz & Oquab 2017, arXiv:1610.06545) as the SBI
 //! benchmark uses it: both sample sets z-scored by the first one's mean and spread, an
 //! MLP with two hidden ReLU layers of 10 × dim units, binary cross-entropy with a small
-//! L2 penalty, Adam (lr 1e-3, batches of 200), stopped when the training loss has not
-//! improved by 1e-4 for 10 epochs; the score is the mean held-out accuracy of 5-fold
-//! cross-validation. 0.5: indistinguishable; 1: fully separable.
+//! L2 penalty, Adam (lr 1e-3, batches of 200); the score is the mean held-out accuracy
+//! of 5-fold cross-validation. 0.5: indistinguishable; 1: fully separable.
+//!
+//! One departure, for time: the benchmark stops the classifier when its training loss
+//! stalls (up to 10,000 epochs); here it stops when the accuracy on a tenth of the
+//! training fold stalls for 10 epochs and keeps the best weights (scikit-learn's
+//! `early_stopping=True`). The numbers differ: on two moons (3 observations) the
+//! benchmark's rule gave 0.666 and 0.608 for two flows where this one gives 0.639 and
+//! 0.582, on the 10-D Gaussian task 0.699 and 0.686 where this one gives 0.761 and 0.744
+//! (the long-trained classifier overfits there); `train_loss_stop` restores the
+//! benchmark's rule.
 
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatRef, Par};
@@ -17,11 +25,13 @@ pub struct C2stParams {
     pub folds: usize,
     pub max_epochs: usize,
     pub seed: u64,
+    /// Stop as the benchmark does (training loss stalled) instead of on held-out accuracy.
+    pub train_loss_stop: bool,
 }
 
 impl Default for C2stParams {
     fn default() -> Self {
-        C2stParams { folds: 5, max_epochs: 500, seed: 0 }
+        C2stParams { folds: 5, max_epochs: 500, seed: 0, train_loss_stop: false }
     }
 }
 
@@ -54,7 +64,12 @@ pub fn c2st(a: &[Vec<f64>], b: &[Vec<f64>], p: &C2stParams) -> f64 {
             let test: Vec<usize> = order[lo..hi].to_vec();
             let train: Vec<usize> = order[..lo].iter().chain(&order[hi..]).copied().collect();
             let mut net = Mlp::new(&[d, 10 * d, 10 * d, 1], p.seed.wrapping_add(f as u64 + 1));
-            net.fit(&rows, &train, p.max_epochs, p.seed ^ (f as u64) << 8);
+            let seed = p.seed ^ (f as u64) << 8;
+            if p.train_loss_stop {
+                net.fit_to_training_loss(&rows, &train, p.max_epochs, seed);
+            } else {
+                net.fit(&rows, &train, p.max_epochs, seed);
+            }
             net.accuracy(&rows, &test)
         })
         .collect();
@@ -176,7 +191,42 @@ impl Mlp {
         loss / n as f64
     }
 
+    /// Trains on 90 % of `train`; stops when the accuracy on the other 10 % has not
+    /// improved by 1e-4 for 10 epochs and keeps the best weights.
     fn fit(&mut self, rows: &[(Vec<f32>, f32)], train: &[usize], max_epochs: usize, seed: u64) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let n_val = (train.len() / 10).max(1);
+        let (val, fit) = train.split_at(n_val);
+        let mut order = fit.to_vec();
+        let (mut best, mut stale) = (f64::NEG_INFINITY, 0);
+        let mut kept: Vec<(Mat<f32>, Vec<f32>)> = Vec::new();
+        for _ in 0..max_epochs {
+            order.shuffle(&mut rng);
+            for idx in order.chunks(BATCH) {
+                let (x, y) = batch(rows, idx);
+                self.train_step(x.as_ref(), &y);
+            }
+            let acc = self.accuracy(rows, val);
+            if acc > best + TOL {
+                best = acc;
+                stale = 0;
+                kept = self.layers.iter().map(|l| (l.w.clone(), l.b.clone())).collect();
+            } else {
+                stale += 1;
+                if stale >= NO_CHANGE {
+                    break;
+                }
+            }
+        }
+        for (l, (w, b)) in self.layers.iter_mut().zip(kept) {
+            l.w = w;
+            l.b = b;
+        }
+    }
+
+    /// The benchmark's rule: all of `train`, stopped when the training loss has not
+    /// improved by 1e-4 for 10 epochs.
+    fn fit_to_training_loss(&mut self, rows: &[(Vec<f32>, f32)], train: &[usize], max_epochs: usize, seed: u64) {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let mut order = train.to_vec();
         let (mut best, mut stale) = (f64::INFINITY, 0);

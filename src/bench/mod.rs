@@ -25,6 +25,8 @@ pub struct BenchParams {
     pub samples: usize,
     pub seed: u64,
     pub c2st: c2st::C2stParams,
+    /// Per-observation marginal means and spreads (reference and flow) on stderr.
+    pub verbose: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -85,6 +87,17 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         let reference = task.reference(&x, p.samples, &mut rng);
         let draws = model.sample(&Obs { x: &x, present: None }, p.samples, k as u64)?;
         scores.push(c2st::c2st(&reference, &draws, &p.c2st));
+        if p.verbose {
+            let ms = |v: &[Vec<f64>], k: usize| {
+                let n = v.len() as f64;
+                let m = v.iter().map(|r| r[k]).sum::<f64>() / n;
+                (m, (v.iter().map(|r| (r[k] - m).powi(2)).sum::<f64>() / n).sqrt())
+            };
+            for j in 0..task.dim() {
+                let ((rm, rs), (dm, ds)) = (ms(&reference, j), ms(&draws, j));
+                eprintln!("{} obs {k}: θ{j} reference {rm:.3} ± {rs:.3}, flow {dm:.3} ± {ds:.3}", task.name());
+            }
+        }
     }
     Ok(TaskResult {
         task: task.name().into(),

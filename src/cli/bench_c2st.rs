@@ -26,6 +26,13 @@ pub struct C2stArgs {
     /// Cap on the classifier's epochs (lower: faster, less sensitive; for quick comparisons).
     #[arg(long, default_value_t = 500)]
     pub c2st_epochs: usize,
+    /// Stop the classifier as the SBI benchmark does (training loss stalled, minutes per
+    /// 10-D observation) instead of on held-out accuracy (seconds; less sensitive).
+    #[arg(long)]
+    pub c2st_train_loss_stop: bool,
+    /// Print each observation's marginal means and spreads (reference and flow).
+    #[arg(long)]
+    pub verbose: bool,
     /// Results as JSON.
     #[arg(long, default_value = "c2st.json")]
     pub json: PathBuf,
@@ -44,6 +51,12 @@ pub struct C2stArgs {
     pub batch: Option<usize>,
     #[arg(long)]
     pub lr: Option<f64>,
+    /// Halve the learning rate after this many epochs without improvement (0: constant).
+    #[arg(long)]
+    pub lr_plateau: Option<usize>,
+    /// At the patience limit, divide the learning rate by 10 and go on, this many times.
+    #[arg(long)]
+    pub lr_drops: Option<usize>,
     #[arg(long)]
     pub patience: Option<usize>,
     #[arg(long)]
@@ -70,7 +83,13 @@ pub fn run(a: C2stArgs) -> Result<()> {
         observations: a.observations,
         samples: a.samples,
         seed: a.seed,
-        c2st: C2stParams { seed: a.seed, max_epochs: a.c2st_epochs, ..Default::default() },
+        verbose: a.verbose,
+        c2st: C2stParams {
+            seed: a.seed,
+            max_epochs: a.c2st_epochs,
+            train_loss_stop: a.c2st_train_loss_stop,
+            ..Default::default()
+        },
     };
     let d = TrainSettings::default();
     let settings = TrainSettings {
@@ -85,6 +104,8 @@ pub fn run(a: C2stArgs) -> Result<()> {
         blocks: a.blocks.unwrap_or(d.blocks),
         batch: a.batch.unwrap_or(d.batch),
         lr: a.lr.unwrap_or(d.lr),
+        lr_plateau: a.lr_plateau.unwrap_or(d.lr_plateau),
+        lr_drops: a.lr_drops.unwrap_or(d.lr_drops),
         patience: a.patience.unwrap_or(d.patience),
         val_fraction: a.val_fraction.unwrap_or(d.val_fraction),
         ..d.clone()
@@ -114,6 +135,7 @@ pub fn run(a: C2stArgs) -> Result<()> {
         "observations": a.observations,
         "samples": a.samples,
         "c2st_epochs": a.c2st_epochs,
+        "c2st_train_loss_stop": a.c2st_train_loss_stop,
         "seed": a.seed,
         "settings": format!("{settings:?}"),
         "tasks": results,

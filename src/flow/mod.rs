@@ -64,8 +64,7 @@ impl FlowConfig {
     /// The defaults of npe.md: 3×50 embedding, 5 transforms, 2×50 conditioners, 10 bins.
     pub fn new(dim: usize, inputs: usize, embedding: bool) -> FlowConfig {
         let transforms = 5;
-        // Reverse, then rotate: every dim is transformed and conditions the others.
-        let permutations = (0..transforms).map(|t| (0..dim).map(|i| (dim - 1 - i + t) % dim).collect()).collect();
+        let permutations = permutations(dim, transforms);
         FlowConfig {
             dim,
             inputs,
@@ -88,6 +87,43 @@ impl FlowConfig {
         let dc = self.dim / 2;
         (dc, self.dim - dc)
     }
+}
+
+/// Transform t sees the parameters in the order `order(t)[j] = (dim − 1 − j + t·s) mod dim`
+/// (reversed, then rotated by s per transform) and transforms its second half; s is the
+/// step that transforms every parameter most often (at least twice for dim ≥ 2 with 5
+/// transforms). Each stored permutation takes the previous transform's order to this
+/// one's, since `log_prob` applies them one after another.
+///
+/// Checkpoints before this (issue 17) stored the orders themselves, which composed left
+/// the last parameter of a model with 6 or more never transformed: its posterior was the
+/// base distribution whatever the observation. They keep loading with their stored
+/// permutations.
+pub fn permutations(dim: usize, transforms: usize) -> Vec<Vec<usize>> {
+    let order = |t: usize, s: usize| -> Vec<usize> { (0..dim).map(|j| (dim - 1 - j + t * s) % dim).collect() };
+    let least = |s: usize| -> usize {
+        let mut count = vec![0; dim];
+        for t in 0..transforms {
+            for &o in &order(t, s)[dim / 2..] {
+                count[o] += 1;
+            }
+        }
+        count.into_iter().min().unwrap_or(0)
+    };
+    let step = (1..=dim).max_by_key(|&s| (least(s), std::cmp::Reverse(s))).unwrap_or(1);
+    let mut current: Vec<usize> = (0..dim).collect();
+    (0..transforms)
+        .map(|t| {
+            let next = order(t, step);
+            let mut position = vec![0; dim];
+            for (i, &o) in current.iter().enumerate() {
+                position[o] = i;
+            }
+            let relative = next.iter().map(|&o| position[o]).collect();
+            current = next;
+            relative
+        })
+        .collect()
 }
 
 /// Fully connected layers with ReLU between them (none after the last).
@@ -246,6 +282,25 @@ impl Flow {
 mod tests {
     use super::*;
     use burn::optim::{AdamConfig, GradientsParams};
+
+    /// Applied one after another, the permutations leave every parameter in a transformed
+    /// half at least twice (once they left the last of 6 or more untouched).
+    #[test]
+    fn every_parameter_is_transformed_at_least_twice() {
+        for dim in 2..=40 {
+            let cfg = FlowConfig::new(dim, 3, false);
+            cfg.validate().unwrap();
+            let mut order: Vec<usize> = (0..dim).collect();
+            let mut count = vec![0; dim];
+            for p in &cfg.permutations {
+                order = p.iter().map(|&j| order[j]).collect();
+                for &o in &order[dim / 2..] {
+                    count[o] += 1;
+                }
+            }
+            assert!(count.iter().all(|&c| c >= 2), "dim {dim}: transformed {count:?} times");
+        }
+    }
 
     /// One Adam step on the negative log-likelihood moves every weight matrix and bias of
     /// the embedding and of every conditioner: the gradient reaches all of them.

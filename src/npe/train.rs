@@ -36,6 +36,12 @@ pub struct TrainSettings {
     pub tail_bound: f64,
     /// Residual blocks per conditioner (0: a plain two-hidden-layer MLP).
     pub blocks: usize,
+    /// Learning rate halved after this many epochs without a better validation loss
+    /// (counted again from each halving); 0: constant.
+    pub lr_plateau: usize,
+    /// Instead of stopping after `patience` epochs without improvement, divide the
+    /// learning rate by 10 and go on, this many times.
+    pub lr_drops: usize,
     /// Flows trained from different seeds and averaged as an equal-weight mixture
     /// (wider, better-calibrated joint posteriors; K× the training time).
     pub ensemble: usize,
@@ -54,9 +60,11 @@ impl Default for TrainSettings {
             mask_groups: false,
             mask_bands: false,
             val_fraction: 0.1,
-            theta_map: ThetaMap::Logit,
-            tail_bound: 5.0,
+            theta_map: ThetaMap::Scale,
+            tail_bound: 3.0,
             blocks: 0,
+            lr_plateau: 8,
+            lr_drops: 0,
             ensemble: 1,
         }
     }
@@ -157,6 +165,9 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         fit_null: None,
     };
 
+    // The header as a checkpoint reads it back (serde_json may move a float by one ulp),
+    // so that a saved and reloaded model draws exactly what the trained one draws.
+    let header: Header = serde_json::from_slice(&serde_json::to_vec(&header)?)?;
     let device = Device::flex().autodiff();
 
     // One batch: v (standardised u) and the network input with fresh noise and masks.
@@ -239,6 +250,7 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         }
         let mut best: (f64, usize, Option<ModuleRecord>) = (f64::INFINITY, 0, None);
         let mut train_order = train_idx.to_vec();
+        let (mut lr, mut last_change, mut last_drop, mut drops) = (s.lr, 0, 0, 0);
         for epoch in 1..=s.max_epochs {
             let t0 = std::time::Instant::now();
             epochs += 1;
@@ -254,7 +266,7 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
                 sum += l * rows.len() as f64;
                 count += rows.len();
                 let grads = GradientsParams::from_grads(loss.backward(), &flow);
-                flow = opt.step(s.lr, flow, grads);
+                flow = opt.step(lr, flow, grads);
             }
             let valid = flow.valid();
             let plain = Device::flex();
@@ -279,8 +291,17 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
                 stopped = true;
                 break;
             }
-            if epoch - best.1 >= s.patience {
-                break;
+            if s.lr_plateau > 0 && epoch - best.1.max(last_change) >= s.lr_plateau {
+                lr *= 0.5;
+                last_change = epoch;
+            }
+            if epoch - best.1.max(last_drop) >= s.patience {
+                if drops == s.lr_drops {
+                    break;
+                }
+                drops += 1;
+                lr *= 0.1;
+                (last_drop, last_change) = (epoch, epoch);
             }
         }
         let Some(record) = best.2 else { bail!("training produced no finite validation loss (member {member})") };
