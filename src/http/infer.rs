@@ -111,7 +111,7 @@ pub async fn infer(
         "fit": fit,
         "parameters": tissue,
         "differential": differential,
-        "differential_note": "per parameter: the posterior probability below / within / above the normal range; a reading only where the posterior is informative and puts ≥ 0.8 on one side, else undetermined; unreliable for every parameter when the fit check fails. Information, not a diagnosis",
+        "differential_note": "per parameter: the posterior probability below / within / above the normal range; a reading only where the posterior is informative and puts ≥ 0.8 within or ≥ 0.95 below or above, else undetermined; unreliable for every parameter when the fit check fails. Information, not a diagnosis",
         "map": inf.map,
         "inputs": {
             "used": used,

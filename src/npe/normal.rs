@@ -74,8 +74,15 @@ pub const NORMAL: [NormalRange; 7] = [
     },
 ];
 
-/// A side is read only when the posterior puts at least this much probability on it.
+/// "within" is read when the posterior puts at least this much probability inside the
+/// normal range.
 pub const CONFIDENT: f64 = 0.8;
+/// "below" / "above" (a finding a clinic acts on) need this much: a calibrated posterior
+/// of an ear whose value sits on a limit of the normal range puts a roughly uniform
+/// probability on either side, so a 0.8 rule would call it abnormal about 20 % of the
+/// time per limit (the nominal ear sits on two: 22 and 17 of 40 noisy repeats read
+/// E_joints "above" and damping "below" at 0.8, 0 and 1 of 40 at 0.95; docs/npe.md).
+pub const ABNORMAL: f64 = 0.95;
 /// A posterior informs a reading when its 90 % interval is narrower than the normal range
 /// or than this fraction of the prior box (on the parameter's scale).
 pub const INFORMATIVE_PRIOR_FRACTION: f64 = 0.5;
@@ -91,8 +98,8 @@ pub struct Differential {
     pub p_below: f64,
     pub p_within: f64,
     pub p_above: f64,
-    /// "below", "within" or "above" when the posterior is informative and puts at least
-    /// `CONFIDENT` on that side; "undetermined" when it does not; "unreliable" when the
+    /// "within" (P ≥ `CONFIDENT`), "below" or "above" (P ≥ `ABNORMAL`) when the posterior
+    /// is informative; "undetermined" when it does not; "unreliable" when the
     /// model does not fit the observation (then no reading is made at all).
     pub reading: &'static str,
     /// What a deviation in the read direction is associated with (below / above only).
@@ -152,13 +159,15 @@ pub fn read(params: &[Param], samples: &[Vec<f64>]) -> Vec<Differential> {
                 ("undetermined", None, Some(why))
             } else if within >= CONFIDENT {
                 ("within", None, None)
-            } else if below >= CONFIDENT {
+            } else if below >= ABNORMAL {
                 ("below", Some(r.below), None)
-            } else if above >= CONFIDENT {
+            } else if above >= ABNORMAL {
                 ("above", Some(r.above), None)
             } else {
-                let why =
-                    format!("no side reaches P ≥ {CONFIDENT}: the posterior straddles a limit of the normal range");
+                let why = format!(
+                    "neither within (P ≥ {CONFIDENT}) nor outside (P ≥ {ABNORMAL} below or above): the posterior \
+                     straddles a limit of the normal range"
+                );
                 ("undetermined", None, Some(why))
             };
             Some(Differential {
@@ -235,6 +244,11 @@ mod tests {
         assert_eq!(read(tendons, &straddle)[0].reading, "undetermined");
         // Narrow and inside: within.
         assert_eq!(read(tendons, &draws(&params[2], 1e6, 3e6))[0].reading, "within");
+        // 90 % above the normal range (5 MPa) is not enough for "above"; 100 % is.
+        let mostly = draws(&params[2], 5e6 / 10f64.powf(0.05), 5e6 * 10f64.powf(0.45));
+        let d = &read(tendons, &mostly)[0];
+        assert!((d.p_above - 0.9).abs() < 0.02 && d.reading == "undetermined", "{d:?}");
+        assert_eq!(read(tendons, &draws(&params[2], 6e6, 2e7))[0].reading, "above");
         // Piled against the upper bound: never a P = 1 reading.
         let hug = draws(&params[2], params[2].high * 0.97, params[2].high);
         let d = &read(tendons, &hug)[0];
