@@ -26,6 +26,9 @@ pub struct TrainArgs {
     pub seed: u64,
     #[arg(long, default_value_t = 300)]
     pub max_epochs: usize,
+    /// Stop when the validation loss has not improved for this many epochs.
+    #[arg(long, default_value_t = 20)]
+    pub patience: usize,
     /// Drop whole feature groups at random so one network answers any subset.
     #[arg(long)]
     pub mask_groups: bool,
@@ -51,6 +54,9 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if args.max_epochs == 0 {
         bail!("--max-epochs must be at least 1");
     }
+    if !(1..=1000).contains(&args.patience) {
+        bail!("--patience must be between 1 and 1000 epochs, got {}", args.patience);
+    }
     if !(1..=16).contains(&args.ensemble) {
         bail!("--ensemble must be between 1 and 16, got {}", args.ensemble);
     }
@@ -70,6 +76,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         noise_scale: args.noise_scale,
         seed: args.seed,
         max_epochs: args.max_epochs,
+        patience: args.patience,
         mask_groups: args.mask_groups,
         mask_bands: args.mask_bands,
         ensemble: args.ensemble,
