@@ -141,7 +141,7 @@ async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64)> {
     let t = Instant::now();
     let mut s = tokio::net::TcpStream::connect(addr).await?;
     let req = format!(
-        "POST /infer HTTP/1.1\r\nHost: bench\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        "POST /infer HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
         body.len()
     );
     s.write_all(req.as_bytes()).await?;

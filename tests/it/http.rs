@@ -383,7 +383,7 @@ fn http(port: u16, method: &str, path: &str, body: Option<&str>) -> Option<(u16,
     let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
     let b = body.unwrap_or("");
     let req = format!(
-        "{method} {path} HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{b}",
+        "{method} {path} HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{b}",
         b.len()
     );
     s.write_all(req.as_bytes()).ok()?;
@@ -939,8 +939,8 @@ fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
     };
     // Half the headers; then full headers and half the body.
     for bytes in [
-        "POST /jobs HTTP/1.1\r\nHost: t\r\nContent-Le",
-        "POST /jobs HTTP/1.1\r\nHost: t\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{\"kind\":",
+        "POST /jobs HTTP/1.1\r\nHost: localhost\r\nContent-Le",
+        "POST /jobs HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{\"kind\":",
     ] {
         let t0 = std::time::Instant::now();
         let mut s = half(bytes);
