@@ -448,34 +448,46 @@ impl Npe {
 
     /// `n` posterior draws inside the prior box (standardised space), deterministic for
     /// `seed`, with their log-densities in the flow's space. Draws outside the box (only
-    /// with `ThetaMap::Scale`) are replaced by further rounds; after 20 rounds (a flow
-    /// with almost no mass in the box) the rest are kept, clamped into the box later.
+    /// with `ThetaMap::Scale`) are replaced by further rounds, within a budget of
+    /// `DRAW_BUDGET`·n draws in all; beyond it (a flow with less than ~1/8 of its mass in
+    /// the box: an observation unlike the training set) the last rejected draws fill the
+    /// rest and are clamped into the box later, so the posterior piles at a bound — which
+    /// the reading and the fit check then see — instead of the request running for minutes.
     fn draw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
+        const DRAW_BUDGET: usize = 8;
         let (mut v, mut lp) = self.draw_raw(input, n, seed);
         if self.header.theta_map == ThetaMap::Logit {
             return (v, lp);
         }
         let (mut out_v, mut out_lp) = (Vec::with_capacity(n), Vec::with_capacity(n));
-        for round in 1..=20u64 {
+        let (mut drawn, mut round) = (n, 0u64);
+        loop {
+            let (mut rej_v, mut rej_lp) = (Vec::new(), Vec::new());
             for (a, l) in v.into_iter().zip(lp) {
                 if out_v.len() < n && self.inside(&a) {
                     out_v.push(a);
                     out_lp.push(l);
+                } else if rej_v.len() < n {
+                    rej_v.push(a);
+                    rej_lp.push(l);
                 }
             }
-            if out_v.len() == n {
+            let need = n - out_v.len();
+            if need == 0 {
                 return (out_v, out_lp);
             }
-            let need = n - out_v.len();
-            // Enough for the rest at the acceptance seen so far, at least 128.
-            let rate = (out_v.len() as f64 / (n as f64 * round as f64)).max(0.01);
-            let m = ((need as f64 / rate * 1.2) as usize).clamp(128, 100 * n);
+            if drawn >= DRAW_BUDGET * n {
+                out_v.extend(rej_v.into_iter().take(need));
+                out_lp.extend(rej_lp.into_iter().take(need));
+                return (out_v, out_lp);
+            }
+            // Enough for the rest at the acceptance seen so far, within the budget.
+            round += 1;
+            let rate = (out_v.len() as f64 / drawn as f64).max(0.01);
+            let m = ((need as f64 / rate * 1.2) as usize).max(128).min(DRAW_BUDGET * n - drawn).max(need);
+            drawn += m;
             (v, lp) = self.draw_raw(input, m, seed ^ round.wrapping_mul(0x9E37_79B9_7F4A_7C15));
         }
-        let rest = n - out_v.len();
-        out_v.extend(v.into_iter().take(rest));
-        out_lp.extend(lp.into_iter().take(rest));
-        (out_v, out_lp)
     }
 
     /// `n` draws of the flow (standardised space) with their log-densities.
