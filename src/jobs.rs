@@ -7,7 +7,7 @@ use crate::dataset::{self, Rows};
 use crate::npe::{self, Dataset, Npe, TrainSettings};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::output::feature_names;
-use crate::sim::params::{EFFECTS, Effects, N_PARAMS, N_TISSUE, PARAMS};
+use crate::sim::params::{EFFECTS, Effects, N_PARAMS, N_TISSUE, PARAMS, with_nominal_geometry};
 
 const N_GEOMETRY: usize = N_PARAMS - N_TISSUE;
 use crate::sim::{Model, ModelConfig};
@@ -205,17 +205,7 @@ const THETA_SLACK_DECADES: f64 = 1.0;
 /// Rows of `params.theta` with the nominal geometry inserted after the tissue columns
 /// where a row gives only those (and then `n_effects` effect columns).
 fn with_geometry(rows: &[Vec<f64>], n_effects: usize) -> Vec<Vec<f64>> {
-    rows.iter()
-        .map(|r| {
-            if r.len() != N_TISSUE + n_effects {
-                return r.clone();
-            }
-            let mut full = r[..N_TISSUE].to_vec();
-            full.extend(PARAMS[N_TISSUE..].iter().map(|p| p.nominal));
-            full.extend_from_slice(&r[N_TISSUE..]);
-            full
-        })
-        .collect()
+    rows.iter().map(|r| if r.len() == N_TISSUE + n_effects { with_nominal_geometry(r) } else { r.clone() }).collect()
 }
 
 /// Checks the parameter values of `params.theta` rows (effects columns are checked

@@ -1,6 +1,7 @@
 //! `otofit simulate --explain`: one ear's responses against the published norms the
 //! baseline tests use (reference/normative.json) and its power budget, as a table.
 
+use crate::sim::output::interpolate_log_f;
 use crate::sim::{Effects, Model, ModelConfig, Theta};
 use anyhow::{Context, Result};
 use serde_json::Value;
@@ -10,13 +11,6 @@ const NORMATIVE: &str = include_str!("../../reference/normative.json");
 
 fn floats(v: &Value) -> Vec<f64> {
     v.as_array().map(|a| a.iter().filter_map(Value::as_f64).collect()).unwrap_or_default()
-}
-
-/// Linear interpolation in log-frequency of `values` on `freqs` at `f`.
-fn at(freqs: &[f64], values: &[f64], f: f64) -> f64 {
-    let i = freqs.partition_point(|&g| g < f).clamp(1, freqs.len() - 1);
-    let t = (f.ln() - freqs[i - 1].ln()) / (freqs[i].ln() - freqs[i - 1].ln());
-    values[i - 1] * (1.0 - t) + values[i] * t
 }
 
 fn mark(inside: bool) -> &'static str {
@@ -31,7 +25,7 @@ pub fn report(config: ModelConfig, theta: &Theta, fx: &Effects) -> Result<()> {
     let freqs = model.frequencies().to_vec();
     let n = freqs.len();
     let x = crate::sim::simulate(&mut runner, theta, fx)?;
-    let measure = |k: usize, f: f64| at(&freqs, &x[k * n..(k + 1) * n], f);
+    let measure = |k: usize, f: f64| interpolate_log_f(&freqs, &x[k * n..(k + 1) * n], &[f])[0];
     let db = |k: usize, f: f64| 20.0 * (measure(k, f) + 3.0); // log10(m/s/Pa) → dB re 1 mm/s/Pa
 
     let g = &norms["vst_goode1994"];

@@ -2,7 +2,7 @@
 
 use crate::dataset::{self, Rows};
 use crate::sim::batch::{self, Design, Noise};
-use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS};
+use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS, with_nominal_geometry};
 use crate::sim::{Model, ModelConfig, Preset};
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
@@ -94,10 +94,12 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
     }
     // Geometry columns: all three or none (then nominal).
     let geometry: Vec<Option<usize>> = PARAMS[N_TISSUE..].iter().map(|p| col(p.name)).collect();
-    if geometry.iter().any(Option::is_some) && geometry.iter().any(Option::is_none) {
+    let given_geometry = geometry.iter().all(Option::is_some);
+    if !given_geometry && geometry.iter().any(Option::is_some) {
         let names: Vec<&str> = PARAMS[N_TISSUE..].iter().map(|p| p.name).collect();
         bail!("{}: give all geometry columns ({}) or none (nominal)", path.display(), names.join(", "));
     }
+    cols.extend(geometry.into_iter().flatten());
     for h in &table.header {
         if PARAMS.iter().any(|p| p.name == h) {
             continue;
@@ -107,25 +109,18 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
             design.varied.push(i);
         }
     }
-    let mut effect_cols = Vec::new();
     for &i in &design.varied {
-        effect_cols.push(
+        cols.push(
             col(EFFECTS[i].name)
                 .with_context(|| format!("{}: missing column '{}' (--vary)", path.display(), EFFECTS[i].name))?,
         );
     }
-    let nominal = PARAMS[N_TISSUE..].iter().map(|p| p.nominal);
     Ok(table
         .rows
         .iter()
         .map(|r| {
-            let mut row: Vec<f64> = cols.iter().map(|&c| r[c]).collect();
-            match geometry.iter().map(|c| c.map(|c| r[c])).collect::<Option<Vec<f64>>>() {
-                Some(g) => row.extend(g),
-                None => row.extend(nominal.clone()),
-            }
-            row.extend(effect_cols.iter().map(|&c| r[c]));
-            row
+            let row: Vec<f64> = cols.iter().map(|&c| r[c]).collect();
+            if given_geometry { row } else { with_nominal_geometry(&row) }
         })
         .collect())
 }

@@ -179,19 +179,20 @@ async fn host_guard(State(st): State<AppState>, req: Request, next: Next) -> Res
     if !st.key_hashes.is_empty() {
         return next.run(req).await;
     }
-    let host = req.headers().get(header::HOST).map(|v| v.to_str().unwrap_or("\u{fffd}").to_string());
-    match host {
-        Some(h) if !host_allowed(&h, &st.allowed_hosts) => Problem::new(
+    let refused = (req.headers().get(header::HOST))
+        .map(|v| v.to_str().unwrap_or("\u{fffd}"))
+        .filter(|h| !host_allowed(h, &st.allowed_hosts))
+        .map(|h| host_name(h).to_string());
+    match refused {
+        Some(name) => Problem::new(
             StatusCode::FORBIDDEN,
             format!(
                 "this server answers only requests addressed to localhost or an IP address; to serve the host name \
-                 '{}', start it with --allowed-host {} (or with API keys)",
-                host_name(&h),
-                host_name(&h)
+                 '{name}', start it with --allowed-host {name} (or with API keys)"
             ),
         )
         .into_response(),
-        _ => next.run(req).await,
+        None => next.run(req).await,
     }
 }
 

@@ -283,6 +283,9 @@ pub enum SimError {
 /// the drum, for pressure `p_l` on the drum and a unit flow into it.
 #[derive(Clone, Copy, Debug)]
 struct Line {
+    /// Series impedance and shunt admittance per length (for the wall losses).
+    z: c64,
+    y: c64,
     gamma: c64,
     zc: c64,
     p_l: c64,
@@ -583,9 +586,9 @@ impl Runner<'_> {
 
     /// The residual canal of `theta` at angular frequency `w`, loaded by the last solve.
     fn line(&self, theta: &Theta, w: f64) -> Line {
-        let (zs, ys) = self.model.air.line_zy(w, theta.canal_area());
-        let (gamma, zc) = air::line_constants(zs, ys);
-        Line { gamma, zc, p_l: self.ws.x[self.model.dofs.p_drum] }
+        let (z, y) = self.model.air.line_zy(w, theta.canal_area());
+        let (gamma, zc) = air::line_constants(z, y);
+        Line { z, y, gamma, zc, p_l: self.ws.x[self.model.dofs.p_drum] }
     }
 
     /// Measured responses at one frequency, effects applied.
@@ -643,7 +646,6 @@ impl Runner<'_> {
         let x = &self.ws.x;
         let w = 2.0 * PI * freq_hz;
         let line = self.line(theta, w);
-        let (zs, ys) = m.air.line_zy(w, theta.canal_area());
         let l = theta.canal_length();
         let (p0, u0) = line.at(l);
         let scale = 1.0 / u0.norm_sqr();
@@ -659,7 +661,7 @@ impl Runner<'_> {
                 } else {
                     2.0
                 };
-                weight * (zs.re * u.norm_sqr() + ys.re * p.norm_sqr())
+                weight * (line.z.re * u.norm_sqr() + line.y.re * p.norm_sqr())
             })
             .sum::<f64>()
             * l

@@ -65,6 +65,15 @@ pub const PARAMS: [ParamSpec; N_PARAMS] = [
     ParamSpec { name: "mic_distance", unit: "m", scale: Scale::Linear, low: 0.5e-3, high: 4e-3, nominal: 2e-3 },
 ];
 
+/// A row of the tissue values followed by anything (effect columns), with the nominal
+/// geometry inserted after the tissue values: the full parameter row.
+pub fn with_nominal_geometry(row: &[f64]) -> Vec<f64> {
+    let mut full = row[..N_TISSUE].to_vec();
+    full.extend(PARAMS[N_TISSUE..].iter().map(|p| p.nominal));
+    full.extend_from_slice(&row[N_TISSUE..]);
+    full
+}
+
 /// Whether a parameter name is one of the simulator's geometry nuisances.
 pub fn is_geometry(name: &str) -> bool {
     PARAMS[N_TISSUE..].iter().any(|p| p.name == name)
