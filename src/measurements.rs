@@ -41,15 +41,15 @@ pub struct MagPhase {
 }
 
 /// Velocity units: (accepted names, factor to m/s/Pa; `None`: decibels re 1 mm/s/Pa).
-const VELOCITY_UNITS: [(&[&str], Option<f64>); 3] =
+pub const VELOCITY_UNITS: [(&[&str], Option<f64>); 3] =
     [(&["m/s/Pa", "SI"], Some(1.0)), (&["mm/s/Pa"], Some(1e-3)), (&["dB re 1 mm/s/Pa", "dB"], None)];
 /// Impedance units: SI acoustic ohms, MΩ of them, and CGS acoustic ohms (dyn·s/cm⁵).
-const IMPEDANCE_UNITS: [(&[&str], Option<f64>); 3] = [
+pub const IMPEDANCE_UNITS: [(&[&str], Option<f64>); 3] = [
     (&["Pa·s/m³", "Pa*s/m^3", "Pa s/m3", "SI"], Some(1.0)),
     (&["MOhm", "MΩ"], Some(1e6)),
     (&["cgs", "dyn·s/cm⁵", "dyn*s/cm^5"], Some(1e5)),
 ];
-const PHASE_UNITS: [(&str, f64); 3] =
+pub const PHASE_UNITS: [(&str, f64); 3] =
     [("rad", 1.0), ("deg", std::f64::consts::PI / 180.0), ("cycles", std::f64::consts::TAU)];
 
 /// Magnitudes in SI from `unit`; an unknown unit is an error naming `field`.
