@@ -18,7 +18,7 @@ pub enum MeasurementError {
     Invalid(Vec<(String, String)>),
 }
 
-#[derive(Deserialize, Serialize)]
+#[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Measurements {
     /// |V_stapes/P_ec| in m/s/Pa and its phase in rad.
@@ -28,7 +28,7 @@ pub struct Measurements {
     pub absorbance: Option<Values>,
 }
 
-#[derive(Deserialize, Serialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MagPhase {
     pub frequencies_hz: Vec<f64>,
@@ -96,7 +96,7 @@ fn magnitude_hint(block: usize, v: f64) -> &'static str {
     }
 }
 
-#[derive(Deserialize, Serialize)]
+#[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Values {
     pub frequencies_hz: Vec<f64>,
