@@ -117,7 +117,8 @@ pub struct Writer {
     pub rows: usize,
 }
 
-const FILES: [&str; 3] = ["theta.csv", "x.csv", "meta.json"];
+/// The files of a dataset folder.
+pub const FILES: [&str; 3] = ["theta.csv", "x.csv", "meta.json"];
 
 fn tmp(dir: &Path, name: &str) -> PathBuf {
     dir.join(format!("{name}.tmp"))

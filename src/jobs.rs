@@ -1,7 +1,13 @@
-//! The job queue: a tokio dispatcher claims queued jobs from SQLite one at a time and
-//! runs the CPU work on the blocking pool (simulations fan out on rayon inside it), so
-//! the async runtime never blocks. Progress goes to the database as the work goes;
-//! cancellation and shutdown are checked between chunks.
+//! The job queue: a tokio dispatcher claims queued jobs from the store (SQLite or
+//! PostgreSQL) one at a time and runs the CPU work on the blocking pool (simulations fan
+//! out on rayon inside it), so the async runtime never blocks. Progress goes to the
+//! database as the work goes; cancellation and shutdown are checked between chunks.
+//!
+//! Every claim is a lease (see `store`): the dispatcher renews it every third of its
+//! length while the job runs, and a job whose lease is lost (this worker stalled or was
+//! cut off, and another took the job back) is stopped and writes nothing: results are
+//! fenced by the lease token in the database, and files are written into an attempt's own
+//! staging place and moved into place only after a fresh renewal.
 
 use crate::dataset::{self, Rows};
 use crate::npe::{self, Dataset, Npe, TrainSettings};
@@ -35,7 +41,15 @@ pub struct Ctx {
     data_lock: Option<std::fs::File>,
     /// Slots and deadline of POST /infer.
     pub infer_gate: crate::http::InferGate,
+    /// This process as a worker (`host:pid`), written into the jobs it claims.
+    pub worker: String,
+    /// Length of a claim's lease; renewed every third of it.
+    pub lease: Duration,
 }
+
+/// Default lease of a claimed job: a worker that stops renewing it for this long loses
+/// the job to another.
+pub const DEFAULT_LEASE: Duration = Duration::from_secs(30);
 
 impl Ctx {
     pub fn new(store: Store, data_dir: PathBuf, max_queue: i64) -> Ctx {
@@ -48,7 +62,15 @@ impl Ctx {
             max_queue,
             data_lock: None,
             infer_gate: crate::http::InferGate::new(crate::http::InferLimits::default()),
+            worker: crate::store::worker_name(),
+            lease: DEFAULT_LEASE,
         }
+    }
+
+    /// Claims jobs with leases of `lease` (renewed every third of it) instead of 30 s.
+    pub fn with_lease(mut self, lease: Duration) -> Ctx {
+        self.lease = lease;
+        self
     }
 
     /// Bounds POST /infer by `limits` instead of the defaults.
@@ -389,6 +411,8 @@ pub fn validate(kind: &str, params: &serde_json::Value) -> Result<(), Vec<FieldE
 pub struct Reporter {
     tx: tokio::sync::mpsc::UnboundedSender<(f64, String)>,
     cancel: Arc<AtomicBool>,
+    /// The claim: (job id, lease token), for the renewal before results are written.
+    claim: (String, String),
 }
 
 impl Reporter {
@@ -396,11 +420,47 @@ impl Reporter {
         let _ = self.tx.send((progress, message));
         !self.cancel.load(Ordering::Relaxed)
     }
+
+    /// Renews the lease (blocking; called from the job's thread) right before results are
+    /// written: `Err(LeaseLost)` if the job is no longer this worker's, so nothing is
+    /// written. After a renewal no other worker can claim the job for a whole lease.
+    fn still_ours(&self, ctx: &Ctx) -> Result<()> {
+        let (id, token) = (&self.claim.0, &self.claim.1);
+        let renewed = tokio::runtime::Handle::current().block_on(ctx.store.heartbeat(id, token, ctx.lease));
+        match renewed {
+            Ok(true) => Ok(()),
+            Ok(false) => {
+                self.cancel.store(true, Ordering::Relaxed);
+                bail!(LeaseLost)
+            }
+            Err(e) => Err(anyhow!(e).context("renewing the lease before writing results")),
+        }
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
 #[error("stopped on request")]
 struct Stopped;
+
+/// The job's lease was lost: another worker may hold it now.
+#[derive(Debug, thiserror::Error)]
+#[error("the job's lease was lost; this worker's results are dropped")]
+pub struct LeaseLost;
+
+/// Moves a finished simulate attempt's files from its staging folder into `dir`.
+fn publish_dataset(staging: &Path, dir: &Path) -> Result<()> {
+    for name in dataset::FILES {
+        std::fs::rename(staging.join(name), dir.join(name)).with_context(|| format!("moving {name} into place"))?;
+    }
+    let _ = std::fs::remove_dir(staging);
+    Ok(())
+}
+
+/// The staging folder of one attempt of a simulate job: its own, so two attempts of the
+/// same job (a stalled worker and the one that took over) never write the same files.
+fn staging_dir(dir: &Path, token: &str) -> PathBuf {
+    dir.join(format!(".attempt-{}", &token[..token.len().min(16)]))
+}
 
 /// Runs one job's CPU work (on a blocking thread). Returns the job's result document.
 fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
@@ -417,11 +477,19 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 None => Rows::Prior { n: p.n.unwrap_or(0), seed: p.seed },
             };
             let dir = ctx.dataset_dir(&job.id);
-            let meta =
-                dataset::simulate_to_dir(&model, &design, &rows, &noise, model.config.preset, &dir, &mut |done, n| {
-                    r.report(done as f64 / n as f64, format!("simulated {done}/{n}"))
-                })
-                .map_err(|e| if e.is::<dataset::Cancelled>() { Stopped.into() } else { e })?;
+            let staging = staging_dir(&dir, &r.claim.1);
+            let meta = dataset::simulate_to_dir(
+                &model,
+                &design,
+                &rows,
+                &noise,
+                model.config.preset,
+                &staging,
+                &mut |done, n| r.report(done as f64 / n as f64, format!("simulated {done}/{n}")),
+            )
+            .map_err(|e| if e.is::<dataset::Cancelled>() { Stopped.into() } else { e })?;
+            r.still_ours(ctx)?;
+            publish_dataset(&staging, &dir)?;
             Ok(serde_json::json!({
                 "dataset": format!("/datasets/{}", job.id),
                 "rows": meta.n_rows,
@@ -452,6 +520,7 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             if ctx.shutdown.load(Ordering::Relaxed) {
                 bail!(Stopped);
             }
+            r.still_ours(ctx)?;
             let models = ctx.data_dir.join("models");
             std::fs::create_dir_all(&models)?;
             let path = models.join(format!("{}.otofit", job.id));
@@ -480,6 +549,7 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             r.report(1.0, format!("{} rows", p.theta.len()));
             let ok: Vec<&[f64]> = out.iter().filter_map(|o| o.as_deref().ok()).collect();
             let page = crate::plot::resimulation(model.frequencies(), &theta, &ok, p.observation.as_deref());
+            r.still_ours(ctx)?;
             let dir = ctx.data_dir.join("reports").join(&job.id);
             std::fs::create_dir_all(&dir)?;
             std::fs::write(dir.join("spectra.svg"), &page.svg)?;
@@ -526,6 +596,7 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             if r.cancel.load(Ordering::Relaxed) {
                 bail!(Stopped);
             }
+            r.still_ours(ctx)?;
             let dir = ctx.data_dir.join("reports").join(&job.id);
             std::fs::create_dir_all(&dir)?;
             for (name, svg) in &report.figures {
@@ -587,13 +658,19 @@ fn scrub(ctx: &Ctx, msg: &str) -> String {
     out
 }
 
-/// The dispatcher: claims and runs jobs until shutdown.
+/// The dispatcher: takes back jobs whose lease expired, claims and runs jobs until
+/// shutdown. Any number of dispatchers, in any number of processes, may share a store.
 pub async fn dispatcher(ctx: Arc<Ctx>) {
     loop {
         if ctx.shutdown.load(Ordering::Relaxed) {
             break;
         }
-        match ctx.store.claim().await {
+        match ctx.store.reap_expired().await {
+            Ok((0, 0)) => {}
+            Ok((requeued, failed)) => tracing::warn!(requeued, failed, "took back jobs whose lease expired"),
+            Err(e) => tracing::error!(error = %e, "reaping expired leases failed"),
+        }
+        match ctx.store.claim(&ctx.worker, ctx.lease).await {
             Ok(Some(job)) => run(ctx.clone(), job).await,
             Ok(None) => {
                 tokio::select! {
@@ -611,18 +688,22 @@ pub async fn dispatcher(ctx: Arc<Ctx>) {
 
 async fn run(ctx: Arc<Ctx>, job: JobRow) {
     let t0 = std::time::Instant::now();
-    tracing::info!(job = %job.id, kind = %job.kind, attempt = job.attempts, "job started");
+    let token = job.lease_token.clone().unwrap_or_default();
+    tracing::info!(job = %job.id, kind = %job.kind, attempt = job.attempts, worker = %ctx.worker, "job started");
     let cancel = Arc::new(AtomicBool::new(false));
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
-    let reporter = Reporter { tx, cancel: cancel.clone() };
+    let reporter = Reporter { tx, cancel: cancel.clone(), claim: (job.id.clone(), token.clone()) };
     let (c2, j2) = (ctx.clone(), job.clone());
     let mut handle = tokio::task::spawn_blocking(move || execute(&c2, &j2, &reporter));
-    // An interval, not a sleep inside select!: progress messages must not starve the check.
+    // Intervals, not sleeps inside select!: progress messages must not starve the checks.
     let mut check = tokio::time::interval(Duration::from_millis(300));
+    let mut renew = tokio::time::interval(ctx.lease / 3);
+    renew.reset();
+    let mut lost = false;
     let result = loop {
         tokio::select! {
             Some((p, m)) = rx.recv() => {
-                if let Err(e) = ctx.store.progress(&job.id, p, &m).await {
+                if let Err(e) = ctx.store.progress(&job.id, &token, p, &m).await {
                     tracing::warn!(job = %job.id, error = %e, "progress not saved");
                 }
             }
@@ -631,23 +712,42 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
                     cancel.store(true, Ordering::Relaxed);
                 }
             }
+            _ = renew.tick() => match ctx.store.heartbeat(&job.id, &token, ctx.lease).await {
+                Ok(true) => {}
+                Ok(false) => {
+                    tracing::warn!(job = %job.id, "lease lost: stopping the job; its results will be dropped");
+                    lost = true;
+                    cancel.store(true, Ordering::Relaxed);
+                }
+                // A database hiccup: the lease still has two thirds to run; retried next tick.
+                Err(e) => tracing::warn!(job = %job.id, error = %e, "lease not renewed"),
+            },
             res = &mut handle => break res,
         }
     };
     let shutting_down = ctx.shutdown.load(Ordering::Relaxed);
     let cancelled = cancel.load(Ordering::Relaxed);
     let store = &ctx.store;
-    // Every end is fenced by the attempt this worker claimed (see `Store::finish`).
-    let (id, attempt) = (job.id.as_str(), job.attempts);
+    // Every end is fenced by the lease token this worker claimed (see `Store::finish`).
+    let id = job.id.as_str();
     let outcome = match result {
-        Err(e) => store.finish(id, attempt, "failed", Some(&format!("worker panicked: {e}")), None).await,
+        _ if lost => Ok(false),
+        Ok(Err(e)) if e.is::<LeaseLost>() => Ok(false),
+        Err(e) => store.finish(id, &token, "failed", Some(&format!("worker panicked: {e}")), None).await,
         // Interrupted by shutdown: back to the queue, the attempt not counted.
-        Ok(_) if cancelled && shutting_down => store.requeue(id, attempt).await,
+        Ok(_) if cancelled && shutting_down => store.requeue(id, &token).await,
         // A cancelled training still returns its best weights: that is a result.
-        Ok(Ok(doc)) => store.finish(id, attempt, "succeeded", None, Some(&doc)).await,
-        Ok(Err(e)) if cancelled || e.is::<Stopped>() => store.finish(id, attempt, "cancelled", None, None).await,
-        Ok(Err(e)) => store.finish(id, attempt, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await,
+        Ok(Ok(doc)) => store.finish(id, &token, "succeeded", None, Some(&doc)).await,
+        Ok(Err(e)) if cancelled || e.is::<Stopped>() => store.finish(id, &token, "cancelled", None, None).await,
+        Ok(Err(e)) => store.finish(id, &token, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await,
     };
+    if job.kind == "simulate" {
+        // This attempt's staging folder: moved into place on success, else left over.
+        let staging = staging_dir(&ctx.dataset_dir(&job.id), &token);
+        if staging.exists() {
+            let _ = std::fs::remove_dir_all(&staging);
+        }
+    }
     let owned = match outcome {
         Ok(owned) => owned,
         Err(e) => {
@@ -657,10 +757,11 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     };
     if !owned {
         // Another worker holds the job now: its files and its model are its own.
-        tracing::warn!(job = %job.id, attempt, "the job is no longer this worker's; its outcome is dropped");
+        tracing::warn!(job = %job.id, attempt = job.attempts, "the job is no longer this worker's; its outcome is dropped");
         return;
     }
-    if job.kind == "simulate" && !matches!(ctx.store.job(&job.id).await, Ok(Some(j)) if j.state == "succeeded") {
+    if job.kind == "simulate" {
+        // The job has ended: leftovers of earlier attempts of it are garbage now.
         remove_temporary_files(&ctx.dataset_dir(&job.id));
     }
     if (job.kind == "train" || job.kind == "diagnose")
@@ -674,14 +775,21 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
 }
 
-/// Removes the `*.tmp` files a simulate job writes before renaming them into place: what
-/// a failed, cancelled or interrupted run leaves behind. Returns how many went.
+/// Removes the `*.tmp` files a simulate job writes before renaming them into place, and
+/// the staging folders (`.attempt-*`) of its attempts: what a failed, cancelled,
+/// interrupted or superseded run leaves behind. Returns how many went.
 pub fn remove_temporary_files(dir: &Path) -> usize {
     let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
     entries
         .flatten()
-        .filter(|e| e.file_name().to_string_lossy().ends_with(".tmp"))
-        .filter(|e| std::fs::remove_file(e.path()).is_ok())
+        .filter(|e| {
+            let name = e.file_name().to_string_lossy().into_owned();
+            if name.starts_with(".attempt-") {
+                std::fs::remove_dir_all(e.path()).is_ok()
+            } else {
+                name.ends_with(".tmp") && std::fs::remove_file(e.path()).is_ok()
+            }
+        })
         .count()
 }
 

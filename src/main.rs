@@ -6,7 +6,7 @@ fn main() {
     // default action ends the process quietly, as other Unix tools do; not for the server,
     // which must outlive any client.
     #[cfg(unix)]
-    if !matches!(cli.command, otofit::cli::Command::Serve(_)) {
+    if !matches!(cli.command, otofit::cli::Command::Serve(_) | otofit::cli::Command::Worker(_)) {
         // SAFETY: before any thread is started; SIG_DFL is a valid disposition.
         unsafe {
             libc::signal(libc::SIGPIPE, libc::SIG_DFL);

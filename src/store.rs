@@ -1,15 +1,96 @@
-//! SQLite state of the service (sqlx): models and jobs. Static SQL with bound
-//! parameters only; every state change of a job is one statement.
+//! The service's state (sqlx): models and jobs, in SQLite (embedded, the default) or
+//! PostgreSQL (shared by any number of `serve` and `worker` processes). Static SQL with
+//! bound parameters only, the same text for both backends (`$N` placeholders, which
+//! SQLite reads as numbered ones) except where noted; every state change of a job is
+//! one statement.
+//!
+//! Jobs are claimed with a lease: the claim writes a fresh `lease_token` and an expiry on
+//! the database clock; the worker renews it (`heartbeat`) while it runs, and every write
+//! of the attempt (progress, its end, a re-queue) is fenced by the token, so a worker
+//! that lost its lease (stalled, partitioned, killed and re-claimed) changes nothing.
 
 use serde::Serialize;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::{Row, SqlitePool};
-use std::path::Path;
+use sqlx::postgres::{PgPool, PgPoolOptions, PgRow};
+use sqlx::sqlite::{
+    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteRow, SqliteSynchronous,
+};
+use sqlx::{AssertSqlSafe, Row};
+use std::path::{Path, PathBuf};
 use std::time::Duration;
+
+/// Where the state lives, from `--database`.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Database {
+    /// A SQLite file (`sqlite://PATH` or `sqlite:PATH`); `serve` defaults to
+    /// `DATA_DIR/otofit.db`.
+    Sqlite(PathBuf),
+    /// A PostgreSQL URL (`postgres://…` or `postgresql://…`), kept as given.
+    Postgres(String),
+}
+
+/// A `--database` value that cannot be used.
+#[derive(Debug, thiserror::Error)]
+#[error("--database: {0}")]
+pub struct DatabaseUrlError(String);
+
+impl Database {
+    /// Parses `sqlite://PATH`, `sqlite:PATH`, `postgres://…` or `postgresql://…`.
+    pub fn parse(url: &str) -> Result<Database, DatabaseUrlError> {
+        let url = url.trim();
+        if let Some(rest) = url.strip_prefix("sqlite://").or_else(|| url.strip_prefix("sqlite:")) {
+            let path = rest.split('?').next().unwrap_or("");
+            if path.is_empty() || path == ":memory:" {
+                return Err(DatabaseUrlError(format!(
+                    "'{url}' names no file (sqlite://PATH, e.g. sqlite://data/otofit.db)"
+                )));
+            }
+            return Ok(Database::Sqlite(PathBuf::from(path)));
+        }
+        if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+            // The pool checks the rest (host, port, user, database) when it connects.
+            return Ok(Database::Postgres(url.to_string()));
+        }
+        let scheme = url.split_once(':').map_or(url, |(s, _)| s);
+        Err(DatabaseUrlError(format!("unsupported scheme '{scheme}' (sqlite://PATH or postgres://USER@HOST:PORT/DB)")))
+    }
+
+    /// The URL for logs: a password, if any, replaced by `***`.
+    pub fn redacted(&self) -> String {
+        match self {
+            Database::Sqlite(p) => format!("sqlite://{}", p.display()),
+            Database::Postgres(url) => {
+                let (scheme, rest) = url.split_once("://").unwrap_or(("postgres", url));
+                match rest.split_once('@') {
+                    Some((user, host)) if user.contains(':') => {
+                        format!("{scheme}://{}:***@{host}", user.split(':').next().unwrap_or(""))
+                    }
+                    _ => url.clone(),
+                }
+            }
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub enum Pool {
+    Sqlite(SqlitePool),
+    Postgres(PgPool),
+}
 
 #[derive(Clone)]
 pub struct Store {
-    pub pool: SqlitePool,
+    pub pool: Pool,
+}
+
+/// Runs `$body` with `$p` bound to the pool of whichever backend the store has (the same
+/// query text and binds compile against both drivers).
+macro_rules! on_pool {
+    ($store:expr, $p:ident => $body:expr) => {
+        match &$store.pool {
+            Pool::Sqlite($p) => $body,
+            Pool::Postgres($p) => $body,
+        }
+    };
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -37,6 +118,12 @@ pub struct JobRow {
     pub created_at: String,
     pub started_at: Option<String>,
     pub finished_at: Option<String>,
+    /// The fencing token of the current claim (never shown to clients).
+    #[serde(skip)]
+    pub lease_token: Option<String>,
+    /// The worker that holds (or last held) the job: `host:pid`.
+    #[serde(skip)]
+    pub worker: Option<String>,
 }
 
 /// RFC 3339 UTC timestamp of now, to the millisecond.
@@ -63,38 +150,97 @@ pub fn now() -> String {
     )
 }
 
-fn job_from(row: &sqlx::sqlite::SqliteRow) -> JobRow {
+/// Typed column access shared by the two drivers' rows.
+trait Cols {
+    fn text(&self, c: &str) -> String;
+    fn opt_text(&self, c: &str) -> Option<String>;
+    fn int(&self, c: &str) -> i64;
+    fn opt_int(&self, c: &str) -> Option<i64>;
+    fn real(&self, c: &str) -> f64;
+}
+
+macro_rules! impl_cols {
+    ($row:ty) => {
+        impl Cols for $row {
+            fn text(&self, c: &str) -> String {
+                self.get(c)
+            }
+            fn opt_text(&self, c: &str) -> Option<String> {
+                self.get(c)
+            }
+            fn int(&self, c: &str) -> i64 {
+                self.get(c)
+            }
+            fn opt_int(&self, c: &str) -> Option<i64> {
+                self.get(c)
+            }
+            fn real(&self, c: &str) -> f64 {
+                self.get(c)
+            }
+        }
+    };
+}
+impl_cols!(SqliteRow);
+impl_cols!(PgRow);
+
+fn job_from(row: &impl Cols) -> JobRow {
     let json = |s: Option<String>| s.and_then(|s| serde_json::from_str(&s).ok());
     JobRow {
-        id: row.get("id"),
-        kind: row.get("kind"),
-        state: row.get("state"),
-        params: json(row.get("params")).unwrap_or(serde_json::Value::Null),
-        progress: row.get("progress"),
-        message: row.get("message"),
-        attempts: row.get("attempts"),
-        max_attempts: row.get("max_attempts"),
-        cancel_requested: row.get::<i64, _>("cancel_requested") != 0,
-        error: row.get("error"),
-        result: json(row.get("result")),
-        created_at: row.get("created_at"),
-        started_at: row.get("started_at"),
-        finished_at: row.get("finished_at"),
+        id: row.text("id"),
+        kind: row.text("kind"),
+        state: row.text("state"),
+        params: json(Some(row.text("params"))).unwrap_or(serde_json::Value::Null),
+        progress: row.real("progress"),
+        message: row.text("message"),
+        attempts: row.int("attempts"),
+        max_attempts: row.int("max_attempts"),
+        cancel_requested: row.int("cancel_requested") != 0,
+        error: row.opt_text("error"),
+        result: json(row.opt_text("result")),
+        created_at: row.text("created_at"),
+        started_at: row.opt_text("started_at"),
+        finished_at: row.opt_text("finished_at"),
+        lease_token: row.opt_text("lease_token"),
+        worker: row.opt_text("worker"),
     }
 }
 
-fn model_from(row: &sqlx::sqlite::SqliteRow) -> ModelRow {
+fn model_from(row: &impl Cols) -> ModelRow {
     ModelRow {
-        id: row.get("id"),
-        path: row.get("path"),
-        is_default: row.get::<i64, _>("is_default") != 0,
-        created_at: row.get("created_at"),
-        source_job: row.get("source_job"),
+        id: row.text("id"),
+        path: row.text("path"),
+        is_default: row.int("is_default") != 0,
+        created_at: row.text("created_at"),
+        source_job: row.opt_text("source_job"),
     }
 }
+
+/// Active jobs of one kind in one state, for /metrics.
+#[derive(Clone, Debug, PartialEq)]
+pub struct QueueCount {
+    pub kind: String,
+    pub state: String,
+    pub count: i64,
+}
+
+/// A fresh lease token: 128 random bits, hex.
+pub fn new_token() -> String {
+    use rand::Rng;
+    format!("{:032x}", rand::rng().random::<u128>())
+}
+
+/// `host:pid` of this process, naming it as a worker in the job table.
+pub fn worker_name() -> String {
+    let host = std::fs::read_to_string("/etc/hostname").map(|h| h.trim().to_string()).unwrap_or_default();
+    let host = if host.is_empty() { "localhost".to_string() } else { host };
+    format!("{host}:{}", std::process::id())
+}
+
+/// Key of the PostgreSQL advisory lock that serialises `insert_job_within`.
+const QUEUE_LOCK: i64 = 0x6f746f666974; // "otofit"
 
 impl Store {
-    /// Opens (creating if needed) the database in WAL mode and applies migrations.
+    /// Opens (creating if needed) the SQLite database in WAL mode and applies migrations.
     pub async fn open(path: &Path) -> Result<Store, sqlx::Error> {
         let opts = SqliteConnectOptions::new()
             .filename(path)
@@ -105,11 +251,50 @@ impl Store {
             .foreign_keys(true);
         let pool = SqlitePoolOptions::new().max_connections(4).connect_with(opts).await?;
         sqlx::migrate!("./migrations").run(&pool).await?;
-        Ok(Store { pool })
+        Ok(Store { pool: Pool::Sqlite(pool) })
+    }
+
+    /// Connects to PostgreSQL and applies its migrations (`migrations/postgres`; sqlx takes
+    /// an advisory lock, so processes starting together migrate once).
+    pub async fn open_postgres(url: &str) -> Result<Store, sqlx::Error> {
+        let pool =
+            PgPoolOptions::new().max_connections(8).acquire_timeout(Duration::from_secs(10)).connect(url).await?;
+        sqlx::migrate!("./migrations/postgres").run(&pool).await?;
+        Ok(Store { pool: Pool::Postgres(pool) })
+    }
+
+    /// Opens the store `db` names.
+    pub async fn connect(db: &Database) -> Result<Store, sqlx::Error> {
+        match db {
+            Database::Sqlite(path) => Store::open(path).await,
+            Database::Postgres(url) => Store::open_postgres(url).await,
+        }
+    }
+
+    pub fn is_postgres(&self) -> bool {
+        matches!(self.pool, Pool::Postgres(_))
+    }
+
+    /// The SQLite pool, for tests and tools that speak SQLite only.
+    pub fn sqlite(&self) -> Option<&SqlitePool> {
+        match &self.pool {
+            Pool::Sqlite(p) => Some(p),
+            Pool::Postgres(_) => None,
+        }
+    }
+
+    /// `sql` with `NOW_MS` replaced by this backend's clock in ms since 1970: the
+    /// database's clock, so workers on several hosts agree on lease expiry.
+    fn clocked(&self, sql: &'static str) -> AssertSqlSafe<String> {
+        let now_ms = match self.pool {
+            Pool::Sqlite(_) => "CAST((julianday('now') - 2440587.5) * 86400000.0 AS INTEGER)",
+            Pool::Postgres(_) => "CAST(EXTRACT(EPOCH FROM clock_timestamp()) * 1000 AS BIGINT)",
+        };
+        AssertSqlSafe(sql.replace("NOW_MS", now_ms))
     }
 
     pub async fn ping(&self) -> bool {
-        sqlx::query("SELECT 1").fetch_one(&self.pool).await.is_ok()
+        on_pool!(self, p => sqlx::query("SELECT 1").fetch_one(p).await.is_ok())
     }
 
     pub async fn add_model(
@@ -119,48 +304,43 @@ impl Store {
         is_default: bool,
         source_job: Option<&str>,
     ) -> Result<(), sqlx::Error> {
-        sqlx::query(
-            "INSERT OR IGNORE INTO models (id, path, is_default, created_at, source_job) VALUES (?, ?, ?, ?, ?)",
-        )
-        .bind(id)
-        .bind(path)
-        .bind(is_default as i64)
-        .bind(now())
-        .bind(source_job)
-        .execute(&self.pool)
-        .await?;
+        const SQL: &str =
+            "INSERT INTO models (id, path, is_default, created_at, source_job) VALUES ($1, $2, $3, $4, $5)
+             ON CONFLICT DO NOTHING";
+        let ts = now();
+        on_pool!(self, p => sqlx::query(SQL)
+            .bind(id)
+            .bind(path)
+            .bind(is_default as i64)
+            .bind(&ts)
+            .bind(source_job)
+            .execute(p)
+            .await?
+            .rows_affected());
         Ok(())
     }
 
     pub async fn models(&self) -> Result<Vec<ModelRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM models ORDER BY created_at")
-            .fetch_all(&self.pool)
-            .await?
-            .iter()
-            .map(model_from)
-            .collect())
+        const SQL: &str = "SELECT * FROM models ORDER BY created_at";
+        Ok(on_pool!(self, p => sqlx::query(SQL).fetch_all(p).await?.iter().map(model_from).collect()))
     }
 
     pub async fn model(&self, id: &str) -> Result<Option<ModelRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM models WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?
-            .as_ref()
-            .map(model_from))
+        const SQL: &str = "SELECT * FROM models WHERE id = $1";
+        Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(model_from)))
     }
 
     pub async fn default_model(&self) -> Result<Option<ModelRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM models WHERE is_default = 1 LIMIT 1")
-            .fetch_optional(&self.pool)
-            .await?
-            .as_ref()
-            .map(model_from))
+        const SQL: &str = "SELECT * FROM models WHERE is_default = 1 LIMIT 1";
+        Ok(on_pool!(self, p => sqlx::query(SQL).fetch_optional(p).await?.as_ref().map(model_from)))
     }
 
     /// Queues a job if fewer than `limit` jobs are queued or running. The count and the
-    /// insert are one statement (SQLite takes the write lock before it reads), so
-    /// concurrent posts cannot overshoot the limit. Returns whether the job was queued.
+    /// insert are one statement; SQLite takes the write lock before it reads, and with
+    /// PostgreSQL the statement runs under a transaction-scoped advisory lock (READ
+    /// COMMITTED alone would let two inserts see the same count), so concurrent posts,
+    /// from any number of servers, cannot overshoot the limit. Returns whether the job
+    /// was queued.
     pub async fn insert_job_within(
         &self,
         id: &str,
@@ -169,148 +349,220 @@ impl Store {
         max_attempts: i64,
         limit: i64,
     ) -> Result<bool, sqlx::Error> {
-        let done = sqlx::query(
-            "INSERT INTO jobs (id, kind, params, max_attempts, created_at) SELECT ?, ?, ?, ?, ?
-             WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < ?",
-        )
-        .bind(id)
-        .bind(kind)
-        .bind(params.to_string())
-        .bind(max_attempts)
-        .bind(now())
-        .bind(limit)
-        .execute(&self.pool)
-        .await?;
-        Ok(done.rows_affected() == 1)
+        const SQL: &str = "INSERT INTO jobs (id, kind, params, max_attempts, created_at) SELECT $1, $2, $3, $4, $5
+             WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < $6";
+        let (params, ts) = (params.to_string(), now());
+        // The same statement for both drivers (a macro: the query type depends on the driver).
+        macro_rules! insert {
+            () => {
+                sqlx::query(SQL).bind(id).bind(kind).bind(&params).bind(max_attempts).bind(&ts).bind(limit)
+            };
+        }
+        let done = match &self.pool {
+            Pool::Sqlite(p) => insert!().execute(p).await?.rows_affected(),
+            Pool::Postgres(p) => {
+                let mut tx = p.begin().await?;
+                sqlx::query("SELECT pg_advisory_xact_lock($1)").bind(QUEUE_LOCK).execute(&mut *tx).await?;
+                // A statement of its own after the lock: its snapshot sees every insert
+                // committed by the lock's previous holder.
+                let n = insert!().execute(&mut *tx).await?.rows_affected();
+                tx.commit().await?;
+                n
+            }
+        };
+        Ok(done == 1)
     }
 
     pub async fn job(&self, id: &str) -> Result<Option<JobRow>, sqlx::Error> {
-        Ok(sqlx::query("SELECT * FROM jobs WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?
-            .as_ref()
-            .map(job_from))
+        const SQL: &str = "SELECT * FROM jobs WHERE id = $1";
+        Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(job_from)))
     }
 
     pub async fn jobs(&self, state: Option<&str>, limit: i64) -> Result<Vec<JobRow>, sqlx::Error> {
-        let rows = sqlx::query("SELECT * FROM jobs WHERE (?1 IS NULL OR state = ?1) ORDER BY created_at DESC LIMIT ?2")
-            .bind(state)
-            .bind(limit)
-            .fetch_all(&self.pool)
-            .await?;
-        Ok(rows.iter().map(job_from).collect())
-    }
-
-    /// Claims the oldest queued job atomically (one statement), counting the attempt.
-    pub async fn claim(&self) -> Result<Option<JobRow>, sqlx::Error> {
-        let row = sqlx::query(
-            "UPDATE jobs SET state = 'running', attempts = attempts + 1, started_at = ?1, message = 'started'
-             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY created_at, id LIMIT 1) AND state = 'queued'
-             RETURNING *",
+        const SQL: &str = "SELECT * FROM jobs WHERE ($1 IS NULL OR state = $1) ORDER BY created_at DESC LIMIT $2";
+        Ok(
+            on_pool!(self, p => sqlx::query(SQL).bind(state).bind(limit).fetch_all(p).await?.iter().map(job_from).collect()),
         )
-        .bind(now())
-        .fetch_optional(&self.pool)
-        .await?;
-        Ok(row.as_ref().map(job_from))
     }
 
-    pub async fn progress(&self, id: &str, progress: f64, message: &str) -> Result<(), sqlx::Error> {
-        sqlx::query("UPDATE jobs SET progress = ?, message = ? WHERE id = ? AND state = 'running'")
-            .bind(progress)
-            .bind(message)
-            .bind(id)
-            .execute(&self.pool)
-            .await?;
+    /// Claims the oldest queued job atomically (one statement), counting the attempt,
+    /// with a fresh lease token and a lease of `lease` on the database clock. With
+    /// PostgreSQL the row is picked `FOR UPDATE SKIP LOCKED`, so concurrent claimers
+    /// take different jobs instead of queueing on the same row; SQLite serialises writers.
+    pub async fn claim(&self, worker: &str, lease: Duration) -> Result<Option<JobRow>, sqlx::Error> {
+        const SQLITE: &str = "UPDATE jobs SET state = 'running', attempts = attempts + 1, started_at = $1, message = 'started',
+                 lease_token = $2, lease_expires_ms = NOW_MS + $3, worker = $4
+             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY created_at, id LIMIT 1) AND state = 'queued'
+             RETURNING *";
+        const POSTGRES: &str = "UPDATE jobs SET state = 'running', attempts = attempts + 1, started_at = $1, message = 'started',
+                 lease_token = $2, lease_expires_ms = NOW_MS + $3, worker = $4
+             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY created_at, id LIMIT 1 FOR UPDATE SKIP LOCKED)
+               AND state = 'queued'
+             RETURNING *";
+        let sql = self.clocked(if self.is_postgres() { POSTGRES } else { SQLITE });
+        let (ts, token, ms) = (now(), new_token(), lease.as_millis() as i64);
+        Ok(on_pool!(self, p => sqlx::query(sql)
+            .bind(&ts)
+            .bind(&token)
+            .bind(ms)
+            .bind(worker)
+            .fetch_optional(p)
+            .await?
+            .as_ref()
+            .map(job_from)))
+    }
+
+    /// Renews the lease of the claim `token` for `lease` more. `false`: the lease is lost
+    /// (expired and taken back, or the job ended); the worker must stop and write nothing.
+    pub async fn heartbeat(&self, id: &str, token: &str, lease: Duration) -> Result<bool, sqlx::Error> {
+        const SQL: &str = "UPDATE jobs SET lease_expires_ms = NOW_MS + $3
+             WHERE id = $1 AND state = 'running' AND lease_token = $2";
+        let sql = self.clocked(SQL);
+        let ms = lease.as_millis() as i64;
+        let n = on_pool!(self, p => sqlx::query(sql).bind(id).bind(token).bind(ms).execute(p).await?.rows_affected());
+        Ok(n == 1)
+    }
+
+    /// Jobs whose worker stopped renewing its lease go back to the queue (their token
+    /// cleared, so that worker's later writes are refused), or fail after their last
+    /// attempt. Any worker calls this before it claims. Returns (requeued, failed).
+    pub async fn reap_expired(&self) -> Result<(u64, u64), sqlx::Error> {
+        const FAIL: &str = "UPDATE jobs SET state = 'failed', finished_at = $1, lease_token = NULL,
+                 error = 'its worker stopped renewing the lease on its last attempt'
+             WHERE state = 'running' AND lease_expires_ms < NOW_MS AND attempts >= max_attempts";
+        const REQUEUE: &str = "UPDATE jobs SET state = 'queued', lease_token = NULL,
+                 message = 're-queued: its worker stopped renewing the lease'
+             WHERE state = 'running' AND lease_expires_ms < NOW_MS";
+        let (fail, requeue, ts) = (self.clocked(FAIL), self.clocked(REQUEUE), now());
+        let failed = on_pool!(self, p => sqlx::query(fail).bind(&ts).execute(p).await?.rows_affected());
+        let requeued = on_pool!(self, p => sqlx::query(requeue).execute(p).await?.rows_affected());
+        Ok((requeued, failed))
+    }
+
+    /// Progress of the claim `token` (fenced: a stale worker's progress is dropped).
+    pub async fn progress(&self, id: &str, token: &str, progress: f64, message: &str) -> Result<(), sqlx::Error> {
+        const SQL: &str =
+            "UPDATE jobs SET progress = $1, message = $2 WHERE id = $3 AND state = 'running' AND lease_token = $4";
+        on_pool!(self, p => sqlx::query(SQL).bind(progress).bind(message).bind(id).bind(token).execute(p).await?.rows_affected());
         Ok(())
     }
 
-    /// Final state of a running job, fenced by its attempt: only the worker that claimed
-    /// `attempt` may end it (after a restart re-queued and re-claimed the job, a late
+    /// Final state of a running job, fenced by its lease token: only the worker holding
+    /// the claim `token` may end it (once the job was re-queued or re-claimed, a late
     /// worker's result is dropped). Returns whether the job was this worker's to end.
     pub async fn finish(
         &self,
         id: &str,
-        attempt: i64,
+        token: &str,
         state: &str,
         error: Option<&str>,
         result: Option<&serde_json::Value>,
     ) -> Result<bool, sqlx::Error> {
-        let done = sqlx::query("UPDATE jobs SET state = ?, error = ?, result = ?, finished_at = ?, progress = CASE WHEN ? = 'succeeded' THEN 1 ELSE progress END WHERE id = ? AND state = 'running' AND attempts = ?")
+        const SQL: &str = "UPDATE jobs SET state = $1, error = $2, result = $3, finished_at = $4, lease_token = NULL,
+                 progress = CASE WHEN $1 = 'succeeded' THEN 1 ELSE progress END
+             WHERE id = $5 AND state = 'running' AND lease_token = $6";
+        let (result, ts) = (result.map(|r| r.to_string()), now());
+        let n = on_pool!(self, p => sqlx::query(SQL)
             .bind(state)
             .bind(error)
-            .bind(result.map(|r| r.to_string()))
-            .bind(now())
-            .bind(state)
+            .bind(&result)
+            .bind(&ts)
             .bind(id)
-            .bind(attempt)
-            .execute(&self.pool)
-            .await?;
-        Ok(done.rows_affected() == 1)
+            .bind(token)
+            .execute(p)
+            .await?
+            .rows_affected());
+        Ok(n == 1)
     }
 
     /// Requests cancellation: a queued job ends at once; a running one at its next check.
     /// Returns the job after the change, or `None` if it does not exist.
     pub async fn cancel(&self, id: &str) -> Result<Option<JobRow>, sqlx::Error> {
-        sqlx::query("UPDATE jobs SET state = 'cancelled', finished_at = ?, message = 'cancelled before it started' WHERE id = ? AND state = 'queued'")
-            .bind(now())
-            .bind(id)
-            .execute(&self.pool)
-            .await?;
-        sqlx::query("UPDATE jobs SET cancel_requested = 1 WHERE id = ? AND state = 'running'")
-            .bind(id)
-            .execute(&self.pool)
-            .await?;
+        const QUEUED: &str =
+            "UPDATE jobs SET state = 'cancelled', finished_at = $1, message = 'cancelled before it started'
+             WHERE id = $2 AND state = 'queued'";
+        const RUNNING: &str = "UPDATE jobs SET cancel_requested = 1 WHERE id = $1 AND state = 'running'";
+        let ts = now();
+        on_pool!(self, p => sqlx::query(QUEUED).bind(&ts).bind(id).execute(p).await?.rows_affected());
+        on_pool!(self, p => sqlx::query(RUNNING).bind(id).execute(p).await?.rows_affected());
         self.job(id).await
     }
 
     pub async fn cancel_requested(&self, id: &str) -> bool {
-        sqlx::query("SELECT cancel_requested FROM jobs WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await
-            .ok()
-            .flatten()
-            .is_some_and(|r| r.get::<i64, _>("cancel_requested") != 0)
+        const SQL: &str = "SELECT cancel_requested FROM jobs WHERE id = $1";
+        let v: Option<i64> =
+            on_pool!(self, p => sqlx::query_scalar(SQL).bind(id).fetch_optional(p).await.ok().flatten());
+        v.is_some_and(|v| v != 0)
     }
 
-    /// After a crash: jobs left `running` go back to the queue, or fail after their last
-    /// attempt. Returns (requeued, failed).
+    /// After a crash of the only process on an embedded (SQLite) store: jobs left
+    /// `running` go back to the queue, or fail after their last attempt, at once rather
+    /// than after their lease. Never with a shared database, where other workers' jobs
+    /// are `running` too (there `reap_expired` does it). Returns (requeued, failed).
     pub async fn recover(&self) -> Result<(u64, u64), sqlx::Error> {
-        let failed = sqlx::query(
-            "UPDATE jobs SET state = 'failed', finished_at = ?, error = 'interrupted by a restart on its last attempt' WHERE state = 'running' AND attempts >= max_attempts",
-        )
-        .bind(now())
-        .execute(&self.pool)
-        .await?
-        .rows_affected();
-        let requeued = sqlx::query(
-            "UPDATE jobs SET state = 'queued', message = 're-queued after a restart' WHERE state = 'running'",
-        )
-        .execute(&self.pool)
-        .await?
-        .rows_affected();
+        const FAIL: &str = "UPDATE jobs SET state = 'failed', finished_at = $1, lease_token = NULL,
+                 error = 'interrupted by a restart on its last attempt'
+             WHERE state = 'running' AND attempts >= max_attempts";
+        const REQUEUE: &str =
+            "UPDATE jobs SET state = 'queued', lease_token = NULL, message = 're-queued after a restart'
+             WHERE state = 'running'";
+        let ts = now();
+        let failed = on_pool!(self, p => sqlx::query(FAIL).bind(&ts).execute(p).await?.rows_affected());
+        let requeued = on_pool!(self, p => sqlx::query(REQUEUE).execute(p).await?.rows_affected());
         Ok((requeued, failed))
     }
 
     /// Puts a running job back in the queue (graceful shutdown), not counting the attempt;
-    /// fenced by the attempt like `finish`.
-    pub async fn requeue(&self, id: &str, attempt: i64) -> Result<bool, sqlx::Error> {
-        let done = sqlx::query("UPDATE jobs SET state = 'queued', attempts = attempts - 1, message = 're-queued at shutdown' WHERE id = ? AND state = 'running' AND attempts = ?")
-            .bind(id)
-            .bind(attempt)
-            .execute(&self.pool)
-            .await?;
-        Ok(done.rows_affected() == 1)
+    /// fenced by the lease token like `finish`.
+    pub async fn requeue(&self, id: &str, token: &str) -> Result<bool, sqlx::Error> {
+        const SQL: &str = "UPDATE jobs SET state = 'queued', attempts = attempts - 1, lease_token = NULL,
+                 message = 're-queued at shutdown'
+             WHERE id = $1 AND state = 'running' AND lease_token = $2";
+        let n = on_pool!(self, p => sqlx::query(SQL).bind(id).bind(token).execute(p).await?.rows_affected());
+        Ok(n == 1)
+    }
+
+    /// Jobs per (kind, state), for /metrics.
+    pub async fn queue_counts(&self) -> Result<Vec<QueueCount>, sqlx::Error> {
+        const SQL: &str = "SELECT kind, state, COUNT(*) AS n FROM jobs GROUP BY kind, state ORDER BY kind, state";
+        Ok(on_pool!(self, p => sqlx::query(SQL)
+            .fetch_all(p)
+            .await?
+            .iter()
+            .map(|r| QueueCount { kind: r.text("kind"), state: r.text("state"), count: r.int("n") })
+            .collect()))
+    }
+
+    /// The lease expiry of a job in ms on the database clock (tests, operators).
+    pub async fn lease_expires_ms(&self, id: &str) -> Result<Option<i64>, sqlx::Error> {
+        const SQL: &str = "SELECT lease_expires_ms FROM jobs WHERE id = $1";
+        Ok(
+            on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.and_then(|r| r.opt_int("lease_expires_ms"))),
+        )
     }
 }
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn timestamps_are_rfc3339() {
         let t = super::now();
         assert_eq!(t.len(), 24, "{t}");
         assert!(t.starts_with("20") && t.ends_with('Z') && &t[10..11] == "T");
+    }
+
+    #[test]
+    fn database_urls_are_parsed_or_refused_naming_the_flag() {
+        assert_eq!(Database::parse("sqlite://data/otofit.db").unwrap(), Database::Sqlite("data/otofit.db".into()));
+        assert_eq!(Database::parse("sqlite:/tmp/x.db").unwrap(), Database::Sqlite("/tmp/x.db".into()));
+        let pg = "postgres://otofit:secret@db:5432/otofit";
+        assert_eq!(Database::parse(pg).unwrap(), Database::Postgres(pg.into()));
+        assert_eq!(Database::parse(pg).unwrap().redacted(), "postgres://otofit:***@db:5432/otofit");
+        for bad in ["mysql://db/x", "data/otofit.db", "sqlite://", "sqlite::memory:"] {
+            let e = Database::parse(bad).unwrap_err().to_string();
+            assert!(e.starts_with("--database: "), "{bad}: {e}");
+        }
     }
 }

@@ -14,6 +14,7 @@ pub mod serve;
 pub mod simulate;
 pub mod study;
 pub mod train;
+pub mod worker;
 
 #[derive(Parser, Debug)]
 #[command(name = "otofit", version, about = "Middle-ear FE models tuned by neural posterior estimation")]
@@ -32,6 +33,8 @@ pub enum Command {
     Study(study::StudyArgs),
     /// Run the HTTP service (API + job queue).
     Serve(serve::ServeArgs),
+    /// Run jobs from a shared job table (PostgreSQL), without HTTP.
+    Worker(worker::WorkerArgs),
     /// Train a posterior estimator on a dataset folder.
     Train(train::TrainArgs),
     /// Posterior samples, MAP and summaries for observations.
@@ -50,6 +53,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => bench::run(args),
         Command::Train(args) => train::run(args),
         Command::Serve(args) => serve::run(args),
+        Command::Worker(args) => worker::run(args),
         Command::Study(args) => study::run(args),
         Command::Diagnose(args) => diagnose::run(args),
         Command::Infer(args) => infer::run(args),

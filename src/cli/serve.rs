@@ -2,7 +2,7 @@
 
 use crate::http::{self, AppState};
 use crate::jobs::{self, Ctx};
-use crate::store::Store;
+use crate::store::{Database, Store};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::net::SocketAddr;
@@ -18,6 +18,19 @@ pub struct ServeArgs {
     /// Database, datasets and trained models live here.
     #[arg(long, default_value = "data")]
     pub data_dir: PathBuf,
+    /// The job and model tables: `sqlite://PATH` (default: DATA_DIR/otofit.db, embedded,
+    /// one process per data directory) or `postgres://USER:PASSWORD@HOST:PORT/DB`, shared
+    /// by any number of `serve` and `otofit worker` processes (which then share DATA_DIR
+    /// too, e.g. on a network volume).
+    #[arg(long, env = "OTOFIT_DATABASE")]
+    pub database: Option<String>,
+    /// Job dispatchers this process runs (0: HTTP only, jobs run by `otofit worker`s).
+    #[arg(long, default_value_t = 1)]
+    pub workers: usize,
+    /// Seconds a claimed job's lease lasts; renewed every third of it. A worker that
+    /// stops renewing loses the job to another after this long.
+    #[arg(long, default_value_t = 30.0)]
+    pub lease_seconds: f64,
     /// Checkpoint registered as the default model on first start.
     #[arg(long, default_value = "models/default.otofit")]
     pub default_model: PathBuf,
@@ -135,31 +148,97 @@ pub async fn open_with(
     max_queue: i64,
     infer: http::InferLimits,
 ) -> Result<Arc<Ctx>> {
+    let db = Database::Sqlite(data_dir.join("otofit.db"));
+    open_db(&db, data_dir, default_model, max_queue, infer, jobs::DEFAULT_LEASE).await
+}
+
+/// Most dispatchers one process runs.
+pub const MAX_WORKERS: usize = 64;
+
+/// `--database` as given, else SQLite in the data directory.
+pub fn database_arg(url: Option<&str>, data_dir: &Path) -> Result<Database> {
+    match url {
+        Some(u) => Ok(Database::parse(u)?),
+        None => Ok(Database::Sqlite(data_dir.join("otofit.db"))),
+    }
+}
+
+/// `--lease-seconds`: 1 s ..= 1 h (a renewal every third of it).
+pub fn lease_arg(seconds: f64) -> Result<std::time::Duration> {
+    if !(1.0..=3600.0).contains(&seconds) {
+        bail!("--lease-seconds must be 1..=3600, got {seconds}");
+    }
+    Ok(std::time::Duration::from_secs_f64(seconds))
+}
+
+/// Opens the state of a `serve` or `worker` process. With SQLite the process takes the
+/// data directory for itself (its lock), puts jobs left running by a crash straight back
+/// in the queue and removes their temporary files. With PostgreSQL the data directory is
+/// shared with other processes: no lock, and jobs of workers that died come back when
+/// their lease expires (`Store::reap_expired`).
+pub async fn open_state(db: &Database, data_dir: &Path, lease: std::time::Duration) -> Result<Ctx> {
     std::fs::create_dir_all(data_dir).with_context(|| format!("cannot create {}", data_dir.display()))?;
-    let lock = lock_data_dir(data_dir)?;
-    let store = Store::open(&data_dir.join("otofit.db")).await.context("opening the database")?;
-    let (requeued, failed) = store.recover().await?;
-    if requeued + failed > 0 {
-        tracing::warn!(requeued, failed, "recovered jobs left running by a previous process");
+    let lock = match db {
+        Database::Sqlite(_) => Some(lock_data_dir(data_dir)?),
+        Database::Postgres(_) => None,
+    };
+    let store = Store::connect(db).await.with_context(|| format!("opening the database {}", db.redacted()))?;
+    if lock.is_some() {
+        let (requeued, failed) = store.recover().await?;
+        if requeued + failed > 0 {
+            tracing::warn!(requeued, failed, "recovered jobs left running by a previous process");
+        }
+        // No job runs yet (the lock is ours): temporary files are leftovers of runs that
+        // failed or were killed; a re-queued run writes its own again from the start.
+        let stale: usize = std::fs::read_dir(data_dir.join("datasets"))
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|d| jobs::remove_temporary_files(&d.path()))
+            .sum();
+        if stale > 0 {
+            tracing::info!(files = stale, "removed temporary files of interrupted simulate jobs");
+        }
     }
-    // No job runs yet (the lock is ours): temporary files are leftovers of runs that
-    // failed or were killed; a re-queued run writes its own again from the start.
-    let stale: usize = std::fs::read_dir(data_dir.join("datasets"))
-        .into_iter()
-        .flatten()
-        .flatten()
-        .map(|d| jobs::remove_temporary_files(&d.path()))
-        .sum();
-    if stale > 0 {
-        tracing::info!(files = stale, "removed temporary files of interrupted simulate jobs");
-    }
+    let ctx = Ctx::new(store, data_dir.to_path_buf(), 0).with_lease(lease);
+    Ok(match lock {
+        Some(l) => ctx.with_lock(l),
+        None => ctx,
+    })
+}
+
+/// `open_state` for `serve`: registers the default model; /infer gets `infer`.
+pub async fn open_db(
+    db: &Database,
+    data_dir: &Path,
+    default_model: &Path,
+    max_queue: i64,
+    infer: http::InferLimits,
+    lease: std::time::Duration,
+) -> Result<Arc<Ctx>> {
+    let mut ctx = open_state(db, data_dir, lease).await?;
+    ctx.max_queue = max_queue;
+    let store = &ctx.store;
     if default_model.exists() {
         let path = std::fs::canonicalize(default_model)?;
         store.add_model("default", &path.display().to_string(), true, None).await?;
     } else {
         tracing::warn!(path = %default_model.display(), "default model not found; /infer answers 503 until one is registered");
     }
-    Ok(Arc::new(Ctx::new(store, data_dir.to_path_buf(), max_queue).with_lock(lock).with_infer_limits(infer)))
+    Ok(Arc::new(ctx.with_infer_limits(infer)))
+}
+
+/// Stops `dispatchers`: no new claims; running jobs are interrupted at their next check
+/// and go back to the queue. Whether they all ended within the 60 s grace.
+pub async fn stop_dispatchers(ctx: &Ctx, dispatchers: Vec<tokio::task::JoinHandle<()>>) -> bool {
+    ctx.shutdown.store(true, Ordering::Relaxed);
+    ctx.notify.notify_waiters();
+    let all = async {
+        for d in dispatchers {
+            let _ = d.await;
+        }
+    };
+    tokio::time::timeout(std::time::Duration::from_secs(60), all).await.is_ok()
 }
 
 pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
@@ -174,15 +253,16 @@ pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
         .collect()
 }
 
-pub fn run(args: ServeArgs) -> Result<()> {
+/// Logs to stderr (`RUST_LOG` filters; JSON lines with `json`).
+pub fn init_logs(json: bool) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| "info,tower_http=info,sqlx=warn".into());
     let sub = tracing_subscriber::fmt().with_env_filter(filter);
-    if args.log_json {
-        sub.json().init()
-    } else {
-        sub.init()
-    }
+    if json { sub.json().init() } else { sub.init() }
+}
+
+pub fn run(args: ServeArgs) -> Result<()> {
+    init_logs(args.log_json);
     let keys = parse_key_hashes(&args.api_key_hashes)?;
     let mut allowed_hosts = Vec::new();
     for h in args.allowed_hosts.iter().map(|h| h.trim()).filter(|h| !h.is_empty()) {
@@ -193,6 +273,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
         allowed_hosts.push(h.to_string());
     }
     let limits = args.infer_limits()?;
+    let database = database_arg(args.database.as_deref(), &args.data_dir)?;
+    let lease = lease_arg(args.lease_seconds)?;
+    if args.workers > MAX_WORKERS {
+        bail!("--workers must be 0..={MAX_WORKERS}, got {}", args.workers);
+    }
     let idle = std::time::Duration::from_secs_f64(args.idle_timeout);
     if !args.addr.ip().is_loopback() && keys.is_empty() {
         tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
@@ -200,14 +285,14 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
         let default_model = resolve_default_model(&args.default_model);
-        let ctx = open_with(&args.data_dir, &default_model, args.max_queue, limits).await?;
-        let dispatcher = tokio::spawn(jobs::dispatcher(ctx.clone()));
+        let ctx = open_db(&database, &args.data_dir, &default_model, args.max_queue, limits, lease).await?;
+        let dispatchers: Vec<_> = (0..args.workers).map(|_| tokio::spawn(jobs::dispatcher(ctx.clone()))).collect();
         let app = http::router(AppState::new(ctx.clone(), keys).with_allowed_hosts(allowed_hosts));
         let inner = tokio::net::TcpListener::bind(args.addr)
             .await
             .with_context(|| format!("cannot listen on {}", args.addr))?;
         let listener = http::conn::IdleTimeoutListener { inner, idle };
-        tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), ?limits, "otofit serving");
+        tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), database = %database.redacted(), workers = args.workers, ?limits, "otofit serving");
         let c2 = ctx.clone();
         let stopping = Arc::new(tokio::sync::Notify::new());
         let s2 = stopping.clone();
@@ -225,9 +310,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
                 tracing::warn!("connections still open {} s after the signal: closing them", idle.as_secs_f64());
             }
         }
-        ctx.shutdown.store(true, Ordering::Relaxed);
-        ctx.notify.notify_one();
-        if tokio::time::timeout(std::time::Duration::from_secs(60), dispatcher).await.is_err() {
+        if !stop_dispatchers(&ctx, dispatchers).await {
             bail!("the running job did not stop within 60 s; it will be re-queued at the next start");
         }
         Ok(())
@@ -238,7 +321,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     res
 }
 
-async fn shutdown_signal() {
+pub async fn shutdown_signal() {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;
     };

@@ -315,11 +315,12 @@ async fn cancel_recover_and_queue_limits() {
     );
     // Crash recovery: a job left running is re-queued, or failed after its last attempt.
     let store = &ctx2.store;
-    let first = store.claim().await.unwrap().unwrap();
-    let second = store.claim().await.unwrap().unwrap();
+    let lease = jobs::DEFAULT_LEASE;
+    let first = store.claim("test", lease).await.unwrap().unwrap();
+    let second = store.claim("test", lease).await.unwrap().unwrap();
     sqlx::query("UPDATE jobs SET attempts = max_attempts WHERE id = ?")
         .bind(&second.id)
-        .execute(&store.pool)
+        .execute(store.sqlite().unwrap())
         .await
         .unwrap();
     assert_eq!(store.recover().await.unwrap(), (1, 1));
@@ -620,7 +621,7 @@ async fn concurrent_job_posts_never_exceed_the_queue_limit() {
             }
         }
         let active: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')")
-            .fetch_one(&ctx.store.pool)
+            .fetch_one(ctx.store.sqlite().unwrap())
             .await
             .unwrap();
         assert_eq!((round, accepted, active), (round, usize::from(round == 0), 8), "limit 8 with 7 active");
@@ -1038,8 +1039,12 @@ async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
     let _ = std::fs::remove_dir_all(&data);
     std::fs::create_dir_all(data.join("datasets").join("killed")).unwrap();
     std::fs::write(data.join("datasets").join("killed").join("x.csv.tmp"), "1,2\n").unwrap();
+    let staging = data.join("datasets").join("killed").join(".attempt-0123456789abcdef");
+    std::fs::create_dir_all(&staging).unwrap();
+    std::fs::write(staging.join("x.csv.tmp"), "1,2\n").unwrap();
     let _ctx = otofit::cli::serve::open(&data, &default_model(), 8).await.unwrap();
     assert!(!data.join("datasets").join("killed").join("x.csv.tmp").exists());
+    assert!(!staging.exists(), "a killed attempt's staging folder goes too");
 }
 
 /// Issue 13.2: SIGTERM during a diagnose: the process exits within seconds (not after its
@@ -1122,21 +1127,25 @@ async fn every_operation_documents_its_errors_as_problems() {
 }
 
 /// Issue 13.2 (fencing): a worker whose job was re-queued and claimed again (a restart)
-/// can no longer end it; only the current attempt's worker can.
+/// can no longer end it; only the current claim's worker can.
 #[tokio::test]
 async fn only_the_current_attempt_can_end_a_job() {
     let (_, ctx) = app(vec![], 8, false).await;
     let store = &ctx.store;
     assert!(store.insert_job_within("j", "simulate", &json!({"n": 5}), 3, 8).await.unwrap());
-    let first = store.claim().await.unwrap().unwrap();
+    let first = store.claim("a", jobs::DEFAULT_LEASE).await.unwrap().unwrap();
     store.recover().await.unwrap();
-    let second = store.claim().await.unwrap().unwrap();
+    let second = store.claim("b", jobs::DEFAULT_LEASE).await.unwrap().unwrap();
     assert_eq!((first.attempts, second.attempts), (1, 2));
-    assert!(!store.finish("j", first.attempts, "succeeded", None, Some(&json!({"late": true}))).await.unwrap());
-    assert!(!store.requeue("j", first.attempts).await.unwrap());
+    let (t1, t2) = (first.lease_token.unwrap(), second.lease_token.unwrap());
+    assert_ne!(t1, t2);
+    assert!(!store.finish("j", &t1, "succeeded", None, Some(&json!({"late": true}))).await.unwrap());
+    assert!(!store.requeue("j", &t1).await.unwrap());
+    assert!(!store.heartbeat("j", &t1, jobs::DEFAULT_LEASE).await.unwrap());
     let j = store.job("j").await.unwrap().unwrap();
     assert_eq!((j.state.as_str(), j.result), ("running", None), "the late worker changed nothing");
-    assert!(store.finish("j", second.attempts, "succeeded", None, Some(&json!({"rows": 5}))).await.unwrap());
+    assert!(store.heartbeat("j", &t2, jobs::DEFAULT_LEASE).await.unwrap());
+    assert!(store.finish("j", &t2, "succeeded", None, Some(&json!({"rows": 5}))).await.unwrap());
     assert_eq!(store.job("j").await.unwrap().unwrap().state, "succeeded");
 }
 
