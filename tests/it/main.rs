@@ -4,5 +4,6 @@ mod cli;
 mod discrepancy;
 mod http;
 mod npe;
+mod pg;
 mod physics;
 mod sim;

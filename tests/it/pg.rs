@@ -1,0 +1,419 @@
+//! The job queue on both backends, against a real PostgreSQL: a throwaway cluster
+//! (initdb into a temporary directory, a free loopback port, trust auth) started once
+//! per test binary from the distribution's binaries (`initdb`, `postgres` on PATH or in
+//! /usr/lib/postgresql/*/bin), one fresh database per test. PostgreSQL refuses to run as
+//! root, so as root it runs as the `postgres` user. Without the binaries the PostgreSQL
+//! tests skip with a loud message, except under CI (`CI` set) or with
+//! `OTOFIT_REQUIRE_POSTGRES=1`, where they fail.
+
+use otofit::jobs::{self, Ctx};
+use otofit::store::{Database, Store};
+use serde_json::json;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+struct Cluster {
+    port: u16,
+}
+
+fn pg_bin(name: &str) -> Option<PathBuf> {
+    let on_path = std::env::var_os("PATH")
+        .map(|p| std::env::split_paths(&p).map(|d| d.join(name)).find(|f| f.is_file()))
+        .unwrap_or_default();
+    on_path.or_else(|| {
+        let mut found: Vec<PathBuf> = std::fs::read_dir("/usr/lib/postgresql")
+            .into_iter()
+            .flatten()
+            .flatten()
+            .map(|d| d.path().join("bin").join(name))
+            .filter(|f| f.is_file())
+            .collect();
+        found.sort();
+        found.pop()
+    })
+}
+
+/// uid/gid to run PostgreSQL as: `postgres` when we are root, else ourselves.
+fn run_as() -> Option<(u32, u32)> {
+    // SAFETY: geteuid has no preconditions.
+    if unsafe { libc::geteuid() } != 0 {
+        return None;
+    }
+    let passwd = std::fs::read_to_string("/etc/passwd").ok()?;
+    let line = passwd.lines().find(|l| l.starts_with("postgres:"))?;
+    let f: Vec<&str> = line.split(':').collect();
+    Some((f[2].parse().ok()?, f[3].parse().ok()?))
+}
+
+fn command(bin: &Path, ids: Option<(u32, u32)>) -> Command {
+    use std::os::unix::process::CommandExt;
+    let mut c = Command::new(bin);
+    if let Some((uid, gid)) = ids {
+        c.uid(uid).gid(gid);
+    }
+    c
+}
+
+fn start_cluster() -> Result<Cluster, String> {
+    let (initdb, postgres) = match (pg_bin("initdb"), pg_bin("postgres")) {
+        (Some(i), Some(p)) => (i, p),
+        _ => return Err("initdb/postgres not found on PATH or in /usr/lib/postgresql/*/bin".into()),
+    };
+    let ids = run_as();
+    if unsafe { libc::geteuid() } == 0 && ids.is_none() {
+        return Err("running as root and there is no `postgres` user to run PostgreSQL as".into());
+    }
+    let dir = std::env::temp_dir().join(format!("otofit-pg-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;
+    if let Some((uid, gid)) = ids {
+        std::os::unix::fs::chown(&dir, Some(uid), Some(gid)).map_err(|e| e.to_string())?;
+    }
+    let data = dir.join("data");
+    let out = command(&initdb, ids)
+        .args(["-D", data.to_str().unwrap(), "-U", "postgres", "--auth=trust", "--no-sync", "-E", "UTF8"])
+        .output()
+        .map_err(|e| format!("initdb: {e}"))?;
+    if !out.status.success() {
+        return Err(format!("initdb failed: {}", String::from_utf8_lossy(&out.stderr)));
+    }
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    // The server is the child of a thread that lives as long as the test binary, and
+    // asks the kernel for SIGTERM when that thread (so the binary) ends: no server is
+    // left running after the tests, however they end.
+    let (tx, rx) = std::sync::mpsc::channel();
+    let args: Vec<String> = [
+        "-D",
+        data.to_str().unwrap(),
+        "-p",
+        &port.to_string(),
+        "-k",
+        dir.to_str().unwrap(),
+        "-c",
+        "listen_addresses=127.0.0.1",
+        "-c",
+        "fsync=off",
+        "-c",
+        "max_connections=300",
+    ]
+    .iter()
+    .map(|s| s.to_string())
+    .collect();
+    std::thread::spawn(move || {
+        use std::os::unix::process::CommandExt;
+        let mut c = command(&postgres, ids);
+        c.args(&args).stdout(Stdio::null()).stderr(Stdio::null());
+        // SAFETY: prctl is async-signal-safe; it runs after the uid change (which would
+        // clear the setting).
+        unsafe {
+            c.pre_exec(|| {
+                libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM);
+                Ok(())
+            });
+        }
+        let child = c.spawn();
+        let _ = tx.send(child.as_ref().map(|_| ()).map_err(|e| e.to_string()));
+        if let Ok(mut child) = child {
+            let _ = child.wait();
+        }
+        loop {
+            std::thread::park();
+        }
+    });
+    rx.recv().map_err(|e| e.to_string())?.map_err(|e| format!("postgres: {e}"))?;
+    let t0 = Instant::now();
+    while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
+        if t0.elapsed() > Duration::from_secs(30) {
+            return Err(format!("postgres did not listen on 127.0.0.1:{port} within 30 s"));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    Ok(Cluster { port })
+}
+
+fn cluster() -> Option<&'static Cluster> {
+    static CLUSTER: OnceLock<Result<Cluster, String>> = OnceLock::new();
+    match CLUSTER.get_or_init(start_cluster) {
+        Ok(c) => Some(c),
+        Err(e) => {
+            let required = std::env::var_os("CI").is_some() || std::env::var_os("OTOFIT_REQUIRE_POSTGRES").is_some();
+            assert!(!required, "PostgreSQL is required here (CI or OTOFIT_REQUIRE_POSTGRES) but: {e}");
+            eprintln!("\n!!!!! SKIPPING a PostgreSQL test: {e} (install postgresql; .ci/run does) !!!!!\n");
+            None
+        }
+    }
+}
+
+/// A fresh database on the throwaway cluster: its URL.
+async fn fresh_database() -> Option<String> {
+    use sqlx::Connection;
+    let c = cluster()?;
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let name = format!("t{}_{}", std::process::id(), N.fetch_add(1, std::sync::atomic::Ordering::SeqCst));
+    let admin = format!("postgres://postgres@127.0.0.1:{}/postgres", c.port);
+    let mut conn = sqlx::PgConnection::connect(&admin).await.expect("connect to the test cluster");
+    sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {name}"))).execute(&mut conn).await.unwrap();
+    Some(format!("postgres://postgres@127.0.0.1:{}/{name}", c.port))
+}
+
+fn temp_dir(tag: &str) -> PathBuf {
+    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+    let d = std::env::temp_dir().join(format!("otofit-{tag}-{}-{n}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// A store on each backend: SQLite in a temporary file and, when available, PostgreSQL.
+async fn backends() -> Vec<(String, Database)> {
+    let mut v = vec![("sqlite".to_string(), Database::Sqlite(temp_dir("sq").join("otofit.db")))];
+    if let Some(url) = fresh_database().await {
+        v.push(("postgres".into(), Database::Postgres(url)));
+    }
+    v
+}
+
+const LEASE: Duration = Duration::from_secs(30);
+
+/// A claim is exclusive: of many concurrent claimers of one job exactly one gets it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn one_job_is_claimed_by_exactly_one_of_many_claimers() {
+    for (name, db) in backends().await {
+        let stores: Vec<Store> = {
+            let mut v = vec![];
+            for _ in 0..8 {
+                v.push(Store::connect(&db).await.unwrap());
+            }
+            v
+        };
+        for round in 0..5 {
+            let id = format!("j{round}");
+            assert!(stores[0].insert_job_within(&id, "simulate", &json!({"n": 5}), 3, 100).await.unwrap());
+            let claims: Vec<_> = stores
+                .iter()
+                .enumerate()
+                .map(|(k, s)| {
+                    let s = s.clone();
+                    tokio::spawn(async move { s.claim(&format!("w{k}"), LEASE).await.unwrap() })
+                })
+                .collect();
+            let mut got = vec![];
+            for c in claims {
+                got.extend(c.await.unwrap());
+            }
+            assert_eq!(got.len(), 1, "{name} round {round}: {} claimers got the job", got.len());
+            assert_eq!(got[0].attempts, 1, "{name}");
+        }
+    }
+}
+
+/// A worker that stops renewing its lease (killed, stalled) loses the job: after the
+/// lease another worker takes it back, and the first one's writes are all refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_expired_lease_is_taken_back_and_the_stale_worker_is_fenced_out() {
+    for (name, db) in backends().await {
+        let (a, b) = (Store::connect(&db).await.unwrap(), Store::connect(&db).await.unwrap());
+        assert!(a.insert_job_within("j", "simulate", &json!({"n": 5}), 3, 8).await.unwrap());
+        let short = Duration::from_millis(1000);
+        let first = a.claim("a", short).await.unwrap().unwrap();
+        let t1 = first.lease_token.clone().unwrap();
+        // Within its lease the job is A's: nothing to take back, nothing to claim.
+        assert_eq!(b.reap_expired().await.unwrap(), (0, 0), "{name}");
+        assert!(b.claim("b", LEASE).await.unwrap().is_none(), "{name}");
+        // A renews once, then goes silent.
+        assert!(a.heartbeat("j", &t1, short).await.unwrap(), "{name}");
+        tokio::time::sleep(Duration::from_millis(1300)).await;
+        assert_eq!(b.reap_expired().await.unwrap(), (1, 0), "{name}: the expired job goes back to the queue");
+        let second = b.claim("b", LEASE).await.unwrap().expect("B re-claims the job");
+        let t2 = second.lease_token.clone().unwrap();
+        assert_eq!((second.attempts, second.worker.as_deref()), (2, Some("b")), "{name}");
+        // A wakes up: its renewal, progress, result and re-queue are all refused.
+        assert!(!a.heartbeat("j", &t1, short).await.unwrap(), "{name}");
+        a.progress("j", &t1, 0.9, "stale").await.unwrap();
+        assert!(!a.finish("j", &t1, "succeeded", None, Some(&json!({"stale": true}))).await.unwrap(), "{name}");
+        assert!(!a.requeue("j", &t1).await.unwrap(), "{name}");
+        let j = b.job("j").await.unwrap().unwrap();
+        assert_eq!((j.state.as_str(), j.progress, j.result), ("running", 0.0, None), "{name}");
+        assert!(b.finish("j", &t2, "succeeded", None, Some(&json!({"rows": 5}))).await.unwrap(), "{name}");
+        assert_eq!(b.job("j").await.unwrap().unwrap().state, "succeeded", "{name}");
+        // On its last attempt an expired job fails instead of coming back forever.
+        assert!(a.insert_job_within("k", "simulate", &json!({"n": 5}), 1, 8).await.unwrap());
+        a.claim("a", short).await.unwrap().unwrap();
+        tokio::time::sleep(Duration::from_millis(1300)).await;
+        assert_eq!(b.reap_expired().await.unwrap(), (0, 1), "{name}");
+        let k = b.job("k").await.unwrap().unwrap();
+        assert_eq!(k.state, "failed", "{name}");
+        assert!(k.error.unwrap().contains("lease"), "{name}");
+    }
+}
+
+/// Issue 13.6 for any number of servers: concurrent posts never exceed the queue limit
+/// (on PostgreSQL the count and the insert run under an advisory lock).
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn concurrent_inserts_from_many_servers_never_exceed_the_queue_limit() {
+    for (name, db) in backends().await {
+        let mut stores = vec![];
+        for _ in 0..4 {
+            stores.push(Store::connect(&db).await.unwrap());
+        }
+        for k in 0..7 {
+            assert!(stores[0].insert_job_within(&format!("pre{k}"), "simulate", &json!({"n": 1}), 3, 8).await.unwrap());
+        }
+        let posts: Vec<_> = (0..40)
+            .map(|k| {
+                let s = stores[k % stores.len()].clone();
+                tokio::spawn(
+                    async move { s.insert_job_within(&format!("p{k}"), "simulate", &json!({"n": 1}), 3, 8).await },
+                )
+            })
+            .collect();
+        let mut accepted = 0;
+        for p in posts {
+            accepted += usize::from(p.await.unwrap().unwrap());
+        }
+        let active: i64 = stores[0].queue_counts().await.unwrap().iter().map(|c| c.count).sum();
+        assert_eq!((accepted, active), (1, 8), "{name}: limit 8 with 7 active");
+    }
+}
+
+fn ctx_on(store: Store, data: &Path, worker: &str, lease: Duration) -> Arc<Ctx> {
+    let mut ctx = Ctx::new(store, data.to_path_buf(), 64).with_lease(lease);
+    ctx.worker = worker.to_string();
+    Arc::new(ctx)
+}
+
+async fn wait_state(store: &Store, id: &str, states: &[&str], secs: u64) -> otofit::store::JobRow {
+    let t0 = Instant::now();
+    loop {
+        let j = store.job(id).await.unwrap().unwrap();
+        if states.contains(&j.state.as_str()) || t0.elapsed() > Duration::from_secs(secs) {
+            return j;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+/// Several dispatchers (one per simulated worker process) on one PostgreSQL job table:
+/// every job runs exactly once (one attempt each), and the work is spread.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn three_workers_share_the_jobs_and_run_each_exactly_once() {
+    let Some(url) = fresh_database().await else { return };
+    let db = Database::Postgres(url);
+    let data = temp_dir("pgw");
+    let server = Store::connect(&db).await.unwrap();
+    let ids: Vec<String> = (0..12).map(|k| format!("sim{k:02}")).collect();
+    for id in &ids {
+        assert!(server.insert_job_within(id, "simulate", &json!({"n": 200, "seed": 1}), 3, 64).await.unwrap());
+    }
+    let mut ctxs = vec![];
+    for w in 0..3 {
+        let ctx = ctx_on(Store::connect(&db).await.unwrap(), &data, &format!("w{w}"), LEASE);
+        tokio::spawn(jobs::dispatcher(ctx.clone()));
+        ctxs.push(ctx);
+    }
+    let mut by_worker = std::collections::BTreeMap::new();
+    for id in &ids {
+        let j = wait_state(&server, id, &["succeeded", "failed", "cancelled"], 120).await;
+        assert_eq!((j.state.as_str(), j.attempts), ("succeeded", 1), "{id}: {:?}", j.error);
+        *by_worker.entry(j.worker.unwrap()).or_insert(0) += 1;
+        let x = std::fs::read_to_string(data.join("datasets").join(id).join("x.csv")).unwrap();
+        assert_eq!(x.lines().count(), 201, "{id}");
+    }
+    for c in &ctxs {
+        c.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+    assert!(by_worker.len() >= 2, "the jobs were spread over the workers: {by_worker:?}");
+}
+
+/// A running worker whose lease is taken from it (it stalled past its lease, and another
+/// worker took the job) stops and writes nothing; the job completes once, by the other.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_worker_that_lost_its_lease_stops_and_writes_nothing() {
+    let Some(url) = fresh_database().await else { return };
+    let db = Database::Postgres(url);
+    let data = temp_dir("pgl");
+    let server = Store::connect(&db).await.unwrap();
+    assert!(server.insert_job_within("big", "simulate", &json!({"n": 30000, "seed": 3}), 3, 64).await.unwrap());
+    let a = ctx_on(Store::connect(&db).await.unwrap(), &data, "a", Duration::from_secs(3));
+    tokio::spawn(jobs::dispatcher(a.clone()));
+    let j = wait_state(&server, "big", &["running"], 30).await;
+    assert_eq!(j.worker.as_deref(), Some("a"));
+    // A stall, as seen from the database: A's lease ran out and a reaper took the job
+    // back (what `Store::reap_expired` does, here at once so that A cannot renew first).
+    let pool = match &server.pool {
+        otofit::store::Pool::Postgres(p) => p.clone(),
+        _ => unreachable!(),
+    };
+    sqlx::query("UPDATE jobs SET state = 'queued', lease_token = NULL WHERE id = 'big'").execute(&pool).await.unwrap();
+    let b = ctx_on(Store::connect(&db).await.unwrap(), &data, "b", Duration::from_secs(3));
+    tokio::spawn(jobs::dispatcher(b.clone()));
+    // A notices at its next renewal (a third of its lease), stops within a chunk and
+    // removes its staging folder, while B is still at work.
+    let a_staging = data.join("datasets").join("big").join(format!(".attempt-{}", &j.lease_token.unwrap()[..16]));
+    let t0 = Instant::now();
+    while a_staging.exists() && t0.elapsed() < Duration::from_secs(4) {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(!a_staging.exists(), "A still at work {:?} after losing its lease", t0.elapsed());
+    assert_eq!(server.job("big").await.unwrap().unwrap().state, "running", "B is still at work");
+    let done = wait_state(&server, "big", &["succeeded", "failed", "cancelled"], 120).await;
+    assert_eq!((done.state.as_str(), done.attempts, done.worker.as_deref()), ("succeeded", 2, Some("b")), "{done:?}");
+    let x = std::fs::read_to_string(data.join("datasets").join("big").join("x.csv")).unwrap();
+    assert_eq!(x.lines().count(), 30_001, "one complete dataset, not a mix of two attempts");
+    // A noticed at its next renewal and stopped; its staging folder is gone.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let left: Vec<_> =
+        std::fs::read_dir(data.join("datasets").join("big")).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(left.iter().all(|n| !n.to_string_lossy().starts_with(".attempt-")), "{left:?}");
+    a.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+    b.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+}
+
+fn spawn_worker(url: &str, data: &Path, lease: &str) -> std::process::Child {
+    Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["worker", "--database", url, "--data-dir", data.to_str().unwrap(), "--lease-seconds", lease])
+        .args(["--threads", "1"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+/// `otofit worker` processes: one is killed with SIGKILL mid-job; after its lease
+/// expires another worker re-claims the job and completes it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_worker_process_loses_its_job_to_another_after_the_lease() {
+    let Some(url) = fresh_database().await else { return };
+    let db = Database::Postgres(url.clone());
+    let data = temp_dir("pgk");
+    let server = Store::connect(&db).await.unwrap();
+    assert!(server.insert_job_within("k", "simulate", &json!({"n": 30000, "seed": 4}), 3, 64).await.unwrap());
+    let mut first = spawn_worker(&url, &data, "2");
+    let j = wait_state(&server, "k", &["running"], 60).await;
+    assert_eq!(j.state, "running", "the first worker claimed the job");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    first.kill().unwrap(); // SIGKILL: no chance to re-queue
+    first.wait().unwrap();
+    let t_kill = Instant::now();
+    let mut second = spawn_worker(&url, &data, "2");
+    // The last renewal was at most a third of the lease before the kill.
+    let t0 = Instant::now();
+    while server.job("k").await.unwrap().unwrap().attempts < 2 && t0.elapsed() < Duration::from_secs(60) {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let reclaimed_after = t_kill.elapsed();
+    let done = wait_state(&server, "k", &["succeeded", "failed", "cancelled"], 180).await;
+    let _ = second.kill();
+    let _ = second.wait();
+    assert_eq!((done.state.as_str(), done.attempts), ("succeeded", 2), "{done:?}");
+    assert!(
+        reclaimed_after >= Duration::from_millis(1300),
+        "re-claimed {reclaimed_after:?} after the kill, before the lease expired"
+    );
+    assert_ne!(done.worker, j.worker, "the second worker finished it");
+    let x = std::fs::read_to_string(data.join("datasets").join("k").join("x.csv")).unwrap();
+    assert_eq!(x.lines().count(), 30_001);
+}
