@@ -9,6 +9,7 @@ pub mod cli;
 pub mod dataset;
 pub mod discrepancy;
 pub mod flow;
+pub mod formats;
 pub mod http;
 pub mod jobs;
 pub mod measurements;

@@ -1,9 +1,9 @@
-//! `otofit import wai`: a wideband-acoustic-immittance table in long layout (one row per
-//! frequency, as the WAI database and WBT devices export it) → an observation in the
-//! `POST /infer` format, with its units declared rather than guessed.
+//! `otofit import`: a clinic's or database's export → an observation in the `POST /infer`
+//! format (JSON), with its units declared rather than guessed. `wai` and `csv` read
+//! long-layout tables (one row per frequency, [`crate::formats::long`]).
 
-use crate::measurements::{MagPhase, Measurements, Values};
-use anyhow::{Context, Result, bail};
+use crate::formats::long::{self, LongOptions, Preset};
+use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::{Path, PathBuf};
 
@@ -15,110 +15,112 @@ pub struct ImportArgs {
 
 #[derive(Subcommand, Debug)]
 pub enum ImportWhat {
-    /// Long-layout WAI CSV: columns Frequency (or Freq, Hz), Absorbance, Zmag, Zang (names
-    /// case-insensitive; other columns kept only for --select).
+    /// The WAI database's long layout: Frequency, Absorbance, Zmag (Pa·s/m³ unless its
+    /// header or --zmag-unit says otherwise), Zang (cycles unless declared), one row per
+    /// frequency; other columns (Subject, Ear, ...) serve --select.
     Wai {
-        /// The CSV file.
-        #[arg(long = "in")]
-        input: PathBuf,
-        /// The observation to write (JSON, the POST /infer request format).
+        #[command(flatten)]
+        table: TableArgs,
+        /// Unit of Zmag: "Pa*s/m^3" (SI acoustic ohm; the default), "MOhm" or "cgs".
         #[arg(long)]
-        out: PathBuf,
-        /// Unit of Zmag: "Pa·s/m³" (SI acoustic ohm), "MOhm" or "cgs".
-        #[arg(long, default_value = "Pa*s/m^3")]
-        zmag_unit: String,
-        /// Unit of Zang: cycles (the WAI database), deg or rad.
-        #[arg(long, default_value = "cycles")]
-        zang_unit: String,
-        /// Keep only rows where COLUMN equals VALUE (repeatable), e.g. --select Ear=Left
-        /// for a file with several ears.
-        #[arg(long, value_name = "COLUMN=VALUE")]
-        select: Vec<String>,
+        zmag_unit: Option<String>,
+        /// Unit of Zang: cycles (the default, as the WAI database stores it), deg or rad.
+        #[arg(long)]
+        zang_unit: Option<String>,
+    },
+    /// Any long-layout CSV (comma, semicolon or tab separated; one row per frequency):
+    /// Frequency, and any of Absorbance, Zmag + Zang, VstMag + VstAng; each magnitude
+    /// and phase with its unit in the header (`Zmag [cgs]`, `Zang [deg]`) or from --unit.
+    Csv {
+        #[command(flatten)]
+        table: TableArgs,
     },
 }
 
-pub fn run(args: ImportArgs) -> Result<()> {
-    match args.what {
-        ImportWhat::Wai { input, out, zmag_unit, zang_unit, select } => {
-            let m = wai(&input, &zmag_unit, &zang_unit, &select)?;
-            let doc = serde_json::json!({ "measurements": m });
-            let tmp = out.with_extension("tmp");
-            std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?)
-                .with_context(|| format!("cannot write {}", tmp.display()))?;
-            std::fs::rename(&tmp, &out)?;
-            eprintln!("wrote {} ({} frequencies)", out.display(), m.absorbance.as_ref().map_or(0, |a| a.values.len()));
-            Ok(())
-        }
-    }
+/// The arguments every long-layout import takes.
+#[derive(Args, Debug)]
+pub struct TableArgs {
+    /// The CSV file.
+    #[arg(long = "in")]
+    pub input: PathBuf,
+    /// The observation to write (JSON, the POST /infer request format).
+    #[arg(long)]
+    pub out: PathBuf,
+    #[command(flatten)]
+    pub long: LongArgs,
 }
 
-/// The column of `header` with one of `names` (case-insensitive).
-fn column(header: &[String], names: &[&str], path: &Path) -> Result<usize> {
-    header.iter().position(|h| names.iter().any(|n| h.eq_ignore_ascii_case(n))).with_context(|| {
-        format!("{}: no column {} (columns: {})", path.display(), names.join(" or "), header.join(", "))
-    })
+/// How to read a long-layout table (`import` and `infer --obs`).
+#[derive(Args, Debug, Default)]
+pub struct LongArgs {
+    /// Long-layout tables: the unit of a column whose header gives none, e.g. --unit
+    /// Zang=deg (repeatable).
+    #[arg(long, value_name = "COLUMN=UNIT")]
+    pub unit: Vec<String>,
+    /// Long-layout tables: keep only rows where COLUMN equals VALUE (repeatable), e.g.
+    /// --select Ear=Left for a file with several ears.
+    #[arg(long, value_name = "COLUMN=VALUE")]
+    pub select: Vec<String>,
 }
 
-/// Reads a long-layout WAI table into measurements (impedance and absorbance).
-pub fn wai(path: &Path, zmag_unit: &str, zang_unit: &str, select: &[String]) -> Result<Measurements> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
-    let mut lines = text.lines().filter(|l| !l.trim().is_empty());
-    let cells = |l: &str| l.split(',').map(|c| c.trim().trim_matches('"').to_string()).collect::<Vec<String>>();
-    let header = cells(lines.next().with_context(|| format!("{}: empty file", path.display()))?);
-    if header.len() < 2 {
-        bail!("{}: not a CSV with a header row (found '{}')", path.display(), header.join(""));
+impl LongArgs {
+    pub fn is_empty(&self) -> bool {
+        self.unit.is_empty() && self.select.is_empty()
     }
-    let (fc, ac) = (column(&header, &["Frequency", "Freq", "Hz"], path)?, column(&header, &["Absorbance"], path)?);
-    let (mc, pc) = (column(&header, &["Zmag"], path)?, column(&header, &["Zang"], path)?);
-    let mut filters = Vec::new();
-    for s in select {
-        let Some((c, v)) = s.split_once('=') else { bail!("--select '{s}': expected COLUMN=VALUE") };
-        filters.push((column(&header, &[c.trim()], path).context("--select")?, v.trim().to_string()));
-    }
-    let (mut f, mut a, mut zm, mut za) = (vec![], vec![], vec![], vec![]);
-    for (i, line) in lines.enumerate() {
-        let row = cells(line);
-        if row.len() != header.len() {
-            bail!("{}: line {} has {} cells, the header {}", path.display(), i + 2, row.len(), header.len());
-        }
-        if filters.iter().any(|(c, v)| &row[*c] != v) {
-            continue;
-        }
-        let num = |c: usize| {
-            row[c].parse::<f64>().map_err(|_| {
-                anyhow::anyhow!(
-                    "{}: line {}, column '{}': '{}' is not a number",
-                    path.display(),
-                    i + 2,
-                    header[c],
-                    row[c]
-                )
-            })
+
+    /// Reading options from the arguments, with a preset's units.
+    pub fn options(&self, preset: Option<Preset>) -> Result<LongOptions> {
+        let pairs = |v: &[String], what: &str| -> Result<Vec<(String, String)>> {
+            v.iter().map(|a| long::pair(a, what).map_err(anyhow::Error::msg)).collect()
         };
-        f.push(num(fc)?);
-        a.push(num(ac)?);
-        zm.push(num(mc)?);
-        za.push(num(pc)?);
+        Ok(LongOptions { units: pairs(&self.unit, "--unit")?, select: pairs(&self.select, "--select")?, preset })
     }
-    if f.len() < 2 {
-        bail!("{}: {} rows left after --select; need at least 2 frequencies", path.display(), f.len());
+}
+
+/// Reads a long-layout table file, its errors naming the file.
+pub fn read_table(path: &Path, opts: &LongOptions) -> Result<crate::formats::Imported> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {} (a UTF-8 CSV)", path.display()))?;
+    long::read(&text, opts).with_context(|| format!("{}", path.display()))
+}
+
+pub fn run(args: ImportArgs) -> Result<()> {
+    let (table, opts) = match args.what {
+        ImportWhat::Wai { mut table, zmag_unit, zang_unit } => {
+            table.long.unit.extend(zmag_unit.map(|u| format!("Zmag={u}")));
+            table.long.unit.extend(zang_unit.map(|u| format!("Zang={u}")));
+            let opts = table.long.options(Some(Preset::Wai))?;
+            (table, opts)
+        }
+        ImportWhat::Csv { table } => {
+            let opts = table.long.options(None)?;
+            (table, opts)
+        }
+    };
+    if let Some(dir) = table.out.parent().filter(|d| !d.as_os_str().is_empty())
+        && !dir.is_dir()
+    {
+        anyhow::bail!("--out {}: the folder {} does not exist", table.out.display(), dir.display());
     }
-    let several = f.windows(2).any(|w| w[1] <= w[0]);
-    if several {
-        bail!(
-            "{}: frequencies do not increase: several ears or sessions? pick one with --select COLUMN=VALUE",
-            path.display()
-        );
+    let imp = read_table(&table.input, &opts)?;
+    for n in &imp.notes {
+        eprintln!("note: {n}");
     }
-    Ok(Measurements {
-        stapes_velocity: None,
-        impedance: Some(MagPhase {
-            frequencies_hz: f.clone(),
-            magnitude: zm,
-            phase: za,
-            magnitude_unit: Some(zmag_unit.to_string()),
-            phase_unit: Some(zang_unit.to_string()),
-        }),
-        absorbance: Some(Values { frequencies_hz: f, values: a }),
-    })
+    let m = &imp.measurements;
+    let doc = serde_json::json!({ "measurements": m });
+    let tmp = table.out.with_extension("tmp");
+    std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?)
+        .with_context(|| format!("cannot write {}", tmp.display()))?;
+    std::fs::rename(&tmp, &table.out)?;
+    let count = |n: Option<usize>, name: &str| n.map(|n| format!("{name} at {n} frequencies"));
+    let what: Vec<String> = [
+        count(m.impedance.as_ref().map(|z| z.frequencies_hz.len()), "impedance"),
+        count(m.absorbance.as_ref().map(|a| a.frequencies_hz.len()), "absorbance"),
+        count(m.stapes_velocity.as_ref().map(|v| v.frequencies_hz.len()), "stapes velocity"),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    eprintln!("wrote {} ({})", table.out.display(), what.join(", "));
+    Ok(())
 }

@@ -14,10 +14,18 @@ pub struct InferArgs {
     #[arg(long)]
     pub model: PathBuf,
     /// Observation(s): a CSV feature table (header = feature names such as
-    /// absorbance@1000.0, one row per observation; absent columns = measures not given), or
-    /// one observation in the POST /infer format (.json, e.g. from `otofit import wai`).
+    /// absorbance@1000.0, one row per observation; absent columns = measures not given);
+    /// one observation in the POST /infer format (.json, e.g. from `otofit import wai`); or
+    /// one ear as a long-layout CSV (a Frequency column, one row per frequency: see
+    /// `otofit import csv --help`).
     #[arg(long)]
     pub obs: PathBuf,
+    #[command(flatten)]
+    pub long: super::import::LongArgs,
+    /// Long-layout tables: the units of an export family for columns that declare
+    /// none ("wai": Zmag in Pa·s/m³, Zang in cycles, as the WAI database stores them).
+    #[arg(long)]
+    pub preset: Option<crate::formats::long::Preset>,
     /// Posterior samples per observation (1..=1000000).
     #[arg(long, default_value_t = 1000)]
     pub samples: usize,
@@ -38,7 +46,11 @@ pub fn align(model: &Npe, header: &[String], row: &[f64]) -> Result<(Vec<f64>, V
     let names = &model.header.feature_names;
     for h in header {
         if !names.contains(h) {
-            bail!("column '{h}' is not a feature of this model (features look like '{}')", names[0]);
+            bail!(
+                "column '{h}' is not a feature of this model (features look like '{}'; a long-layout table needs a \
+                 Frequency column)",
+                names[0]
+            );
         }
     }
     let mut x = vec![f64::NAN; names.len()];
@@ -51,10 +63,31 @@ pub fn align(model: &Npe, header: &[String], row: &[f64]) -> Result<(Vec<f64>, V
     Ok((x, present))
 }
 
+/// One ear's measurements as (features, present) on the model's grid, errors naming the
+/// file and, for a table, the column each field came from.
+fn measured(
+    model: &Npe,
+    path: &Path,
+    m: &crate::measurements::Measurements,
+    imported: Option<&crate::formats::Imported>,
+) -> Result<(Vec<f64>, Vec<bool>)> {
+    use crate::measurements::MeasurementError;
+    match crate::measurements::features(model, m) {
+        Ok((x, present, _)) => Ok((x, present)),
+        Err(MeasurementError::Invalid(errs)) => {
+            let named = |f: &str, m: &str| imported.map_or((f.to_string(), m.to_string()), |i| i.column_of(f, m));
+            let lines: Vec<String> = errs.iter().map(|(f, m)| named(f, m)).map(|(f, m)| format!("{f}: {m}")).collect();
+            bail!("{}: {}", path.display(), lines.join("; "))
+        }
+        Err(e) => Err(anyhow::Error::new(e).context(path.display().to_string())),
+    }
+}
+
 /// The observations of `path`: a feature table (CSV, header = feature names, one row per
-/// observation) or one observation in the `POST /infer` format (`.json`: the request, or
-/// just its `measurements`), as (features, present) on the model's grid.
-fn observations(model: &Npe, path: &Path) -> Result<Vec<(Vec<f64>, Vec<bool>)>> {
+/// observation), one observation in the `POST /infer` format (`.json`: the request, or
+/// just its `measurements`) or one ear as a long-layout table, as (features, present) on
+/// the model's grid.
+fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<(Vec<f64>, Vec<bool>)>> {
     if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
         let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
         let mut doc: serde_json::Value =
@@ -62,14 +95,28 @@ fn observations(model: &Npe, path: &Path) -> Result<Vec<(Vec<f64>, Vec<bool>)>> 
         let m = doc.get_mut("measurements").map(serde_json::Value::take).unwrap_or(doc);
         let m: crate::measurements::Measurements = serde_json::from_value(m)
             .with_context(|| format!("{}: not an observation in the POST /infer format", path.display()))?;
-        let (x, present, _) =
-            crate::measurements::features(model, &m).with_context(|| format!("{}", path.display()))?;
-        return Ok(vec![(x, present)]);
+        return Ok(vec![measured(model, path, &m, None)?]);
     }
     let first = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
     if first.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{') {
         bail!(
             "{}: looks like JSON; name it .json (the POST /infer format) or give a CSV feature table",
+            path.display()
+        );
+    }
+    let head = String::from_utf8_lossy(&first);
+    let head = head.lines().find(|l| !l.trim().is_empty() && !l.trim_start().starts_with('#')).unwrap_or("");
+    if crate::formats::long::looks_long(head) {
+        let opts = args.long.options(args.preset)?;
+        let imp = super::import::read_table(path, &opts)?;
+        for n in &imp.notes {
+            eprintln!("note: {n}");
+        }
+        return Ok(vec![measured(model, path, &imp.measurements, Some(&imp))?]);
+    }
+    if !args.long.is_empty() || args.preset.is_some() {
+        bail!(
+            "{}: --unit, --select and --preset apply to long-layout tables (with a Frequency column)",
             path.display()
         );
     }
@@ -113,7 +160,7 @@ pub fn run(args: InferArgs) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("--plot {}: cannot create it", dir.display()))?;
     }
     let model = Npe::load(&args.model)?;
-    let rows = observations(&model, &args.obs)?;
+    let rows = observations(&model, &args.obs, &args)?;
     let many = rows.len() > 1;
     let names: Vec<&str> = model.params().iter().map(|p| p.name.as_str()).collect();
     let mut out = String::new();

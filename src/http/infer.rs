@@ -1,11 +1,13 @@
 //! POST /infer: measurements as devices export them (own frequency grids, magnitude and
 //! phase or absorbance) → interpolated in log-frequency onto the model grid → posterior.
+//! The body is JSON (`InferRequest`) or a long-layout CSV table (`text/csv`, one row per
+//! frequency, [`crate::formats::long`]) with the request's options as query parameters.
 
 use super::{AppState, Problem, json_body};
 use crate::npe::{Npe, Obs};
 use axum::Json;
 use axum::body::Bytes;
-use axum::extract::State;
+use axum::extract::{Query, State};
 use axum::http::{HeaderMap, StatusCode};
 use serde::Deserialize;
 use serde_json::json;
@@ -23,24 +25,97 @@ pub struct InferRequest {
     pub return_samples: Option<bool>,
 }
 
+use crate::formats::Imported;
 pub use crate::measurements::Measurements;
 use crate::measurements::{MeasurementError, bands_used};
 
-/// The feature vector of a request's measurements, errors as problems naming the field.
-fn features(npe: &Npe, m: &Measurements) -> Result<crate::measurements::Features, Problem> {
+/// The feature vector of a request's measurements, errors as problems naming the field
+/// (for a CSV body, the column it came from).
+fn features(npe: &Npe, m: &Measurements, csv: Option<&Imported>) -> Result<crate::measurements::Features, Problem> {
     crate::measurements::features(npe, m).map_err(|e| match e {
         MeasurementError::NotOtofitModel => Problem::new(StatusCode::CONFLICT, e.to_string()),
-        MeasurementError::Invalid(errs) => Problem::invalid(errs),
+        MeasurementError::Invalid(errs) => match csv {
+            Some(imp) => Problem::invalid(errs.iter().map(|(f, m)| imp.column_of(f, m)).collect()),
+            None => Problem::invalid(errs),
+        },
     })
+}
+
+/// The request of a JSON body, or of a long-layout CSV body and its query parameters
+/// (with what reading the table did).
+fn request(
+    headers: &HeaderMap,
+    query: &[(String, String)],
+    body: &[u8],
+) -> Result<(InferRequest, Option<Imported>), Problem> {
+    let ct = headers.get(axum::http::header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
+    let media = ct.split(';').next().unwrap_or("").trim();
+    if media.eq_ignore_ascii_case("text/csv") {
+        return csv_request(query, body);
+    }
+    if let Some((k, _)) = query.first() {
+        return Err(Problem::invalid(vec![(
+            k.clone(),
+            "query parameters apply to text/csv bodies; with JSON, put it in the body".into(),
+        )]));
+    }
+    json_body(headers, body).map(|r| (r, None)).map_err(|mut p| {
+        if p.status == StatusCode::UNSUPPORTED_MEDIA_TYPE.as_u16() {
+            p.detail = "send Content-Type: application/json (InferRequest) or text/csv (a long-layout table)".into();
+        }
+        p
+    })
+}
+
+/// A `text/csv` body: the table's measurements, the rest of the request from the query
+/// (`model`, `samples`, `seed`, `return_samples`, `unit=COLUMN=UNIT`,
+/// `select=COLUMN=VALUE`, `preset`).
+fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest, Option<Imported>), Problem> {
+    use crate::formats::long::{self, LongOptions};
+    let mut req = InferRequest {
+        model: None,
+        measurements: Measurements::default(),
+        samples: None,
+        seed: None,
+        return_samples: None,
+    };
+    let mut opts = LongOptions::default();
+    let bad = |k: &str, m: String| Problem::invalid(vec![(k.to_string(), m)]);
+    for (k, v) in query {
+        match k.as_str() {
+            "model" => req.model = Some(v.clone()),
+            "samples" => req.samples = Some(v.parse().map_err(|_| bad(k, format!("'{v}' is not a count")))?),
+            "seed" => req.seed = Some(v.parse().map_err(|_| bad(k, format!("'{v}' is not a seed (0..2^64)")))?),
+            "return_samples" => {
+                req.return_samples = Some(v.parse().map_err(|_| bad(k, format!("'{v}' is not true or false")))?)
+            }
+            "unit" => opts.units.push(long::pair(v, "unit").map_err(|m| bad(k, m))?),
+            "select" => opts.select.push(long::pair(v, "select").map_err(|m| bad(k, m))?),
+            "preset" => opts.preset = Some(v.parse().map_err(|m| bad(k, m))?),
+            _ => {
+                return Err(bad(
+                    k,
+                    "unknown query parameter (known: model, samples, seed, return_samples, unit, select, preset)"
+                        .into(),
+                ));
+            }
+        }
+    }
+    let text = std::str::from_utf8(body)
+        .map_err(|e| Problem::new(StatusCode::BAD_REQUEST, format!("the CSV body is not UTF-8: {e}")))?;
+    let mut imp = long::read(text, &opts).map_err(|e| bad(&e.field(), e.message()))?;
+    req.measurements = std::mem::take(&mut imp.measurements);
+    Ok((req, Some(imp)))
 }
 
 pub async fn infer(
     State(st): State<AppState>,
+    Query(query): Query<Vec<(String, String)>>,
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Json<serde_json::Value>, Problem> {
     let t0 = std::time::Instant::now();
-    let req: InferRequest = json_body(&headers, &body)?;
+    let (req, csv) = request(&headers, &query, &body)?;
     let n = req.samples.unwrap_or(1000);
     if n == 0 || n > MAX_SAMPLES {
         return Err(Problem::invalid(vec![("samples".into(), format!("must be 1..={MAX_SAMPLES}"))]));
@@ -69,7 +144,7 @@ pub async fn infer(
         .map_err(|e| {
             Problem::new(StatusCode::SERVICE_UNAVAILABLE, format!("model '{}' cannot be loaded: {e:#}", row.id))
         })?;
-    let (x, present, used) = features(&npe, &req.measurements)?;
+    let (x, present, used) = features(&npe, &req.measurements, csv.as_ref())?;
     let band_hz = bands_used(&npe, &present);
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
@@ -119,6 +194,7 @@ pub async fn infer(
             "note": "each measure was interpolated linearly in log-frequency onto the model grid (magnitudes as log10, phases unwrapped)",
             "grid_hz": npe.header.frequencies_hz,
             "band_hz": band_hz,
+            "format": if csv.is_some() { "csv" } else { "json" },
         },
         "samples_count": n,
         "seed": seed,
@@ -126,6 +202,9 @@ pub async fn infer(
     });
     if !next.is_null() {
         doc["next"] = next;
+    }
+    if let Some(imp) = &csv {
+        doc["inputs"]["notes"] = json!(imp.notes);
     }
     if !geometry.is_empty() {
         doc["geometry"] = json!(geometry);

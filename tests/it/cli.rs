@@ -565,3 +565,55 @@ fn diagnose_refuses_a_null_too_small_to_have_a_threshold() {
     }
     let _ = std::fs::remove_dir_all(&d);
 }
+
+#[test]
+fn long_layout_tables_infer_directly_and_errors_name_the_column() {
+    // tests/data/wbt_device_long.csv: the left ear of wai_long.csv as a WBT device might
+    // export it: semicolons, units in the header (%, CGS acoustic ohms, degrees), 226 to
+    // 5740 Hz (a partial band at both ends).
+    let d = scratch("long");
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let dev = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/wbt_device_long.csv");
+    let wai = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/wai_long.csv");
+    let (s1, s2, s3) = (d.join("s1.csv"), d.join("s2.csv"), d.join("s3.csv"));
+    let infer = |obs: &str, out: &PathBuf, extra: &[&str]| {
+        let mut a = vec!["infer", "--model", model, "--obs", obs, "--samples", "300", "--out", out.to_str().unwrap()];
+        a.extend_from_slice(extra);
+        otofit(&a)
+    };
+    let o = infer(dev, &s1, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(r["fit"]["ok"], true, "{}", r["fit"]);
+    // Grid points 232.5–5490.5 Hz (43 of 50) of three feature blocks.
+    assert_eq!(r["fit"]["features"], 129, "{}", r["fit"]);
+    // The WAI table straight in, with its preset and one ear, gives the same samples as
+    // through `import wai`.
+    let o = infer(wai, &s2, &["--preset", "wai", "--select", "Ear=Left"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("kept 63 of 126 rows"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let json = d.join("left.json");
+    let o = otofit(&["import", "wai", "--in", wai, "--select", "Ear=Left", "--out", json.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = infer(json.to_str().unwrap(), &s3, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read_to_string(&s2).unwrap(), std::fs::read_to_string(&s3).unwrap());
+    // Without the preset, Zmag has no unit: named, nothing guessed.
+    let stderr = |o: std::process::Output| String::from_utf8_lossy(&o.stderr).to_string();
+    let e = stderr(infer(wai, &s2, &["--select", "Ear=Left"]));
+    assert!(e.contains("column 'Zmag': no unit"), "{e}");
+    let e = stderr(otofit(&["import", "csv", "--in", dev, "--unit", "Zang=rad", "--out", json.to_str().unwrap()]));
+    assert!(e.contains("column 'Zang'") && e.contains("keep one"), "{e}");
+    // A unit slip (CGS values under an SI header) is named by its column.
+    let slip = d.join("slip.csv");
+    std::fs::write(&slip, std::fs::read_to_string(dev).unwrap().replace("Zmag [cgs]", "Zmag [Pa*s/m^3]")).unwrap();
+    let e = stderr(infer(slip.to_str().unwrap(), &s2, &[]));
+    assert!(e.contains("Zmag (measurements.impedance.magnitude)") && e.contains("outside the physical range"), "{e}");
+    let e = stderr(infer(dev, &s2, &["--select", "Ear=Left"]));
+    assert!(e.contains("column 'Ear'"), "{e}");
+    let _ = std::fs::remove_dir_all(&d);
+}

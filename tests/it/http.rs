@@ -1215,3 +1215,56 @@ async fn keyless_server_answers_only_loopback_names_ip_literals_and_allowed_host
     let keyed = router(AppState::new(ctx, vec![[7u8; 32]]));
     assert_eq!(get(keyed, "evil.example").await.0, StatusCode::UNAUTHORIZED);
 }
+
+/// Issue 16: one ear as a long-layout table (`text/csv`), the request's options in the
+/// query; errors name the column.
+#[tokio::test]
+async fn a_long_layout_csv_body_is_inferred_and_its_errors_name_the_column() {
+    let (app, _) = app(vec![], 8, false).await;
+    let csv = |uri: &str, body: String| {
+        Request::builder()
+            .method("POST")
+            .uri(uri)
+            .header(header::CONTENT_TYPE, "text/csv")
+            .body(Body::from(body))
+            .unwrap()
+    };
+    let data = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/data");
+    let device = std::fs::read_to_string(data.join("wbt_device_long.csv")).unwrap();
+    let (status, _, r) = raw(&app, csv("/infer?samples=300&seed=2", device.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{r}");
+    assert_eq!(r["inputs"]["format"], "csv");
+    assert_eq!(r["inputs"]["used"], json!(["impedance", "absorbance"]));
+    let band = |r: &Value, m: &str| -> Vec<i64> {
+        r["inputs"]["band_hz"][m].as_array().unwrap().iter().map(|v| v.as_f64().unwrap().round() as i64).collect()
+    };
+    assert_eq!(band(&r, "zec_mag"), [232, 5491], "{}", r["inputs"]);
+    assert_eq!(r["samples"].as_array().unwrap().len(), 300);
+    assert_eq!(r["fit"]["ok"], true, "{}", r["fit"]);
+    // The WAI database's table, several ears: the preset and the ear in the query.
+    let wai = std::fs::read_to_string(data.join("wai_long.csv")).unwrap();
+    let (status, _, r) = raw(&app, csv("/infer?preset=wai&select=Ear=Left&return_samples=false", wai.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{r}");
+    assert!(r["inputs"]["notes"][0].as_str().unwrap().contains("kept 63 of 126 rows"), "{}", r["inputs"]);
+    assert!(r.get("samples").is_none());
+    for (uri, body, field) in [
+        ("/infer?select=Ear=Left", wai.clone(), "Zmag"),
+        ("/infer?preset=wai", wai.clone(), "body"),
+        ("/infer?sample=3", device.clone(), "sample"),
+        ("/infer?unit=Zang", device.clone(), "unit"),
+        ("/infer", device.replace("Zmag [cgs]", "Zmag [Pa*s/m^3]"), "Zmag (measurements.impedance.magnitude)"),
+        ("/infer", device.replacen("3.79", "3.7x", 1), "Absorbance[line 2]"),
+    ] {
+        let (status, _, p) = raw(&app, csv(uri, body)).await;
+        assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some(field)), "{p}");
+    }
+    // Query parameters belong to CSV bodies; JSON carries its own.
+    let (status, _, p) = call(&app, "POST", "/infer?samples=3", Some(json!({"measurements": {}}))).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("samples")), "{p}");
+    // The spec's text/csv example is answered.
+    let example =
+        spec_examples().into_iter().filter(|(p, _)| p == "/infer").find_map(|(_, v)| v.as_str().map(String::from));
+    let (status, _, r) = raw(&app, csv("/infer?return_samples=false", example.expect("a text/csv example"))).await;
+    assert_eq!(status, StatusCode::OK, "{r}");
+    assert_eq!(band(&r, "absorbance"), [232, 8000], "{}", r["inputs"]);
+}

@@ -1,0 +1,544 @@
+//! Long-layout tables: one row per frequency, one column per quantity, as the WAI
+//! database and wideband-tympanometry devices export them —
+//!
+//! ```text
+//! Subject,Ear,Frequency,Absorbance,Zmag [Pa*s/m^3],Zang [cycles]
+//! S01,Left,226,0.038,8.36e7,-0.236
+//! ```
+//!
+//! Columns are found by name (case, spaces and punctuation ignored; see [`COLUMNS`]);
+//! other columns are kept only for `select`. A column's unit is written in its header
+//! (`Zang [deg]`, `Frequency (kHz)`) or declared by the caller (`--unit Zang=deg`, a
+//! `unit=Zang=deg` query parameter), or comes from a preset ([`Preset::Wai`]: Zmag in
+//! Pa·s/m³, Zang in cycles, as the WAI database stores them). A magnitude or phase
+//! without a unit is an error naming the column: units are never guessed. Frequency
+//! defaults to Hz and absorbance to a fraction (0–1), the quantities' own units.
+//!
+//! A cell that is empty (or `NA`, `NaN`) means "not measured at this frequency": each
+//! measure keeps the rows where it has values, on its own grid.
+
+use super::{FormatError, Imported};
+use crate::measurements::{IMPEDANCE_UNITS, MagPhase, Measurements, VELOCITY_UNITS, Values};
+
+/// What a column holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Quantity {
+    Frequency,
+    Absorbance,
+    /// |Z| of the ear-canal impedance.
+    Zmag,
+    /// ∠Z.
+    Zang,
+    /// |V_stapes/P_ec|.
+    VstMag,
+    /// ∠(V_stapes/P_ec).
+    VstAng,
+    /// The ear canal's cross-section at the probe (the WAI database's AreaCanal).
+    Area,
+}
+
+/// Each quantity's canonical column name and the names it is found by (lower case,
+/// letters and digits only: `|Z|` is `z`, `Zang_deg` would be `zangdeg`).
+pub const COLUMNS: [(Quantity, &str, &[&str]); 7] = [
+    (Quantity::Frequency, "Frequency", &["frequency", "freq", "f", "hz", "frequencyhz"]),
+    (Quantity::Absorbance, "Absorbance", &["absorbance", "a", "powerabsorbance", "energyabsorbance"]),
+    (Quantity::Zmag, "Zmag", &["zmag", "z", "zmagnitude", "impedancemagnitude", "impedancemag"]),
+    (Quantity::Zang, "Zang", &["zang", "zangle", "zphase", "impedanceangle", "impedancephase"]),
+    (Quantity::VstMag, "VstMag", &["vstmag", "vst", "stapesvelocity", "stapesvelocitymagnitude", "stapesvelocitymag"]),
+    (Quantity::VstAng, "VstAng", &["vstang", "vstphase", "stapesvelocityphase", "stapesvelocityangle"]),
+    (Quantity::Area, "AreaCanal", &["areacanal", "canalarea", "area"]),
+];
+
+/// Phase units: (accepted names, the name `measurements` knows).
+const PHASE: [(&[&str], &str); 3] = [
+    (&["rad", "radians", "radian"], "rad"),
+    (&["deg", "degrees", "degree", "°"], "deg"),
+    (&["cycles", "cycle", "cyc"], "cycles"),
+];
+/// Frequency units: (accepted names, factor to Hz).
+const FREQUENCY: [(&[&str], f64); 2] = [(&["Hz"], 1.0), (&["kHz"], 1e3)];
+/// Absorbance units: (accepted names, factor to a fraction).
+const FRACTION: [(&[&str], f64); 2] = [(&["1", "fraction"], 1.0), (&["%", "percent"], 0.01)];
+
+/// Units a family of exports always uses, for columns whose header declares none.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Preset {
+    /// The WAI database: Zmag in SI acoustic ohms (Pa·s/m³), Zang in cycles.
+    Wai,
+}
+
+impl std::str::FromStr for Preset {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Preset, String> {
+        match s.to_ascii_lowercase().as_str() {
+            "wai" => Ok(Preset::Wai),
+            _ => Err(format!("unknown preset '{s}' (known: wai)")),
+        }
+    }
+}
+
+impl Preset {
+    fn unit(self, q: Quantity) -> Option<&'static str> {
+        match (self, q) {
+            (Preset::Wai, Quantity::Zmag) => Some("Pa·s/m³"),
+            (Preset::Wai, Quantity::Zang) => Some("cycles"),
+            _ => None,
+        }
+    }
+}
+
+/// How to read a table.
+#[derive(Clone, Debug, Default)]
+pub struct LongOptions {
+    /// Units declared outside the header: (column as its header names it, unit).
+    pub units: Vec<(String, String)>,
+    /// Keep only the rows where a column holds a value (one ear, one session).
+    pub select: Vec<(String, String)>,
+    /// Units for the columns that declare none.
+    pub preset: Option<Preset>,
+}
+
+/// Splits `COLUMN=VALUE` (a `--unit`, `--select` or query argument).
+pub fn pair(arg: &str, what: &str) -> Result<(String, String), String> {
+    match arg.split_once('=') {
+        Some((c, v)) if !c.trim().is_empty() => Ok((c.trim().to_string(), v.trim().to_string())),
+        _ => Err(format!("{what} '{arg}': expected COLUMN=VALUE")),
+    }
+}
+
+struct Col {
+    index: usize,
+    quantity: Quantity,
+    /// As the header names it, without its unit.
+    name: String,
+    unit: Option<String>,
+}
+
+fn normalise(name: &str) -> String {
+    name.chars().filter(|c| c.is_alphanumeric()).flat_map(char::to_lowercase).collect()
+}
+
+/// A header cell's name and unit: `Zmag [cgs]` → (`Zmag`, `cgs`); `Ymag (m^3/(Pa*s))`
+/// → (`Ymag`, `m^3/(Pa*s)`).
+fn split_unit(cell: &str) -> (String, Option<String>) {
+    let c = cell.trim();
+    for (open, close) in [('[', ']'), ('(', ')')] {
+        if !c.ends_with(close) {
+            continue;
+        }
+        let mut depth = 0;
+        for (i, ch) in c.char_indices().rev() {
+            if ch == close {
+                depth += 1;
+            } else if ch == open {
+                depth -= 1;
+                if depth == 0 {
+                    let unit = c[i + open.len_utf8()..c.len() - close.len_utf8()].trim();
+                    return (c[..i].trim().to_string(), Some(unit.to_string()));
+                }
+            }
+        }
+    }
+    (c.to_string(), None)
+}
+
+/// The delimiter of a header line: tab, semicolon (without commas) or comma.
+fn delimiter(header: &str) -> char {
+    if header.contains('\t') {
+        '\t'
+    } else if header.contains(';') && !header.contains(',') {
+        ';'
+    } else {
+        ','
+    }
+}
+
+fn cells(line: &str, d: char) -> Vec<String> {
+    line.split(d).map(|c| c.trim().trim_matches('"').trim().to_string()).collect()
+}
+
+/// Whether a CSV header line is a long-layout table (it has a frequency column and no
+/// `measure@frequency` feature names).
+pub fn looks_long(header: &str) -> bool {
+    let hs = cells(header, delimiter(header));
+    !hs.iter().any(|h| h.contains('@')) && hs.iter().any(|h| quantity(&split_unit(h).0) == Some(Quantity::Frequency))
+}
+
+fn quantity(name: &str) -> Option<Quantity> {
+    let n = normalise(name);
+    COLUMNS.iter().find(|(_, _, names)| names.contains(&n.as_str())).map(|(q, _, _)| *q)
+}
+
+fn canonical(q: Quantity) -> &'static str {
+    COLUMNS.iter().find(|(c, _, _)| *c == q).map_or("?", |(_, n, _)| n)
+}
+
+/// The entry of `known` that `col`'s unit names; an error naming the column when it has
+/// none (and `default` is `None`) or an unknown one.
+fn unit<'a, T: Copy>(col: &Col, known: &'a [(&'a [&'a str], T)], default: Option<T>) -> Result<T, FormatError> {
+    let listed = || known.iter().map(|(n, _)| n[0]).collect::<Vec<_>>().join(", ");
+    let Some(u) = &col.unit else {
+        return default.ok_or_else(|| FormatError::Column {
+            column: col.name.clone(),
+            message: format!(
+                "no unit: write it in the header ('{0} [{1}]') or declare it (--unit {0}={1}, or unit={0}={1} in the query); \
+                 known units: {2}",
+                col.name,
+                known[0].0[0],
+                listed()
+            ),
+        });
+    };
+    known.iter().find(|(names, _)| names.iter().any(|n| n.eq_ignore_ascii_case(u))).map(|(_, v)| *v).ok_or_else(|| {
+        FormatError::Column { column: col.name.clone(), message: format!("unknown unit '{u}' (known: {})", listed()) }
+    })
+}
+
+fn empty(c: &str) -> bool {
+    c.is_empty() || ["na", "nan", "n/a"].contains(&c.to_ascii_lowercase().as_str())
+}
+
+/// The table's data rows after `select`: (line number, cells).
+type Rows = Vec<(usize, Vec<String>)>;
+
+/// The rows where every column of `cols` has a value: their frequencies and the values
+/// of each column. A row with some of them but not all is an error naming the empty cell.
+fn series(rows: &Rows, f: &[f64], cols: &[&Col]) -> Result<(Vec<f64>, Vec<Vec<f64>>), FormatError> {
+    let mut freq = Vec::new();
+    let mut vals = vec![Vec::new(); cols.len()];
+    for ((line, r), fr) in rows.iter().zip(f) {
+        let have: Vec<bool> = cols.iter().map(|c| !empty(&r[c.index])).collect();
+        if !have.iter().any(|h| *h) {
+            continue;
+        }
+        if let Some(k) = have.iter().position(|h| !h) {
+            let given = cols.iter().find(|c| !empty(&r[c.index])).map_or("", |c| c.name.as_str());
+            return Err(FormatError::Cell {
+                line: *line,
+                column: cols[k].name.clone(),
+                message: format!("empty where '{given}' has a value: give both or neither"),
+            });
+        }
+        for (c, v) in cols.iter().zip(vals.iter_mut()) {
+            v.push(number(*line, c, &r[c.index])?);
+        }
+        freq.push(*fr);
+    }
+    Ok((freq, vals))
+}
+
+fn number(line: usize, col: &Col, cell: &str) -> Result<f64, FormatError> {
+    let bad = |message: String| FormatError::Cell { line, column: col.name.clone(), message };
+    let v: f64 = cell.parse().map_err(|_| {
+        bad(if cell.contains(',') {
+            format!("'{cell}' is not a number (decimal commas are not read: export with decimal points)")
+        } else {
+            format!("'{cell}' is not a number")
+        })
+    })?;
+    if !v.is_finite() {
+        return Err(bad(format!("'{cell}' is not a finite number")));
+    }
+    Ok(v)
+}
+
+/// Reads a long-layout table into measurements.
+pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l))
+        .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'));
+    let Some((_, head)) = lines.next() else {
+        return Err(FormatError::NotThisFormat("empty: expected a CSV table with a header row".into()));
+    };
+    let head = head.trim_start_matches('\u{feff}');
+    if head.trim_start().starts_with('{') || head.trim_start().starts_with('[') {
+        return Err(FormatError::NotThisFormat(
+            "looks like JSON, not a CSV table (send JSON as application/json, or name the file .json)".into(),
+        ));
+    }
+    let d = delimiter(head);
+    let header: Vec<(String, Option<String>)> = cells(head, d).iter().map(|c| split_unit(c)).collect();
+    let names: Vec<&str> = header.iter().map(|(n, _)| n.as_str()).collect();
+    if header.len() < 2 {
+        return Err(FormatError::NotThisFormat(format!(
+            "not a CSV table with a header row (the first line is '{}')",
+            head.chars().take(60).collect::<String>()
+        )));
+    }
+    let mut cols: Vec<Col> = Vec::new();
+    for (index, (name, u)) in header.iter().enumerate() {
+        let Some(q) = quantity(name) else { continue };
+        if let Some(prev) = cols.iter().find(|c| c.quantity == q) {
+            return Err(FormatError::Column {
+                column: name.clone(),
+                message: format!("holds {} as column '{}' does: keep one", canonical(q), prev.name),
+            });
+        }
+        cols.push(Col { index, quantity: q, name: name.clone(), unit: u.clone() });
+    }
+    for (c, u) in &opts.units {
+        let Some(col) = cols.iter_mut().find(|col| col.name.eq_ignore_ascii_case(c)) else {
+            let read: Vec<&str> = cols.iter().map(|c| c.name.as_str()).collect();
+            return Err(FormatError::Column {
+                column: c.clone(),
+                message: format!(
+                    "a unit is declared for it, but no column of that name is read (read: {})",
+                    read.join(", ")
+                ),
+            });
+        };
+        match &col.unit {
+            Some(h) if !h.eq_ignore_ascii_case(u) => {
+                return Err(FormatError::Column {
+                    column: col.name.clone(),
+                    message: format!("the header says '{h}' and the declared unit is '{u}': keep one"),
+                });
+            }
+            _ => col.unit = Some(u.clone()),
+        }
+    }
+    for col in &mut cols {
+        if col.unit.is_none() {
+            col.unit = opts.preset.and_then(|p| p.unit(col.quantity)).map(str::to_string);
+        }
+    }
+    let find = |q: Quantity| cols.iter().find(|c| c.quantity == q);
+    let Some(fcol) = find(Quantity::Frequency) else {
+        return Err(FormatError::Column {
+            column: "Frequency".into(),
+            message: format!("no frequency column (Frequency, Freq, f or Hz); the columns are {}", names.join(", ")),
+        });
+    };
+    let mut filters = Vec::new();
+    for (c, v) in &opts.select {
+        let Some(i) = names.iter().position(|n| n.eq_ignore_ascii_case(c)) else {
+            return Err(FormatError::Column {
+                column: c.clone(),
+                message: format!("select names no column of the table (columns: {})", names.join(", ")),
+            });
+        };
+        filters.push((i, v.clone()));
+    }
+    let mut rows: Rows = Vec::new();
+    let mut total = 0;
+    for (line, l) in lines {
+        let r = cells(l, d);
+        if r.len() != header.len() {
+            return Err(FormatError::Table(format!(
+                "line {line} has {} cells, the header {} (delimiter '{}')",
+                r.len(),
+                header.len(),
+                d.escape_default()
+            )));
+        }
+        total += 1;
+        if filters.iter().all(|(i, v)| &r[*i] == v) {
+            rows.push((line, r));
+        }
+    }
+    let mut notes = Vec::new();
+    if !filters.is_empty() {
+        let s: Vec<String> = opts.select.iter().map(|(c, v)| format!("{c}={v}")).collect();
+        notes.push(format!("kept {} of {total} rows ({})", rows.len(), s.join(", ")));
+    }
+    if rows.len() < 2 {
+        return Err(FormatError::Table(format!(
+            "{} data rows{}; need at least 2 frequencies",
+            rows.len(),
+            if filters.is_empty() { "" } else { " left after select" }
+        )));
+    }
+    let hz = unit(fcol, &FREQUENCY, Some(1.0))?;
+    let mut f = Vec::with_capacity(rows.len());
+    for (line, r) in &rows {
+        let v = number(*line, fcol, &r[fcol.index])? * hz;
+        if v <= 0.0 {
+            return Err(FormatError::Cell { line: *line, column: fcol.name.clone(), message: "must be > 0".into() });
+        }
+        f.push(v);
+    }
+    if let Some(k) = (1..f.len()).find(|&k| f[k] <= f[k - 1]) {
+        let others: Vec<&str> = names.iter().copied().filter(|n| quantity(n).is_none()).collect();
+        return Err(FormatError::Table(format!(
+            "frequencies do not increase at line {} ({} Hz after {} Hz): several ears or sessions in one table? pick \
+             one with --select COLUMN=VALUE (over HTTP a select=COLUMN=VALUE query parameter){}",
+            rows[k].0,
+            f[k],
+            f[k - 1],
+            if others.is_empty() { String::new() } else { format!(" (other columns: {})", others.join(", ")) }
+        )));
+    }
+    let mut m = Measurements::default();
+    let mut columns = Vec::new();
+    if let Some(c) = find(Quantity::Absorbance) {
+        let k = unit(c, &FRACTION, Some(1.0))?;
+        let (fa, v) = series(&rows, &f, &[c])?;
+        if c.unit.is_none()
+            && let Some(i) = v[0].iter().position(|a| *a > 1.05)
+        {
+            return Err(FormatError::Column {
+                column: c.name.clone(),
+                message: format!(
+                    "{} is above 1 (absorbance is a fraction of power); in percent? write '{} [%]' in the header",
+                    v[0][i], c.name
+                ),
+            });
+        }
+        if !fa.is_empty() {
+            m.absorbance = Some(Values { frequencies_hz: fa, values: v[0].iter().map(|a| a * k).collect() });
+            columns.push(("measurements.absorbance".to_string(), c.name.clone()));
+        }
+    }
+    m.impedance =
+        mag_phase(&rows, &f, find(Quantity::Zmag), find(Quantity::Zang), &IMPEDANCE_UNITS, "impedance", &mut columns)?;
+    m.stapes_velocity = mag_phase(
+        &rows,
+        &f,
+        find(Quantity::VstMag),
+        find(Quantity::VstAng),
+        &VELOCITY_UNITS,
+        "stapes_velocity",
+        &mut columns,
+    )?;
+    if let Some(c) = find(Quantity::Area) {
+        notes.push(format!(
+            "{} not used: impedance and absorbance were given as measured, and the model infers the canal area \
+             (canal_area) with the tissue",
+            c.name
+        ));
+    }
+    if m.absorbance.is_none() && m.impedance.is_none() && m.stapes_velocity.is_none() {
+        let known: Vec<&str> = COLUMNS.iter().skip(1).map(|(_, n, _)| *n).collect();
+        return Err(FormatError::Table(format!(
+            "no measure found: the columns are {}; otofit reads {}",
+            names.join(", "),
+            known.join(", ")
+        )));
+    }
+    Ok(Imported { measurements: m, notes, columns })
+}
+
+/// A magnitude/phase pair of columns as a measure in its declared units; both columns or
+/// neither.
+fn mag_phase(
+    rows: &Rows,
+    f: &[f64],
+    mag: Option<&Col>,
+    ang: Option<&Col>,
+    units: &[(&[&str], Option<f64>)],
+    field: &str,
+    columns: &mut Vec<(String, String)>,
+) -> Result<Option<MagPhase>, FormatError> {
+    let (mag, ang) = match (mag, ang) {
+        (None, None) => return Ok(None),
+        (Some(m), Some(a)) => (m, a),
+        (Some(c), None) | (None, Some(c)) => {
+            return Err(FormatError::Column {
+                column: c.name.clone(),
+                message: "a magnitude needs its phase column and a phase its magnitude column".into(),
+            });
+        }
+    };
+    let names: Vec<(&[&str], &str)> = units.iter().map(|(n, _)| (*n, n[0])).collect();
+    let mag_unit = unit(mag, &names, None)?;
+    let phase_unit = unit(ang, &PHASE, None)?;
+    let (fm, v) = series(rows, f, &[mag, ang])?;
+    if fm.is_empty() {
+        return Ok(None);
+    }
+    columns.push((format!("measurements.{field}.magnitude"), mag.name.clone()));
+    columns.push((format!("measurements.{field}.phase"), ang.name.clone()));
+    let [m, p]: [Vec<f64>; 2] = v.try_into().unwrap_or_default();
+    Ok(Some(MagPhase {
+        frequencies_hz: fm,
+        magnitude: m,
+        phase: p,
+        magnitude_unit: Some(mag_unit.to_string()),
+        phase_unit: Some(phase_unit.to_string()),
+    }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn opts(units: &[(&str, &str)], select: &[(&str, &str)], preset: Option<Preset>) -> LongOptions {
+        let own = |v: &[(&str, &str)]| v.iter().map(|(a, b)| (a.to_string(), b.to_string())).collect();
+        LongOptions { units: own(units), select: own(select), preset }
+    }
+
+    const WAI: &str = "Subject,Ear,Frequency,Absorbance,Zmag,Zang,AreaCanal\n\
+        S1,Left,226,0.04,8.4e7,-0.236,44\n\
+        S1,Left,1000,0.5,2e7,-0.18,44\n\
+        S1,Right,226,0.05,8.0e7,-0.235,45\n\
+        S1,Right,1000,0.55,1.9e7,-0.17,45\n";
+
+    #[test]
+    fn header_units_and_their_names() {
+        assert_eq!(split_unit("Zmag [cgs]"), ("Zmag".into(), Some("cgs".into())));
+        assert_eq!(split_unit(" Frequency (kHz) "), ("Frequency".into(), Some("kHz".into())));
+        assert_eq!(split_unit("Ymag (m^3/(Pa*s))"), ("Ymag".into(), Some("m^3/(Pa*s)".into())));
+        assert_eq!(split_unit("Zang"), ("Zang".into(), None));
+        assert_eq!(quantity("|Z|"), Some(Quantity::Zmag));
+        assert_eq!(quantity("Impedance phase"), Some(Quantity::Zang));
+        assert!(looks_long("Freq;Absorbance") && !looks_long("absorbance@200.0,absorbance@215.6"));
+    }
+
+    #[test]
+    fn the_wai_preset_reads_one_selected_ear() {
+        let imp = read(WAI, &opts(&[], &[("Ear", "Right")], Some(Preset::Wai))).unwrap();
+        let z = imp.measurements.impedance.as_ref().unwrap();
+        assert_eq!(z.frequencies_hz, [226.0, 1000.0]);
+        assert_eq!(z.magnitude, [8.0e7, 1.9e7]);
+        assert_eq!((z.magnitude_unit.as_deref(), z.phase_unit.as_deref()), (Some("Pa·s/m³"), Some("cycles")));
+        assert_eq!(imp.measurements.absorbance.as_ref().unwrap().values, [0.05, 0.55]);
+        assert!(imp.notes[0].contains("kept 2 of 4 rows"), "{:?}", imp.notes);
+        let (field, message) = imp.column_of("measurements.impedance.phase", "need \"phase_unit\": \"deg\"");
+        assert_eq!(field, "Zang (measurements.impedance.phase)");
+        assert!(message.contains("'Zang [unit]'"), "{message}");
+    }
+
+    #[test]
+    fn units_are_declared_never_guessed_and_errors_name_the_column() {
+        let err = |text: &str, o: LongOptions| read(text, &o).unwrap_err();
+        // Without the preset the phase has no unit.
+        let e = err(WAI, opts(&[("Zmag", "SI")], &[("Ear", "Left")], None));
+        assert_eq!((e.field(), e.message().contains("no unit")), ("Zang".into(), true), "{e}");
+        let e = err(WAI, opts(&[("Zmag", "furlongs"), ("Zang", "deg")], &[("Ear", "Left")], None));
+        assert!(e.field() == "Zmag" && e.message().contains("unknown unit 'furlongs'"), "{e}");
+        let e = err("f [Hz],Zmag [cgs],Zang [deg]\n200,800,-80\n", opts(&[("Zang", "rad")], &[], None));
+        assert!(e.field() == "Zang" && e.message().contains("keep one"), "{e}");
+        let e = err(WAI, opts(&[], &[], Some(Preset::Wai)));
+        assert!(e.to_string().contains("several ears"), "{e}");
+        let e = err(WAI, opts(&[], &[("Side", "Left")], Some(Preset::Wai)));
+        assert_eq!(e.field(), "Side");
+        let e = err("Frequency,Absorbance\n200,38\n400,55\n", LongOptions::default());
+        assert!(e.field() == "Absorbance" && e.message().contains("[%]"), "{e}");
+        let e = err("Frequency,Absorbance\n200,0.3\n400,0,5\n", LongOptions::default());
+        assert!(e.to_string().contains("line 3 has 3 cells"), "{e}");
+        let e = err("Frequency;Absorbance\n200;0,3\n400;0,5\n", LongOptions::default());
+        assert!(e.field() == "Absorbance[line 2]" && e.message().contains("decimal commas"), "{e}");
+        let e = err("{\"measurements\":{}}", LongOptions::default());
+        assert!(matches!(e, FormatError::NotThisFormat(_)), "{e}");
+        let e = err("Frequency,Zmag [cgs],Zang [deg]\n200,800,-80\n400,,-70\n", LongOptions::default());
+        assert_eq!(e.field(), "Zmag[line 3]", "{e}");
+        let e = err("Frequency,Pressure\n200,1\n400,2\n", LongOptions::default());
+        assert!(e.to_string().contains("no measure found"), "{e}");
+    }
+
+    #[test]
+    fn declared_units_reach_the_measurement_and_empty_cells_shorten_a_measure() {
+        let text = "Frequency (kHz)\tAbsorbance [%]\t|Z| [cgs]\tZ phase [deg]\n0.2\t3\t900\t-85\n0.25\t4\tNA\tNA\n\
+                    0.5\t15\t380\t-80\n";
+        let imp = read(text, &LongOptions::default()).unwrap();
+        let a = imp.measurements.absorbance.as_ref().unwrap();
+        assert_eq!(a.frequencies_hz, [200.0, 250.0, 500.0]);
+        assert!((a.values[1] - 0.04).abs() < 1e-12);
+        let z = imp.measurements.impedance.as_ref().unwrap();
+        assert_eq!(z.frequencies_hz, [200.0, 500.0]);
+        assert_eq!((z.magnitude_unit.as_deref(), z.phase_unit.as_deref()), (Some("cgs"), Some("deg")));
+    }
+}
