@@ -45,6 +45,8 @@ pub struct Ctx {
     pub worker: String,
     /// Length of a claim's lease; renewed every third of it.
     pub lease: Duration,
+    /// Counters and histograms of this process, for GET /metrics.
+    pub metrics: crate::http::metrics::Metrics,
 }
 
 /// Default lease of a claimed job: a worker that stops renewing it for this long loses
@@ -64,6 +66,7 @@ impl Ctx {
             infer_gate: crate::http::InferGate::new(crate::http::InferLimits::default()),
             worker: crate::store::worker_name(),
             lease: DEFAULT_LEASE,
+            metrics: Default::default(),
         }
     }
 
@@ -478,6 +481,7 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
             };
             let dir = ctx.dataset_dir(&job.id);
             let staging = staging_dir(&dir, &r.claim.1);
+            let mut last = 0;
             let meta = dataset::simulate_to_dir(
                 &model,
                 &design,
@@ -485,7 +489,11 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 &noise,
                 model.config.preset,
                 &staging,
-                &mut |done, n| r.report(done as f64 / n as f64, format!("simulated {done}/{n}")),
+                &mut |done, n| {
+                    ctx.metrics.simulated(done.saturating_sub(last) as u64);
+                    last = done;
+                    r.report(done as f64 / n as f64, format!("simulated {done}/{n}"))
+                },
             )
             .map_err(|e| if e.is::<dataset::Cancelled>() { Stopped.into() } else { e })?;
             r.still_ours(ctx)?;
@@ -667,11 +675,17 @@ pub async fn dispatcher(ctx: Arc<Ctx>) {
         }
         match ctx.store.reap_expired().await {
             Ok((0, 0)) => {}
-            Ok((requeued, failed)) => tracing::warn!(requeued, failed, "took back jobs whose lease expired"),
+            Ok((requeued, failed)) => {
+                ctx.metrics.reaped(requeued + failed);
+                tracing::warn!(requeued, failed, "took back jobs whose lease expired")
+            }
             Err(e) => tracing::error!(error = %e, "reaping expired leases failed"),
         }
         match ctx.store.claim(&ctx.worker, ctx.lease).await {
-            Ok(Some(job)) => run(ctx.clone(), job).await,
+            Ok(Some(job)) => {
+                ctx.metrics.claimed();
+                run(ctx.clone(), job).await
+            }
             Ok(None) => {
                 tokio::select! {
                     _ = ctx.notify.notified() => {}
@@ -715,6 +729,7 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
             _ = renew.tick() => match ctx.store.heartbeat(&job.id, &token, ctx.lease).await {
                 Ok(true) => {}
                 Ok(false) => {
+                    ctx.metrics.lease_lost();
                     tracing::warn!(job = %job.id, "lease lost: stopping the job; its results will be dropped");
                     lost = true;
                     cancel.store(true, Ordering::Relaxed);
@@ -730,17 +745,25 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     let store = &ctx.store;
     // Every end is fenced by the lease token this worker claimed (see `Store::finish`).
     let id = job.id.as_str();
-    let outcome = match result {
-        _ if lost => Ok(false),
-        Ok(Err(e)) if e.is::<LeaseLost>() => Ok(false),
-        Err(e) => store.finish(id, &token, "failed", Some(&format!("worker panicked: {e}")), None).await,
+    let (label, outcome) = match result {
+        _ if lost => ("lease_lost", Ok(false)),
+        Ok(Err(e)) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
+        Err(e) => ("failed", store.finish(id, &token, "failed", Some(&format!("worker panicked: {e}")), None).await),
         // Interrupted by shutdown: back to the queue, the attempt not counted.
-        Ok(_) if cancelled && shutting_down => store.requeue(id, &token).await,
+        Ok(_) if cancelled && shutting_down => ("requeued", store.requeue(id, &token).await),
         // A cancelled training still returns its best weights: that is a result.
-        Ok(Ok(doc)) => store.finish(id, &token, "succeeded", None, Some(&doc)).await,
-        Ok(Err(e)) if cancelled || e.is::<Stopped>() => store.finish(id, &token, "cancelled", None, None).await,
-        Ok(Err(e)) => store.finish(id, &token, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await,
+        Ok(Ok(doc)) => ("succeeded", store.finish(id, &token, "succeeded", None, Some(&doc)).await),
+        Ok(Err(e)) if cancelled || e.is::<Stopped>() => {
+            ("cancelled", store.finish(id, &token, "cancelled", None, None).await)
+        }
+        Ok(Err(e)) => ("failed", store.finish(id, &token, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await),
     };
+    let label = match outcome {
+        Ok(true) => label,
+        Ok(false) => "lease_lost",
+        Err(_) => "not_saved",
+    };
+    ctx.metrics.job_ended(&job.kind, label, t0.elapsed().as_secs_f64());
     if job.kind == "simulate" {
         // This attempt's staging folder: moved into place on success, else left over.
         let staging = staging_dir(&ctx.dataset_dir(&job.id), &token);

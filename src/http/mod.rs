@@ -4,6 +4,7 @@
 
 pub mod conn;
 mod infer;
+pub mod metrics;
 mod resources;
 
 use crate::jobs::Ctx;
@@ -20,7 +21,7 @@ use std::time::Duration;
 use subtle::ConstantTimeEq;
 
 /// Every route the server answers: (method, path). openapi.yaml must list exactly these.
-pub const ROUTES: [(&str, &str); 13] = [
+pub const ROUTES: [(&str, &str); 14] = [
     ("get", "/health"),
     ("get", "/ready"),
     ("get", "/openapi.yaml"),
@@ -34,6 +35,7 @@ pub const ROUTES: [(&str, &str); 13] = [
     ("get", "/jobs/{id}/files/{name}"),
     ("get", "/datasets/{id}"),
     ("get", "/datasets/{id}/{file}"),
+    ("get", "/metrics"),
 ];
 
 pub const MAX_BODY: usize = 2 * 1024 * 1024;
@@ -90,10 +92,19 @@ fn busy(detail: String, retry_after: u64) -> Response {
     r
 }
 
+/// The /infer gate with its latency recorded for /metrics (status and seconds, waiting
+/// for a slot included).
+async fn infer_gate(State(st): State<AppState>, req: Request, next: Next) -> Response {
+    let t0 = std::time::Instant::now();
+    let r = infer_slot(State(st.clone()), req, next).await;
+    st.ctx.metrics.inferred(r.status().as_u16(), t0.elapsed().as_secs_f64());
+    r
+}
+
 /// The /infer gate (a layer on that route): a slot or a short wait for one, then the
 /// request runs in its own task holding the slot until its work is done, even when the
 /// client has been answered 503 at the deadline: the bound is on work, not on replies.
-async fn infer_gate(State(st): State<AppState>, req: Request, next: Next) -> Response {
+async fn infer_slot(State(st): State<AppState>, req: Request, next: Next) -> Response {
     let gate = &st.ctx.infer_gate;
     let InferLimits { concurrency, queue, deadline } = gate.limits;
     let t0 = tokio::time::Instant::now();
@@ -360,6 +371,7 @@ pub fn router(state: AppState) -> Router {
         .route("/jobs/{id}/files/{name}", get(get_job_file))
         .route("/datasets/{id}", get(get_dataset))
         .route("/datasets/{id}/{file}", get(get_dataset_file))
+        .route("/metrics", get(metrics))
         .fallback(|| async { Problem::new(StatusCode::NOT_FOUND, "no such route") })
         .layer(middleware::from_fn_with_state(state.clone(), auth))
         .layer(middleware::from_fn_with_state(state.clone(), host_guard))

@@ -24,6 +24,15 @@ pub async fn ready(State(st): State<AppState>) -> Response {
     if db && model { body.into_response() } else { (StatusCode::SERVICE_UNAVAILABLE, body).into_response() }
 }
 
+/// Prometheus text format: the job table by kind and state, this process's counters and
+/// histograms (see `http::metrics`).
+pub async fn metrics(State(st): State<AppState>) -> Result<Response, Problem> {
+    let queue = st.ctx.store.queue_counts().await.map_err(Problem::internal)?;
+    let mut r = st.ctx.metrics.render(&queue).into_response();
+    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"));
+    Ok(r)
+}
+
 pub async fn openapi() -> Response {
     let mut r = include_str!("../../openapi.yaml").into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/yaml"));

@@ -1268,3 +1268,30 @@ async fn a_long_layout_csv_body_is_inferred_and_its_errors_name_the_column() {
     assert_eq!(status, StatusCode::OK, "{r}");
     assert_eq!(band(&r, "absorbance"), [232, 8000], "{}", r["inputs"]);
 }
+
+/// Issue 14: GET /metrics in the Prometheus text format: the job table by kind and state,
+/// this process's claims, simulated rows, job durations and /infer latencies.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_count_jobs_rows_and_inferences() {
+    let (app, _) = app(vec![], 8, true).await;
+    let (_, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 20}}))).await;
+    let id = j["id"].as_str().unwrap().to_string();
+    assert_eq!(wait(&app, &id).await["state"], "succeeded");
+    assert_eq!(call(&app, "POST", "/infer", Some(nominal_request())).await.0, StatusCode::OK);
+    assert_eq!(call(&app, "POST", "/infer", Some(json!({"measurements": {}}))).await.0, StatusCode::UNPROCESSABLE_ENTITY);
+    let res = app.clone().oneshot(Request::get("/metrics").body(Body::empty()).unwrap()).await.unwrap();
+    assert_eq!(res.status(), StatusCode::OK);
+    assert_eq!(res.headers()[header::CONTENT_TYPE], "text/plain; version=0.0.4; charset=utf-8");
+    let text = String::from_utf8(axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap().to_vec()).unwrap();
+    for line in [
+        "otofit_jobs{kind=\"simulate\",state=\"succeeded\"} 1",
+        "otofit_jobs{kind=\"train\",state=\"queued\"} 0",
+        "otofit_job_claims_total 1",
+        "otofit_simulated_rows_total 20",
+        "otofit_job_duration_seconds_count{kind=\"simulate\",outcome=\"succeeded\"} 1",
+        "otofit_infer_duration_seconds_count{code=\"200\"} 1",
+        "otofit_infer_duration_seconds_count{code=\"422\"} 1",
+    ] {
+        assert!(text.lines().any(|l| l == line), "no '{line}' in\n{text}");
+    }
+}
