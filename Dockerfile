@@ -1,5 +1,9 @@
 # otofit service image. Build: docker build -t otofit .
 # Run:   docker run -p 127.0.0.1:8080:8080 -v otofit-data:/var/lib/otofit otofit
+# One image, two roles: the default command is `serve` (SQLite in the volume, jobs run
+# in-process); with PostgreSQL (OTOFIT_DATABASE=postgres://…) run any number of
+# `otofit serve --workers 0` and `otofit worker --data-dir /var/lib/otofit` containers
+# on a shared volume: deploy/compose.yaml, docs/deploy.md.
 # Release profile here only (CI and tests use the optimised dev profile).
 FROM rust:1.95-bookworm AS build
 WORKDIR /src
