@@ -1278,7 +1278,10 @@ async fn metrics_count_jobs_rows_and_inferences() {
     let id = j["id"].as_str().unwrap().to_string();
     assert_eq!(wait(&app, &id).await["state"], "succeeded");
     assert_eq!(call(&app, "POST", "/infer", Some(nominal_request())).await.0, StatusCode::OK);
-    assert_eq!(call(&app, "POST", "/infer", Some(json!({"measurements": {}}))).await.0, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(
+        call(&app, "POST", "/infer", Some(json!({"measurements": {}}))).await.0,
+        StatusCode::UNPROCESSABLE_ENTITY
+    );
     let res = app.clone().oneshot(Request::get("/metrics").body(Body::empty()).unwrap()).await.unwrap();
     assert_eq!(res.status(), StatusCode::OK);
     assert_eq!(res.headers()[header::CONTENT_TYPE], "text/plain; version=0.0.4; charset=utf-8");
