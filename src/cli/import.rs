@@ -29,8 +29,11 @@ pub enum ImportWhat {
         zang_unit: Option<String>,
     },
     /// Any long-layout CSV (comma, semicolon or tab separated; one row per frequency):
-    /// Frequency, and any of Absorbance, Zmag + Zang, VstMag + VstAng; each magnitude
-    /// and phase with its unit in the header (`Zmag [cgs]`, `Zang [deg]`) or from --unit.
+    /// Frequency, and any of Absorbance, Zmag + Zang, Ymag + Yang (admittance), Rmag
+    /// (+ Rang) or PowerReflectance, AreaCanal, VstMag + VstAng; each magnitude, phase
+    /// and area with its unit in the header (`Zmag [cgs]`, `Zang [deg]`, `Ymag [mmho]`,
+    /// `AreaCanal [mm2]`) or from --unit. Reflectance with its phase and the canal area
+    /// becomes the impedance Z = Z0 (1 + R)/(1 − R), Z0 = ρc/S (air at 37 °C).
     Csv {
         #[command(flatten)]
         table: TableArgs,

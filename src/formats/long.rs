@@ -6,6 +6,9 @@
 //! S01,Left,226,0.038,8.36e7,-0.236
 //! ```
 //!
+//! Admittance becomes the impedance (Z = 1/Y) and reflectance the absorbance (1 − |R|²)
+//! and, with its phase and the canal area, the impedance ([`super::immittance`]).
+//!
 //! Columns are found by name (case, spaces and punctuation ignored; see [`COLUMNS`]);
 //! other columns are kept only for `select`. A column's unit is written in its header
 //! (`Zang [deg]`, `Frequency (kHz)`) or declared by the caller (`--unit Zang=deg`, a
@@ -18,7 +21,7 @@
 //! measure keeps the rows where it has values, on its own grid.
 
 use super::{FormatError, Imported};
-use crate::measurements::{IMPEDANCE_UNITS, MagPhase, Measurements, VELOCITY_UNITS, Values};
+use crate::measurements::{IMPEDANCE_UNITS, MagPhase, Measurements, PHASE_UNITS, VELOCITY_UNITS, Values};
 
 /// What a column holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -33,19 +36,42 @@ pub enum Quantity {
     VstMag,
     /// ∠(V_stapes/P_ec).
     VstAng,
+    /// |Y| of the ear-canal admittance (1/Z).
+    Ymag,
+    /// ∠Y.
+    Yang,
+    /// |R| of the pressure reflectance.
+    Rmag,
+    /// ∠R.
+    Rang,
+    /// |R|², the power reflectance (1 − absorbance).
+    PowerReflectance,
     /// The ear canal's cross-section at the probe (the WAI database's AreaCanal).
     Area,
 }
 
 /// Each quantity's canonical column name and the names it is found by (lower case,
 /// letters and digits only: `|Z|` is `z`, `Zang_deg` would be `zangdeg`).
-pub const COLUMNS: [(Quantity, &str, &[&str]); 7] = [
+pub const COLUMNS: [(Quantity, &str, &[&str]); 12] = [
     (Quantity::Frequency, "Frequency", &["frequency", "freq", "f", "hz", "frequencyhz"]),
     (Quantity::Absorbance, "Absorbance", &["absorbance", "a", "powerabsorbance", "energyabsorbance"]),
     (Quantity::Zmag, "Zmag", &["zmag", "z", "zmagnitude", "impedancemagnitude", "impedancemag"]),
     (Quantity::Zang, "Zang", &["zang", "zangle", "zphase", "impedanceangle", "impedancephase"]),
     (Quantity::VstMag, "VstMag", &["vstmag", "vst", "stapesvelocity", "stapesvelocitymagnitude", "stapesvelocitymag"]),
     (Quantity::VstAng, "VstAng", &["vstang", "vstphase", "stapesvelocityphase", "stapesvelocityangle"]),
+    (Quantity::Ymag, "Ymag", &["ymag", "y", "ymagnitude", "admittancemagnitude", "admittancemag", "admittance"]),
+    (Quantity::Yang, "Yang", &["yang", "yangle", "yphase", "admittanceangle", "admittancephase"]),
+    (
+        Quantity::Rmag,
+        "Rmag",
+        &["rmag", "r", "reflectancemagnitude", "reflectancemag", "pressurereflectance", "pressurereflectancemagnitude"],
+    ),
+    (
+        Quantity::Rang,
+        "Rang",
+        &["rang", "rangle", "rphase", "reflectanceangle", "reflectancephase", "pressurereflectancephase"],
+    ),
+    (Quantity::PowerReflectance, "PowerReflectance", &["powerreflectance", "energyreflectance", "r2"]),
     (Quantity::Area, "AreaCanal", &["areacanal", "canalarea", "area"]),
 ];
 
@@ -57,8 +83,22 @@ const PHASE: [(&[&str], &str); 3] = [
 ];
 /// Frequency units: (accepted names, factor to Hz).
 const FREQUENCY: [(&[&str], f64); 2] = [(&["Hz"], 1.0), (&["kHz"], 1e3)];
-/// Absorbance units: (accepted names, factor to a fraction).
+/// Absorbance and reflectance units: (accepted names, factor to a fraction).
 const FRACTION: [(&[&str], f64); 2] = [(&["1", "fraction"], 1.0), (&["%", "percent"], 0.01)];
+/// Admittance units: (accepted names, factor to m³/(Pa·s)). The acoustic mho of
+/// tympanometry is the CGS one, cm⁵/(dyn·s) = 1e-5 m³/(Pa·s); 1 mmho ≈ the admittance of
+/// 1 cm³ of air at 226 Hz.
+const ADMITTANCE: [(&[&str], f64); 4] = [
+    (&["m^3/(Pa*s)", "m³/(Pa·s)", "SI"], 1.0),
+    (&["mmho", "acoustic mmho"], 1e-8),
+    (&["umho", "µmho"], 1e-11),
+    (&["mho", "cgs", "cm^5/(dyn*s)"], 1e-5),
+];
+/// Canal cross-section units: (accepted names, factor to m²).
+const AREA: [(&[&str], f64); 3] =
+    [(&["mm2", "mm²", "mm^2"], 1e-6), (&["cm2", "cm²", "cm^2"], 1e-4), (&["m2", "m²", "m^2"], 1.0)];
+/// Adult ear-canal cross-sections, m²: outside, the unit is likely wrong.
+const AREA_RANGE: (f64, f64) = (10e-6, 150e-6);
 
 /// Units a family of exports always uses, for columns whose header declares none.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -373,43 +413,17 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
     }
     let mut m = Measurements::default();
     let mut columns = Vec::new();
-    if let Some(c) = find(Quantity::Absorbance) {
-        let k = unit(c, &FRACTION, Some(1.0))?;
-        let (fa, v) = series(&rows, &f, &[c])?;
-        if c.unit.is_none()
-            && let Some(i) = v[0].iter().position(|a| *a > 1.05)
-        {
-            return Err(FormatError::Column {
-                column: c.name.clone(),
-                message: format!(
-                    "{} is above 1 (absorbance is a fraction of power); in percent? write '{} [%]' in the header",
-                    v[0][i], c.name
-                ),
-            });
-        }
-        if !fa.is_empty() {
-            m.absorbance = Some(Values { frequencies_hz: fa, values: v[0].iter().map(|a| a * k).collect() });
-            columns.push(("measurements.absorbance".to_string(), c.name.clone()));
-        }
-    }
-    m.impedance =
-        mag_phase(&rows, &f, find(Quantity::Zmag), find(Quantity::Zang), &IMPEDANCE_UNITS, "impedance", &mut columns)?;
+    let t = Table { rows: &rows, f: &f };
+    m.absorbance = absorbance(&t, &find, &mut columns, &mut notes)?;
+    m.impedance = impedance(&t, &find, &mut columns, &mut notes)?;
     m.stapes_velocity = mag_phase(
-        &rows,
-        &f,
+        &t,
         find(Quantity::VstMag),
         find(Quantity::VstAng),
         &VELOCITY_UNITS,
         "stapes_velocity",
         &mut columns,
     )?;
-    if let Some(c) = find(Quantity::Area) {
-        notes.push(format!(
-            "{} not used: impedance and absorbance were given as measured, and the model infers the canal area \
-             (canal_area) with the tissue",
-            c.name
-        ));
-    }
     if m.absorbance.is_none() && m.impedance.is_none() && m.stapes_velocity.is_none() {
         let known: Vec<&str> = COLUMNS.iter().skip(1).map(|(_, n, _)| *n).collect();
         return Err(FormatError::Table(format!(
@@ -421,31 +435,210 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
     Ok(Imported { measurements: m, notes, columns })
 }
 
+/// The selected rows and their frequencies (Hz).
+struct Table<'a> {
+    rows: &'a Rows,
+    f: &'a [f64],
+}
+
+/// Absorbance from an Absorbance column, else from power reflectance (1 − |R|²), else
+/// from |R| (1 − |R|²).
+fn absorbance<'c>(
+    t: &Table,
+    find: &impl Fn(Quantity) -> Option<&'c Col>,
+    columns: &mut Vec<(String, String)>,
+    notes: &mut Vec<String>,
+) -> Result<Option<Values>, FormatError> {
+    let (a, pr) = (find(Quantity::Absorbance), find(Quantity::PowerReflectance));
+    if let (Some(a), Some(pr)) = (a, pr) {
+        return Err(FormatError::Column {
+            column: pr.name.clone(),
+            message: format!("gives the absorbance (1 − power reflectance) that column '{}' gives: keep one", a.name),
+        });
+    }
+    let Some((c, from_r)) =
+        a.map(|c| (c, None)).or(pr.map(|c| (c, Some(1)))).or(find(Quantity::Rmag).map(|c| (c, Some(2))))
+    else {
+        return Ok(None);
+    };
+    let k = unit(c, &FRACTION, Some(1.0))?;
+    let (fa, v) = series(t.rows, t.f, &[c])?;
+    let top = if from_r == Some(2) { 1.03 } else { 1.05 };
+    if let Some(i) = v[0].iter().position(|a| *a < 0.0 || *a * k > top) {
+        let percent = if c.unit.is_none() && v[0][i] > 1.0 {
+            format!("; in percent? write '{} [%]' in the header", c.name)
+        } else {
+            String::new()
+        };
+        return Err(FormatError::Column {
+            column: c.name.clone(),
+            message: format!("{} is outside 0–1 (a fraction of power or pressure){percent}", v[0][i]),
+        });
+    }
+    if fa.is_empty() {
+        return Ok(None);
+    }
+    let values: Vec<f64> = match from_r {
+        None => v[0].iter().map(|a| a * k).collect(),
+        Some(1) => v[0].iter().map(|r2| 1.0 - r2 * k).collect(),
+        _ => v[0].iter().map(|r| 1.0 - (r * k).powi(2)).collect(),
+    };
+    if from_r.is_some() {
+        notes.push(format!("absorbance from {}: A = 1 − |R|²", c.name));
+    }
+    columns.push(("measurements.absorbance".to_string(), c.name.clone()));
+    Ok(Some(Values { frequencies_hz: fa, values }))
+}
+
+/// The impedance from Zmag + Zang, else from an admittance (Z = 1/Y), else from pressure
+/// reflectance and the canal area (Z = Z0 (1 + R)/(1 − R), Z0 = ρc/S).
+fn impedance<'c>(
+    t: &Table,
+    find: &impl Fn(Quantity) -> Option<&'c Col>,
+    columns: &mut Vec<(String, String)>,
+    notes: &mut Vec<String>,
+) -> Result<Option<MagPhase>, FormatError> {
+    use super::immittance;
+    let (zm, za) = (find(Quantity::Zmag), find(Quantity::Zang));
+    let (ym, ya) = (find(Quantity::Ymag), find(Quantity::Yang));
+    let (rm, ra, area) = (find(Quantity::Rmag), find(Quantity::Rang), find(Quantity::Area));
+    let unused = |notes: &mut Vec<String>, why: &str| {
+        let cols: Vec<&str> = [ra, area].into_iter().flatten().map(|c| c.name.as_str()).collect();
+        if !cols.is_empty() {
+            notes.push(format!("{} not used: {why}", cols.join(", ")));
+        }
+    };
+    if zm.is_some() || za.is_some() {
+        if let Some(y) = ym.or(ya) {
+            return Err(FormatError::Column {
+                column: y.name.clone(),
+                message: "the table gives the impedance (Zmag, Zang) too: keep one".into(),
+            });
+        }
+        unused(notes, "the impedance was given as measured (the model infers the canal area with the tissue)");
+        return mag_phase(t, zm, za, &IMPEDANCE_UNITS, "impedance", columns);
+    }
+    if let Some((ym, ya)) = both(ym, ya)? {
+        let k = unit(ym, &ADMITTANCE, None)?;
+        let phase_unit = unit(ya, &PHASE, None)?;
+        let (fy, v) = series(t.rows, t.f, &[ym, ya])?;
+        if fy.is_empty() {
+            return Ok(None);
+        }
+        let mut z = MagPhase {
+            frequencies_hz: fy,
+            magnitude: Vec::new(),
+            phase: Vec::new(),
+            magnitude_unit: Some("Pa·s/m³".into()),
+            phase_unit: Some(phase_unit.into()),
+        };
+        for (y, p) in v[0].iter().zip(&v[1]) {
+            if *y <= 0.0 {
+                return Err(FormatError::Column {
+                    column: ym.name.clone(),
+                    message: format!("{y}: an admittance magnitude must be > 0"),
+                });
+            }
+            let (m, p) = immittance::impedance_from_admittance(y * k, *p);
+            z.magnitude.push(m);
+            z.phase.push(p);
+        }
+        notes.push(format!("impedance from the admittance {}, {}: |Z| = 1/|Y|, ∠Z = −∠Y", ym.name, ya.name));
+        columns.push(("measurements.impedance.magnitude".into(), ym.name.clone()));
+        columns.push(("measurements.impedance.phase".into(), ya.name.clone()));
+        unused(notes, "the impedance came from the admittance");
+        return Ok(Some(z));
+    }
+    let (Some(rm), Some(ra)) = (rm, ra) else {
+        unused(notes, "no impedance, admittance or reflectance phase to use it with");
+        return Ok(None);
+    };
+    let Some(area) = area else {
+        notes.push(format!(
+            "{} not used: an impedance from reflectance needs the canal area (an AreaCanal column); absorbance only",
+            ra.name
+        ));
+        return Ok(None);
+    };
+    let s = unit(area, &AREA, None)?;
+    let pu = unit(ra, &PHASE, None)?;
+    let ph = PHASE_UNITS.iter().find(|(n, _)| *n == pu).map_or(1.0, |(_, k)| *k);
+    let k = unit(rm, &FRACTION, Some(1.0))?;
+    let (fr, v) = series(t.rows, t.f, &[rm, ra, area])?;
+    if fr.is_empty() {
+        return Ok(None);
+    }
+    let (mut mag, mut phase, mut z0s) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, fz) in fr.iter().enumerate() {
+        let line = t.rows[t.f.iter().position(|x| x == fz).unwrap_or(0)].0;
+        let sa = v[2][i] * s;
+        if !(AREA_RANGE.0..=AREA_RANGE.1).contains(&sa) {
+            return Err(FormatError::Cell {
+                line,
+                column: area.name.clone(),
+                message: format!(
+                    "{} m² is outside 10–150 mm², an adult ear canal's cross-section: is the unit right?",
+                    sa
+                ),
+            });
+        }
+        let z0 = immittance::z0(sa);
+        let (zm, zp) = immittance::impedance_from_reflectance(v[0][i] * k, v[1][i] * ph, z0).ok_or_else(|| {
+            FormatError::Cell { line, column: rm.name.clone(), message: "R = 1: an infinite impedance".into() }
+        })?;
+        mag.push(zm);
+        phase.push(zp);
+        z0s.push(z0);
+    }
+    notes.push(format!(
+        "impedance from {}, {} and {}: Z = Z0 (1 + R)/(1 − R), Z0 = ρc/S = {:.3e} Pa·s/m³ (ρc = {:.1} Pa·s/m, air at \
+         37 °C; S from {}); a device that assumed another ρc or area gives |Z| off by that ratio",
+        rm.name,
+        ra.name,
+        area.name,
+        z0s[0],
+        immittance::rho_c(),
+        area.name
+    ));
+    for field in ["measurements.impedance.magnitude", "measurements.impedance.phase"] {
+        columns.push((field.into(), format!("{}/{}", rm.name, ra.name)));
+    }
+    Ok(Some(MagPhase {
+        frequencies_hz: fr,
+        magnitude: mag,
+        phase,
+        magnitude_unit: Some("Pa·s/m³".into()),
+        phase_unit: Some("rad".into()),
+    }))
+}
+
+/// A magnitude column and its phase column, both or neither.
+fn both<'c>(mag: Option<&'c Col>, ang: Option<&'c Col>) -> Result<Option<(&'c Col, &'c Col)>, FormatError> {
+    match (mag, ang) {
+        (None, None) => Ok(None),
+        (Some(m), Some(a)) => Ok(Some((m, a))),
+        (Some(c), None) | (None, Some(c)) => Err(FormatError::Column {
+            column: c.name.clone(),
+            message: "a magnitude needs its phase column and a phase its magnitude column".into(),
+        }),
+    }
+}
+
 /// A magnitude/phase pair of columns as a measure in its declared units; both columns or
 /// neither.
 fn mag_phase(
-    rows: &Rows,
-    f: &[f64],
+    t: &Table,
     mag: Option<&Col>,
     ang: Option<&Col>,
     units: &[(&[&str], Option<f64>)],
     field: &str,
     columns: &mut Vec<(String, String)>,
 ) -> Result<Option<MagPhase>, FormatError> {
-    let (mag, ang) = match (mag, ang) {
-        (None, None) => return Ok(None),
-        (Some(m), Some(a)) => (m, a),
-        (Some(c), None) | (None, Some(c)) => {
-            return Err(FormatError::Column {
-                column: c.name.clone(),
-                message: "a magnitude needs its phase column and a phase its magnitude column".into(),
-            });
-        }
-    };
+    let Some((mag, ang)) = both(mag, ang)? else { return Ok(None) };
     let names: Vec<(&[&str], &str)> = units.iter().map(|(n, _)| (*n, n[0])).collect();
     let mag_unit = unit(mag, &names, None)?;
     let phase_unit = unit(ang, &PHASE, None)?;
-    let (fm, v) = series(rows, f, &[mag, ang])?;
+    let (fm, v) = series(t.rows, t.f, &[mag, ang])?;
     if fm.is_empty() {
         return Ok(None);
     }
@@ -540,5 +733,51 @@ mod tests {
         let z = imp.measurements.impedance.as_ref().unwrap();
         assert_eq!(z.frequencies_hz, [200.0, 500.0]);
         assert_eq!((z.magnitude_unit.as_deref(), z.phase_unit.as_deref()), (Some("cgs"), Some("deg")));
+    }
+
+    #[test]
+    fn reflectance_and_admittance_become_impedance_and_absorbance() {
+        use crate::formats::immittance::{reflectance_from_impedance, z0};
+        let z = [(226.0, 8.4e7, -1.48), (1000.0, 1.9e7, -1.17), (4000.0, 1.14e7, -1.25)];
+        let mut r = String::from("Frequency,Rmag,Rang [rad],AreaCanal [mm2]\n");
+        let mut y = String::from("Frequency,Ymag [mmho],Yang [deg]\n");
+        for (f, m, p) in z {
+            let (rm, rp) = reflectance_from_impedance(m, p, z0(44.2e-6));
+            r.push_str(&format!("{f},{rm:e},{rp:e},44.2\n"));
+            y.push_str(&format!("{f},{:e},{:e}\n", 1.0 / m / 1e-8, -p.to_degrees()));
+        }
+        let imp = read(&r, &LongOptions::default()).unwrap();
+        let zr = imp.measurements.impedance.as_ref().unwrap();
+        let a = imp.measurements.absorbance.as_ref().unwrap();
+        for (k, (_, m, p)) in z.iter().enumerate() {
+            assert!((zr.magnitude[k] / m - 1.0).abs() < 1e-9 && (zr.phase[k] - p).abs() < 1e-9, "{zr:?}");
+            let want = crate::sim::air::absorbance(faer::c64::from_polar(*m, *p), z0(44.2e-6));
+            assert!((a.values[k] - want).abs() < 1e-9, "{a:?}");
+        }
+        assert!(imp.notes.iter().any(|n| n.contains("Z0 = ρc/S")), "{:?}", imp.notes);
+        let imp = read(&y, &LongOptions::default()).unwrap();
+        let zy = imp.measurements.impedance.as_ref().unwrap();
+        assert_eq!(zy.phase_unit.as_deref(), Some("deg"));
+        for (k, (_, m, p)) in z.iter().enumerate() {
+            assert!((zy.magnitude[k] / m - 1.0).abs() < 1e-9 && (zy.phase[k] - p.to_degrees()).abs() < 1e-9, "{zy:?}");
+        }
+        assert!(imp.measurements.absorbance.is_none());
+        // Without the area, reflectance gives the absorbance only, and says so.
+        let no_area = r.replace(",AreaCanal [mm2]", "").replace(",44.2\n", "\n");
+        let imp = read(&no_area, &LongOptions::default()).unwrap();
+        assert!(imp.measurements.impedance.is_none() && imp.measurements.absorbance.is_some());
+        assert!(imp.notes.iter().any(|n| n.contains("needs the canal area")), "{:?}", imp.notes);
+        let err = |text: String| read(&text, &LongOptions::default()).unwrap_err();
+        let e = err(r.replace("AreaCanal [mm2]", "AreaCanal"));
+        assert!(e.field() == "AreaCanal" && e.message().contains("no unit"), "{e}");
+        let e = err(r.replace("AreaCanal [mm2]", "AreaCanal [m2]"));
+        assert!(e.field() == "AreaCanal[line 2]" && e.message().contains("is the unit right"), "{e}");
+        let e =
+            err("Frequency,Ymag [mmho],Yang [deg],Zmag [cgs],Zang [deg]\n200,1,80,800,-80\n400,2,70,700,-70\n".into());
+        assert!(e.field() == "Ymag" && e.message().contains("keep one"), "{e}");
+        let e = err("Frequency,Absorbance,PowerReflectance\n200,0.1,0.9\n400,0.2,0.8\n".into());
+        assert_eq!(e.field(), "PowerReflectance", "{e}");
+        let e = err("Frequency,Ymag [ohm],Yang [deg]\n200,1,80\n400,2,70\n".into());
+        assert!(e.field() == "Ymag" && e.message().contains("mmho"), "{e}");
     }
 }

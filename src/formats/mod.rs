@@ -9,6 +9,7 @@
 
 use crate::measurements::Measurements;
 
+pub mod immittance;
 pub mod long;
 
 /// Why a file cannot be read as measurements.

@@ -617,3 +617,75 @@ fn long_layout_tables_infer_directly_and_errors_name_the_column() {
     assert!(e.contains("column 'Ear'"), "{e}");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+#[test]
+fn reflectance_and_admittance_tables_become_the_same_ear() {
+    // tests/data/wai_reflectance.csv and admittance_long.csv: the left ear of wai_long.csv
+    // as pressure reflectance (|R|, ∠R in degrees, AreaCanal 44.2 mm², Z0 = ρc/S at
+    // 37 °C) and as admittance (mmho, degrees).
+    let d = scratch("refl");
+    let data = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/");
+    let import = |preset: &str, file: &str, out: &str| {
+        let out = d.join(out);
+        let o = otofit(&[
+            "import",
+            preset,
+            "--in",
+            &format!("{data}{file}"),
+            "--select",
+            "Ear=Left",
+            "--out",
+            out.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(out).unwrap()).unwrap();
+        (doc["measurements"].clone(), String::from_utf8_lossy(&o.stderr).to_string())
+    };
+    let (z, _) = import("wai", "wai_long.csv", "z.json");
+    let (r, notes) = import("csv", "wai_reflectance.csv", "r.json");
+    assert!(notes.contains("Z0 = ρc/S"), "{notes}");
+    let (y, notes) = {
+        let out = d.join("y.json");
+        let o =
+            otofit(&["import", "csv", "--in", &format!("{data}admittance_long.csv"), "--out", out.to_str().unwrap()]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(out).unwrap()).unwrap();
+        (doc["measurements"].clone(), String::from_utf8_lossy(&o.stderr).to_string())
+    };
+    assert!(notes.contains("|Z| = 1/|Y|"), "{notes}");
+    let v = |m: &serde_json::Value, k: &str| -> Vec<f64> {
+        m["impedance"][k].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
+    };
+    let turn = |m: &serde_json::Value| match m["impedance"]["phase_unit"].as_str().unwrap() {
+        "cycles" => 360.0,
+        "deg" => 1.0,
+        _ => 180.0 / std::f64::consts::PI,
+    };
+    for other in [&r, &y] {
+        for (k, (a, b)) in v(&z, "magnitude").iter().zip(v(other, "magnitude")).enumerate() {
+            assert!((b / a - 1.0).abs() < 2e-3, "|Z| at {k}: {a} vs {b}");
+        }
+        for (k, (a, b)) in v(&z, "phase").iter().zip(v(other, "phase")).enumerate() {
+            assert!((b * turn(other) - a * turn(&z)).abs() < 0.05, "∠Z at {k}: {a} vs {b}");
+        }
+    }
+    // Absorbance from |R| against the file's own (which the simulator computed with air
+    // at 22 °C and 44 mm²): the same to 0.01 up to 6 kHz.
+    let a = |m: &serde_json::Value| -> Vec<f64> {
+        m["absorbance"]["values"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
+    };
+    let f: Vec<f64> =
+        z["absorbance"]["frequencies_hz"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+    for ((fk, a1), a2) in f.iter().zip(a(&z)).zip(a(&r)).filter(|((fk, _), _)| **fk < 6000.0) {
+        assert!((a1 - a2).abs() < 0.01, "A({fk} Hz): {a1} vs {a2}");
+    }
+    // And the reflectance table infers as it is.
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let out = d.join("s.csv");
+    let obs = format!("{data}wai_reflectance.csv");
+    let o = otofit(&["infer", "--model", model, "--obs", &obs, "--samples", "300", "--out", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let res: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(res["fit"]["ok"], true, "{}", res["fit"]);
+    let _ = std::fs::remove_dir_all(&d);
+}
