@@ -12,7 +12,7 @@ use tower::ServiceExt;
 
 const SPEC: &str = include_str!("../../openapi.yaml");
 
-fn default_model() -> PathBuf {
+pub(crate) fn default_model() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")
 }
 
@@ -379,7 +379,7 @@ async fn diagnose_job_writes_a_report_with_figures() {
 }
 
 /// Blocking HTTP/1.1 over std (the real binary, on a socket).
-fn http(port: u16, method: &str, path: &str, body: Option<&str>) -> Option<(u16, Value)> {
+pub(crate) fn http(port: u16, method: &str, path: &str, body: Option<&str>) -> Option<(u16, Value)> {
     use std::io::{Read, Write};
     let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).ok()?;
     let b = body.unwrap_or("");
@@ -486,7 +486,7 @@ async fn poison_pill_theta_is_refused_and_extreme_allowed_rows_finish() {
 }
 
 /// The openapi.yaml /infer example (the nominal ear, noise-free, SI units and radians).
-fn nominal_request() -> Value {
+pub(crate) fn nominal_request() -> Value {
     spec_examples().into_iter().find(|(p, _)| p == "/infer").unwrap().1
 }
 

@@ -417,3 +417,82 @@ async fn a_killed_worker_process_loses_its_job_to_another_after_the_lease() {
     let x = std::fs::read_to_string(data.join("datasets").join("k").join("x.csv")).unwrap();
     assert_eq!(x.lines().count(), 30_001);
 }
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// An HTTP-only `serve` (`--workers 0`) on `url`; waits until it answers /health.
+fn spawn_serve(url: &str, data: &Path, port: u16) -> std::process::Child {
+    let model = crate::http::default_model();
+    let child = Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["serve", "--database", url, "--data-dir", data.to_str().unwrap(), "--workers", "0"])
+        .args(["--addr", &format!("127.0.0.1:{port}"), "--default-model", model.to_str().unwrap()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    let t0 = Instant::now();
+    while crate::http::http(port, "GET", "/health", None).is_none() && t0.elapsed() < Duration::from_secs(30) {
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    child
+}
+
+/// Two `serve` processes on one PostgreSQL and one data directory (no lock between them):
+/// both answer /infer, a job posted to one is seen through the other, a worker process
+/// runs it, and its dataset is served by either.
+#[test]
+fn two_servers_share_one_job_table_and_both_answer_infer() {
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let Some(url) = rt.block_on(fresh_database()) else { return };
+    let data = temp_dir("pg2s");
+    let (a, b) = (free_port(), free_port());
+    let mut procs = vec![spawn_serve(&url, &data, a), spawn_serve(&url, &data, b)];
+    let infer = crate::http::nominal_request().to_string();
+    let req = |port, method, path: &str, body: Option<&str>| crate::http::http(port, method, path, body).unwrap();
+    for port in [a, b] {
+        let (status, body) = req(port, "POST", "/infer", Some(&infer));
+        assert_eq!(status, 200, "server on {port}: {body}");
+    }
+    let (status, job) = req(a, "POST", "/jobs", Some(r#"{"kind":"simulate","params":{"n":50,"seed":5}}"#));
+    assert_eq!(status, 202, "{job}");
+    let id = job["id"].as_str().unwrap().to_string();
+    let (status, seen) = req(b, "GET", &format!("/jobs/{id}"), None);
+    assert_eq!((status, seen["state"].as_str()), (200, Some("queued")), "no dispatcher runs it yet: {seen}");
+    procs.push(spawn_worker(&url, &data, "30"));
+    let t0 = Instant::now();
+    let mut last = serde_json::Value::Null;
+    while t0.elapsed() < Duration::from_secs(60) {
+        last = req(b, "GET", &format!("/jobs/{id}"), None).1;
+        if last["state"] != "queued" && last["state"] != "running" {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (status, ds) = req(a, "GET", &format!("/datasets/{id}"), None);
+    for p in &mut procs {
+        let _ = p.kill();
+        let _ = p.wait();
+    }
+    assert_eq!(last["state"], "succeeded", "{last}");
+    assert_eq!((status, ds["rows"].as_u64()), (200, Some(50)), "{ds}");
+}
+
+/// The scale-out flags are checked before anything starts, each error naming its flag.
+#[test]
+fn scale_out_flags_are_validated_naming_the_flag() {
+    let cases: [(&[&str], &str); 6] = [
+        (&["worker", "--database", "mysql://db/otofit"], "--database"),
+        (&["worker", "--lease-seconds", "0"], "--lease-seconds"),
+        (&["worker", "--concurrency", "0"], "--concurrency"),
+        (&["worker", "--threads", "0"], "--threads"),
+        (&["serve", "--workers", "65"], "--workers"),
+        (&["serve", "--database", "sqlite://"], "--database"),
+    ];
+    for (args, flag) in cases {
+        let out = Command::new(env!("CARGO_BIN_EXE_otofit")).args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success() && err.contains(flag), "{args:?}: {err}");
+    }
+}
