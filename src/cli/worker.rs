@@ -5,7 +5,7 @@
 
 use super::serve::{database_arg, lease_arg, open_state, shutdown_signal, stop_dispatchers};
 use crate::jobs;
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -28,6 +28,11 @@ pub struct WorkerArgs {
     /// Seconds a claimed job's lease lasts; renewed every third of it.
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
+    /// Serve GET /metrics (Prometheus text: this worker's claims, simulated rows, job
+    /// durations, and the job table) on this address; no API, no keys: keep it on
+    /// loopback or a private network.
+    #[arg(long)]
+    pub metrics_addr: Option<std::net::SocketAddr>,
     /// Logs as JSON lines.
     #[arg(long)]
     pub log_json: bool,
@@ -57,6 +62,14 @@ pub fn run(args: WorkerArgs) -> Result<()> {
             lease_seconds = lease.as_secs_f64(),
             "otofit worker started"
         );
+        if let Some(addr) = args.metrics_addr {
+            let listener = tokio::net::TcpListener::bind(addr)
+                .await
+                .with_context(|| format!("--metrics-addr: cannot listen on {addr}"))?;
+            let app = crate::http::metrics_router(ctx.clone());
+            tokio::spawn(async move { axum::serve(listener, app).await });
+            tracing::info!(%addr, "serving /metrics");
+        }
         let dispatchers: Vec<_> = (0..args.concurrency).map(|_| tokio::spawn(jobs::dispatcher(ctx.clone()))).collect();
         shutdown_signal().await;
         tracing::info!("shutting down: no new jobs; the running ones stop at their next check");

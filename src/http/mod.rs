@@ -356,6 +356,11 @@ pub fn with_request_timeout(app: Router, timeout: Duration) -> Router {
         .layer(middleware::from_fn(problems))
 }
 
+/// GET /metrics alone, for a worker's `--metrics-addr` (a process without the API).
+pub fn metrics_router(ctx: Arc<Ctx>) -> Router {
+    Router::new().route("/metrics", get(resources::metrics)).with_state(AppState::new(ctx, vec![]))
+}
+
 pub fn router(state: AppState) -> Router {
     use resources::*;
     Router::new()

@@ -460,7 +460,11 @@ fn two_servers_share_one_job_table_and_both_answer_infer() {
     let id = job["id"].as_str().unwrap().to_string();
     let (status, seen) = req(b, "GET", &format!("/jobs/{id}"), None);
     assert_eq!((status, seen["state"].as_str()), (200, Some("queued")), "no dispatcher runs it yet: {seen}");
-    procs.push(spawn_worker(&url, &data, "30"));
+    let metrics_port = free_port();
+    let mut worker = Command::new(env!("CARGO_BIN_EXE_otofit"));
+    worker.args(["worker", "--database", &url, "--data-dir", data.to_str().unwrap()]);
+    worker.args(["--metrics-addr", &format!("127.0.0.1:{metrics_port}")]);
+    procs.push(worker.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap());
     let t0 = Instant::now();
     let mut last = serde_json::Value::Null;
     while t0.elapsed() < Duration::from_secs(60) {
@@ -471,12 +475,31 @@ fn two_servers_share_one_job_table_and_both_answer_infer() {
         std::thread::sleep(Duration::from_millis(100));
     }
     let (status, ds) = req(a, "GET", &format!("/datasets/{id}"), None);
+    // The worker's own /metrics: its claim and its rows (the servers ran no job).
+    let worker_metrics = metrics_text(metrics_port);
+    let server_metrics = metrics_text(a);
     for p in &mut procs {
         let _ = p.kill();
         let _ = p.wait();
     }
     assert_eq!(last["state"], "succeeded", "{last}");
     assert_eq!((status, ds["rows"].as_u64()), (200, Some(50)), "{ds}");
+    for line in ["otofit_job_claims_total 1", "otofit_simulated_rows_total 50"] {
+        assert!(worker_metrics.lines().any(|l| l == line), "worker: no '{line}' in\n{worker_metrics}");
+    }
+    assert!(server_metrics.lines().any(|l| l == "otofit_jobs{kind=\"simulate\",state=\"succeeded\"} 1"));
+    assert!(server_metrics.lines().any(|l| l == "otofit_simulated_rows_total 0"), "{server_metrics}");
+}
+
+/// The body of GET /metrics on `port` (plain text).
+fn metrics_text(port: u16) -> String {
+    use std::io::{Read, Write};
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.write_all(b"GET /metrics HTTP/1.1\r\nHost: localhost\r\nConnection: close\r\n\r\n").unwrap();
+    let mut out = String::new();
+    s.read_to_string(&mut out).unwrap();
+    assert!(out.starts_with("HTTP/1.1 200"), "{out}");
+    out.split("\r\n\r\n").nth(1).unwrap_or("").to_string()
 }
 
 /// The scale-out flags are checked before anything starts, each error naming its flag.
