@@ -23,11 +23,13 @@ pub enum BenchWhat {
     },
     /// POST /infer latency: concurrent clients against an in-process server on loopback.
     Infer {
+        /// Concurrent clients (closed loop: each sends its next request on the answer).
         #[arg(long, default_value_t = 16)]
         clients: usize,
         /// Requests per client.
         #[arg(long, default_value_t = 10)]
         requests: usize,
+        /// Posterior samples per request.
         #[arg(long, default_value_t = 1000)]
         samples: usize,
     },
@@ -47,11 +49,13 @@ pub enum BenchWhat {
     /// The trust layer: fit-check false alarms on the model's own ears, detection of
     /// strong hidden effects, readings of ears at the centre of the normal ranges.
     Fit {
+        /// The model whose fit check is measured.
         #[arg(long, default_value = "models/default.otofit")]
         model: std::path::PathBuf,
         /// Cases per group (null, each effect, centre ears).
         #[arg(long, default_value_t = 100)]
         cases: usize,
+        /// Seed of the cases and their noise.
         #[arg(long, default_value_t = 1)]
         seed: u64,
         /// Feature groups given, comma-separated (e.g. impedance,absorbance: WBT alone); all if empty.
@@ -69,6 +73,7 @@ pub enum BenchWhat {
         /// Effect-free cases (false alarms).
         #[arg(long, default_value_t = 50)]
         clean: usize,
+        /// Seed of the cases, the null and the fits.
         #[arg(long, default_value_t = 1)]
         seed: u64,
     },

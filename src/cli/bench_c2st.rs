@@ -21,6 +21,7 @@ pub struct C2stArgs {
     /// Posterior and reference draws per observation.
     #[arg(long, default_value_t = 10_000)]
     pub samples: usize,
+    /// Seed of the simulations, the training and the classifier.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Cap on the classifier's epochs (lower: faster, less sensitive; for quick comparisons).
@@ -42,13 +43,16 @@ pub struct C2stArgs {
     /// Training settings to compare (defaults: `otofit train`'s).
     #[arg(long, value_enum)]
     pub theta_map: Option<ThetaMapArg>,
+    /// Spline tail bound B (the flow is the identity outside [−B, B]).
     #[arg(long)]
     pub tail_bound: Option<f64>,
     /// Residual blocks per conditioner (0: plain MLP).
     #[arg(long)]
     pub blocks: Option<usize>,
+    /// Training batch size.
     #[arg(long)]
     pub batch: Option<usize>,
+    /// Initial learning rate.
     #[arg(long)]
     pub lr: Option<f64>,
     /// Halve the learning rate after this many epochs without improvement (0: constant).
@@ -57,8 +61,10 @@ pub struct C2stArgs {
     /// At the patience limit, divide the learning rate by 10 and go on, this many times.
     #[arg(long)]
     pub lr_drops: Option<usize>,
+    /// Early-stopping epochs without improvement.
     #[arg(long)]
     pub patience: Option<usize>,
+    /// Share of the simulations held out for validation (early stopping).
     #[arg(long)]
     pub val_fraction: Option<f64>,
 }

@@ -37,9 +37,12 @@ pub struct CalibrateArgs {
     #[arg(long, default_value_t = 500)]
     pub null_cases: usize,
     /// Folder for calibration.json and calibration.svg (coverage curve, SBC rank
-    /// histograms); without it the full JSON goes to stdout.
+    /// histograms), besides the table on stdout.
     #[arg(long)]
     pub report: Option<PathBuf>,
+    /// Print the full result as JSON (coverage per level, SBC ranks) instead of the table.
+    #[arg(long, conflicts_with = "tune")]
+    pub json: bool,
 }
 
 pub fn run(args: CalibrateArgs) -> Result<()> {
@@ -91,10 +94,18 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("--report {}: cannot create it", dir.display()))?;
     }
     let cal = calibrate(&model, &rows, args.samples, args.seed)?;
-    let Some(dir) = &args.report else {
+    if let Some(dir) = &args.report {
+        let ranks: Vec<(&str, Vec<usize>)> = cal.sbc_ranks.iter().map(|r| (r.name.as_str(), r.ranks.clone())).collect();
+        let title = format!("Calibration of {} on {} held-out simulations", args.model.display(), cal.rows);
+        let svg = crate::plot::calibration(&title, &cal.levels, &cal.coverage, &ranks, cal.samples_per_row);
+        std::fs::write(dir.join("calibration.svg"), svg)?;
+        std::fs::write(dir.join("calibration.json"), serde_json::to_vec(&cal)?)?;
+        eprintln!("wrote {0}/calibration.json and {0}/calibration.svg", dir.display());
+    }
+    if args.json {
         println!("{}", serde_json::to_string(&cal)?);
         return Ok(());
-    };
+    }
     println!(
         "joint HPD coverage on {} held-out rows ({} samples each, temperature {:.3}):",
         cal.rows, cal.samples_per_row, model.header.temperature
@@ -108,11 +119,5 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         let (chi2, _) = r.chi2(cal.samples_per_row, 10);
         println!("  {:<16} {:.3}  {:6.1}{}", r.name, m, chi2, if chi2 > 21.7 { "  (not uniform)" } else { "" });
     }
-    let ranks: Vec<(&str, Vec<usize>)> = cal.sbc_ranks.iter().map(|r| (r.name.as_str(), r.ranks.clone())).collect();
-    let title = format!("Calibration of {} on {} held-out simulations", args.model.display(), cal.rows);
-    let svg = crate::plot::calibration(&title, &cal.levels, &cal.coverage, &ranks, cal.samples_per_row);
-    std::fs::write(dir.join("calibration.svg"), svg)?;
-    std::fs::write(dir.join("calibration.json"), serde_json::to_vec(&cal)?)?;
-    eprintln!("wrote {0}/calibration.json and {0}/calibration.svg", dir.display());
     Ok(())
 }

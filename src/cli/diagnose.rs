@@ -17,6 +17,8 @@ pub struct DiagnoseArgs {
     /// One observation: CSV with a header of all 250 feature names.
     #[arg(long)]
     pub obs: PathBuf,
+    /// Report folder (created): report.html, report.json, the figures and, with an
+    /// extension, the extended model.
     #[arg(long)]
     pub out: PathBuf,
     /// `all` or a comma-separated list of effects.
@@ -34,6 +36,7 @@ pub struct DiagnoseArgs {
     /// Effect-free simulations for the null distribution of the statistics.
     #[arg(long, default_value_t = 40)]
     pub null_cases: usize,
+    /// Seed of the null simulations, the fits' starts and the extended training.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
 }

@@ -165,7 +165,9 @@ pub fn run(args: InferArgs) -> Result<()> {
     let names: Vec<&str> = model.params().iter().map(|p| p.name.as_str()).collect();
     let mut out = String::new();
     out.push_str(&if many { format!("obs,{}\n", names.join(",")) } else { format!("{}\n", names.join(",")) });
-    let stdout = std::io::stdout();
+    // The summaries are printed after --out is written: a reader that stops early
+    // (`| head -1`) must not cost the samples.
+    let mut summaries = Vec::with_capacity(rows.len());
     for (r, (x, present)) in rows.iter().enumerate() {
         let (x, present) = (x.as_slice(), present.as_slice());
         let inf = model
@@ -195,10 +197,14 @@ pub fn run(args: InferArgs) -> Result<()> {
             Err(e) => serde_json::json!({ "ok": null, "reason": e.to_string() }),
         };
         let json = serde_json::json!({ "observation": r, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
-        writeln!(stdout.lock(), "{json}")?;
+        summaries.push(json.to_string());
     }
     let tmp = args.out.with_extension("tmp");
     std::fs::write(&tmp, out).with_context(|| format!("cannot write {}", tmp.display()))?;
     std::fs::rename(&tmp, &args.out)?;
+    let mut stdout = std::io::stdout().lock();
+    for line in summaries {
+        writeln!(stdout, "{line}")?;
+    }
     Ok(())
 }

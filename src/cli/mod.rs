@@ -29,7 +29,8 @@ pub enum Command {
     Simulate(simulate::SimulateArgs),
     /// Find where model and measurement disagree, name the missing effect, add it.
     Diagnose(diagnose::DiagnoseArgs),
-    /// The seed study's analyses (validate, noise, size): tables, JSON and SVG figures.
+    /// The seed study's analyses (validate, noise, size, reference): tables, JSON and SVG
+    /// figures.
     Study(study::StudyArgs),
     /// Run the HTTP service (API + job queue).
     Serve(serve::ServeArgs),
@@ -39,7 +40,8 @@ pub enum Command {
     Train(train::TrainArgs),
     /// Posterior samples, MAP and summaries for observations.
     Infer(infer::InferArgs),
-    /// Coverage and SBC ranks on held-out simulations (JSON).
+    /// Coverage and SBC ranks on held-out simulations (a table, or JSON; --report: JSON
+    /// and an SVG figure).
     Calibrate(calibrate::CalibrateArgs),
     /// Measure speed (simulator, ...) on this machine.
     Bench(bench::BenchArgs),

@@ -28,6 +28,7 @@ pub struct SimulateArgs {
     /// norms, with its power budget, instead of writing a dataset.
     #[arg(long, conflicts_with = "n")]
     pub explain: bool,
+    /// Seed of the prior draws, the varied effects and the noise (same seed, same dataset).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Effects switched on for every row, e.g. `cavity=2e-6,ldv_angle=20`.
@@ -43,6 +44,7 @@ pub struct SimulateArgs {
     /// noise model, e.g. reference/std.csv.
     #[arg(long)]
     pub noise_table: Option<PathBuf>,
+    /// Air in the canal: temporal-bone (22 °C, the default) or live (37 °C).
     #[arg(long, value_enum, default_value_t = PresetArg::TemporalBone)]
     pub preset: PresetArg,
     /// Replace an existing dataset in --out.

@@ -23,7 +23,10 @@ pub enum StudyName {
 
 #[derive(Args, Debug)]
 pub struct StudyArgs {
+    /// validate (coverage and recovery on unseen simulations), noise (training noise
+    /// against test noise), size (training-set size), reference (the reference ear).
     pub name: StudyName,
+    /// Output folder (created): tables, JSON and SVG figures.
     #[arg(long)]
     pub out: PathBuf,
     /// Model for `validate` and `reference`.
@@ -35,8 +38,10 @@ pub struct StudyArgs {
     /// Training-set size for `noise`; the largest size for `size` (then /10, /100).
     #[arg(long, default_value_t = 10_000)]
     pub train_rows: usize,
+    /// Epochs at most for the models `noise` and `size` train.
     #[arg(long, default_value_t = 300)]
     pub max_epochs: usize,
+    /// Seed of the simulations, the training and the posterior draws.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
 }

@@ -13,6 +13,8 @@ pub struct TrainArgs {
     /// Model file to write.
     #[arg(long)]
     pub out: PathBuf,
+    /// Summary network in front of the flow: mlp (learned features of x) or none (x as
+    /// it is).
     #[arg(long, value_enum, default_value_t = Embedding::Mlp)]
     pub embedding: Embedding,
     /// Training noise: the dataset's noise model × K.
@@ -22,8 +24,10 @@ pub struct TrainArgs {
     /// noise model, e.g. reference/std.csv.
     #[arg(long)]
     pub noise_table: Option<PathBuf>,
+    /// Seed of the initial weights, the batches and the training noise.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Epochs at most (early stopping may end sooner: --patience).
     #[arg(long, default_value_t = 300)]
     pub max_epochs: usize,
     /// Stop when the validation loss has not improved for this many epochs.

@@ -176,7 +176,7 @@ fn train_infer_and_calibrate_from_the_command_line() {
     let csv = std::fs::read_to_string(&samples).unwrap();
     assert!(csv.starts_with("obs,E_eardrum,"));
     assert_eq!(csv.lines().count(), 201);
-    let o = s(&[
+    let calibrate = [
         "calibrate",
         "--model",
         model.to_str().unwrap(),
@@ -186,7 +186,13 @@ fn train_infer_and_calibrate_from_the_command_line() {
         "10",
         "--samples",
         "50",
-    ]);
+    ];
+    // A short table by default; the full result with --json.
+    let o = s(&calibrate);
+    let table = String::from_utf8_lossy(&o.stdout);
+    assert!(table.contains("joint HPD coverage on 10 held-out rows") && table.contains("SBC rank χ²"), "{table}");
+    assert!(table.lines().count() < 30, "{table}");
+    let o = s(&[&calibrate[..], &["--json"]].concat());
     let cal: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(cal["levels"].as_array().unwrap().len(), 19);
     // Errors name the problem.
@@ -688,4 +694,81 @@ fn reflectance_and_admittance_tables_become_the_same_ear() {
     let res: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(res["fit"]["ok"], true, "{}", res["fit"]);
     let _ = std::fs::remove_dir_all(&d);
+}
+
+#[test]
+fn a_closed_pipe_ends_quietly_and_never_costs_the_samples() {
+    use std::process::Stdio;
+    let d = scratch("pipe");
+    // Two observations: the summary of each goes to stdout, whose reader is gone.
+    let obs = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/reference/obs.csv")).unwrap();
+    let mut lines = obs.lines();
+    let (head, row) = (lines.next().unwrap(), lines.next().unwrap());
+    let two = d.join("two.csv");
+    std::fs::write(&two, format!("{head}\n{row}\n{row}\n")).unwrap();
+    let out = d.join("s.csv");
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let run = |args: &[&str]| {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_otofit"))
+            .args(args)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        drop(child.stdout.take()); // `| head -0`
+        child.wait_with_output().unwrap()
+    };
+    let args = ["infer", "--model", model, "--obs", two.to_str().unwrap(), "--samples", "50"];
+    let o = run(&[&args[..], &["--out", out.to_str().unwrap()]].concat());
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("panicked") && !stderr.contains("Broken pipe"), "{stderr}");
+    assert_eq!(std::fs::read_to_string(&out).unwrap().lines().count(), 101, "--out is written before stdout");
+    let o = run(&["study", "validate", "--model", model, "--n", "3", "--out", d.join("v").to_str().unwrap()]);
+    let stderr = String::from_utf8_lossy(&o.stderr);
+    assert!(!stderr.contains("panicked") && o.status.code() != Some(101), "{stderr}");
+    let _ = std::fs::remove_dir_all(&d);
+}
+
+#[test]
+fn every_flag_of_every_command_has_help_text() {
+    let help = |cmd: &[&str]| {
+        let o = otofit(&[cmd, &["--help"]].concat());
+        assert!(o.status.success(), "{cmd:?}");
+        String::from_utf8_lossy(&o.stdout).to_string()
+    };
+    // Subcommands as the help lists them (an indented name, two spaces, its summary).
+    let subcommands = |text: &str| -> Vec<String> {
+        let Some(start) = text.find("Commands:\n") else { return vec![] };
+        text[start + 10..]
+            .lines()
+            .take_while(|l| l.starts_with("  "))
+            .filter_map(|l| l.split_whitespace().next().map(str::to_string))
+            .filter(|c| c != "help")
+            .collect()
+    };
+    let mut todo: Vec<Vec<String>> = subcommands(&help(&[])).into_iter().map(|c| vec![c]).collect();
+    let mut missing = Vec::new();
+    let mut flags = 0;
+    while let Some(cmd) = todo.pop() {
+        let args: Vec<&str> = cmd.iter().map(String::as_str).collect();
+        let text = help(&args);
+        todo.extend(subcommands(&text).into_iter().map(|c| [cmd.clone(), vec![c]].concat()));
+        let lines: Vec<&str> = text.lines().collect();
+        for (i, l) in lines.iter().enumerate() {
+            let t = l.trim_start();
+            let is_item = (t.starts_with("--") || t.starts_with('-') || t.starts_with('<')) && l.starts_with("  ");
+            if !is_item || t.starts_with("-h, --help") || t.starts_with("-V, --version") {
+                continue;
+            }
+            flags += 1;
+            // Help on the same line (after two spaces, not just a default) or on the next.
+            let same = t.split("  ").skip(1).map(str::trim).any(|s| !s.is_empty() && !s.starts_with('['));
+            let next = lines.get(i + 1).is_some_and(|n| n.starts_with("          ") && !n.trim().starts_with('['));
+            if !same && !next {
+                missing.push(format!("otofit {}: {}", cmd.join(" "), t));
+            }
+        }
+    }
+    assert!(flags > 80, "found only {flags} flags");
+    assert!(missing.is_empty(), "flags without help:\n{}", missing.join("\n"));
 }
