@@ -341,6 +341,13 @@ async fn a_worker_that_lost_its_lease_stops_and_writes_nothing() {
     tokio::spawn(jobs::dispatcher(a.clone()));
     let j = wait_state(&server, "big", &["running"], 30).await;
     assert_eq!(j.worker.as_deref(), Some("a"));
+    // A is writing its rows into its own staging folder.
+    let a_staging = data.join("datasets").join("big").join(format!(".attempt-{}", &j.lease_token.unwrap()[..16]));
+    let t0 = Instant::now();
+    while !a_staging.join("x.csv.tmp").exists() && t0.elapsed() < Duration::from_secs(30) {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(a_staging.join("x.csv.tmp").exists(), "A writes into {}", a_staging.display());
     // A stall, as seen from the database: A's lease ran out and a reaper took the job
     // back (what `Store::reap_expired` does, here at once so that A cannot renew first).
     let pool = match &server.pool {
@@ -350,15 +357,19 @@ async fn a_worker_that_lost_its_lease_stops_and_writes_nothing() {
     sqlx::query("UPDATE jobs SET state = 'queued', lease_token = NULL WHERE id = 'big'").execute(&pool).await.unwrap();
     let b = ctx_on(Store::connect(&db).await.unwrap(), &data, "b", Duration::from_secs(3));
     tokio::spawn(jobs::dispatcher(b.clone()));
+    let t0 = Instant::now();
+    while server.job("big").await.unwrap().unwrap().attempts < 2 && t0.elapsed() < Duration::from_secs(30) {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
     // A notices at its next renewal (a third of its lease), stops within a chunk and
     // removes its staging folder, while B is still at work.
-    let a_staging = data.join("datasets").join("big").join(format!(".attempt-{}", &j.lease_token.unwrap()[..16]));
     let t0 = Instant::now();
     while a_staging.exists() && t0.elapsed() < Duration::from_secs(4) {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
     assert!(!a_staging.exists(), "A still at work {:?} after losing its lease", t0.elapsed());
-    assert_eq!(server.job("big").await.unwrap().unwrap().state, "running", "B is still at work");
+    let now = server.job("big").await.unwrap().unwrap();
+    assert_eq!((now.state.as_str(), now.worker.as_deref()), ("running", Some("b")), "B is still at work");
     let done = wait_state(&server, "big", &["succeeded", "failed", "cancelled"], 120).await;
     assert_eq!((done.state.as_str(), done.attempts, done.worker.as_deref()), ("succeeded", 2, Some("b")), "{done:?}");
     let x = std::fs::read_to_string(data.join("datasets").join("big").join("x.csv")).unwrap();
@@ -391,14 +402,14 @@ async fn a_killed_worker_process_loses_its_job_to_another_after_the_lease() {
     let data = temp_dir("pgk");
     let server = Store::connect(&db).await.unwrap();
     assert!(server.insert_job_within("k", "simulate", &json!({"n": 30000, "seed": 4}), 3, 64).await.unwrap());
-    let mut first = spawn_worker(&url, &data, "2");
+    let mut procs = Procs(vec![spawn_worker(&url, &data, "2")]);
     let j = wait_state(&server, "k", &["running"], 60).await;
     assert_eq!(j.state, "running", "the first worker claimed the job");
     tokio::time::sleep(Duration::from_millis(500)).await;
-    first.kill().unwrap(); // SIGKILL: no chance to re-queue
-    first.wait().unwrap();
+    procs.0[0].kill().unwrap(); // SIGKILL: no chance to re-queue
+    procs.0[0].wait().unwrap();
     let t_kill = Instant::now();
-    let mut second = spawn_worker(&url, &data, "2");
+    procs.0.push(spawn_worker(&url, &data, "2"));
     // The last renewal was at most a third of the lease before the kill.
     let t0 = Instant::now();
     while server.job("k").await.unwrap().unwrap().attempts < 2 && t0.elapsed() < Duration::from_secs(60) {
@@ -406,8 +417,7 @@ async fn a_killed_worker_process_loses_its_job_to_another_after_the_lease() {
     }
     let reclaimed_after = t_kill.elapsed();
     let done = wait_state(&server, "k", &["succeeded", "failed", "cancelled"], 180).await;
-    let _ = second.kill();
-    let _ = second.wait();
+    drop(procs);
     assert_eq!((done.state.as_str(), done.attempts), ("succeeded", 2), "{done:?}");
     assert!(
         reclaimed_after >= Duration::from_millis(1300),
@@ -416,6 +426,18 @@ async fn a_killed_worker_process_loses_its_job_to_another_after_the_lease() {
     assert_ne!(done.worker, j.worker, "the second worker finished it");
     let x = std::fs::read_to_string(data.join("datasets").join("k").join("x.csv")).unwrap();
     assert_eq!(x.lines().count(), 30_001);
+}
+
+/// Child processes killed when the test ends, also when it fails half-way.
+struct Procs(Vec<std::process::Child>);
+
+impl Drop for Procs {
+    fn drop(&mut self) {
+        for p in &mut self.0 {
+            let _ = p.kill();
+            let _ = p.wait();
+        }
+    }
 }
 
 fn free_port() -> u16 {
@@ -448,7 +470,7 @@ fn two_servers_share_one_job_table_and_both_answer_infer() {
     let Some(url) = rt.block_on(fresh_database()) else { return };
     let data = temp_dir("pg2s");
     let (a, b) = (free_port(), free_port());
-    let mut procs = vec![spawn_serve(&url, &data, a), spawn_serve(&url, &data, b)];
+    let mut procs = Procs(vec![spawn_serve(&url, &data, a), spawn_serve(&url, &data, b)]);
     let infer = crate::http::nominal_request().to_string();
     let req = |port, method, path: &str, body: Option<&str>| crate::http::http(port, method, path, body).unwrap();
     for port in [a, b] {
@@ -464,7 +486,7 @@ fn two_servers_share_one_job_table_and_both_answer_infer() {
     let mut worker = Command::new(env!("CARGO_BIN_EXE_otofit"));
     worker.args(["worker", "--database", &url, "--data-dir", data.to_str().unwrap()]);
     worker.args(["--metrics-addr", &format!("127.0.0.1:{metrics_port}")]);
-    procs.push(worker.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap());
+    procs.0.push(worker.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap());
     let t0 = Instant::now();
     let mut last = serde_json::Value::Null;
     while t0.elapsed() < Duration::from_secs(60) {
@@ -478,10 +500,7 @@ fn two_servers_share_one_job_table_and_both_answer_infer() {
     // The worker's own /metrics: its claim and its rows (the servers ran no job).
     let worker_metrics = metrics_text(metrics_port);
     let server_metrics = metrics_text(a);
-    for p in &mut procs {
-        let _ = p.kill();
-        let _ = p.wait();
-    }
+    drop(procs);
     assert_eq!(last["state"], "succeeded", "{last}");
     assert_eq!((status, ds["rows"].as_u64()), (200, Some(50)), "{ds}");
     for line in ["otofit_job_claims_total 1", "otofit_simulated_rows_total 50"] {
