@@ -47,6 +47,7 @@ use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
 use faer::{Mat, Side, c64};
 use std::f64::consts::PI;
+use std::sync::{Arc, Mutex};
 
 /// Shape, material and mesh of the drum.
 #[derive(Clone, Debug)]
@@ -168,6 +169,23 @@ impl DrumGeometry {
     /// The condensable drum: modes of [`Self::fe`] (computed once per mesh).
     pub fn modes(&self) -> Result<(ManubriumModes, ModesInfo), String> {
         ManubriumModes::new(&self.fe())
+    }
+
+    /// [`Self::modes`], computed once per process for each geometry: the eigensolution
+    /// takes seconds at the default density and every model of a process (tests, a CLI
+    /// run, the service) uses the same few drums.
+    pub fn modes_shared(&self) -> Result<Arc<ManubriumModes>, String> {
+        static CACHE: Mutex<Vec<(String, Arc<ManubriumModes>)>> = Mutex::new(Vec::new());
+        // Debug prints every f64 exactly (shortest round-trip form), so equal keys mean
+        // equal geometries.
+        let key = format!("{self:?}");
+        if let Some((_, m)) = CACHE.lock().unwrap_or_else(|e| e.into_inner()).iter().find(|(k, _)| *k == key) {
+            return Ok(Arc::clone(m));
+        }
+        // Computed outside the lock: two threads may both compute a new geometry once.
+        let modes = Arc::new(self.modes()?.0);
+        CACHE.lock().unwrap_or_else(|e| e.into_inner()).push((key, Arc::clone(&modes)));
+        Ok(modes)
     }
 
     pub fn mesh(&self) -> DrumMesh {

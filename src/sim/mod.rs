@@ -20,7 +20,9 @@ pub mod shell;
 pub mod system;
 pub mod tri_shell;
 
-pub use model::{Geometry, Model, ModelConfig, PowerBalance, Preset, Response, Runner, SimError, log_grid};
+pub use model::{
+    DrumLoss, DrumShape, Geometry, Model, ModelConfig, PowerBalance, Preset, Response, Runner, SimError, log_grid,
+};
 pub use params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, N_TISSUE, PARAMS, Theta};
 
 /// Simulates one parameter set into its feature vector.

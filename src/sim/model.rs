@@ -20,6 +20,7 @@
 
 use super::air::{self, Air};
 use super::drum::{DrumCoefficients, DrumModes};
+use super::drum_mesh::{DrumGeometry, ManubriumModes};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
 use super::system::{SolveError, System, SystemBuilder, Workspace};
@@ -48,7 +49,10 @@ pub struct Geometry {
     pub tm_nu: f64,
     /// How the eardrum dissipates (see [`DrumLoss`]).
     pub tm_loss: DrumLoss,
-    /// Radius of the rigid disc tied to the umbo, m.
+    /// Which eardrum FE (see [`DrumShape`]).
+    pub tm_shape: DrumShape,
+    /// Axisymmetric drum only: radius of the rigid disc tied to the umbo, m, and the
+    /// number of shell elements from the disc to the rim.
     pub disc_radius: f64,
     pub tm_elements: usize,
     /// Masses (kg) and inertias about the rotation axis (kg·m²), notes §1.3.
@@ -112,6 +116,7 @@ impl Default for Geometry {
             tm_rho: 1100.0,
             tm_nu: nu,
             tm_loss: DrumLoss::Rayleigh,
+            tm_shape: DrumShape::Axisymmetric,
             disc_radius: 0.5e-3,
             tm_elements: 20,
             m_malleus: 25e-6,
@@ -154,6 +159,28 @@ pub enum DrumLoss {
     /// A frequency-independent loss factor η: E·(1 + jη) (soft tissue's measured
     /// behaviour over the audio band); damping_beta then acts on the ossicles only.
     LossFactor(f64),
+    /// A frequency-independent loss factor set by damping_beta: η = 2π·f_ref·β, the
+    /// Rayleigh loss at f_ref (one damping parameter for the whole ear, as in the study,
+    /// without a loss that grows with frequency in the drum).
+    Hysteretic { f_ref_hz: f64 },
+}
+
+/// The eardrum's finite elements.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum DrumShape {
+    /// v1: an axisymmetric conical shell tied to the malleus by a rigid disc at the umbo
+    /// (`shell.rs`). It cannot decouple from the malleus at high frequency.
+    Axisymmetric,
+    /// v2: flat-shell triangles over the same cone with the manubrium attached along its
+    /// length from the umbo to `manubrium_to_rim` (m) from the rim, `rings` rings from the
+    /// umbo to the rim (`drum_mesh.rs`). Always condensed onto the malleus through its modes.
+    Manubrium { rings: usize, manubrium_to_rim: f64 },
+}
+
+impl DrumShape {
+    /// The v2 drum at its measured mesh density (docs/simulator.md): 16 rings leave a
+    /// discretisation error below the test–retest noise; 12 do not.
+    pub const MANUBRIUM: DrumShape = DrumShape::Manubrium { rings: 16, manubrium_to_rim: 1.0e-3 };
 }
 
 /// Air temperature preset.
@@ -217,7 +244,16 @@ struct Blocks {
     cavity_load: usize, // +b p_cav in the mechanics rows
     cavity_row: usize,  // (1/C_cav) bᵀq − p_cav = 0
     cavity_diag: usize,
-    drum_schur: usize, // 9: the condensed drum interior on (umbo, p_drum, p_cavity)
+    /// The condensed drum: n² blocks on `Condensed::at` (row-major).
+    drum_schur: usize,
+}
+
+/// The eardrum's interior, eliminated exactly through its modes.
+enum Condensed {
+    /// On (umbo, p_drum, p_cavity); the umbo disc and its b entries are in the system.
+    Axisymmetric(DrumModes),
+    /// On (umbo, θ_m, p_drum, p_cavity); holds the manubrium's own terms too.
+    Manubrium(std::sync::Arc<ManubriumModes>),
 }
 
 /// Indices of the named unknowns.
@@ -245,7 +281,7 @@ pub struct Model {
     blocks: Blocks,
     /// Volume swept per unit of each unknown (zero off the eardrum).
     b: Vec<f64>,
-    drum: Option<DrumModes>,
+    drum: Option<Condensed>,
 }
 
 /// The complex responses at one frequency.
@@ -302,12 +338,18 @@ impl Model {
     pub fn new(config: ModelConfig) -> Result<Model, SimError> {
         let g = &config.geometry;
         let air = config.preset.air();
-        // Eardrum: nodes from the disc edge (index 0) to the clamped rim (last).
-        let nodes = cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements);
-        let n_free_tm = nodes.len() - 2;
-        let tm_base = 1;
-        let n_interior = 3 * n_free_tm;
-        let osc = tm_base + if config.reduce_drum { 0 } else { n_interior };
+        // The axisymmetric drum's nodes, from the disc edge (index 0) to the clamped rim.
+        let nodes = match g.tm_shape {
+            DrumShape::Axisymmetric => cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements),
+            DrumShape::Manubrium { .. } if !config.reduce_drum => {
+                return Err(SimError::Setup(
+                    "the manubrium drum is always condensed (reduce_drum = false needs DrumShape::Axisymmetric)".into(),
+                ));
+            }
+            DrumShape::Manubrium { .. } => Vec::new(),
+        };
+        let n_interior = 3 * nodes.len().saturating_sub(2);
+        let osc = 1 + if config.reduce_drum { 0 } else { n_interior };
         let dofs = Dofs {
             p_drum: 0,
             umbo: osc,
@@ -319,17 +361,9 @@ impl Model {
             p_cavity: osc + 6,
             n: osc + 7,
         };
-        // Global index of local eardrum DOF d of node i.
-        // Local eardrum DOF d of node i: interior index 0..n_interior, the umbo as
-        // n_interior, None on the clamped rim.
-        let tm_local = |i: usize, d: usize| -> Option<usize> {
-            if i == 0 {
-                (d == 1).then_some(n_interior) // disc: u_r = β = 0, u_z = umbo
-            } else if i == nodes.len() - 1 {
-                None // clamped annulus
-            } else {
-                Some(3 * (i - 1) + d)
-            }
+        let condensed_at = match g.tm_shape {
+            DrumShape::Axisymmetric => vec![dofs.umbo, dofs.p_drum, dofs.p_cavity],
+            DrumShape::Manubrium { .. } => vec![dofs.umbo, dofs.theta_m, dofs.p_drum, dofs.p_cavity],
         };
 
         let mut sb = SystemBuilder::new(dofs.n);
@@ -348,70 +382,38 @@ impl Model {
             cavity_diag: sb.block(),
             drum_schur: {
                 let first = sb.block();
-                for _ in 1..9 {
+                for _ in 1..condensed_at.len().pow(2) {
                     sb.block();
                 }
                 first
             },
         };
-
-        // Eardrum elements, assembled densely over the local DOFs (interior + umbo).
-        let mat = ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho };
-        let nl = n_interior + 1;
-        let (mut kd, mut md, mut bd) =
-            (faer::Mat::<f64>::zeros(nl, nl), faer::Mat::<f64>::zeros(nl, nl), vec![0.0; nl]);
-        for el in 0..nodes.len() - 1 {
-            let se = ShellElement::new(nodes[el], nodes[el + 1], &mat);
-            let map: [Option<usize>; 6] = std::array::from_fn(|i| tm_local(el + i / 3, i % 3));
-            for i in 0..6 {
-                let Some(li) = map[i] else { continue };
-                bd[li] += se.b[i];
-                for (j, lj) in map.iter().enumerate() {
-                    let Some(lj) = *lj else { continue };
-                    kd[(li, lj)] += se.k_unit[i][j];
-                    md[(li, lj)] += se.m[i][j];
+        let mut b = vec![0.0; dofs.n];
+        let drum = match g.tm_shape {
+            DrumShape::Axisymmetric => {
+                axisymmetric_drum(g, &nodes, &dofs, &blocks, config.reduce_drum, &mut sb, &mut b)?
+                    .map(Condensed::Axisymmetric)
+            }
+            DrumShape::Manubrium { rings, manubrium_to_rim } => {
+                let drum = DrumGeometry {
+                    radius_x: g.tm_radius,
+                    radius_y: g.tm_radius,
+                    depth: g.tm_depth,
+                    bulge: g.tm_bulge,
+                    manubrium_to_rim,
+                    material: super::tri_shell::ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho },
+                    rings,
+                };
+                Some(Condensed::Manubrium(drum.modes_shared().map_err(SimError::Setup)?))
+            }
+        };
+        if drum.is_some() {
+            for (i, &r) in condensed_at.iter().enumerate() {
+                for (j, &c) in condensed_at.iter().enumerate() {
+                    sb.add(blocks.drum_schur + condensed_at.len() * i + j, r, c, 1.0);
                 }
             }
         }
-        let mut b = vec![0.0; dofs.n];
-        let drum = if config.reduce_drum {
-            let ni = n_interior;
-            let col = |a: &faer::Mat<f64>| (0..ni).map(|i| a[(i, ni)]).collect::<Vec<f64>>();
-            let modes = DrumModes::new(
-                &kd.submatrix(0, 0, ni, ni).to_owned(),
-                &md.submatrix(0, 0, ni, ni).to_owned(),
-                &col(&kd),
-                &col(&md),
-                &bd[..ni],
-            )
-            .map_err(SimError::Setup)?;
-            sb.add(blocks.tm, dofs.umbo, dofs.umbo, kd[(ni, ni)]);
-            sb.add(blocks.mass, dofs.umbo, dofs.umbo, md[(ni, ni)]);
-            b[dofs.umbo] = bd[ni];
-            let at = [dofs.umbo, dofs.p_drum, dofs.p_cavity];
-            for i in 0..3 {
-                for j in 0..3 {
-                    sb.add(blocks.drum_schur + 3 * i + j, at[i], at[j], 1.0);
-                }
-            }
-            Some(modes)
-        } else {
-            let global = |l: usize| if l == n_interior { dofs.umbo } else { tm_base + l };
-            for li in 0..nl {
-                b[global(li)] += bd[li];
-                for lj in 0..nl {
-                    if kd[(li, lj)] != 0.0 || md[(li, lj)] != 0.0 {
-                        sb.add(blocks.tm, global(li), global(lj), kd[(li, lj)]);
-                        sb.add(blocks.mass, global(li), global(lj), md[(li, lj)]);
-                    }
-                }
-            }
-            None
-        };
-        // The rigid disc: its area moves with the umbo; its mass rides on the umbo.
-        let disc_area = PI * g.disc_radius * g.disc_radius;
-        b[dofs.umbo] += disc_area;
-        sb.add(blocks.mass, dofs.umbo, dofs.umbo, g.tm_rho * g.tm_thickness * disc_area);
 
         // Ossicles. Malleus in (w_umbo, θ_m): x_m = w_umbo − l_u θ_m, so a malleus point
         // at arm l moves by w_umbo + (l − l_u) θ_m along z.
@@ -493,6 +495,7 @@ impl Model {
         let drum_loss = match self.config.geometry.tm_loss {
             DrumLoss::Rayleigh => rayleigh,
             DrumLoss::LossFactor(eta) => c64::new(1.0, eta),
+            DrumLoss::Hysteretic { f_ref_hz } => c64::new(1.0, 2.0 * PI * f_ref_hz * theta.damping_beta()),
         };
         // Power-law viscoelastic eardrum, E·(jω/ω0)^n, ω0 = 2π·1 kHz.
         let n = fx.tm_exponent();
@@ -514,9 +517,18 @@ impl Model {
         let v = fx.cavity_volume();
         coef[bl.cavity_row] = c64::new(if v.is_finite() { self.air.bulk_modulus() / v } else { 0.0 }, 0.0);
         coef[bl.cavity_diag] = c64::new(1.0, 0.0);
-        if let Some(drum) = &self.drum {
-            let schur = drum.schur(&self.drum_coefficients(coef, w));
-            coef[bl.drum_schur..bl.drum_schur + 9].copy_from_slice(&schur);
+        match &self.drum {
+            Some(Condensed::Axisymmetric(modes)) => {
+                let schur = modes.schur(&self.drum_coefficients(coef, w));
+                coef[bl.drum_schur..bl.drum_schur + 9].copy_from_slice(&schur);
+            }
+            Some(Condensed::Manubrium(modes)) => {
+                let block = modes.block(&self.drum_coefficients(coef, w));
+                for (i, row) in block.iter().enumerate() {
+                    coef[bl.drum_schur + 4 * i..bl.drum_schur + 4 * i + 4].copy_from_slice(row);
+                }
+            }
+            None => {}
         }
     }
 
@@ -524,6 +536,81 @@ impl Model {
         let bl = &self.blocks;
         DrumCoefficients { kappa: coef[bl.tm], s: -w * w, jw: c64::new(0.0, w), cavity: coef[bl.cavity_row].re }
     }
+}
+
+/// Assembles the axisymmetric drum and its umbo disc: into the system directly, or (when
+/// `reduce`) condensed through its modes, leaving the umbo terms and `b` in the system.
+fn axisymmetric_drum(
+    g: &Geometry,
+    nodes: &[(f64, f64)],
+    dofs: &Dofs,
+    blocks: &Blocks,
+    reduce: bool,
+    sb: &mut SystemBuilder,
+    b: &mut [f64],
+) -> Result<Option<DrumModes>, SimError> {
+    let n_interior = 3 * (nodes.len() - 2);
+    // Local eardrum DOF d of node i: interior index 0..n_interior, the umbo as
+    // n_interior, None on the clamped rim.
+    let tm_local = |i: usize, d: usize| -> Option<usize> {
+        if i == 0 {
+            (d == 1).then_some(n_interior) // disc: u_r = β = 0, u_z = umbo
+        } else if i == nodes.len() - 1 {
+            None // clamped annulus
+        } else {
+            Some(3 * (i - 1) + d)
+        }
+    };
+    // Elements, assembled densely over the local DOFs (interior + umbo).
+    let mat = ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho };
+    let nl = n_interior + 1;
+    let (mut kd, mut md, mut bd) = (faer::Mat::<f64>::zeros(nl, nl), faer::Mat::<f64>::zeros(nl, nl), vec![0.0; nl]);
+    for el in 0..nodes.len() - 1 {
+        let se = ShellElement::new(nodes[el], nodes[el + 1], &mat);
+        let map: [Option<usize>; 6] = std::array::from_fn(|i| tm_local(el + i / 3, i % 3));
+        for i in 0..6 {
+            let Some(li) = map[i] else { continue };
+            bd[li] += se.b[i];
+            for (j, lj) in map.iter().enumerate() {
+                let Some(lj) = *lj else { continue };
+                kd[(li, lj)] += se.k_unit[i][j];
+                md[(li, lj)] += se.m[i][j];
+            }
+        }
+    }
+    let modes = if reduce {
+        let ni = n_interior;
+        let col = |a: &faer::Mat<f64>| (0..ni).map(|i| a[(i, ni)]).collect::<Vec<f64>>();
+        let modes = DrumModes::new(
+            &kd.submatrix(0, 0, ni, ni).to_owned(),
+            &md.submatrix(0, 0, ni, ni).to_owned(),
+            &col(&kd),
+            &col(&md),
+            &bd[..ni],
+        )
+        .map_err(SimError::Setup)?;
+        sb.add(blocks.tm, dofs.umbo, dofs.umbo, kd[(ni, ni)]);
+        sb.add(blocks.mass, dofs.umbo, dofs.umbo, md[(ni, ni)]);
+        b[dofs.umbo] = bd[ni];
+        Some(modes)
+    } else {
+        let global = |l: usize| if l == n_interior { dofs.umbo } else { 1 + l };
+        for li in 0..nl {
+            b[global(li)] += bd[li];
+            for lj in 0..nl {
+                if kd[(li, lj)] != 0.0 || md[(li, lj)] != 0.0 {
+                    sb.add(blocks.tm, global(li), global(lj), kd[(li, lj)]);
+                    sb.add(blocks.mass, global(li), global(lj), md[(li, lj)]);
+                }
+            }
+        }
+        None
+    };
+    // The rigid disc: its area moves with the umbo; its mass rides on the umbo.
+    let disc_area = PI * g.disc_radius * g.disc_radius;
+    b[dofs.umbo] += disc_area;
+    sb.add(blocks.mass, dofs.umbo, dofs.umbo, g.tm_rho * g.tm_thickness * disc_area);
+    Ok(modes)
 }
 
 /// Per-thread solver state for one model.
@@ -672,15 +759,24 @@ impl Runner<'_> {
         let bl = &m.blocks;
         let loss = |b: usize| 0.5 * w * self.coef[b].im * m.system.quadratic_form(b, &self.ws).re * scale;
         let mut drum = loss(bl.tm);
-        if let Some(modes) = &m.drum {
-            // The condensed interior: recover its modal amplitudes for volume and losses.
-            let c = m.drum_coefficients(&self.coef, w);
-            let u = x[m.dofs.umbo];
-            let eta = modes.interior(&c, [u, x[m.dofs.p_drum], x[m.dofs.p_cavity]]);
-            let (v_int, e_int) = modes.volume_and_energy(&eta, u);
-            vol += v_int;
-            drum += 0.5 * w * self.coef[bl.tm].im * e_int.re * scale;
-        }
+        // The condensed interior: recover its modal amplitudes for volume and losses.
+        let c = m.drum_coefficients(&self.coef, w);
+        let (u, d) = (x[m.dofs.umbo], &m.dofs);
+        let (v_int, e_int) = match &m.drum {
+            Some(Condensed::Axisymmetric(modes)) => {
+                let eta = modes.interior(&c, [u, x[d.p_drum], x[d.p_cavity]]);
+                let (v, e) = modes.volume_and_energy(&eta, u);
+                (v, e.re)
+            }
+            Some(Condensed::Manubrium(modes)) => {
+                let (t, p, pc) = (x[d.theta_m], x[d.p_drum], x[d.p_cavity]);
+                let eta = modes.interior(&c, [u, t, p, pc]);
+                (modes.volume(&eta, u, t), modes.unit_stiffness_energy(&eta, u, t))
+            }
+            None => (c64::new(0.0, 0.0), 0.0),
+        };
+        vol += v_int;
+        drum += 0.5 * w * self.coef[bl.tm].im * e_int * scale;
         let into_drum = 0.5 * (x[m.dofs.p_drum].conj() * c64::new(0.0, w) * vol).re * scale;
         let (ligaments, tendons, joints) = (loss(bl.ligaments), loss(bl.tendons), loss(bl.joints));
         let (sal, cochlea) = (loss(bl.sal), loss(bl.cochlea));
