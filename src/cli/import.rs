@@ -38,6 +38,24 @@ pub enum ImportWhat {
         #[command(flatten)]
         table: TableArgs,
     },
+    /// A Universal File Format file (ASCII) with a dataset 58: a laser-Doppler
+    /// vibrometer's frequency response function, complex velocity over pressure (m/s,
+    /// mm/s or um/s over Pa, from the units labels of records 9 and 10) over frequency.
+    Uff58 {
+        /// The .uff/.unv file.
+        #[arg(long = "in")]
+        input: PathBuf,
+        /// The observation to write (JSON, the POST /infer request format).
+        #[arg(long)]
+        out: PathBuf,
+        /// Which measure the FRF is (the file does not say where the laser pointed):
+        /// stapes_velocity.
+        #[arg(long)]
+        measure: crate::formats::uff58::Measure,
+        /// Which dataset 58 of the file (1-based), when it holds several.
+        #[arg(long)]
+        dataset: Option<usize>,
+    },
 }
 
 /// The arguments every long-layout import takes.
@@ -87,6 +105,35 @@ pub fn read_table(path: &Path, opts: &LongOptions) -> Result<crate::formats::Imp
     long::read(&text, opts).with_context(|| format!("{}", path.display()))
 }
 
+/// Writes an observation in the POST /infer format, with what it holds on stderr.
+fn write(out: &Path, imp: &crate::formats::Imported) -> Result<()> {
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty())
+        && !dir.is_dir()
+    {
+        anyhow::bail!("--out {}: the folder {} does not exist", out.display(), dir.display());
+    }
+    for n in &imp.notes {
+        eprintln!("note: {n}");
+    }
+    let m = &imp.measurements;
+    let doc = serde_json::json!({ "measurements": m });
+    let tmp = out.with_extension("tmp");
+    std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?)
+        .with_context(|| format!("cannot write {}", tmp.display()))?;
+    std::fs::rename(&tmp, out)?;
+    let count = |n: Option<usize>, name: &str| n.map(|n| format!("{name} at {n} frequencies"));
+    let what: Vec<String> = [
+        count(m.impedance.as_ref().map(|z| z.frequencies_hz.len()), "impedance"),
+        count(m.absorbance.as_ref().map(|a| a.frequencies_hz.len()), "absorbance"),
+        count(m.stapes_velocity.as_ref().map(|v| v.frequencies_hz.len()), "stapes velocity"),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    eprintln!("wrote {} ({})", out.display(), what.join(", "));
+    Ok(())
+}
+
 pub fn run(args: ImportArgs) -> Result<()> {
     let (table, opts) = match args.what {
         ImportWhat::Wai { mut table, zmag_unit, zang_unit } => {
@@ -99,31 +146,14 @@ pub fn run(args: ImportArgs) -> Result<()> {
             let opts = table.long.options(None)?;
             (table, opts)
         }
+        ImportWhat::Uff58 { input, out, measure, dataset } => {
+            let text = std::fs::read_to_string(&input)
+                .with_context(|| format!("cannot read {} (an ASCII Universal File Format file)", input.display()))?;
+            let imp =
+                crate::formats::uff58::read(&text, dataset, measure).with_context(|| format!("{}", input.display()))?;
+            return write(&out, &imp);
+        }
     };
-    if let Some(dir) = table.out.parent().filter(|d| !d.as_os_str().is_empty())
-        && !dir.is_dir()
-    {
-        anyhow::bail!("--out {}: the folder {} does not exist", table.out.display(), dir.display());
-    }
     let imp = read_table(&table.input, &opts)?;
-    for n in &imp.notes {
-        eprintln!("note: {n}");
-    }
-    let m = &imp.measurements;
-    let doc = serde_json::json!({ "measurements": m });
-    let tmp = table.out.with_extension("tmp");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?)
-        .with_context(|| format!("cannot write {}", tmp.display()))?;
-    std::fs::rename(&tmp, &table.out)?;
-    let count = |n: Option<usize>, name: &str| n.map(|n| format!("{name} at {n} frequencies"));
-    let what: Vec<String> = [
-        count(m.impedance.as_ref().map(|z| z.frequencies_hz.len()), "impedance"),
-        count(m.absorbance.as_ref().map(|a| a.frequencies_hz.len()), "absorbance"),
-        count(m.stapes_velocity.as_ref().map(|v| v.frequencies_hz.len()), "stapes velocity"),
-    ]
-    .into_iter()
-    .flatten()
-    .collect();
-    eprintln!("wrote {} ({})", table.out.display(), what.join(", "));
-    Ok(())
+    write(&table.out, &imp)
 }

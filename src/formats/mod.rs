@@ -1,6 +1,7 @@
 //! Readers for the files clinics and laboratories export, each producing otofit's
 //! [`Measurements`]: long-layout CSV tables (one row per frequency, as the WAI database
-//! and wideband-tympanometry devices export them). Units are read from the column
+//! and wideband-tympanometry devices export them) and UFF dataset 58 (the frequency
+//! response functions vibrometer software exports). Units are read from the column
 //! headers or declared by the caller, never guessed; every error names the column, and
 //! the line where one cell is at fault.
 //!
@@ -11,6 +12,7 @@ use crate::measurements::Measurements;
 
 pub mod immittance;
 pub mod long;
+pub mod uff58;
 
 /// Why a file cannot be read as measurements.
 #[derive(Debug, thiserror::Error)]

@@ -686,12 +686,7 @@ fn reflectance_and_admittance_tables_become_the_same_ear() {
         assert!((a1 - a2).abs() < 0.01, "A({fk} Hz): {a1} vs {a2}");
     }
     // And the reflectance table infers as it is.
-    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
-    let out = d.join("s.csv");
-    let obs = format!("{data}wai_reflectance.csv");
-    let o = otofit(&["infer", "--model", model, "--obs", &obs, "--samples", "300", "--out", out.to_str().unwrap()]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let res: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let res = infer_with_the_shipped_model(&PathBuf::from(format!("{data}wai_reflectance.csv")), &d.join("s.csv"));
     assert_eq!(res["fit"]["ok"], true, "{}", res["fit"]);
     let _ = std::fs::remove_dir_all(&d);
 }
@@ -771,4 +766,56 @@ fn every_flag_of_every_command_has_help_text() {
     }
     assert!(flags > 80, "found only {flags} flags");
     assert!(missing.is_empty(), "flags without help:\n{}", missing.join("\n"));
+}
+
+/// `otofit infer` of one observation with the shipped model (300 samples): its summary.
+fn infer_with_the_shipped_model(obs: &std::path::Path, out: &std::path::Path) -> serde_json::Value {
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let (obs, out) = (obs.to_str().unwrap(), out.to_str().unwrap());
+    let o = otofit(&["infer", "--model", model, "--obs", obs, "--samples", "300", "--out", out]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    serde_json::from_slice(&o.stdout).unwrap()
+}
+
+#[test]
+fn a_uff58_ldv_export_imports_and_infers() {
+    // tests/data/ldv_stapes.uff: the openapi example's stapes velocity as a vibrometer's
+    // dataset 58 (complex single, uneven abscissa, mm/s over Pa).
+    let d = scratch("uff");
+    let uff = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/ldv_stapes.uff");
+    let obs = d.join("ldv.json");
+    let args = ["import", "uff58", "--in", uff, "--measure", "stapes_velocity", "--out", obs.to_str().unwrap()];
+    let o = otofit(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&obs).unwrap()).unwrap();
+    let got = &doc["measurements"]["stapes_velocity"];
+    let spec = include_str!("../../openapi.yaml");
+    let line = spec.lines().find_map(|l| l.trim().strip_prefix("example: {\"measurements\"")).unwrap();
+    let example: serde_json::Value = serde_json::from_str(&format!("{{\"measurements\"{line}")).unwrap();
+    let want = &example["measurements"]["stapes_velocity"];
+    for k in ["magnitude", "phase"] {
+        for (a, b) in got[k].as_array().unwrap().iter().zip(want[k].as_array().unwrap()) {
+            let (a, b) = (a.as_f64().unwrap(), b.as_f64().unwrap());
+            let tol = if k == "phase" { 1e-4 } else { 1e-4 * b.abs() };
+            assert!((a - b).abs() <= tol, "{k}: {a} vs {b}");
+        }
+    }
+    let r = infer_with_the_shipped_model(&obs, &d.join("s.csv"));
+    assert_eq!(r["fit"]["features"], 100, "{}", r["fit"]);
+    assert_eq!(r["fit"]["ok"], true, "{}", r["fit"]);
+    // A file that is not one, and a measure the file cannot be, are named.
+    let wai = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/wai_long.csv");
+    let o = otofit(&["import", "uff58", "--in", wai, "--measure", "stapes_velocity", "--out", obs.to_str().unwrap()]);
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("expected '-1' opening a dataset"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let o = otofit(&["import", "uff58", "--in", uff, "--measure", "incus", "--out", obs.to_str().unwrap()]);
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("known: stapes_velocity"),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    let _ = std::fs::remove_dir_all(&d);
 }
