@@ -142,15 +142,18 @@ fn resample(
                 return Some(out);
             }
             _ => {
+                let (a, b, lo, hi) = (f[0], f[f.len() - 1], grid[k], grid[n - 1 - k]);
+                let gaps: Vec<String> = [(lo, a.min(hi)), (b.max(lo), hi)]
+                    .into_iter()
+                    .filter(|(x, y)| y > &(x * 1.005))
+                    .map(|(x, y)| format!("{x:.0}–{y:.0} Hz"))
+                    .collect();
                 errs.push((
                     format!("{field}.frequencies_hz"),
                     format!(
-                        "must reach from at most {:.0} Hz to at least {:.0} Hz (got {:.0}–{:.0}); this model was trained \
-                         with up to {k} grid points missing at each end and never extrapolates",
-                        grid[k],
-                        grid[n - 1 - k],
-                        f[0],
-                        f[f.len() - 1]
+                        "must reach from at most {lo:.0} Hz to at least {hi:.0} Hz (got {a:.0}–{b:.0}): {} not covered; \
+                         this model was trained with up to {k} grid points missing at each end and never extrapolates",
+                        gaps.join(" and ")
                     ),
                 ));
                 return None;

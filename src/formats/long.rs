@@ -424,6 +424,15 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
         "stapes_velocity",
         &mut columns,
     )?;
+    // An error about a measure's frequencies is one about the frequency column.
+    let given = [
+        ("impedance", m.impedance.is_some()),
+        ("absorbance", m.absorbance.is_some()),
+        ("stapes_velocity", m.stapes_velocity.is_some()),
+    ];
+    for (field, _) in given.into_iter().filter(|(_, on)| *on) {
+        columns.insert(0, (format!("measurements.{field}.frequencies_hz"), fcol.name.clone()));
+    }
     if m.absorbance.is_none() && m.impedance.is_none() && m.stapes_velocity.is_none() {
         let known: Vec<&str> = COLUMNS.iter().skip(1).map(|(_, n, _)| *n).collect();
         return Err(FormatError::Table(format!(

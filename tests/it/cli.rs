@@ -621,6 +621,17 @@ fn long_layout_tables_infer_directly_and_errors_name_the_column() {
     assert!(e.contains("Zmag (measurements.impedance.magnitude)") && e.contains("outside the physical range"), "{e}");
     let e = stderr(infer(dev, &s2, &["--select", "Ear=Left"]));
     assert!(e.contains("column 'Ear'"), "{e}");
+    // A band the model cannot leave out is named, never extrapolated: from 600 Hz.
+    let late = d.join("late.csv");
+    let text = std::fs::read_to_string(dev).unwrap();
+    let rows: Vec<&str> =
+        text.lines().filter(|l| l.split(';').next().unwrap().parse::<f64>().is_ok_and(|f| f >= 600.0)).collect();
+    std::fs::write(&late, format!("{}\n{}\n", text.lines().next().unwrap(), rows.join("\n"))).unwrap();
+    let e = stderr(infer(late.to_str().unwrap(), &s2, &[]));
+    assert!(
+        e.contains("Frequency (measurements.impedance.frequencies_hz)") && e.contains("494–603 Hz not covered"),
+        "{e}"
+    );
     let _ = std::fs::remove_dir_all(&d);
 }
 
