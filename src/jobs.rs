@@ -791,7 +791,11 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         && let Ok(Some(j)) = ctx.store.job(&job.id).await
     {
         let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
-        if j.state == "succeeded" && path.exists() {
+        // Absolute: every process sharing the store (and the data directory, mounted at
+        // the same path) loads the model by this path, whatever its working directory.
+        if j.state == "succeeded"
+            && let Ok(path) = std::fs::canonicalize(&path)
+        {
             let _ = ctx.store.add_model(&job.id, &path.display().to_string(), false, Some(&job.id)).await;
         }
     }
