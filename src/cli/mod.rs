@@ -7,6 +7,7 @@ mod bench_c2st;
 mod bench_fit;
 pub mod calibrate;
 pub mod diagnose;
+mod drum;
 pub mod explain;
 pub mod import;
 pub mod infer;

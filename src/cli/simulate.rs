@@ -3,7 +3,7 @@
 use crate::dataset::{self, Rows};
 use crate::sim::batch::{self, Design, Noise};
 use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS, with_nominal_geometry};
-use crate::sim::{DrumLoss, DrumShape, Model, ModelConfig, Preset};
+use crate::sim::{Model, ModelConfig, Preset};
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use std::io::IsTerminal;
@@ -50,33 +50,9 @@ pub struct SimulateArgs {
     /// Replace an existing dataset in --out.
     #[arg(long)]
     pub force: bool,
-    /// With --explain: the eardrum FE to report on. `axisymmetric` (the default model's) or
-    /// `manubrium` (flat-shell triangles attached along the manubrium; not the default,
-    /// docs/simulator.md says why).
-    #[arg(long, value_enum)]
-    pub drum: Option<DrumArg>,
-    /// With --explain: the eardrum's loss, `rayleigh` (E·(1 + jωβ), the default model's),
-    /// `hysteretic` (η = 2π·1 kHz·β) or a fixed loss factor η (a number in (0, 10]).
-    #[arg(long)]
-    pub drum_loss: Option<String>,
-}
-
-#[derive(Clone, Copy, Debug, ValueEnum)]
-pub enum DrumArg {
-    Axisymmetric,
-    Manubrium,
-}
-
-/// `--drum-loss` as a [`DrumLoss`].
-fn drum_loss(text: &str) -> Result<DrumLoss> {
-    match text {
-        "rayleigh" => Ok(DrumLoss::Rayleigh),
-        "hysteretic" => Ok(DrumLoss::Hysteretic { f_ref_hz: 1000.0 }),
-        _ => match text.parse::<f64>() {
-            Ok(eta) if eta > 0.0 && eta <= 10.0 => Ok(DrumLoss::LossFactor(eta)),
-            _ => bail!("--drum-loss '{text}': expected rayleigh, hysteretic or a loss factor in (0, 10]"),
-        },
-    }
+    /// With --explain only: the eardrum variant to report on.
+    #[command(flatten)]
+    pub drum: super::drum::DrumOpts,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -166,18 +142,12 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         Some(p) => Some(read_rows(p, &mut design)?),
         None => None,
     };
-    // Datasets are always the default model's simulator: a model trained on a variant
-    // would be fit-checked against the default one.
-    if !args.explain && (args.drum.is_some() || args.drum_loss.is_some()) {
+    // Datasets are always the default model's simulator (cli::drum says why).
+    if !args.explain && args.drum.is_set() {
         bail!("--drum and --drum-loss only apply with --explain");
     }
     let mut config = ModelConfig { preset: args.preset.into(), ..ModelConfig::default() };
-    if let Some(DrumArg::Manubrium) = args.drum {
-        config.geometry.tm_shape = DrumShape::MANUBRIUM;
-    }
-    if let Some(text) = &args.drum_loss {
-        config.geometry.tm_loss = drum_loss(text)?;
-    }
+    args.drum.apply(&mut config)?;
     if args.explain {
         let (theta, fx) = match &given {
             Some(rows) => design.split(rows.first().context("--theta: no rows")?),

@@ -44,6 +44,10 @@ pub struct StudyArgs {
     /// Seed of the simulations, the training and the posterior draws.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// `reference` only: the simulator of the least-squares fit and the re-simulations
+    /// (the posterior and its fit check still come from --model and its simulator).
+    #[command(flatten)]
+    pub drum: super::drum::DrumOpts,
 }
 
 /// Noise-free simulations of prior draws as an in-memory dataset.
@@ -119,7 +123,12 @@ pub fn run(a: StudyArgs) -> Result<()> {
     if !(1..=5000).contains(&a.max_epochs) {
         anyhow::bail!("--max-epochs must be 1..=5000 (got {})", a.max_epochs);
     }
-    let model = Model::new(ModelConfig::default())?;
+    if a.drum.is_set() && !matches!(a.name, StudyName::Reference) {
+        bail!("--drum and --drum-loss only apply to `study reference`");
+    }
+    let mut config = ModelConfig::default();
+    a.drum.apply(&mut config)?;
+    let model = Model::new(config)?;
     let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed: a.seed ^ 0x0B5 };
     let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();
     match a.name {

@@ -206,6 +206,13 @@ fn explain_reports_the_drum_variants_and_refuses_bad_ones() {
         .unwrap();
     assert!(!dir.exists(), "a dataset was written with --drum");
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("--explain"));
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["study", "validate", "--drum", "manubrium", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("study reference"));
+    assert!(!dir.exists(), "study validate ran with --drum");
 }
 
 #[test]
