@@ -244,7 +244,8 @@ struct Blocks {
     cavity_load: usize, // +b p_cav in the mechanics rows
     cavity_row: usize,  // (1/C_cav) bᵀq − p_cav = 0
     cavity_diag: usize,
-    /// The condensed drum: n² blocks on `Condensed::at` (row-major).
+    /// The condensed drum: n² blocks (row-major) on its n boundary unknowns, (umbo,
+    /// p_drum, p_cavity) or, for the manubrium drum, (umbo, θ_m, p_drum, p_cavity).
     drum_schur: usize,
 }
 
@@ -401,7 +402,7 @@ impl Model {
                     depth: g.tm_depth,
                     bulge: g.tm_bulge,
                     manubrium_to_rim,
-                    material: super::tri_shell::ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho },
+                    material: ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho },
                     rings,
                 };
                 Some(Condensed::Manubrium(drum.modes_shared().map_err(SimError::Setup)?))
