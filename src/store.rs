@@ -93,6 +93,9 @@ macro_rules! on_pool {
     };
 }
 
+mod keys;
+pub use keys::{ApiKey, KeyOwner, NewKey, key_hash};
+
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelRow {
     pub id: String,
@@ -100,11 +103,15 @@ pub struct ModelRow {
     pub is_default: bool,
     pub created_at: String,
     pub source_job: Option<String>,
+    /// The tenant the model belongs to (its source job's); `None`: shared by all.
+    pub tenant: Option<String>,
 }
 
 #[derive(Clone, Debug, Serialize)]
 pub struct JobRow {
     pub id: String,
+    /// The tenant that made the job (and owns its dataset, report and model).
+    pub tenant: String,
     pub kind: String,
     pub state: String,
     pub params: serde_json::Value,
@@ -187,6 +194,7 @@ fn job_from(row: &impl Cols) -> JobRow {
     let json = |s: Option<String>| s.and_then(|s| serde_json::from_str(&s).ok());
     JobRow {
         id: row.text("id"),
+        tenant: row.text("tenant"),
         kind: row.text("kind"),
         state: row.text("state"),
         params: json(Some(row.text("params"))).unwrap_or(serde_json::Value::Null),
@@ -212,6 +220,7 @@ fn model_from(row: &impl Cols) -> ModelRow {
         is_default: row.int("is_default") != 0,
         created_at: row.text("created_at"),
         source_job: row.opt_text("source_job"),
+        tenant: row.opt_text("tenant"),
     }
 }
 
@@ -235,6 +244,10 @@ pub fn worker_name() -> String {
     let host = if host.is_empty() { "localhost".to_string() } else { host };
     format!("{host}:{}", std::process::id())
 }
+
+/// The tenant of jobs made before tenants existed, by a keyless server or with a
+/// `--api-key-hash` key.
+pub const DEFAULT_TENANT: &str = "default";
 
 /// Key of the PostgreSQL advisory lock that serialises `insert_job_within`.
 const QUEUE_LOCK: i64 = 0x6f746f666974; // "otofit"
@@ -297,6 +310,8 @@ impl Store {
         on_pool!(self, p => sqlx::query("SELECT 1").fetch_one(p).await.is_ok())
     }
 
+    /// Registers a model; it belongs to `source_job`'s tenant, or to every tenant
+    /// without a source job (the default model, models the operator registers).
     pub async fn add_model(
         &self,
         id: &str,
@@ -304,8 +319,8 @@ impl Store {
         is_default: bool,
         source_job: Option<&str>,
     ) -> Result<(), sqlx::Error> {
-        const SQL: &str =
-            "INSERT INTO models (id, path, is_default, created_at, source_job) VALUES ($1, $2, $3, $4, $5)
+        const SQL: &str = "INSERT INTO models (id, path, is_default, created_at, source_job, tenant)
+             VALUES ($1, $2, $3, $4, $5, (SELECT tenant FROM jobs WHERE id = $5))
              ON CONFLICT DO NOTHING";
         let ts = now();
         on_pool!(self, p => sqlx::query(SQL)
@@ -320,9 +335,11 @@ impl Store {
         Ok(())
     }
 
-    pub async fn models(&self) -> Result<Vec<ModelRow>, sqlx::Error> {
-        const SQL: &str = "SELECT * FROM models ORDER BY created_at";
-        Ok(on_pool!(self, p => sqlx::query(SQL).fetch_all(p).await?.iter().map(model_from).collect()))
+    /// The models `tenant` may use (its own and the shared ones); all with `None`.
+    pub async fn models(&self, tenant: Option<&str>) -> Result<Vec<ModelRow>, sqlx::Error> {
+        const SQL: &str =
+            "SELECT * FROM models WHERE ($1 IS NULL OR tenant IS NULL OR tenant = $1) ORDER BY created_at, id";
+        Ok(on_pool!(self, p => sqlx::query(SQL).bind(tenant).fetch_all(p).await?.iter().map(model_from).collect()))
     }
 
     pub async fn model(&self, id: &str) -> Result<Option<ModelRow>, sqlx::Error> {
@@ -349,13 +366,27 @@ impl Store {
         max_attempts: i64,
         limit: i64,
     ) -> Result<bool, sqlx::Error> {
-        const SQL: &str = "INSERT INTO jobs (id, kind, params, max_attempts, created_at) SELECT $1, $2, $3, $4, $5
+        self.insert_tenant_job_within(id, DEFAULT_TENANT, kind, params, max_attempts, limit).await
+    }
+
+    /// `insert_job_within` for a job of `tenant`.
+    pub async fn insert_tenant_job_within(
+        &self,
+        id: &str,
+        tenant: &str,
+        kind: &str,
+        params: &serde_json::Value,
+        max_attempts: i64,
+        limit: i64,
+    ) -> Result<bool, sqlx::Error> {
+        const SQL: &str = "INSERT INTO jobs (id, kind, params, max_attempts, created_at, tenant)
+             SELECT $1, $2, $3, $4, $5, $7
              WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < $6";
         let (params, ts) = (params.to_string(), now());
         // The same statement for both drivers (a macro: the query type depends on the driver).
         macro_rules! insert {
             () => {
-                sqlx::query(SQL).bind(id).bind(kind).bind(&params).bind(max_attempts).bind(&ts).bind(limit)
+                sqlx::query(SQL).bind(id).bind(kind).bind(&params).bind(max_attempts).bind(&ts).bind(limit).bind(tenant)
             };
         }
         let done = match &self.pool {
@@ -378,11 +409,24 @@ impl Store {
         Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(job_from)))
     }
 
-    pub async fn jobs(&self, state: Option<&str>, limit: i64) -> Result<Vec<JobRow>, sqlx::Error> {
-        const SQL: &str = "SELECT * FROM jobs WHERE ($1 IS NULL OR state = $1) ORDER BY created_at DESC LIMIT $2";
-        Ok(
-            on_pool!(self, p => sqlx::query(SQL).bind(state).bind(limit).fetch_all(p).await?.iter().map(job_from).collect()),
-        )
+    /// The newest `limit` jobs (of `state` if given) of `tenant`; of all tenants with `None`.
+    pub async fn jobs(
+        &self,
+        state: Option<&str>,
+        limit: i64,
+        tenant: Option<&str>,
+    ) -> Result<Vec<JobRow>, sqlx::Error> {
+        const SQL: &str = "SELECT * FROM jobs WHERE ($1 IS NULL OR state = $1) AND ($3 IS NULL OR tenant = $3)
+             ORDER BY created_at DESC, id DESC LIMIT $2";
+        Ok(on_pool!(self, p => sqlx::query(SQL)
+            .bind(state)
+            .bind(limit)
+            .bind(tenant)
+            .fetch_all(p)
+            .await?
+            .iter()
+            .map(job_from)
+            .collect()))
     }
 
     /// Claims the oldest queued job atomically (one statement), counting the attempt,

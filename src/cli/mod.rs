@@ -11,6 +11,7 @@ mod drum;
 pub mod explain;
 pub mod import;
 pub mod infer;
+pub mod keys;
 pub mod serve;
 pub mod simulate;
 pub mod study;
@@ -37,6 +38,8 @@ pub enum Command {
     Serve(serve::ServeArgs),
     /// Run jobs from a shared job table (PostgreSQL), without HTTP.
     Worker(worker::WorkerArgs),
+    /// API keys of the service: add (per tenant), list, revoke.
+    Keys(keys::KeysArgs),
     /// Train a posterior estimator on a dataset folder.
     Train(train::TrainArgs),
     /// Posterior samples, MAP and summaries for observations.
@@ -57,6 +60,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => train::run(args),
         Command::Serve(args) => serve::run(args),
         Command::Worker(args) => worker::run(args),
+        Command::Keys(args) => keys::run(args),
         Command::Study(args) => study::run(args),
         Command::Diagnose(args) => diagnose::run(args),
         Command::Infer(args) => infer::run(args),

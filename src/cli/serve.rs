@@ -34,8 +34,11 @@ pub struct ServeArgs {
     /// Checkpoint registered as the default model on first start.
     #[arg(long, default_value = "models/default.otofit")]
     pub default_model: PathBuf,
-    /// SHA-256 (hex) of an accepted API key; repeat or comma-separate. When set, every
-    /// route but /health needs `Authorization: Bearer <key>`.
+    /// SHA-256 (hex) of an accepted API key; repeat or comma-separate. When set (or when
+    /// `otofit keys add` stored a key in the database), every route but /health needs
+    /// `Authorization: Bearer <key>`. These keys are admin keys of the tenant `default`
+    /// (they see every tenant's work, as every key did before tenants); per-tenant keys
+    /// come from `otofit keys add --tenant NAME`.
     #[arg(long = "api-key-hash", env = "OTOFIT_API_KEY_HASHES", value_delimiter = ',')]
     pub api_key_hashes: Vec<String>,
     /// A host name clients address this server by (repeat or comma-separate). Without
@@ -279,13 +282,13 @@ pub fn run(args: ServeArgs) -> Result<()> {
         bail!("--workers must be 0..={MAX_WORKERS}, got {}", args.workers);
     }
     let idle = std::time::Duration::from_secs_f64(args.idle_timeout);
-    if !args.addr.ip().is_loopback() && keys.is_empty() {
-        tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
-    }
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
         let default_model = resolve_default_model(&args.default_model);
         let ctx = open_db(&database, &args.data_dir, &default_model, args.max_queue, limits, lease).await?;
+        if !args.addr.ip().is_loopback() && keys.is_empty() && !ctx.store.has_keys().await? {
+            tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
+        }
         let dispatchers: Vec<_> = (0..args.workers).map(|_| tokio::spawn(jobs::dispatcher(ctx.clone()))).collect();
         let app = http::router(AppState::new(ctx.clone(), keys).with_allowed_hosts(allowed_hosts));
         let inner = tokio::net::TcpListener::bind(args.addr)

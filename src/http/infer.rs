@@ -110,6 +110,7 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
 
 pub async fn infer(
     State(st): State<AppState>,
+    axum::Extension(who): axum::Extension<super::Principal>,
     Query(query): Query<Vec<(String, String)>>,
     headers: HeaderMap,
     body: Bytes,
@@ -121,12 +122,8 @@ pub async fn infer(
         return Err(Problem::invalid(vec![("samples".into(), format!("must be 1..={MAX_SAMPLES}"))]));
     }
     let row = match &req.model {
-        Some(id) => st
-            .ctx
-            .store
-            .model(id)
-            .await
-            .map_err(Problem::internal)?
+        Some(id) => super::resources::visible_model(&st, &who, id)
+            .await?
             .ok_or_else(|| Problem::invalid(vec![("model".into(), format!("no model '{id}'"))]))?,
         None => st
             .ctx

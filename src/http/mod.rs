@@ -2,6 +2,8 @@
 //! problem details; validation errors name the field. openapi.yaml is the contract and
 //! `ROUTES` the list a test checks it against.
 
+pub mod auth;
+pub use auth::{Principal, host_allowed};
 pub mod conn;
 mod infer;
 pub mod metrics;
@@ -16,9 +18,8 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use serde::Serialize;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::Duration;
-use subtle::ConstantTimeEq;
 
 /// Every route the server answers: (method, path). openapi.yaml must list exactly these.
 pub const ROUTES: [(&str, &str); 14] = [
@@ -150,60 +151,23 @@ pub struct AppState {
     /// Host names a keyless server answers besides loopback names and IP literals
     /// (lower case, without port).
     pub allowed_hosts: Arc<Vec<String>>,
+    /// Whether the database was seen to hold API keys (then the server stays keyed).
+    keyed: Arc<AtomicBool>,
 }
 
 impl AppState {
     pub fn new(ctx: Arc<Ctx>, key_hashes: Vec<[u8; 32]>) -> AppState {
-        AppState { ctx, key_hashes: Arc::new(key_hashes), allowed_hosts: Arc::new(vec![]) }
+        AppState {
+            ctx,
+            key_hashes: Arc::new(key_hashes),
+            allowed_hosts: Arc::new(vec![]),
+            keyed: Arc::new(AtomicBool::new(false)),
+        }
     }
 
     pub fn with_allowed_hosts(mut self, hosts: Vec<String>) -> AppState {
         self.allowed_hosts = Arc::new(hosts.into_iter().map(|h| h.to_ascii_lowercase()).collect());
         self
-    }
-}
-
-/// The name part of a Host header value: `[::1]:8080` → `::1`, `Example.org:80` →
-/// `Example.org`.
-fn host_name(value: &str) -> &str {
-    match value.strip_prefix('[') {
-        Some(rest) => rest.split(']').next().unwrap_or(rest),
-        None => value.rsplit_once(':').map_or(value, |(name, _)| name),
-    }
-}
-
-/// Whether a keyless server may answer a request addressed to `host`: loopback names and
-/// IP literals (a DNS-rebinding page always addresses its own domain name), and the
-/// names given with `--allowed-host`.
-pub fn host_allowed(host: &str, allowed: &[String]) -> bool {
-    let name = host_name(host.trim()).trim_end_matches('.').to_ascii_lowercase();
-    name == "localhost"
-        || name.ends_with(".localhost")
-        || name.parse::<std::net::IpAddr>().is_ok()
-        || allowed.contains(&name)
-}
-
-/// Keyless servers refuse requests addressed to other host names, so that a web page
-/// cannot drive one on a user's machine through DNS rebinding. Requests without a Host
-/// header (not from a browser) pass; with API keys the key check guards instead.
-async fn host_guard(State(st): State<AppState>, req: Request, next: Next) -> Response {
-    if !st.key_hashes.is_empty() {
-        return next.run(req).await;
-    }
-    let refused = (req.headers().get(header::HOST))
-        .map(|v| v.to_str().unwrap_or("\u{fffd}"))
-        .filter(|h| !host_allowed(h, &st.allowed_hosts))
-        .map(|h| host_name(h).to_string());
-    match refused {
-        Some(name) => Problem::new(
-            StatusCode::FORBIDDEN,
-            format!(
-                "this server answers only requests addressed to localhost or an IP address; to serve the host name \
-                 '{name}', start it with --allowed-host {name} (or with API keys)"
-            ),
-        )
-        .into_response(),
-        None => next.run(req).await,
     }
 }
 
@@ -286,33 +250,6 @@ pub fn json_body<T: serde::de::DeserializeOwned>(headers: &axum::http::HeaderMap
     }
 }
 
-async fn auth(State(st): State<AppState>, req: Request, next: Next) -> Response {
-    if st.key_hashes.is_empty() || req.uri().path() == "/health" {
-        return next.run(req).await;
-    }
-    // The scheme name is case-insensitive (RFC 9110 §11.1).
-    let key = req
-        .headers()
-        .get(header::AUTHORIZATION)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.trim().split_once(' '))
-        .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
-        .map(|(_, k)| k.trim());
-    let ok = key.is_some_and(|k| {
-        use sha2::Digest;
-        let h: [u8; 32] = sha2::Sha256::digest(k.as_bytes()).into();
-        st.key_hashes.iter().fold(0u8, |acc, stored| acc | stored.ct_eq(&h).unwrap_u8()) == 1
-    });
-    if ok {
-        next.run(req).await
-    } else {
-        let mut r = Problem::new(StatusCode::UNAUTHORIZED, "a valid API key is required (Authorization: Bearer <key>)")
-            .into_response();
-        r.headers_mut().insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
-        r
-    }
-}
-
 /// Every error answer as problem+json: those of axum itself (405, extractor rejections),
 /// of tower-http (413, 408) and of handlers that are not problems yet. The headers that go
 /// with a status (Allow, Retry-After, WWW-Authenticate) are kept.
@@ -378,8 +315,7 @@ pub fn router(state: AppState) -> Router {
         .route("/datasets/{id}/{file}", get(get_dataset_file))
         .route("/metrics", get(metrics))
         .fallback(|| async { Problem::new(StatusCode::NOT_FOUND, "no such route") })
-        .layer(middleware::from_fn_with_state(state.clone(), auth))
-        .layer(middleware::from_fn_with_state(state.clone(), host_guard))
+        .layer(middleware::from_fn_with_state(state.clone(), auth::guard))
         .layer(tower_http::limit::RequestBodyLimitLayer::new(MAX_BODY))
         .layer(middleware::from_fn(problems))
         .layer(tower_http::trace::TraceLayer::new_for_http())

@@ -1,12 +1,12 @@
 //! Health, models, jobs and datasets.
 
-use super::{AppState, Problem, json_body};
+use super::{AppState, Principal, Problem, json_body};
 use crate::jobs::{self, KINDS};
-use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use axum::{Extension, Json};
 use serde::Deserialize;
 use serde_json::json;
 
@@ -40,7 +40,9 @@ pub async fn openapi() -> Response {
 }
 
 fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
-    let base = json!({ "id": m.id, "default": m.is_default, "created_at": m.created_at, "source_job": m.source_job });
+    let base = json!({
+        "id": m.id, "default": m.is_default, "created_at": m.created_at, "source_job": m.source_job, "tenant": m.tenant,
+    });
     match st.ctx.loaded(&m.id, std::path::Path::new(&m.path)) {
         Ok(npe) => {
             let h = &npe.header;
@@ -76,16 +78,39 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
     }
 }
 
-pub async fn list_models(State(st): State<AppState>) -> Result<Json<serde_json::Value>, Problem> {
-    let rows = st.ctx.store.models().await.map_err(Problem::internal)?;
+pub async fn list_models(
+    State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
+) -> Result<Json<serde_json::Value>, Problem> {
+    let rows = st.ctx.store.models(who.scope()).await.map_err(Problem::internal)?;
     Ok(Json(json!({ "models": rows.iter().map(|m| model_doc(&st, m)).collect::<Vec<_>>() })))
 }
 
-pub async fn get_model(State(st): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, Problem> {
-    match st.ctx.store.model(&id).await.map_err(Problem::internal)? {
+/// The model `id` if `who` may use it (another tenant's model does not exist for it).
+pub async fn visible_model(
+    st: &AppState,
+    who: &Principal,
+    id: &str,
+) -> Result<Option<crate::store::ModelRow>, Problem> {
+    let m = st.ctx.store.model(id).await.map_err(Problem::internal)?;
+    Ok(m.filter(|m| who.sees_model(m)))
+}
+
+pub async fn get_model(
+    State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, Problem> {
+    match visible_model(&st, &who, &id).await? {
         Some(m) => Ok(Json(model_doc(&st, &m))),
         None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no model '{id}'"))),
     }
+}
+
+/// The job `id` if `who` may see it (another tenant's job does not exist for it).
+async fn visible_job(st: &AppState, who: &Principal, id: &str) -> Result<Option<crate::store::JobRow>, Problem> {
+    let j = st.ctx.store.job(id).await.map_err(Problem::internal)?;
+    Ok(j.filter(|j| who.sees_job(j)))
 }
 
 #[derive(Deserialize)]
@@ -96,13 +121,31 @@ pub struct NewJob {
     params: serde_json::Value,
 }
 
-fn job_doc(j: &crate::store::JobRow) -> serde_json::Value {
+/// Job params that hold a patient's measurements: shown to the job's own tenant only
+/// (an admin of another tenant sees the job without them, listed under `redacted`).
+const MEASUREMENT_PARAMS: [&str; 2] = ["x", "observation"];
+
+fn job_doc(j: &crate::store::JobRow, who: &Principal) -> serde_json::Value {
     let mut d = serde_json::to_value(j).unwrap_or_default();
+    if j.tenant != who.tenant
+        && let Some(params) = d["params"].as_object_mut()
+    {
+        let gone: Vec<String> =
+            MEASUREMENT_PARAMS.iter().filter(|k| params.remove(**k).is_some()).map(|k| format!("params.{k}")).collect();
+        if !gone.is_empty() {
+            d["redacted"] = json!(gone);
+        }
+    }
     d["links"] = json!({ "self": format!("/jobs/{}", j.id), "cancel": format!("/jobs/{}/cancel", j.id) });
     d
 }
 
-pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Response, Problem> {
+pub async fn create_job(
+    State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Response, Problem> {
     let req: NewJob = json_body(&headers, &body)?;
     if !KINDS.contains(&req.kind.as_str()) {
         return Err(Problem::invalid(vec![(
@@ -113,7 +156,7 @@ pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: By
     jobs::validate(&req.kind, &req.params).map_err(Problem::invalid)?;
     if req.kind == "train" {
         let ds = req.params["dataset"].as_str().unwrap_or_default();
-        let ok = matches!(st.ctx.store.job(ds).await.map_err(Problem::internal)?, Some(j) if j.kind == "simulate" && j.state == "succeeded");
+        let ok = matches!(visible_job(&st, &who, ds).await?, Some(j) if j.kind == "simulate" && j.state == "succeeded");
         if !ok {
             return Err(Problem::invalid(vec![(
                 "params.dataset".into(),
@@ -122,13 +165,13 @@ pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: By
         }
     }
     if req.kind == "diagnose" {
-        diagnose_model(&st, &req.params).await?;
+        diagnose_model(&st, &who, &req.params).await?;
     }
     let id = jobs::new_id();
     if !st
         .ctx
         .store
-        .insert_job_within(&id, &req.kind, &req.params, 3, st.ctx.max_queue)
+        .insert_tenant_job_within(&id, &who.tenant, &req.kind, &req.params, 3, st.ctx.max_queue)
         .await
         .map_err(Problem::internal)?
     {
@@ -138,21 +181,24 @@ pub async fn create_job(State(st): State<AppState>, headers: HeaderMap, body: By
         ));
     }
     st.ctx.notify.notify_one();
-    tracing::info!(job = %id, kind = %req.kind, "job queued");
+    tracing::info!(job = %id, kind = %req.kind, tenant = %who.tenant, "job queued");
     let job =
         st.ctx.store.job(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
-    let mut r = (StatusCode::ACCEPTED, Json(job_doc(&job))).into_response();
+    let mut r = (StatusCode::ACCEPTED, Json(job_doc(&job, &who))).into_response();
     r.headers_mut().insert(header::LOCATION, HeaderValue::from_str(&format!("/jobs/{id}")).map_err(Problem::internal)?);
     Ok(r)
 }
 
 /// A diagnose job's base model (`params.model`, else the default) must be registered and
 /// take as many features as `params.x` has: both answered now, not when the job runs.
-async fn diagnose_model(st: &AppState, params: &serde_json::Value) -> Result<(), Problem> {
+async fn diagnose_model(st: &AppState, who: &Principal, params: &serde_json::Value) -> Result<(), Problem> {
     let (field, id) = match params["model"].as_str() {
         Some(m) => ("params.model", m.to_string()),
         None => ("params", "default".to_string()),
     };
+    if jobs::is_plain_id(&id) && visible_model(st, who, &id).await?.is_none() {
+        return Err(Problem::invalid(vec![(field.into(), format!("model '{id}' is not registered"))]));
+    }
     let ctx = st.ctx.clone();
     let id2 = id.clone();
     let npe = tokio::task::spawn_blocking(move || jobs::registered_model(&ctx, &id2))
@@ -177,6 +223,7 @@ pub struct JobQuery {
 
 pub async fn list_jobs(
     State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
     Query(q): Query<JobQuery>,
 ) -> Result<Json<serde_json::Value>, Problem> {
     const STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
@@ -189,19 +236,27 @@ pub async fn list_jobs(
     if !(1..=1000).contains(&limit) {
         return Err(Problem::invalid(vec![("limit".into(), format!("must be 1..=1000, got {limit}"))]));
     }
-    let rows = st.ctx.store.jobs(q.state.as_deref(), limit).await.map_err(Problem::internal)?;
-    Ok(Json(json!({ "jobs": rows.iter().map(job_doc).collect::<Vec<_>>() })))
+    let rows = st.ctx.store.jobs(q.state.as_deref(), limit, who.scope()).await.map_err(Problem::internal)?;
+    Ok(Json(json!({ "jobs": rows.iter().map(|j| job_doc(j, &who)).collect::<Vec<_>>() })))
 }
 
-pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> Result<Json<serde_json::Value>, Problem> {
-    match st.ctx.store.job(&id).await.map_err(Problem::internal)? {
-        Some(j) => Ok(Json(job_doc(&j))),
+pub async fn get_job(
+    State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, Problem> {
+    match visible_job(&st, &who, &id).await? {
+        Some(j) => Ok(Json(job_doc(&j, &who))),
         None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'"))),
     }
 }
 
-pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> Result<Response, Problem> {
-    match st.ctx.store.job(&id).await.map_err(Problem::internal)? {
+pub async fn cancel_job(
+    State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
+    Path(id): Path<String>,
+) -> Result<Response, Problem> {
+    match visible_job(&st, &who, &id).await? {
         None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'"))),
         Some(j) if ["succeeded", "failed", "cancelled"].contains(&j.state.as_str()) => {
             Err(Problem::new(StatusCode::CONFLICT, format!("job '{id}' already ended ({})", j.state)))
@@ -214,13 +269,13 @@ pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> R
                 .await
                 .map_err(Problem::internal)?
                 .ok_or_else(|| Problem::internal("job vanished"))?;
-            Ok((StatusCode::ACCEPTED, Json(job_doc(&j))).into_response())
+            Ok((StatusCode::ACCEPTED, Json(job_doc(&j, &who))).into_response())
         }
     }
 }
 
-async fn dataset_job(st: &AppState, id: &str) -> Result<(), Problem> {
-    match st.ctx.store.job(id).await.map_err(Problem::internal)? {
+async fn dataset_job(st: &AppState, who: &Principal, id: &str) -> Result<(), Problem> {
+    match visible_job(st, who, id).await? {
         Some(j) if j.kind == "simulate" && j.state == "succeeded" => Ok(()),
         Some(j) if j.kind == "simulate" => {
             Err(Problem::new(StatusCode::CONFLICT, format!("dataset '{id}' is not ready (job {})", j.state)))
@@ -231,9 +286,10 @@ async fn dataset_job(st: &AppState, id: &str) -> Result<(), Problem> {
 
 pub async fn get_dataset(
     State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path(id): Path<String>,
 ) -> Result<Json<serde_json::Value>, Problem> {
-    dataset_job(&st, &id).await?;
+    dataset_job(&st, &who, &id).await?;
     let meta = tokio::fs::read(st.ctx.dataset_dir(&id).join("meta.json")).await.map_err(Problem::internal)?;
     let meta: serde_json::Value = serde_json::from_slice(&meta).map_err(Problem::internal)?;
     Ok(Json(json!({
@@ -246,6 +302,7 @@ pub async fn get_dataset(
 
 pub async fn get_dataset_file(
     State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path((id, file)): Path<(String, String)>,
 ) -> Result<Response, Problem> {
     let ct = match file.as_str() {
@@ -255,7 +312,7 @@ pub async fn get_dataset_file(
             return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{file}' (theta.csv, x.csv, meta.json)")));
         }
     };
-    dataset_job(&st, &id).await?;
+    dataset_job(&st, &who, &id).await?;
     let bytes = tokio::fs::read(st.ctx.dataset_dir(&id).join(&file)).await.map_err(Problem::internal)?;
     let mut r = bytes.into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
@@ -265,6 +322,7 @@ pub async fn get_dataset_file(
 /// A file a job wrote: its report page (report.html), report.json or SVG figures.
 pub async fn get_job_file(
     State(st): State<AppState>,
+    Extension(who): Extension<Principal>,
     Path((id, name)): Path<(String, String)>,
 ) -> Result<Response, Problem> {
     let ct = match name.rsplit('.').next() {
@@ -276,7 +334,7 @@ pub async fn get_job_file(
     if ct.is_empty() || name.contains('/') || name.contains("..") {
         return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{name}'")));
     }
-    if st.ctx.store.job(&id).await.map_err(Problem::internal)?.is_none() {
+    if visible_job(&st, &who, &id).await?.is_none() {
         return Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'")));
     }
     let path = st.ctx.data_dir.join("reports").join(&id).join(&name);

@@ -1207,12 +1207,12 @@ async fn keyless_server_answers_only_loopback_names_ip_literals_and_allowed_host
         assert_eq!(get(app.clone(), host).await.0, StatusCode::OK, "{host}");
     }
     let (status, body) = get(app.clone(), "evil.example:8080").await;
-    assert_eq!(status, StatusCode::FORBIDDEN, "{body}");
-    assert!(body.contains("--allowed-host evil.example") && body.contains("\"status\":403"), "{body}");
+    assert_eq!(status, StatusCode::MISDIRECTED_REQUEST, "{body}");
+    assert!(body.contains("--allowed-host evil.example") && body.contains("\"status\":421"), "{body}");
     // Named with --allowed-host: answered.
     let allowed = router(AppState::new(ctx.clone(), vec![]).with_allowed_hosts(vec!["Otofit.Lab".into()]));
     assert_eq!(get(allowed.clone(), "otofit.lab:8080").await.0, StatusCode::OK);
-    assert_eq!(get(allowed, "evil.example").await.0, StatusCode::FORBIDDEN);
+    assert_eq!(get(allowed, "evil.example").await.0, StatusCode::MISDIRECTED_REQUEST);
     // With API keys the key check guards instead: any host, but a key is needed.
     let keyed = router(AppState::new(ctx, vec![[7u8; 32]]));
     assert_eq!(get(keyed, "evil.example").await.0, StatusCode::UNAUTHORIZED);

@@ -7,3 +7,4 @@ mod npe;
 mod pg;
 mod physics;
 mod sim;
+mod tenants;

@@ -168,7 +168,7 @@ fn temp_dir(tag: &str) -> PathBuf {
 }
 
 /// A store on each backend: SQLite in a temporary file and, when available, PostgreSQL.
-async fn backends() -> Vec<(String, Database)> {
+pub(crate) async fn backends() -> Vec<(String, Database)> {
     let mut v = vec![("sqlite".to_string(), Database::Sqlite(temp_dir("sq").join("otofit.db")))];
     if let Some(url) = fresh_database().await {
         v.push(("postgres".into(), Database::Postgres(url)));
@@ -279,7 +279,7 @@ async fn concurrent_inserts_from_many_servers_never_exceed_the_queue_limit() {
     }
 }
 
-fn ctx_on(store: Store, data: &Path, worker: &str, lease: Duration) -> Arc<Ctx> {
+pub(crate) fn ctx_on(store: Store, data: &Path, worker: &str, lease: Duration) -> Arc<Ctx> {
     let mut ctx = Ctx::new(store, data.to_path_buf(), 64).with_lease(lease);
     ctx.worker = worker.to_string();
     Arc::new(ctx)

@@ -1,0 +1,188 @@
+//! Issue 13.4: tenants. Keys belong to tenants; jobs, datasets and models belong to the
+//! tenant that made them; another tenant's id answers 404 on every route that takes one,
+//! lists show only one's own, an admin key sees all but not other tenants' measurements.
+//! On SQLite and, when its binaries are installed, PostgreSQL.
+
+use crate::pg::{backends, ctx_on};
+use axum::Router;
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use otofit::http::{AppState, router};
+use otofit::jobs::Ctx;
+use serde_json::{Value, json};
+use std::sync::Arc;
+use std::time::Duration;
+use tower::ServiceExt;
+
+/// A request with `key` (if any) as its bearer key; (status, body).
+async fn send(app: &Router, key: Option<&str>, method: &str, uri: &str, body: Option<Value>) -> (StatusCode, Value) {
+    let mut req = Request::builder().method(method).uri(uri);
+    if let Some(k) = key {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {k}"));
+    }
+    if body.is_some() {
+        req = req.header(header::CONTENT_TYPE, "application/json");
+    }
+    let req = req.body(body.map_or(Body::empty(), |b| Body::from(b.to_string()))).unwrap();
+    let res = app.clone().oneshot(req).await.unwrap();
+    let status = res.status();
+    let bytes = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
+    (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
+/// A simulate job posted by `key`, then run to success by hand (claimed and finished, its
+/// dataset files and a report file written), without a dispatcher.
+async fn succeeded_simulate(app: &Router, ctx: &Ctx, key: &str) -> String {
+    let (status, j) =
+        send(app, Some(key), "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 3}}))).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{j}");
+    let id = j["id"].as_str().unwrap().to_string();
+    let claimed = ctx.store.claim("test", Duration::from_secs(30)).await.unwrap().unwrap();
+    assert_eq!(claimed.id, id);
+    let dir = ctx.dataset_dir(&id);
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("meta.json"), r#"{"n_rows": 3}"#).unwrap();
+    std::fs::write(dir.join("x.csv"), "1\n").unwrap();
+    let reports = ctx.data_dir.join("reports").join(&id);
+    std::fs::create_dir_all(&reports).unwrap();
+    std::fs::write(reports.join("report.html"), "<p>report</p>").unwrap();
+    let token = claimed.lease_token.unwrap();
+    assert!(ctx.store.finish(&id, &token, "succeeded", None, Some(&json!({"rows": 3}))).await.unwrap());
+    id
+}
+
+fn ids(list: &Value, key: &str) -> Vec<String> {
+    list[key].as_array().unwrap().iter().map(|j| j["id"].as_str().unwrap().to_string()).collect()
+}
+
+/// Two tenants and an admin on one server (`app` over `ctx`, no `--api-key-hash`).
+async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend: &str) {
+    // Keyless until a key is stored; from then on every route but /health needs one.
+    assert_eq!(send(app, None, "GET", "/jobs", None).await.0, StatusCode::OK, "{backend}");
+    let alpha = ctx.store.add_key("alpha", false).await.unwrap().key;
+    let beta = ctx.store.add_key("beta", false).await.unwrap().key;
+    let ops = ctx.store.add_key("ops", true).await.unwrap();
+    assert_eq!(send(app, None, "GET", "/jobs", None).await.0, StatusCode::UNAUTHORIZED, "{backend}");
+    assert_eq!(send(app, None, "GET", "/health", None).await.0, StatusCode::OK, "{backend}");
+    let (a, b) = (Some(alpha.as_str()), Some(beta.as_str()));
+
+    let ja = succeeded_simulate(app, ctx, &alpha).await;
+    let jb = succeeded_simulate(app, ctx, &beta).await;
+    // A model trained from alpha's job is alpha's; the default model is everyone's.
+    let default = ctx.store.model("default").await.unwrap().unwrap();
+    ctx.store.add_model("ma", &default.path, false, Some(&ja)).await.unwrap();
+    assert_eq!(ctx.store.model("ma").await.unwrap().unwrap().tenant.as_deref(), Some("alpha"), "{backend}");
+    // Alpha's resimulate job carries a measurement (the observation).
+    let obs = vec![0.5; 250];
+    let resim = json!({"kind": "resimulate", "params": {"theta": [[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]], "observation": obs}});
+    let (status, r) = send(app, a, "POST", "/jobs", Some(resim)).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{backend}: {r}");
+    let jr = r["id"].as_str().unwrap().to_string();
+    assert_eq!(r["tenant"], "alpha", "{backend}: {r}");
+
+    // Every route that takes an id: alpha's answer 404 to beta, 2xx to alpha.
+    for uri in [
+        format!("/jobs/{ja}"),
+        format!("/jobs/{jr}"),
+        format!("/jobs/{ja}/files/report.html"),
+        format!("/datasets/{ja}"),
+        format!("/datasets/{ja}/x.csv"),
+        "/models/ma".to_string(),
+    ] {
+        let (status, p) = send(app, b, "GET", &uri, None).await;
+        assert_eq!(status, StatusCode::NOT_FOUND, "{backend}: beta GET {uri}: {p}");
+        assert_eq!(send(app, a, "GET", &uri, None).await.0, StatusCode::OK, "{backend}: alpha GET {uri}");
+        assert_eq!(send(app, Some(&ops.key), "GET", &uri, None).await.0, StatusCode::OK, "{backend}: admin {uri}");
+    }
+    assert_eq!(send(app, b, "GET", &format!("/jobs/{jb}"), None).await.0, StatusCode::OK, "{backend}");
+    assert_eq!(send(app, a, "GET", &format!("/jobs/{jb}"), None).await.0, StatusCode::NOT_FOUND, "{backend}");
+    let (status, _) = send(app, b, "POST", &format!("/jobs/{jr}/cancel"), None).await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{backend}: beta cancels alpha's job");
+    assert_eq!(ctx.store.job(&jr).await.unwrap().unwrap().state, "queued", "{backend}: not cancelled");
+
+    // Lists: one's own; the admin sees all.
+    let (_, list) = send(app, b, "GET", "/jobs", None).await;
+    assert_eq!(ids(&list, "jobs"), vec![jb.clone()], "{backend}");
+    let (_, list) = send(app, a, "GET", "/jobs?limit=10", None).await;
+    assert_eq!(ids(&list, "jobs").len(), 2, "{backend}: {list}");
+    let (_, list) = send(app, Some(&ops.key), "GET", "/jobs", None).await;
+    assert_eq!(ids(&list, "jobs").len(), 3, "{backend}");
+    let (_, models) = send(app, b, "GET", "/models", None).await;
+    assert_eq!(ids(&models, "models"), vec!["default"], "{backend}");
+    let (_, models) = send(app, a, "GET", "/models", None).await;
+    assert_eq!(ids(&models, "models"), vec!["default", "ma"], "{backend}");
+
+    // Another tenant's dataset and model cannot be used either: 422 as if unknown.
+    let train = json!({"kind": "train", "params": {"dataset": ja}});
+    let (status, p) = send(app, b, "POST", "/jobs", Some(train)).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.dataset")));
+    let diagnose = json!({"kind": "diagnose", "params": {"model": "ma", "x": vec![0.5; 250]}});
+    let (status, p) = send(app, b, "POST", "/jobs", Some(diagnose)).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.model")));
+    let mut infer = crate::http::nominal_request();
+    infer["model"] = json!("ma");
+    infer["samples"] = json!(10);
+    let (status, p) = send(app, b, "POST", "/infer", Some(infer.clone())).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("model")), "{p}");
+    assert_eq!(send(app, a, "POST", "/infer", Some(infer)).await.0, StatusCode::OK, "{backend}");
+
+    // The admin sees alpha's job, but not the measurement in its params.
+    let (_, j) = send(app, Some(&ops.key), "GET", &format!("/jobs/{jr}"), None).await;
+    assert!(j["params"].get("observation").is_none() && j["params"].get("theta").is_some(), "{backend}: {j}");
+    assert_eq!(j["redacted"], json!(["params.observation"]), "{backend}");
+    let (_, j) = send(app, a, "GET", &format!("/jobs/{jr}"), None).await;
+    assert_eq!(j["params"]["observation"].as_array().map(Vec::len), Some(250), "{backend}: the owner sees it");
+
+    // A revoked key is refused; the server stays keyed.
+    let keys = ctx.store.keys().await.unwrap();
+    let beta_id = keys.iter().find(|k| k.tenant == "beta").unwrap().id.clone();
+    assert_eq!(ctx.store.revoke_key(&beta_id).await.unwrap(), Some(true), "{backend}");
+    assert_eq!(ctx.store.revoke_key(&beta_id).await.unwrap(), Some(false), "{backend}");
+    assert_eq!(ctx.store.revoke_key("nope").await.unwrap(), None, "{backend}");
+    assert_eq!(send(app, b, "GET", "/jobs", None).await.0, StatusCode::UNAUTHORIZED, "{backend}");
+    assert_eq!(send(app, a, "GET", "/jobs", None).await.0, StatusCode::OK, "{backend}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_tenants_cannot_see_each_others_jobs_datasets_and_models() {
+    for (name, db) in backends().await {
+        let store = otofit::store::Store::connect(&db).await.unwrap();
+        let data = std::env::temp_dir().join(format!("otofit-tenants-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&data);
+        std::fs::create_dir_all(&data).unwrap();
+        let path = std::fs::canonicalize(crate::http::default_model()).unwrap();
+        store.add_model("default", &path.display().to_string(), true, None).await.unwrap();
+        let ctx = ctx_on(store, &data, "test", Duration::from_secs(30));
+        let app = router(AppState::new(ctx.clone(), vec![]));
+        two_tenants_cannot_see_each_other(&app, &ctx, &name).await;
+        std::fs::remove_dir_all(&data).unwrap();
+    }
+}
+
+/// `--api-key-hash` keys (configuration from before tenants) still work: admin keys of
+/// the `default` tenant, which see every tenant's jobs.
+#[tokio::test]
+async fn command_line_keys_are_admins_of_the_default_tenant() {
+    let (db, data) = (
+        otofit::store::Database::Sqlite(std::env::temp_dir().join(format!("otofit-clikeys-{}.db", std::process::id()))),
+        std::env::temp_dir().join(format!("otofit-clikeys-{}", std::process::id())),
+    );
+    if let otofit::store::Database::Sqlite(p) = &db {
+        let _ = std::fs::remove_file(p);
+    }
+    let store = otofit::store::Store::connect(&db).await.unwrap();
+    let ctx = ctx_on(store, &data, "test", Duration::from_secs(30));
+    let app = router(AppState::new(ctx.clone(), vec![otofit::store::key_hash("legacy")]));
+    let alpha = ctx.store.add_key("alpha", false).await.unwrap().key;
+    let (status, j) =
+        send(&app, Some(&alpha), "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 3}}))).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{j}");
+    let (status, j2) =
+        send(&app, Some("legacy"), "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 3}}))).await;
+    assert_eq!((status, j2["tenant"].as_str()), (StatusCode::ACCEPTED, Some("default")), "{j2}");
+    let (_, list) = send(&app, Some("legacy"), "GET", "/jobs", None).await;
+    assert_eq!(ids(&list, "jobs").len(), 2, "{list}");
+    let (_, list) = send(&app, Some(&alpha), "GET", "/jobs", None).await;
+    assert_eq!(ids(&list, "jobs"), vec![j["id"].as_str().unwrap().to_string()]);
+    assert_eq!(send(&app, None, "GET", "/jobs", None).await.0, StatusCode::UNAUTHORIZED);
+}
