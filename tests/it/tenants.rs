@@ -186,3 +186,47 @@ async fn command_line_keys_are_admins_of_the_default_tenant() {
     assert_eq!(ids(&list, "jobs"), vec![j["id"].as_str().unwrap().to_string()]);
     assert_eq!(send(&app, None, "GET", "/jobs", None).await.0, StatusCode::UNAUTHORIZED);
 }
+
+/// `otofit keys add|list|revoke` on a data directory: the key is printed once and works
+/// (its hash is in the database), `list` never shows it, `revoke` turns it off.
+#[tokio::test]
+async fn keys_are_added_listed_and_revoked_from_the_command_line() {
+    let data = std::env::temp_dir().join(format!("otofit-keys-cli-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&data);
+    let keys = |args: &[&str]| {
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+            .arg("keys")
+            .args(args)
+            .args(["--data-dir", data.to_str().unwrap()])
+            .output()
+            .unwrap();
+        let text = |b: &[u8]| String::from_utf8_lossy(b).to_string();
+        (out.status.success(), text(&out.stdout), text(&out.stderr))
+    };
+    let (ok, key, err) = keys(&["add", "--tenant", "clinic-a"]);
+    assert!(ok, "{err}");
+    let key = key.trim().to_string();
+    assert!(key.starts_with("otofit_") && key.len() > 70, "{key}");
+    let id = key.split('_').nth(1).unwrap().to_string();
+    assert!(err.contains(&id) && err.contains("clinic-a"), "{err}");
+    let (ok, _, err) = keys(&["add", "--tenant", "ops", "--admin"]);
+    assert!(ok, "{err}");
+    let (ok, list, _) = keys(&["list"]);
+    assert!(ok && list.contains(&id) && list.contains("clinic-a") && list.contains("ops"), "{list}");
+    assert!(!list.contains(&key[20..]), "list shows no key: {list}");
+    let store = otofit::store::Store::open(&data.join("otofit.db")).await.unwrap();
+    let owner = store.key_owner(&otofit::store::key_hash(&key)).await.unwrap();
+    assert_eq!(owner, Some(otofit::store::KeyOwner { tenant: "clinic-a".into(), admin: false }));
+    let (ok, _, err) = keys(&["revoke", &id]);
+    assert!(ok, "{err}");
+    assert_eq!(store.key_owner(&otofit::store::key_hash(&key)).await.unwrap(), None);
+    let (_, list, _) = keys(&["list", "--json"]);
+    let list: Value = serde_json::from_str(&list).unwrap();
+    let revoked = list.as_array().unwrap().iter().find(|k| k["id"] == id.as_str()).unwrap();
+    assert!(revoked["revoked_at"].is_string(), "{revoked}");
+    let (ok, _, err) = keys(&["revoke", "nope"]);
+    assert!(!ok && err.contains("no key 'nope'"), "{err}");
+    let (ok, _, err) = keys(&["add", "--tenant", "../etc"]);
+    assert!(!ok && err.contains("--tenant"), "{err}");
+    std::fs::remove_dir_all(&data).unwrap();
+}
