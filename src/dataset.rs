@@ -5,11 +5,76 @@
 use crate::sim::batch::{Design, Noise};
 use crate::sim::output::{GROUPS, MEASURES, feature_names};
 use crate::sim::params::{EFFECTS, EffectSpec, ParamSpec};
-use anyhow::{Context, Result, bail};
 use serde::Serialize;
 use std::fs::File;
 use std::io::{BufRead, BufReader, BufWriter, Write};
 use std::path::{Path, PathBuf};
+
+/// Results of this module.
+pub type Result<T, E = DatasetError> = std::result::Result<T, E>;
+
+/// Errors of reading tables and writing dataset folders: a table at fault (bad input,
+/// [`DatasetError::is_input`]), a cancelled run, or the file system.
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum DatasetError {
+    /// A table's content is not usable; the message names the file, line and column.
+    #[error("{}: {why}", path.display())]
+    Table {
+        /// The file.
+        path: PathBuf,
+        /// Where and what.
+        why: String,
+    },
+    /// A run stopped by its progress callback.
+    #[error(transparent)]
+    Cancelled(#[from] Cancelled),
+    /// Reading or writing failed.
+    #[error(transparent)]
+    Io(#[from] FileError),
+    /// meta.json could not be encoded (internal).
+    #[error("cannot encode meta.json")]
+    Encode(#[source] serde_json::Error),
+}
+
+impl DatasetError {
+    /// Whether the table given is at fault (as opposed to the file system or a bug).
+    pub fn is_input(&self) -> bool {
+        matches!(self, DatasetError::Table { .. })
+    }
+
+    fn table(path: &Path, why: String) -> DatasetError {
+        DatasetError::Table { path: path.to_path_buf(), why }
+    }
+}
+
+/// A file operation that failed, naming the operation and the file (shared by the
+/// layers that read and write files).
+#[derive(Debug, thiserror::Error)]
+#[error("cannot {action} {}", path.display())]
+pub struct FileError {
+    /// `open`, `read`, `write`, `create` or `rename`.
+    pub action: &'static str,
+    /// The file or folder.
+    pub path: PathBuf,
+    /// The operating system's error.
+    #[source]
+    pub source: std::io::Error,
+}
+
+impl FileError {
+    /// For `map_err`: an I/O error of `action` on `path`.
+    pub fn on(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> FileError + use<> {
+        let path = path.to_path_buf();
+        move |source| FileError { action, path, source }
+    }
+}
+
+/// An I/O error on `path` as this module's error, for `map_err`.
+fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> DatasetError + use<> {
+    let on = FileError::on(action, path);
+    move |source| DatasetError::Io(on(source))
+}
 
 #[derive(Serialize)]
 pub struct Meta {
@@ -126,21 +191,24 @@ fn tmp(dir: &Path, name: &str) -> PathBuf {
 
 impl Writer {
     pub fn create(dir: &Path, meta: &Meta) -> Result<Writer> {
-        std::fs::create_dir_all(dir).with_context(|| format!("cannot create {}", dir.display()))?;
+        std::fs::create_dir_all(dir).map_err(io("create", dir))?;
         let open = |name: &str| -> Result<BufWriter<File>> {
             let p = tmp(dir, name);
-            Ok(BufWriter::new(File::create(&p).with_context(|| format!("cannot write {}", p.display()))?))
+            Ok(BufWriter::new(File::create(&p).map_err(io("write", &p))?))
         };
         let mut theta = open(FILES[0])?;
         let mut x = open(FILES[1])?;
-        writeln!(theta, "{}", meta.parameters.iter().map(|p| p.name).collect::<Vec<_>>().join(","))?;
-        writeln!(x, "{}", meta.features.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(","))?;
+        writeln!(theta, "{}", meta.parameters.iter().map(|p| p.name).collect::<Vec<_>>().join(","))
+            .map_err(io("write", &tmp(dir, FILES[0])))?;
+        writeln!(x, "{}", meta.features.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(","))
+            .map_err(io("write", &tmp(dir, FILES[1])))?;
         Ok(Writer { dir: dir.to_path_buf(), theta, x, rows: 0 })
     }
 
+    /// Appends one row to theta.csv and x.csv.
     pub fn push(&mut self, theta: &[f64], x: &[f64]) -> Result<()> {
-        write_row(&mut self.theta, theta)?;
-        write_row(&mut self.x, x)?;
+        write_row(&mut self.theta, theta).map_err(io("write", &tmp(&self.dir, FILES[0])))?;
+        write_row(&mut self.x, x).map_err(io("write", &tmp(&self.dir, FILES[1])))?;
         self.rows += 1;
         Ok(())
     }
@@ -155,15 +223,14 @@ impl Writer {
     /// Flushes, writes meta.json and renames all three files into place.
     pub fn finish(mut self, meta: &mut Meta) -> Result<()> {
         meta.n_rows = self.rows;
-        self.theta.flush()?;
-        self.x.flush()?;
+        self.theta.flush().map_err(io("write", &tmp(&self.dir, FILES[0])))?;
+        self.x.flush().map_err(io("write", &tmp(&self.dir, FILES[1])))?;
         drop(self.theta);
         drop(self.x);
         let p = tmp(&self.dir, FILES[2]);
-        std::fs::write(&p, serde_json::to_vec_pretty(meta)?)
-            .with_context(|| format!("cannot write {}", p.display()))?;
+        std::fs::write(&p, serde_json::to_vec_pretty(meta).map_err(DatasetError::Encode)?).map_err(io("write", &p))?;
         for name in FILES {
-            std::fs::rename(tmp(&self.dir, name), self.dir.join(name))?;
+            std::fs::rename(tmp(&self.dir, name), self.dir.join(name)).map_err(io("rename", &self.dir.join(name)))?;
         }
         Ok(())
     }
@@ -238,7 +305,7 @@ pub fn simulate_to_dir(
         }
         if !progress(first + len, n) && first + len < n {
             writer.abandon();
-            return Err(Cancelled { done: first + len, total: n }.into());
+            return Err(DatasetError::Cancelled(Cancelled { done: first + len, total: n }));
         }
     }
     meta.wall_seconds = start.elapsed().as_secs_f64();
@@ -254,29 +321,28 @@ pub struct Table {
 
 /// Reads a numeric CSV; errors name the file, line and column.
 pub fn read_csv(path: &Path) -> Result<Table> {
-    let f = File::open(path).with_context(|| format!("cannot open {}", path.display()))?;
+    let f = File::open(path).map_err(io("open", path))?;
     let mut lines = BufReader::new(f).lines();
+    let bad = |why: String| DatasetError::table(path, why);
     let header: Vec<String> = match lines.next() {
-        Some(l) => l?.split(',').map(|s| s.trim().to_string()).collect(),
-        None => bail!("{}: empty file (expected a header row)", path.display()),
+        Some(l) => l.map_err(io("read", path))?.split(',').map(|s| s.trim().to_string()).collect(),
+        None => return Err(bad("empty file (expected a header row)".into())),
     };
     let mut rows = Vec::new();
     for (i, line) in lines.enumerate() {
-        let line = line?;
+        let line = line.map_err(io("read", path))?;
         if line.trim().is_empty() {
             continue;
         }
         let cells: Vec<&str> = line.split(',').collect();
         if cells.len() != header.len() {
-            bail!("{}: line {} has {} values, the header has {}", path.display(), i + 2, cells.len(), header.len());
+            return Err(bad(format!("line {} has {} values, the header has {}", i + 2, cells.len(), header.len())));
         }
         let row = cells
             .iter()
             .zip(&header)
             .map(|(c, h)| {
-                c.trim().parse::<f64>().map_err(|_| {
-                    anyhow::anyhow!("{}: line {}, column '{h}': '{c}' is not a number", path.display(), i + 2)
-                })
+                c.trim().parse::<f64>().map_err(|_| bad(format!("line {}, column '{h}': '{c}' is not a number", i + 2)))
             })
             .collect::<Result<Vec<f64>>>()?;
         rows.push(row);
@@ -288,19 +354,21 @@ pub fn read_csv(path: &Path) -> Result<Table> {
 /// names (e.g. reference/std.csv), in the order of `names`.
 pub fn read_noise_table(path: &Path, names: &[String]) -> Result<Vec<f64>> {
     let t = read_csv(path)?;
+    let bad = |why: String| DatasetError::table(path, why);
     if t.rows.len() != 1 {
-        bail!("{}: a noise table has exactly one row of STDs, found {}", path.display(), t.rows.len());
+        return Err(bad(format!("a noise table has exactly one row of STDs, found {}", t.rows.len())));
     }
     names
         .iter()
         .map(|n| {
-            let i =
-                t.header.iter().position(|h| h == n).with_context(|| {
-                    format!("{}: column '{n}' missing (the table needs every feature)", path.display())
-                })?;
+            let i = t
+                .header
+                .iter()
+                .position(|h| h == n)
+                .ok_or_else(|| bad(format!("column '{n}' missing (the table needs every feature)")))?;
             let v = t.rows[0][i];
             if !(v.is_finite() && v >= 0.0) {
-                bail!("{}: column '{n}': STD must be finite and ≥ 0, got {v}", path.display());
+                return Err(bad(format!("column '{n}': STD must be finite and ≥ 0, got {v}")));
             }
             Ok(v)
         })

@@ -495,7 +495,10 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                     r.report(done as f64 / n as f64, format!("simulated {done}/{n}"))
                 },
             )
-            .map_err(|e| if e.is::<dataset::Cancelled>() { Stopped.into() } else { e })?;
+            .map_err(|e| match e {
+                dataset::DatasetError::Cancelled(_) => Stopped.into(),
+                e => anyhow::Error::from(e),
+            })?;
             r.still_ours(ctx)?;
             publish_dataset(&staging, &dir)?;
             Ok(serde_json::json!({
@@ -599,30 +602,21 @@ fn execute(ctx: &Ctx, job: &JobRow, r: &Reporter) -> Result<serde_json::Value> {
                 let k = steps.iter().position(|s| m.contains(s)).unwrap_or(0);
                 let _ = r.report(k as f64 / steps.len() as f64, m.to_string());
             })
-            .map_err(|e| if e.is::<crate::discrepancy::workflow::Cancelled>() { Stopped.into() } else { e })?;
+            .map_err(|e| match e {
+                crate::discrepancy::DiagnoseError::Cancelled => Stopped.into(),
+                e => anyhow::Error::from(e),
+            })?;
             // Fencing: a job cancelled or interrupted meanwhile writes no report and no model.
             if r.cancel.load(Ordering::Relaxed) {
                 bail!(Stopped);
             }
             r.still_ours(ctx)?;
-            let dir = ctx.data_dir.join("reports").join(&job.id);
-            std::fs::create_dir_all(&dir)?;
-            for (name, svg) in &report.figures {
-                std::fs::write(dir.join(name), svg)?;
-            }
-            let mut doc = serde_json::to_value(&report)?;
-            if let Some(m) = &report.extended_model {
-                let models = ctx.data_dir.join("models");
-                std::fs::create_dir_all(&models)?;
-                m.save(&models.join(format!("{}.otofit", job.id)))?;
-                doc["extended_model"] = format!("/models/{}", job.id).into();
-            }
-            doc["figures"] =
-                report.figures.iter().map(|(n, _)| format!("/jobs/{}/files/{n}", job.id)).collect::<Vec<_>>().into();
-            doc["report"] = format!("/jobs/{}/files/report.html", job.id).into();
-            std::fs::write(dir.join("report.html"), report.html())?;
-            std::fs::write(dir.join("report.json"), serde_json::to_vec_pretty(&doc)?)?;
-            Ok(doc)
+            let links = crate::plot::diagnosis::Links {
+                figure: &|n| format!("/jobs/{}/files/{n}", job.id),
+                model: (ctx.data_dir.join("models").join(format!("{}.otofit", job.id)), format!("/models/{}", job.id)),
+                page: Some(format!("/jobs/{}/files/report.html", job.id)),
+            };
+            Ok(crate::plot::diagnosis::write_report(&ctx.data_dir.join("reports").join(&job.id), &report, &links)?)
         }
         other => bail!("unknown job kind '{other}'"),
     }

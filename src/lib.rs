@@ -17,4 +17,5 @@ pub mod npe;
 pub mod plot;
 pub mod reference;
 pub mod sim;
+pub mod stats;
 pub mod store;

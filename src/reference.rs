@@ -3,9 +3,26 @@
 //! (250 features) with a test–retest STD per feature.
 
 use crate::sim::output::{MEASURES, feature_names, interpolate_log_f, noise_std};
-use anyhow::{Context, Result, bail};
 use serde::Deserialize;
 use std::collections::BTreeMap;
+
+/// The compiled-in anchor table is not usable: always an internal error (the table ships
+/// with the binary; no caller input reaches it).
+#[derive(Debug, thiserror::Error)]
+#[non_exhaustive]
+pub enum ReferenceError {
+    /// The table is not the expected JSON.
+    #[error("reference/ear.json")]
+    Json(#[source] serde_json::Error),
+    /// A curve cannot be interpolated.
+    #[error("reference/ear.json: '{0}' needs ≥ 2 strictly increasing positive frequencies, one value each")]
+    Curve(&'static str),
+    /// A measure's STD level is missing.
+    #[error("reference/ear.json: std.{0} missing")]
+    MissingStd(&'static str),
+}
+
+type Result<T> = std::result::Result<T, ReferenceError>;
 
 /// The anchor table, compiled into the binary so that the service and the Docker image
 /// need no data folder.
@@ -30,25 +47,28 @@ struct Table {
 
 /// The reference ear on one frequency grid, in feature units.
 pub struct Reference {
+    /// One name per feature (the model grid's).
     pub feature_names: Vec<String>,
+    /// The reference ear's features.
     pub x: Vec<f64>,
+    /// Test–retest STD per feature.
     pub std: Vec<f64>,
     /// One citation per measure, in `MEASURES` order.
     pub citations: Vec<String>,
 }
 
 /// Linear interpolation in log-frequency, constant beyond the end anchors.
-fn interpolate(c: &Curve, name: &str, grid: &[f64]) -> Result<Vec<f64>> {
+fn interpolate(c: &Curve, name: &'static str, grid: &[f64]) -> Result<Vec<f64>> {
     let f = &c.frequency_hz;
     if f.len() < 2 || f.len() != c.value.len() || f.windows(2).any(|w| w[1] <= w[0]) || f[0] <= 0.0 {
-        bail!("reference/ear.json: '{name}' needs ≥ 2 strictly increasing positive frequencies, one value each");
+        return Err(ReferenceError::Curve(name));
     }
     Ok(interpolate_log_f(f, &c.value, grid))
 }
 
 /// Builds the reference ear on `freqs` (the model grid).
 pub fn build(freqs: &[f64]) -> Result<Reference> {
-    let t: Table = serde_json::from_str(EAR_JSON).context("reference/ear.json")?;
+    let t: Table = serde_json::from_str(EAR_JSON).map_err(ReferenceError::Json)?;
     let mut x = Vec::with_capacity(5 * freqs.len());
     // vst in feature units: log10(m/s/Pa) from dB re 1 mm/s/Pa; phases in rad.
     x.extend(interpolate(&t.vst_mag_db, "vst_mag_db", freqs)?.iter().map(|db| db / 20.0 - 3.0));
@@ -59,11 +79,7 @@ pub fn build(freqs: &[f64]) -> Result<Reference> {
     // STD: the noise model's shape in frequency, at the table's level per measure.
     let mut std = noise_std(freqs);
     for (m, measure) in MEASURES.iter().enumerate() {
-        let level = t
-            .std
-            .get(measure.name)
-            .and_then(|v| v.as_f64())
-            .with_context(|| format!("reference/ear.json: std.{} missing", measure.name))?;
+        let level = t.std.get(measure.name).and_then(|v| v.as_f64()).ok_or(ReferenceError::MissingStd(measure.name))?;
         for s in &mut std[m * freqs.len()..(m + 1) * freqs.len()] {
             *s *= level / measure.noise_std;
         }

@@ -37,9 +37,7 @@ fn infer_one(npe: &Npe, x: &[f64], present: &[bool], seed: u64) -> Result<Outcom
 }
 
 fn median(v: &[Outcome], f: impl Fn(&Outcome) -> f64) -> f64 {
-    let mut x: Vec<f64> = v.iter().map(f).collect();
-    x.sort_by(f64::total_cmp);
-    x.get(x.len() / 2).copied().unwrap_or(f64::NAN)
+    crate::stats::median_upper(&crate::stats::sorted(v.iter().map(f).collect()))
 }
 
 fn rate(v: &[Outcome], f: impl Fn(&Outcome) -> bool) -> f64 {

@@ -43,6 +43,7 @@ pub struct DiagnoseArgs {
 
 pub fn run(args: DiagnoseArgs) -> Result<()> {
     use crate::discrepancy::workflow::{Settings, diagnose};
+    use crate::plot::diagnosis::{Links, write_report};
     // Limits shared with the diagnose job (src/jobs.rs): a null of fewer than 5 cases has
     // no 97.5 % quantile worth the name (0 once disabled every alarm).
     if !(5..=1000).contains(&args.null_cases) {
@@ -84,21 +85,13 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
         ..Settings::default()
     };
     let report = diagnose(&model, &base, &x, &s, &mut |m| eprintln!("{m}"))?;
-    std::fs::create_dir_all(&args.out)?;
-    for (name, svg) in &report.figures {
-        std::fs::write(args.out.join(name), svg)?;
-    }
-    let mut doc = serde_json::to_value(&report)?;
-    if let Some(m) = &report.extended_model {
-        let path = args.out.join("extended.otofit");
-        m.save(&path)?;
-        doc["extended_model"] = path.display().to_string().into();
-    }
-    doc["figures"] = report.figures.iter().map(|(n, _)| n.clone()).collect::<Vec<_>>().into();
-    std::fs::write(args.out.join("report.html"), report.html())?;
-    let tmp = args.out.join("report.json.tmp");
-    std::fs::write(&tmp, serde_json::to_vec_pretty(&doc)?)?;
-    std::fs::rename(&tmp, args.out.join("report.json"))?;
+    let model_path = args.out.join("extended.otofit");
+    let links = Links {
+        figure: &|name| name.to_string(),
+        model: (model_path.clone(), model_path.display().to_string()),
+        page: None,
+    };
+    write_report(&args.out, &report, &links)?;
     println!("verdict: {:?}{}", report.verdict, report.named.map(|n| format!(" ({n})")).unwrap_or_default());
     for b in &report.before.bands {
         println!("  {}", b.describe());
@@ -194,10 +187,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
                 *other.entry(key).or_default() += 1;
             }
         }
-        let med = |mut v: Vec<f64>| {
-            v.sort_by(f64::total_cmp);
-            v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-        };
+        let med = |v: Vec<f64>| crate::stats::median_upper(&crate::stats::sorted(v));
         println!(
             "{:<16} {:>5} {:>8.0} {:>7} {:>11.0} {:>10.0} {:>9.2} {:>9.2}  {:?}",
             effect.name,
@@ -229,8 +219,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
 }
 
 fn unit_of(c: &crate::sim::params::ParamSpec, v: f64) -> f64 {
-    let t = |v: f64| if c.scale == crate::sim::params::Scale::Log10 { v.log10() } else { v };
-    (t(v) - t(c.low)) / (t(c.high) - t(c.low))
+    crate::npe::prior::space::position(c.scale, c.low, c.high, v)
 }
 
 /// Effect-free cases behind the benchmark's thresholds (a 97.5 % quantile needs more

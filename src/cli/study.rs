@@ -2,16 +2,21 @@
 //! on unseen simulations (Fig. 2), robustness to training noise (Fig. 4) and the effect of
 //! training-set size (Fig. 5). Each prints a table and writes JSON and SVG figures.
 
-use crate::discrepancy::workflow::spearman_per_measure as rho;
 use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
 use crate::plot::{self, html::Page};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
 use crate::sim::{Model, ModelConfig, N_PARAMS, PARAMS};
+use crate::stats;
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 use serde_json::json;
 use std::path::{Path, PathBuf};
+
+/// Spearman ρ per measure between two feature vectors (measure-major).
+fn rho(a: &[f64], b: &[f64]) -> Vec<f64> {
+    stats::spearman_per_block(a, b, MEASURES.len())
+}
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum StudyName {
@@ -214,10 +219,7 @@ pub fn run(a: StudyArgs) -> Result<()> {
             let n = rhos.len() as f64;
             let mean_rho: Vec<f64> = (0..MEASURES.len()).map(|m| rhos.iter().map(|r| r[m]).sum::<f64>() / n).collect();
             let all = mean_rho.iter().sum::<f64>() / MEASURES.len() as f64;
-            let med = |mut v: Vec<f64>| {
-                v.sort_by(f64::total_cmp);
-                v[v.len() / 2]
-            };
+            let med = |v: Vec<f64>| stats::median_upper(&stats::sorted(v));
             println!(
                 "validate: {} unseen simulations, 1× noise; mean Spearman ρ (MAP re-simulation vs truth) {all:.4} (study: 0.998)",
                 rhos.len()

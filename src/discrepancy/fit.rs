@@ -2,9 +2,10 @@
 //! effects) to one observation, in the unbounded coordinates of the prior box, so every
 //! iterate stays inside the bounds.
 
+use crate::npe::prior::{FIT_EDGE, space};
 use crate::sim::batch::Design;
 use crate::sim::output::MEASURES;
-use crate::sim::params::{ParamSpec, Scale};
+use crate::sim::params::ParamSpec;
 use crate::sim::{Model, Runner, simulate};
 use faer::Mat;
 use faer::prelude::Solve;
@@ -17,15 +18,15 @@ pub struct Observation {
     pub sigma: Vec<f64>,
 }
 
-/// θ ↔ u: scale, then logit of the position in the box.
+/// θ ↔ u: scale, then logit of the position in the box (the shared map, with the fit's
+/// edge clamp).
 pub fn to_unbounded(p: &ParamSpec, v: f64) -> f64 {
-    let t = |v: f64| if p.scale == Scale::Log10 { v.log10() } else { v };
-    let q = ((t(v) - t(p.low)) / (t(p.high) - t(p.low))).clamp(1e-9, 1.0 - 1e-9);
-    (q / (1.0 - q)).ln()
+    space::to_logit(p.scale, p.low, p.high, v, FIT_EDGE)
 }
 
+/// u → θ, inside the box.
 pub fn from_unbounded(p: &ParamSpec, u: f64) -> f64 {
-    p.from_unit(1.0 / (1.0 + (-u).exp())).clamp(p.low, p.high)
+    space::from_logit(p.scale, p.low, p.high, u)
 }
 
 /// Residual of one feature, with phase differences wrapped into (−π, π] so that a

@@ -5,11 +5,11 @@
 pub mod fit;
 pub mod fitcheck;
 pub mod locate;
-mod report;
 pub mod workflow;
 
 pub use fit::{Fit, Observation, fit};
 pub use locate::{Band, locate};
+pub use workflow::DiagnoseError;
 
 use crate::sim::Model;
 use crate::sim::batch::Design;
@@ -17,9 +17,8 @@ use crate::sim::params::{EFFECTS, N_PARAMS};
 use serde::Serialize;
 
 /// Nearest-rank `q` quantile of a null sample; +∞ for an empty sample.
-pub(crate) fn null_quantile(mut v: Vec<f64>, q: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(((v.len().max(1) - 1) as f64 * q).round() as usize).copied().unwrap_or(f64::INFINITY)
+pub(crate) fn null_quantile(v: Vec<f64>, q: f64) -> f64 {
+    crate::stats::quantile_nearest(&crate::stats::sorted(v), q).unwrap_or(f64::INFINITY)
 }
 
 /// One candidate effect's extended fit.

@@ -1,15 +1,15 @@
 //! The whole diagnosis: fit (NPE) → check (posterior predictive, calibrated null) →
 //! locate (bands) → name (candidate effects) → add (extend the prior, simulate, retrain)
-//! → show (before/after numbers and figures). Returns a report; the caller writes files.
+//! → show (before/after numbers). Returns a report of data only; `plot::diagnosis` draws
+//! it and writes the files.
 
 use super::{Band, Observation, Thresholds, Verdict, fit, fit_and_rank, locate};
-use crate::npe::{self, Dataset, Npe, Obs, TrainSettings};
-use crate::plot;
-use crate::sim::Model;
+use crate::npe::{self, Dataset, Npe, NpeError, Obs, TrainSettings};
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
 use crate::sim::params::{EFFECTS, N_PARAMS};
-use anyhow::{Result, bail};
+use crate::sim::{Model, SimError};
+use crate::stats;
 use serde::Serialize;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -35,10 +35,52 @@ pub struct Settings {
     pub cancel: Option<Arc<AtomicBool>>,
 }
 
-/// The workflow stopped because [`Settings::cancel`] was set.
+/// Errors of the workflow: the caller's input at fault ([`DiagnoseError::is_input`]), a
+/// cancellation, or an internal failure.
 #[derive(Debug, thiserror::Error)]
-#[error("the diagnosis was cancelled")]
-pub struct Cancelled;
+#[non_exhaustive]
+pub enum DiagnoseError {
+    /// The workflow stopped because [`Settings::cancel`] was set.
+    #[error("the diagnosis was cancelled")]
+    Cancelled,
+    /// The base model is not one of otofit's simulator (bad input).
+    #[error("the base model must be an otofit model of the seven parameters on the simulator's grid")]
+    NotBaseModel,
+    /// The observation's length is not the model's feature count (bad input).
+    #[error("the observation has {got} features, the model has {expected}")]
+    Observation {
+        /// Features given.
+        got: usize,
+        /// Features of the base model.
+        expected: usize,
+    },
+    /// The posterior estimator failed (input or internal, as the error says).
+    #[error(transparent)]
+    Npe(#[from] NpeError),
+    /// The MAP could not be simulated (internal).
+    #[error("the MAP re-simulation failed")]
+    Sim(#[from] SimError),
+    /// Most posterior draws failed to simulate (internal).
+    #[error("most posterior draws failed to simulate")]
+    DrawsFailed,
+    /// The least-squares base fit failed (internal).
+    #[error("the base fit failed")]
+    BaseFitFailed,
+}
+
+impl DiagnoseError {
+    /// Whether the caller's input is at fault.
+    pub fn is_input(&self) -> bool {
+        match self {
+            DiagnoseError::NotBaseModel | DiagnoseError::Observation { .. } => true,
+            DiagnoseError::Npe(e) => e.is_input(),
+            _ => false,
+        }
+    }
+}
+
+/// Results of the workflow.
+pub type Result<T, E = DiagnoseError> = std::result::Result<T, E>;
 
 impl Settings {
     fn cancelled(&self) -> bool {
@@ -47,7 +89,7 @@ impl Settings {
 
     /// `Err(Cancelled)` once cancellation was requested.
     fn go_on(&self) -> Result<()> {
-        if self.cancelled() { Err(Cancelled.into()) } else { Ok(()) }
+        if self.cancelled() { Err(DiagnoseError::Cancelled) } else { Ok(()) }
     }
 }
 
@@ -111,39 +153,16 @@ pub struct Report {
     pub map_after: Option<Vec<f64>>,
     #[serde(skip)]
     pub extended_model: Option<Npe>,
+    /// The observation diagnosed and its frequency grid (for the figures).
     #[serde(skip)]
-    pub figures: Vec<(String, String)>,
+    pub observation: Vec<f64>,
+    #[serde(skip)]
+    pub frequencies_hz: Vec<f64>,
     pub seconds: f64,
 }
 
 fn wrap(i: usize, nf: usize, d: f64) -> f64 {
     fit::feature_residual(i, nf, d, 0.0)
-}
-
-fn ranks(v: &[f64]) -> Vec<f64> {
-    let mut idx: Vec<usize> = (0..v.len()).collect();
-    idx.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
-    let mut r = vec![0.0; v.len()];
-    for (k, &i) in idx.iter().enumerate() {
-        r[i] = k as f64;
-    }
-    r
-}
-
-/// Spearman rank correlation (no tie correction; spectra rarely tie).
-pub fn spearman(a: &[f64], b: &[f64]) -> f64 {
-    let (ra, rb) = (ranks(a), ranks(b));
-    let n = a.len() as f64;
-    let m = (n - 1.0) / 2.0;
-    let cov: f64 = ra.iter().zip(&rb).map(|(x, y)| (x - m) * (y - m)).sum();
-    let var: f64 = ra.iter().map(|x| (x - m).powi(2)).sum();
-    cov / var
-}
-
-/// Spearman ρ per measure between two feature vectors (measure-major).
-pub fn spearman_per_measure(a: &[f64], b: &[f64]) -> Vec<f64> {
-    let n = a.len() / MEASURES.len();
-    (0..MEASURES.len()).map(|m| spearman(&a[m * n..(m + 1) * n], &b[m * n..(m + 1) * n])).collect()
 }
 
 /// Re-simulates posterior draws (rows in `design` order) and compares with `obs`.
@@ -163,32 +182,30 @@ pub fn check_present(
 ) -> Result<Check> {
     let sims: Vec<Vec<f64>> = run_rows(model, design, draws, 0, None).into_iter().filter_map(|r| r.ok()).collect();
     if sims.len() < draws.len() / 2 {
-        bail!("most posterior draws failed to simulate");
+        return Err(DiagnoseError::DrawsFailed);
     }
     let map_x = run_rows(model, design, &[map.to_vec()], 0, None).remove(0)?;
     let nf = obs.x.len() / MEASURES.len();
-    let n = sims.len() as f64;
     let mut z = Vec::with_capacity(obs.x.len());
     let (mut lo, mut hi) = (Vec::new(), Vec::new());
     for i in 0..obs.x.len() {
         // Residuals relative to the MAP spectrum keep phase wraps out of the spread.
         let d: Vec<f64> = sims.iter().map(|s| wrap(i, nf, s[i] - map_x[i])).collect();
-        let mean = d.iter().sum::<f64>() / n;
-        let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0);
+        let (mean, var) = stats::mean_var_sample(&d);
         let centre = map_x[i] + mean;
         let on = present.is_none_or(|p| p[i]) && obs.x[i].is_finite();
         z.push(if on { wrap(i, nf, obs.x[i] - centre) / (var + obs.sigma[i].powi(2)).sqrt() } else { 0.0 });
-        let mut sorted = d.clone();
-        sorted.sort_by(f64::total_cmp);
-        lo.push(map_x[i] + sorted[(0.05 * (n - 1.0)) as usize] - 1.645 * obs.sigma[i]);
-        hi.push(map_x[i] + sorted[(0.95 * (n - 1.0)) as usize] + 1.645 * obs.sigma[i]);
+        // Floor ranks: the band of few draws never rests on its outermost draw.
+        let sorted = stats::sorted(d);
+        lo.push(map_x[i] + stats::quantile_floor(&sorted, 0.05) - 1.645 * obs.sigma[i]);
+        hi.push(map_x[i] + stats::quantile_floor(&sorted, 0.95) + 1.645 * obs.sigma[i]);
     }
     let freqs = model.frequencies();
     let on = |i: usize| present.is_none_or(|p| p[i]) && obs.x[i].is_finite();
     let spearman = MEASURES
         .iter()
         .enumerate()
-        .zip(spearman_per_measure(&map_x, &obs.x))
+        .zip(stats::spearman_per_block(&map_x, &obs.x, MEASURES.len()))
         .filter(|((m, _), _)| (m * nf..(m + 1) * nf).all(on))
         .map(|((_, ms), r)| (ms.name.to_string(), r))
         .collect();
@@ -226,7 +243,7 @@ pub fn train_for(
     let mut out = Vec::with_capacity(theta.len());
     for (k, chunk) in theta.chunks(CHUNK).enumerate() {
         if cancelled() {
-            bail!(Cancelled);
+            return Err(DiagnoseError::Cancelled);
         }
         out.extend(run_rows(model, design, chunk, k * CHUNK, None));
     }
@@ -256,7 +273,7 @@ pub fn train_for(
     })?;
     // A training stopped early returns its best weights; a cancelled one returns nothing.
     if cancelled() {
-        bail!(Cancelled);
+        return Err(DiagnoseError::Cancelled);
     }
     Ok(npe)
 }
@@ -296,42 +313,14 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -
     Ok(Thresholds { base_reduced_chi2: quantile(chi), best_drop: quantile(drops), explained: 1.5 })
 }
 
-fn figures(model: &Model, label: &str, obs: &Observation, c: &Check) -> Vec<(String, String)> {
-    let f = model.frequencies();
-    let mut series =
-        vec![plot::Series { x: &obs.x, color: plot::OBS, width: 2.0, opacity: 1.0, label: Some("observation") }];
-    for d in &c.draws_x {
-        series.push(plot::Series { x: d, color: plot::DRAW, width: 1.0, opacity: 0.35, label: None });
-    }
-    series.push(plot::Series {
-        x: &c.map_x,
-        color: plot::MAP,
-        width: 1.5,
-        opacity: 1.0,
-        label: Some("MAP re-simulation"),
-    });
-    vec![
-        (
-            format!("spectra_{label}.svg"),
-            plot::spectra(
-                &format!("Spectra {label}: observation, MAP, draws, 90 % predictive band"),
-                f,
-                &[plot::Band { lo: &c.lo, hi: &c.hi, color: plot::BAND, label: "90 % predictive band" }],
-                &series,
-            ),
-        ),
-        (
-            format!("residuals_{label}.svg"),
-            plot::residual_map(&format!("Standardised residuals {label} (observation − prediction)/σ"), f, &c.z),
-        ),
-    ]
-}
-
 /// Runs the workflow for one observation (features in otofit's order) with a base model.
 pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &mut dyn FnMut(&str)) -> Result<Report> {
     let t0 = std::time::Instant::now();
     if base.header.feature_names != feature_names(model.frequencies()) || base.params().len() != N_PARAMS {
-        bail!("the base model must be an otofit model of the seven parameters on the simulator's grid");
+        return Err(DiagnoseError::NotBaseModel);
+    }
+    if x.len() != base.header.feature_names.len() {
+        return Err(DiagnoseError::Observation { got: x.len(), expected: base.header.feature_names.len() });
     }
     let noise = Noise { std: base.header.noise_std.clone(), scale: 1.0, seed: s.seed };
     let obs = Observation { x: x.to_vec(), sigma: noise.std.clone() };
@@ -351,8 +340,8 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     s.go_on()?;
     progress("name: fitting candidate effects");
     let median: Vec<f64> = inf.summaries.iter().map(|p| p.median).collect();
-    let (base_fit, ranked) = fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates)
-        .ok_or_else(|| anyhow::anyhow!("the base fit failed"))?;
+    let (base_fit, ranked) =
+        fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates).ok_or(DiagnoseError::BaseFitFailed)?;
     // Alarm: either statistic beyond its null quantile. Candidate: the best effect if its
     // χ² drop beats both the BIC penalty and the null quantile of the best drop.
     s.go_on()?;
@@ -360,7 +349,6 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     let alarm = before.reduced_chi2 > thresholds.base_reduced_chi2 || best_drop > thresholds.best_drop;
     let candidate = ranked.first().filter(|c| c.score > 0.0 && best_drop > thresholds.best_drop).map(|c| c.effect);
     let margin = (ranked.len() > 1).then(|| ranked[0].score - ranked[1].score);
-    let mut figs = figures(model, "before", &obs, &before);
     let (mut after, mut effect_posterior, mut map_after, mut extended) = (None, None, None, None);
     if let (Some(name), true) = (candidate, s.extend && alarm) {
         let e = EFFECTS.iter().position(|x| x.name == name).expect("named effect");
@@ -373,7 +361,6 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         let p = &inf2.summaries[N_PARAMS];
         effect_posterior =
             Some(EffectPosterior { effect: name, unit: EFFECTS[e].unit, median: p.median, q05: p.q05, q95: p.q95 });
-        figs.extend(figures(model, "after", &obs, &c2));
         map_after = Some(inf2.map.clone());
         after = Some(c2);
         extended = Some(npe2);
@@ -403,17 +390,8 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         map_before: inf.map,
         map_after,
         extended_model: extended,
-        figures: figs,
+        observation: obs.x,
+        frequencies_hz: model.frequencies().to_vec(),
         seconds: t0.elapsed().as_secs_f64(),
     })
-}
-
-#[cfg(test)]
-mod tests {
-    #[test]
-    fn spearman_of_monotone_maps_is_one() {
-        let a = [1.0, 2.0, 3.0, 10.0];
-        assert!((super::spearman(&a, &[0.1, 0.2, 0.5, 0.9]) - 1.0).abs() < 1e-12);
-        assert!((super::spearman(&a, &[4.0, 3.0, 2.0, 1.0]) + 1.0).abs() < 1e-12);
-    }
 }

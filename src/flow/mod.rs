@@ -33,30 +33,40 @@ pub struct FlowConfig {
     pub permutations: Vec<Vec<usize>>,
 }
 
+/// Flow settings the code cannot build, naming the setting.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("flow settings: {why}")]
+pub struct FlowConfigError {
+    /// The `FlowConfig` field at fault.
+    pub field: &'static str,
+    /// What it must be.
+    pub why: &'static str,
+}
+
 impl FlowConfig {
     /// Checks settings read from a file: sizes the code can build (bins 2..=31 — the
     /// spline knots live in fixed arrays — positive widths, a positive tail bound, and
     /// one permutation of 0..dim per transform).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FlowConfigError> {
         let perm_ok = |p: &Vec<usize>| {
             let mut q = p.clone();
             q.sort_unstable();
             q.iter().copied().eq(0..self.dim)
         };
         let checks = [
-            (self.dim >= 1 && self.dim <= 1000, "dim must be 1..=1000"),
-            (self.inputs >= 1 && self.inputs <= 100_000, "inputs must be 1..=100000"),
-            ((2..=31).contains(&self.bins), "bins must be 2..=31"),
-            ((1..=64).contains(&self.transforms), "transforms must be 1..=64"),
-            ((1..=4096).contains(&self.hidden), "hidden must be 1..=4096"),
-            (self.embedding.iter().all(|w| (1..=4096).contains(w)), "embedding widths must be 1..=4096"),
-            (self.bound.is_finite() && self.bound > 0.0, "bound must be finite and > 0"),
-            (self.blocks <= 16, "blocks must be 0..=16"),
-            (self.permutations.len() == self.transforms, "one permutation per transform"),
-            (self.permutations.iter().all(perm_ok), "each permutation must reorder 0..dim"),
+            (self.dim >= 1 && self.dim <= 1000, "dim", "dim must be 1..=1000"),
+            (self.inputs >= 1 && self.inputs <= 100_000, "inputs", "inputs must be 1..=100000"),
+            ((2..=31).contains(&self.bins), "bins", "bins must be 2..=31"),
+            ((1..=64).contains(&self.transforms), "transforms", "transforms must be 1..=64"),
+            ((1..=4096).contains(&self.hidden), "hidden", "hidden must be 1..=4096"),
+            (self.embedding.iter().all(|w| (1..=4096).contains(w)), "embedding", "embedding widths must be 1..=4096"),
+            (self.bound.is_finite() && self.bound > 0.0, "bound", "bound must be finite and > 0"),
+            (self.blocks <= 16, "blocks", "blocks must be 0..=16"),
+            (self.permutations.len() == self.transforms, "permutations", "one permutation per transform"),
+            (self.permutations.iter().all(perm_ok), "permutations", "each permutation must reorder 0..dim"),
         ];
-        match checks.iter().find(|(ok, _)| !ok) {
-            Some((_, why)) => Err(format!("flow settings: {why}")),
+        match checks.iter().find(|(ok, _, _)| !ok) {
+            Some(&(_, field, why)) => Err(FlowConfigError { field, why }),
             None => Ok(()),
         }
     }

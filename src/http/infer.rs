@@ -4,7 +4,7 @@
 //! frequency, [`crate::formats::long`]) with the request's options as query parameters.
 
 use super::{AppState, Problem, json_body};
-use crate::npe::{Npe, Obs};
+use crate::npe::{Npe, NpeError, Obs};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Query, State};
@@ -39,6 +39,16 @@ fn features(npe: &Npe, m: &Measurements, csv: Option<&Imported>) -> Result<crate
             None => Problem::invalid(errs),
         },
     })
+}
+
+/// An inference error as a problem: what the observation lacks for this model is a 422
+/// on `measurements` (the message names the feature or group); anything else is a bug,
+/// logged and answered 500.
+fn npe_problem(e: NpeError) -> Problem {
+    match e {
+        NpeError::Observation(o) => Problem::invalid(vec![("measurements".into(), o.to_string())]),
+        e => Problem::internal(e),
+    }
 }
 
 /// The request of a JSON body, or of a long-layout CSV body and its query parameters
@@ -148,11 +158,11 @@ pub async fn infer(
     let (inf, fit) = tokio::task::spawn_blocking(move || {
         let inf = npe2.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
         let fit = crate::discrepancy::fitcheck::fit_check(&npe2, &x, &present, &inf);
-        anyhow::Ok((inf, fit.map(|f| (f, x))))
+        Ok::<_, NpeError>((inf, fit.map(|f| (f, x))))
     })
     .await
     .map_err(Problem::internal)?
-    .map_err(|e| Problem::invalid(vec![("measurements".into(), format!("{e:#}"))]))?;
+    .map_err(npe_problem)?;
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
     let mut differential = crate::npe::normal::read(npe.params(), &inf.samples);
     let mut next = serde_json::Value::Null;
@@ -215,4 +225,21 @@ pub async fn infer(
         doc["sample_columns"] = json!(npe.params().iter().map(|p| &p.name).collect::<Vec<_>>());
     }
     Ok(Json(doc))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::npe::ObservationError;
+
+    #[test]
+    fn observation_errors_are_422_on_measurements_and_internal_ones_500() {
+        let p = npe_problem(NpeError::Observation(ObservationError::Missing { feature: "zec_mag_7".into() }));
+        assert_eq!(p.status, 422);
+        assert_eq!(p.errors[0].field, "measurements");
+        assert!(p.errors[0].message.contains("zec_mag_7"), "{}", p.errors[0].message);
+        let p = npe_problem(NpeError::NoFiniteLoss { member: 0 });
+        assert_eq!(p.status, 500);
+        assert!(p.errors.is_empty() && !p.detail.contains("finite"), "{}", p.detail);
+    }
 }

@@ -2,8 +2,8 @@
 //! credible levels 0.05…0.95 (Hermans et al. 2022) and SBC ranks per parameter (Talts
 //! et al. 2018).
 
-use super::{Npe, Obs};
-use anyhow::Result;
+use super::{Npe, NpeError, Obs, Result};
+use crate::stats::quantile_floor;
 use serde::Serialize;
 
 #[derive(Clone, Debug, Serialize)]
@@ -30,6 +30,7 @@ impl ParamRanks {
     /// uniform ranks ⇔ calibrated marginal), and its degrees of freedom (bins − 1). For
     /// 10 bins the 99 % quantile of χ²(9) is 21.7.
     pub fn chi2(&self, samples: usize, bins: usize) -> (f64, usize) {
+        let bins = bins.max(1);
         let mut counts = vec![0.0; bins];
         for &r in &self.ranks {
             counts[((r as f64 / (samples + 1) as f64 * bins as f64) as usize).min(bins - 1)] += 1.0;
@@ -41,6 +42,12 @@ impl ParamRanks {
 
 /// `rows`: (θ, x) pairs not used in training.
 pub fn calibrate(npe: &Npe, rows: &[(Vec<f64>, Vec<f64>)], samples: usize, seed: u64) -> Result<Calibration> {
+    if samples < 2 {
+        return Err(NpeError::settings(
+            "samples",
+            format!("calibration needs at least 2 samples per row, got {samples}"),
+        ));
+    }
     let levels: Vec<f64> = (1..=19).map(|i| i as f64 * 0.05).collect();
     let d = npe.params().len();
     let mut inside = vec![0usize; levels.len()];
@@ -70,7 +77,7 @@ pub fn calibrate(npe: &Npe, rows: &[(Vec<f64>, Vec<f64>)], samples: usize, seed:
             let mut v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
             ranks[k].push(v.iter().filter(|&&s| s < theta[k]).count());
             v.sort_by(f64::total_cmp);
-            let (lo, hi) = (v[(0.05 * (samples - 1) as f64) as usize], v[(0.95 * (samples - 1) as f64) as usize]);
+            let (lo, hi) = (quantile_floor(&v, 0.05), quantile_floor(&v, 0.95));
             if theta[k] >= lo && theta[k] <= hi {
                 marginal[k] += 1;
             }

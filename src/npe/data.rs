@@ -2,23 +2,29 @@
 //! `otofit simulate`) or prior.json (any simulator's table).
 
 use super::prior::Param;
+use super::{NpeError, Result};
 use crate::dataset::read_csv;
-use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
 /// A feature group a model can be asked to do without (e.g. one modality).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Group {
+    /// The group's name (a modality, e.g. `wbt`).
     pub name: String,
     /// Indices of its features.
     pub features: Vec<usize>,
 }
 
+/// A training table in memory: θ rows, x rows and their description.
 pub struct Dataset {
+    /// The prior box, one per θ column.
     pub params: Vec<Param>,
+    /// One name per x column.
     pub feature_names: Vec<String>,
+    /// The frequency grid of the features (empty for a table without one).
     pub frequencies_hz: Vec<f64>,
+    /// Feature groups the model may be trained to do without.
     pub groups: Vec<Group>,
     /// 1× noise standard deviation per feature (zeros when the table has none).
     pub noise_std: Vec<f64>,
@@ -26,6 +32,12 @@ pub struct Dataset {
     pub x: Vec<Vec<f64>>,
     /// Rows dropped for non-finite values or θ outside the prior box.
     pub skipped: usize,
+}
+
+/// Reads and parses a JSON file of the folder, naming what it should have been.
+fn read_json<T: serde::de::DeserializeOwned>(path: &Path, expected: &str) -> Result<T> {
+    let bytes = std::fs::read(path).map_err(crate::dataset::FileError::on("read", path))?;
+    serde_json::from_slice(&bytes).map_err(|e| NpeError::table(path, format!("{expected}: {e}")))
 }
 
 #[derive(Deserialize)]
@@ -64,31 +76,28 @@ struct PriorFile {
 }
 
 impl Dataset {
+    /// Reads a dataset folder: theta.csv, x.csv and meta.json or prior.json.
     pub fn load(dir: &Path) -> Result<Dataset> {
         let meta_path = dir.join("meta.json");
         let prior_path = dir.join("prior.json");
         let (params, meta) = if meta_path.exists() {
-            let m: Meta = serde_json::from_slice(&std::fs::read(&meta_path)?)
-                .with_context(|| format!("{}: not a dataset meta.json", meta_path.display()))?;
+            let m: Meta = read_json(&meta_path, "not a dataset meta.json")?;
             (m.parameters.clone(), Some(m))
         } else if prior_path.exists() {
-            let p: PriorFile = serde_json::from_slice(&std::fs::read(&prior_path)?).with_context(|| {
-                format!(
-                    "{}: expected {{\"parameters\":[{{\"name\",\"low\",\"high\",\"scale\",\"unit\"}}]}}",
-                    prior_path.display()
-                )
-            })?;
+            let p: PriorFile =
+                read_json(&prior_path, r#"expected {"parameters":[{"name","low","high","scale","unit"}]}"#)?;
             (p.parameters, None)
         } else {
-            bail!("{}: neither meta.json nor prior.json found", dir.display());
+            return Err(NpeError::table(dir, "neither meta.json nor prior.json found"));
         };
         for p in &params {
-            p.validate().map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+            p.validate().map_err(|e| NpeError::table(dir, e.to_string()))?;
         }
         let tt = read_csv(&dir.join("theta.csv"))?;
         let xt = read_csv(&dir.join("x.csv"))?;
         if tt.rows.len() != xt.rows.len() {
-            bail!("{}: theta.csv has {} rows but x.csv has {}", dir.display(), tt.rows.len(), xt.rows.len());
+            let why = format!("theta.csv has {} rows but x.csv has {}", tt.rows.len(), xt.rows.len());
+            return Err(NpeError::table(dir, why));
         }
         // theta.csv columns in prior order, by name.
         let cols: Vec<usize> = params
@@ -97,7 +106,7 @@ impl Dataset {
                 tt.header
                     .iter()
                     .position(|h| *h == p.name)
-                    .with_context(|| format!("{}: theta.csv has no column '{}'", dir.display(), p.name))
+                    .ok_or_else(|| NpeError::table(dir, format!("theta.csv has no column '{}'", p.name)))
             })
             .collect::<Result<_>>()?;
         let nf = xt.header.len();
@@ -116,7 +125,8 @@ impl Dataset {
             frequencies_hz = m.frequencies_hz;
             if let Some(n) = m.noise {
                 if n.std.len() != nf {
-                    bail!("{}: noise.std has {} values for {nf} features", meta_path.display(), n.std.len());
+                    let why = format!("noise.std has {} values for {nf} features", n.std.len());
+                    return Err(NpeError::table(&meta_path, why));
                 }
                 noise_std = n.std;
             }

@@ -4,17 +4,20 @@
 
 pub mod calibrate;
 pub mod data;
+mod error;
 pub mod normal;
 pub mod prior;
 mod train;
 
 pub use data::{Dataset, Group};
+pub use error::{CheckpointError, NpeError, ObservationError};
 pub use prior::{Param, Scale};
 pub use train::{EpochReport, TrainSettings, train};
 
+use crate::dataset::FileError;
 use crate::flow::plain::{Bound, PlainFlow};
 use crate::flow::{Flow, FlowConfig};
-use anyhow::{Context, Result, bail};
+use crate::stats;
 use burn::module::Module;
 use burn::prelude::*;
 use burn::store::ModuleRecord;
@@ -24,6 +27,9 @@ use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+
+/// Results of this layer.
+pub type Result<T, E = NpeError> = std::result::Result<T, E>;
 
 /// 2: members stored as length-prefixed records (an ensemble); 1 (one record) is read too.
 pub const FORMAT_VERSION: u32 = 2;
@@ -71,6 +77,73 @@ pub struct Header {
     /// models that have not been calibrated (their fit check says so).
     #[serde(default)]
     pub fit_null: Option<FitNull>,
+}
+
+/// The first 8 bytes as a little-endian u64's bytes (zeros past the end).
+fn le8(b: &[u8]) -> [u8; 8] {
+    let mut out = [0u8; 8];
+    let k = b.len().min(8);
+    out[..k].copy_from_slice(&b[..k]);
+    out
+}
+
+/// A u64-LE length and that many bytes, and what follows; `None` when the length exceeds
+/// the bytes (lengths come from the file: compared without overflowing).
+fn length_prefixed(b: &[u8]) -> Option<(&[u8], &[u8])> {
+    let n = u64::from_le_bytes(le8(b.get(..8)?));
+    let n = usize::try_from(n).ok().filter(|&n| n <= b.len() - 8)?;
+    Some((&b[8..8 + n], &b[8 + n..]))
+}
+
+impl Header {
+    /// Checks every field read from a file against what the code can use, naming the
+    /// first field at fault.
+    pub fn validate(&self) -> Result<(), CheckpointError> {
+        if self.format_version != FORMAT_VERSION && self.format_version != 1 {
+            return Err(CheckpointError::Format(self.format_version));
+        }
+        let (d, f) = (self.params.len(), self.feature_names.len());
+        let g = if self.mask_groups { self.groups.len() } else { 0 } + if self.mask_bands { f } else { 0 };
+        let shapes_ok = self.flow.dim == d
+            && self.flow.inputs == f + g
+            && self.x_mean.len() == f
+            && self.x_std.len() == f
+            && self.noise_std.len() == f
+            && self.u_mean.len() == d
+            && self.u_std.len() == d;
+        if !shapes_ok {
+            return Err(CheckpointError::Shapes { params: d, features: f });
+        }
+        self.flow.validate()?;
+        if self.mask_bands && (self.frequencies_hz.is_empty() || self.band_cut_max >= self.frequencies_hz.len()) {
+            return Err(CheckpointError::field(
+                "band_cut_max",
+                "band masks need a frequency grid longer than band_cut_max",
+            ));
+        }
+        if !(self.temperature.is_finite() && (0.1..=10.0).contains(&self.temperature)) {
+            return Err(CheckpointError::field("temperature", format!("{} is outside 0.1..=10", self.temperature)));
+        }
+        for p in &self.params {
+            p.validate().map_err(|e| CheckpointError::field("params", e.to_string()))?;
+        }
+        let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
+        let positive = |v: &[f64]| v.iter().all(|x| x.is_finite() && *x > 0.0);
+        let checks: [(bool, &'static str, &str); 8] = [
+            (finite(&self.x_mean), "x_mean", "must be finite"),
+            (positive(&self.x_std), "x_std", "must be finite and > 0"),
+            (finite(&self.u_mean), "u_mean", "must be finite"),
+            (positive(&self.u_std), "u_std", "must be finite and > 0"),
+            (self.noise_std.iter().all(|x| x.is_finite() && *x >= 0.0), "noise_std", "must be finite and ≥ 0"),
+            (self.noise_scale.is_finite() && self.noise_scale >= 0.0, "noise_scale", "must be finite and ≥ 0"),
+            (self.groups.iter().all(|g| g.features.iter().all(|&i| i < f)), "groups", "feature index out of range"),
+            (self.format_version == 1 || (1..=64).contains(&self.members), "members", "must be 1..=64"),
+        ];
+        match checks.iter().find(|(ok, _, _)| !ok) {
+            Some(&(_, field, why)) => Err(CheckpointError::field(field, why)),
+            None => Ok(()),
+        }
+    }
 }
 
 /// The map from θ to the space the flow is trained in (then z-scored).
@@ -217,7 +290,11 @@ pub struct Summary {
 /// For a band-masked model: the present band (first, last grid index) of group `g`, `None`
 /// when the group is absent; an error when its features are not one contiguous band or
 /// the band is narrower than training covered (never extrapolated).
-fn band_of(h: &Header, g: &data::Group, present: &dyn Fn(usize) -> bool) -> Result<Option<(usize, usize)>> {
+fn band_of(
+    h: &Header,
+    g: &data::Group,
+    present: &dyn Fn(usize) -> bool,
+) -> Result<Option<(usize, usize)>, ObservationError> {
     let n = h.frequencies_hz.len().max(1);
     let on: Vec<usize> = g.features.iter().copied().filter(|&i| present(i)).collect();
     if on.is_empty() {
@@ -230,19 +307,17 @@ fn band_of(h: &Header, g: &data::Group, present: &dyn Fn(usize) -> bool) -> Resu
     let (lo, hi) = (idx[0], idx[idx.len() - 1]);
     let per_index = g.features.len() / n.min(g.features.len()).max(1);
     if on.len() != (hi - lo + 1) * per_index {
-        bail!("group '{}': the measured frequencies must form one contiguous band", g.name);
+        return Err(ObservationError::NotContiguous { group: g.name.clone() });
     }
     if lo > h.band_cut_max || n - 1 - hi > h.band_cut_max {
         let f = |k: usize| h.frequencies_hz.get(k).copied().unwrap_or(f64::NAN);
-        bail!(
-            "group '{}': the band {:.0}–{:.0} Hz is narrower than this model was trained for (it must reach {:.0} Hz and \
-             {:.0} Hz)",
-            g.name,
-            f(lo),
-            f(hi),
-            f(h.band_cut_max),
-            f(n - 1 - h.band_cut_max)
-        );
+        return Err(ObservationError::BandTooNarrow {
+            group: g.name.clone(),
+            lo_hz: f(lo),
+            hi_hz: f(hi),
+            need_lo_hz: f(h.band_cut_max),
+            need_hi_hz: f(n - 1 - h.band_cut_max),
+        });
     }
     Ok(Some((lo, hi)))
 }
@@ -265,96 +340,67 @@ impl Npe {
         let mut h = self.header.clone();
         h.format_version = FORMAT_VERSION;
         h.members = self.flows.len();
-        let header = serde_json::to_vec(&h)?;
+        let header = serde_json::to_vec(&h).map_err(|e| NpeError::Encode { what: "header", why: e.to_string() })?;
         let mut out = Vec::with_capacity(header.len() + 400_000 * self.flows.len());
         out.extend_from_slice(MAGIC);
         out.extend_from_slice(&(header.len() as u64).to_le_bytes());
         out.extend_from_slice(&header);
         for f in &self.flows {
-            let record = f.clone().into_record().into_bytes().map_err(|e| anyhow::anyhow!("record: {e:?}"))?;
+            let record = f
+                .clone()
+                .into_record()
+                .into_bytes()
+                .map_err(|e| NpeError::Encode { what: "record", why: format!("{e:?}") })?;
             out.extend_from_slice(&(record.len() as u64).to_le_bytes());
             out.extend_from_slice(&record);
         }
         let tmp = path.with_extension("tmp");
-        std::fs::write(&tmp, &out).with_context(|| format!("cannot write {}", tmp.display()))?;
-        std::fs::rename(&tmp, path)?;
+        std::fs::write(&tmp, &out).map_err(FileError::on("write", &tmp))?;
+        std::fs::rename(&tmp, path).map_err(FileError::on("write", path))?;
         Ok(())
     }
 
+    /// Reads a checkpoint file; a file that is not a usable model names itself.
     pub fn load(path: &Path) -> Result<Npe> {
-        let bytes = std::fs::read(path).with_context(|| format!("cannot read model {}", path.display()))?;
-        Self::from_bytes(&bytes).with_context(|| format!("{} is not a usable otofit model", path.display()))
+        let bytes = std::fs::read(path).map_err(FileError::on("read model", path))?;
+        Self::from_bytes(&bytes).map_err(|source| NpeError::Unusable { path: path.into(), source })
     }
 
-    pub fn from_bytes(bytes: &[u8]) -> Result<Npe> {
-        if bytes.len() < MAGIC.len() + 8 || &bytes[..MAGIC.len()] != MAGIC {
-            bail!("not an otofit NPE checkpoint (bad magic)");
-        }
-        let n = u64::from_le_bytes(bytes[MAGIC.len()..MAGIC.len() + 8].try_into()?);
+    /// Decodes a checkpoint: every length is checked against the file and every header
+    /// field against what the code can build, before any weights are read.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Npe, CheckpointError> {
         let start = MAGIC.len() + 8;
-        // Lengths come from the file: compare without overflowing.
-        let n = match usize::try_from(n) {
-            Ok(n) if n <= bytes.len() - start => n,
-            _ => bail!("truncated checkpoint (header length {n} exceeds the file)"),
-        };
-        let header: Header = serde_json::from_slice(&bytes[start..start + n]).context("checkpoint header")?;
-        if header.format_version != FORMAT_VERSION && header.format_version != 1 {
-            bail!(
-                "checkpoint format {} is not supported (this otofit reads formats 1 and {FORMAT_VERSION})",
-                header.format_version
-            );
+        if bytes.len() < start || &bytes[..MAGIC.len()] != MAGIC {
+            return Err(CheckpointError::BadMagic);
         }
-        let (d, f) = (header.params.len(), header.feature_names.len());
-        let g = if header.mask_groups { header.groups.len() } else { 0 }
-            + if header.mask_bands { header.feature_names.len() } else { 0 };
-        let shapes_ok = header.flow.dim == d
-            && header.flow.inputs == f + g
-            && header.x_mean.len() == f
-            && header.x_std.len() == f
-            && header.noise_std.len() == f
-            && header.u_mean.len() == d
-            && header.u_std.len() == d;
-        if !shapes_ok {
-            bail!("checkpoint header shapes disagree ({d} parameters, {f} features)");
-        }
-        header.flow.validate().map_err(anyhow::Error::msg)?;
-        if header.mask_bands && (header.frequencies_hz.is_empty() || header.band_cut_max >= header.frequencies_hz.len())
-        {
-            bail!("checkpoint band masks need a frequency grid longer than band_cut_max");
-        }
-        if !(header.temperature.is_finite() && (0.1..=10.0).contains(&header.temperature)) {
-            bail!("checkpoint temperature {} is outside 0.1..=10", header.temperature);
-        }
+        let (n, rest) = length_prefixed(&bytes[MAGIC.len()..])
+            .ok_or_else(|| CheckpointError::HeaderLength(u64::from_le_bytes(le8(&bytes[MAGIC.len()..start]))))?;
+        let header: Header = serde_json::from_slice(n).map_err(CheckpointError::Header)?;
+        header.validate()?;
         let record = |b: &[u8]| {
             ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec()))
-                .map_err(|e| anyhow::anyhow!("weights: {e:?}"))
+                .map_err(|e| CheckpointError::Weights(format!("{e:?}")))
         };
-        let mut rest = &bytes[start + n..];
         let records = if header.format_version == 1 {
             vec![record(rest)?]
         } else {
+            let mut rest = rest;
             let mut out = Vec::new();
-            for k in 0..header.members {
-                if rest.len() < 8 {
-                    bail!("truncated checkpoint (member {k} of {})", header.members);
-                }
-                let len = u64::from_le_bytes(rest[..8].try_into()?);
-                let len = match usize::try_from(len) {
-                    Ok(l) if l <= rest.len() - 8 => l,
-                    _ => bail!("truncated checkpoint (member {k} of {})", header.members),
-                };
-                out.push(record(&rest[8..8 + len])?);
-                rest = &rest[8 + len..];
+            for member in 0..header.members {
+                let (r, after) =
+                    length_prefixed(rest).ok_or(CheckpointError::Truncated { member, members: header.members })?;
+                out.push(record(r)?);
+                rest = after;
             }
             out
         };
         if records.is_empty() {
-            bail!("checkpoint has no weights");
+            return Err(CheckpointError::NoWeights);
         }
         let expected = Flow::new(&header.flow, &Device::flex()).num_params();
         let npe = Npe::from_parts(header, records);
         if npe.flows.iter().any(|f| f.num_params() != expected) {
-            bail!("weights do not match the architecture");
+            return Err(CheckpointError::Architecture);
         }
         Ok(npe)
     }
@@ -365,7 +411,12 @@ impl Npe {
         let h = &self.header;
         let f = h.feature_names.len();
         if obs.x.len() != f {
-            bail!("observation has {} features, the model expects {f}", obs.x.len());
+            return Err(ObservationError::FeatureCount { got: obs.x.len(), expected: f }.into());
+        }
+        if obs.present.is_some_and(|p| p.len() != f) {
+            return Err(
+                ObservationError::FeatureCount { got: obs.present.map_or(0, <[bool]>::len), expected: f }.into()
+            );
         }
         let present = |i: usize| obs.present.is_none_or(|p| p[i]);
         let mut row: Vec<f32> =
@@ -390,22 +441,20 @@ impl Npe {
                 row.push(if on { 1.0 } else { 0.0 });
             }
             if !any {
-                bail!(
-                    "no complete feature group present (groups: {})",
-                    h.groups.iter().map(|g| g.name.as_str()).collect::<Vec<_>>().join(", ")
-                );
+                let groups = h.groups.iter().map(|g| g.name.as_str()).collect::<Vec<_>>().join(", ");
+                return Err(ObservationError::NoGroup { groups }.into());
             }
             // Features outside every group must be present.
             for i in 0..f {
                 if !present(i) && !h.groups.iter().any(|g| g.features.contains(&i)) {
-                    bail!("feature '{}' is missing", h.feature_names[i]);
+                    return Err(ObservationError::Missing { feature: h.feature_names[i].clone() }.into());
                 }
             }
             if h.mask_bands {
                 row.extend((0..f).map(|i| if present(i) && obs.x[i].is_finite() { 1.0 } else { 0.0 }));
             }
         } else if let Some(i) = (0..f).find(|&i| !present(i) || !obs.x[i].is_finite()) {
-            bail!("feature '{}' is missing or not finite (this model needs every feature)", h.feature_names[i]);
+            return Err(ObservationError::MissingOrNotFinite { feature: h.feature_names[i].clone() }.into());
         }
         Ok(row)
     }
@@ -525,6 +574,10 @@ impl Npe {
 
     /// log q(θ | x) in natural units (with the Jacobian of the bijection).
     pub fn log_prob(&self, obs: &Obs<'_>, thetas: &[Vec<f64>]) -> Result<Vec<f64>> {
+        let d = self.header.params.len();
+        if let Some(t) = thetas.iter().find(|t| t.len() != d) {
+            return Err(ObservationError::ThetaWidth { got: t.len(), expected: d }.into());
+        }
         let input = self.input_row(obs)?;
         Ok(self.log_prob_input(&input, thetas))
     }
@@ -604,30 +657,24 @@ pub struct Inference {
     pub map_ms: f64,
 }
 
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    let pos = q * (sorted.len() - 1) as f64;
-    let (i, frac) = (pos.floor() as usize, pos - pos.floor());
-    if i + 1 < sorted.len() { sorted[i] * (1.0 - frac) + sorted[i + 1] * frac } else { sorted[i] }
-}
-
+/// Per-parameter summaries of samples (rows of natural θ), with the MAP given. Quantiles
+/// interpolate linearly between order statistics ([`crate::stats::quantile_linear`]).
 pub fn summarize(params: &[Param], samples: &[Vec<f64>], map: &[f64]) -> Vec<Summary> {
     params
         .iter()
         .enumerate()
         .map(|(k, p)| {
-            let mut v: Vec<f64> = samples.iter().map(|s| s[k]).collect();
-            v.sort_by(f64::total_cmp);
-            let n = v.len() as f64;
-            let mean = v.iter().sum::<f64>() / n;
-            let std = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1.0).max(1.0)).sqrt();
+            let v = stats::sorted(samples.iter().map(|s| s[k]).collect());
+            let (mean, var) = stats::mean_var_sample(&v);
+            let std = var.sqrt();
             Summary {
                 name: p.name.clone(),
                 unit: p.unit.clone(),
                 map: map[k],
                 mean,
-                median: quantile(&v, 0.5),
-                q05: quantile(&v, 0.05),
-                q95: quantile(&v, 0.95),
+                median: stats::quantile_linear(&v, 0.5),
+                q05: stats::quantile_linear(&v, 0.05),
+                q95: stats::quantile_linear(&v, 0.95),
                 std,
                 cv: std / mean.abs(),
             }

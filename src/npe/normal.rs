@@ -113,8 +113,9 @@ pub struct Differential {
     pub source: &'static str,
 }
 
+/// The nearest order statistic: a position some draw actually took.
 fn quantile(sorted: &[f64], q: f64) -> f64 {
-    sorted[((sorted.len() - 1) as f64 * q).round() as usize]
+    crate::stats::quantile_nearest(sorted, q).unwrap_or(f64::NAN)
 }
 
 /// Reads posterior samples (columns in `params` order) against the normal ranges;

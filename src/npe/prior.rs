@@ -4,72 +4,124 @@
 
 use serde::{Deserialize, Serialize};
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Scale {
-    Linear,
-    Log10,
+/// The one sampling scale (the simulator's; the lower layer owns it).
+pub use crate::sim::params::Scale;
+
+/// The parameter-space maps shared by every layer above the simulator: a value's scale
+/// coordinate (log10 on a log scale), its position in a box, and the logit of that
+/// position (the unbounded space the flow and the least-squares fit work in).
+pub mod space {
+    use super::Scale;
+
+    /// θ → its scale coordinate t (log10 θ on a log scale).
+    pub fn coord(scale: Scale, v: f64) -> f64 {
+        match scale {
+            Scale::Linear => v,
+            Scale::Log10 => v.log10(),
+        }
+    }
+
+    /// t → θ (not clamped).
+    pub fn value(scale: Scale, t: f64) -> f64 {
+        match scale {
+            Scale::Linear => t,
+            Scale::Log10 => 10f64.powf(t),
+        }
+    }
+
+    /// Position of `v` in [low, high] on the scale: 0 at `low`, 1 at `high`.
+    pub fn position(scale: Scale, low: f64, high: f64, v: f64) -> f64 {
+        (coord(scale, v) - coord(scale, low)) / (coord(scale, high) - coord(scale, low))
+    }
+
+    /// θ → u = logit(position), the position first clamped into [eps, 1 − eps] so that
+    /// values on or outside the bounds map to finite u. Callers choose `eps`: the flow's
+    /// standardisation uses [`super::FLOW_EDGE`], the least-squares fit [`super::FIT_EDGE`].
+    pub fn to_logit(scale: Scale, low: f64, high: f64, v: f64, eps: f64) -> f64 {
+        let q = position(scale, low, high, v).clamp(eps, 1.0 - eps);
+        (q / (1.0 - q)).ln()
+    }
+
+    /// u → θ through the sigmoid, clamped into the box.
+    pub fn from_logit(scale: Scale, low: f64, high: f64, u: f64) -> f64 {
+        let q = 1.0 / (1.0 + (-u).exp());
+        let t = coord(scale, low) + q * (coord(scale, high) - coord(scale, low));
+        value(scale, t).clamp(low, high)
+    }
 }
 
+/// How far inside the box the flow's logit pulls a value on a bound (1e-6 of the box:
+/// checkpoints were trained with it, so it stays).
+pub const FLOW_EDGE: f64 = 1e-6;
+
+/// How far inside the box the least-squares fit's logit pulls a value on a bound (1e-9:
+/// the fit's Laplace intervals were measured with it, so it stays).
+pub const FIT_EDGE: f64 = 1e-9;
+
+/// A prior box whose bounds cannot be used.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("parameter '{name}': bounds [{low}, {high}] are not a valid {scale:?} box")]
+pub struct PriorError {
+    /// The parameter.
+    pub name: String,
+    /// Its lower bound.
+    pub low: f64,
+    /// Its upper bound.
+    pub high: f64,
+    /// Its scale.
+    pub scale: Scale,
+}
+
+/// One prior dimension: a named box on a scale.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Param {
+    /// Column name (theta.csv) and summary name.
     pub name: String,
+    /// Unit, for reports.
     #[serde(default)]
     pub unit: String,
+    /// Sampling scale.
     pub scale: Scale,
+    /// Lower bound.
     pub low: f64,
+    /// Upper bound.
     pub high: f64,
 }
 
 impl From<&crate::sim::params::ParamSpec> for Param {
     /// The simulator's parameter as a prior dimension (one definition for every caller).
     fn from(p: &crate::sim::params::ParamSpec) -> Param {
-        let scale = match p.scale {
-            crate::sim::params::Scale::Log10 => Scale::Log10,
-            crate::sim::params::Scale::Linear => Scale::Linear,
-        };
-        Param { name: p.name.into(), unit: p.unit.into(), scale, low: p.low, high: p.high }
+        Param { name: p.name.into(), unit: p.unit.into(), scale: p.scale, low: p.low, high: p.high }
     }
 }
 
 impl Param {
     fn t(&self, v: f64) -> f64 {
-        match self.scale {
-            Scale::Linear => v,
-            Scale::Log10 => v.log10(),
-        }
+        space::coord(self.scale, v)
     }
 
-    pub fn validate(&self) -> Result<(), String> {
+    /// Checks the box: finite, ordered, and positive on a log scale.
+    pub fn validate(&self) -> Result<(), PriorError> {
         let ok = self.low.is_finite() && self.high.is_finite() && self.low < self.high;
         if !ok || (self.scale == Scale::Log10 && self.low <= 0.0) {
-            return Err(format!(
-                "parameter '{}': bounds [{}, {}] are not a valid {:?} box",
-                self.name, self.low, self.high, self.scale
-            ));
+            return Err(PriorError { name: self.name.clone(), low: self.low, high: self.high, scale: self.scale });
         }
         Ok(())
     }
 
     /// Position of `v` in the box on the parameter's scale: 0 at `low`, 1 at `high`.
     pub fn position(&self, v: f64) -> f64 {
-        (self.t(v) - self.t(self.low)) / (self.t(self.high) - self.t(self.low))
+        space::position(self.scale, self.low, self.high, v)
     }
 
     /// θ → u. Values on or outside the bounds are pulled in by 1e-6 of the box.
     pub fn to_u(&self, v: f64) -> f64 {
-        let q = ((self.t(v) - self.t(self.low)) / (self.t(self.high) - self.t(self.low))).clamp(1e-6, 1.0 - 1e-6);
-        (q / (1.0 - q)).ln()
+        space::to_logit(self.scale, self.low, self.high, v, FLOW_EDGE)
     }
 
+    /// u → θ, inside the box.
     pub fn from_u(&self, u: f64) -> f64 {
-        let q = 1.0 / (1.0 + (-u).exp());
-        let t = self.t(self.low) + q * (self.t(self.high) - self.t(self.low));
-        let v = match self.scale {
-            Scale::Linear => t,
-            Scale::Log10 => 10f64.powf(t),
-        };
-        v.clamp(self.low, self.high)
+        space::from_logit(self.scale, self.low, self.high, u)
     }
 
     /// log |du/dθ| at θ (so that log p(θ) = log p(u) + this).
@@ -91,11 +143,7 @@ impl Param {
 
     /// t → θ, clamped into the box.
     pub fn from_t(&self, t: f64) -> f64 {
-        let v = match self.scale {
-            Scale::Linear => t,
-            Scale::Log10 => 10f64.powf(t),
-        };
-        v.clamp(self.low, self.high)
+        space::value(self.scale, t).clamp(self.low, self.high)
     }
 
     /// Whether scale coordinate t lies inside the box.
@@ -111,6 +159,7 @@ impl Param {
         }
     }
 
+    /// Whether `v` is finite and inside the box.
     pub fn contains(&self, v: f64) -> bool {
         v.is_finite() && v >= self.low && v <= self.high
     }

@@ -2,6 +2,7 @@
 //! residual maps and corner plots. Each function returns a complete SVG document.
 
 mod canvas;
+pub mod diagnosis;
 pub mod html;
 mod pages;
 pub use canvas::{Axes, Canvas};

@@ -2,9 +2,9 @@
 
 use super::html::Page;
 use super::{DRAW, MAP, OBS, Series, spectra};
-use crate::discrepancy::workflow::spearman_per_measure;
 use crate::sim::PARAMS;
 use crate::sim::output::MEASURES;
+use crate::stats::spearman_per_block;
 
 /// A re-simulation's figure and page, and ρ per row and measure against the observation.
 pub struct Resimulation {
@@ -32,7 +32,7 @@ pub fn resimulation(freqs: &[f64], theta: &[Vec<f64>], x: &[&[f64]], obs: Option
         series.push(Series { x: first, color: MAP, width: 1.5, opacity: 1.0, label: Some("first row (e.g. the MAP)") });
     }
     let svg = spectra("Re-simulated spectra", freqs, &[], &series);
-    let rho = obs.map(|o| x.iter().map(|row| spearman_per_measure(row, o)).collect::<Vec<_>>());
+    let rho = obs.map(|o| x.iter().map(|row| spearman_per_block(row, o, MEASURES.len())).collect::<Vec<_>>());
     let mut p = Page::new("otofit re-simulation");
     p.text(&format!("{} rows re-simulated, {} succeeded.", theta.len(), x.len()));
     let mut head = vec!["row"];

@@ -2,10 +2,10 @@
 //! physics-notes §2) and three measurement-geometry nuisances — and the optional effects
 //! (physics-notes §4), with names, units, scales and ranges.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
-/// Sampling scale of a parameter.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+/// Sampling scale of a parameter (also read from prior and checkpoint files).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Scale {
     Linear,

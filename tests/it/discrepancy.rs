@@ -62,7 +62,8 @@ fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
         after.reduced_chi2
     );
     assert!(r.before.bands.iter().any(|b| b.measure == "zec_phase" && b.f_lo_hz < 300.0));
-    assert_eq!(r.figures.len(), 4);
+    assert_eq!(otofit::plot::diagnosis::figures(&r).len(), 4);
+    assert!(otofit::plot::diagnosis::html(&r).contains("spectra_after.svg"));
 }
 
 #[test]
