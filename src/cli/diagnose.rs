@@ -30,7 +30,7 @@ pub struct DiagnoseArgs {
     /// Size of the extended model's training set, and its epochs.
     #[arg(long, default_value_t = 10_000)]
     pub train_rows: usize,
-    /// Epochs of the extended model's training (1..=5000).
+    /// Epochs of the extended model's training (1..=5000, as a diagnose job).
     #[arg(long, default_value_t = 300)]
     pub max_epochs: usize,
     /// Effect-free simulations for the null distribution of the statistics.
@@ -44,17 +44,11 @@ pub struct DiagnoseArgs {
 pub fn run(args: DiagnoseArgs) -> Result<()> {
     use crate::discrepancy::workflow::{Settings, diagnose};
     use crate::plot::diagnosis::{Links, write_report};
-    // Limits shared with the diagnose job (src/jobs.rs): a null of fewer than 5 cases has
-    // no 97.5 % quantile worth the name (0 once disabled every alarm).
-    if !(5..=1000).contains(&args.null_cases) {
-        bail!("--null-cases must be 5..=1000 (got {})", args.null_cases);
-    }
-    if !(100..=crate::jobs::MAX_ROWS).contains(&args.train_rows) {
-        bail!("--train-rows must be 100..={} (got {})", crate::jobs::MAX_ROWS, args.train_rows);
-    }
-    if !(1..=5000).contains(&args.max_epochs) {
-        bail!("--max-epochs must be 1..=5000 (got {})", args.max_epochs);
-    }
+    // The diagnose job's limits (jobs::limits).
+    use crate::jobs::limits::{EPOCHS, NULL_CASES, TRAIN_ROWS, check};
+    check(&NULL_CASES, args.null_cases).map_err(|m| anyhow::anyhow!("--null-cases {m}"))?;
+    check(&TRAIN_ROWS, args.train_rows).map_err(|m| anyhow::anyhow!("--train-rows {m}"))?;
+    check(&EPOCHS, args.max_epochs).map_err(|m| anyhow::anyhow!("--max-epochs {m}"))?;
     let candidates: Vec<usize> = if args.candidates == "all" {
         (0..N_EFFECTS).collect()
     } else {

@@ -27,7 +27,7 @@ pub struct TrainArgs {
     /// Seed of the initial weights, the batches and the training noise.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Epochs at most (early stopping may end sooner: --patience).
+    /// Epochs at most, 1..=5000 (early stopping may end sooner: --patience).
     #[arg(long, default_value_t = 300)]
     pub max_epochs: usize,
     /// Stop when the validation loss has not improved for this many epochs.
@@ -40,7 +40,8 @@ pub struct TrainArgs {
     /// one network answers sub-band measurements (needs --mask-groups).
     #[arg(long)]
     pub mask_bands: bool,
-    /// Train K flows from different seeds and store them as one equal-weight ensemble.
+    /// Train K flows (1..=16) from different seeds and store them as one equal-weight
+    /// ensemble.
     #[arg(long, default_value_t = 1)]
     pub ensemble: usize,
 }
@@ -55,15 +56,13 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if !(args.noise_scale.is_finite() && args.noise_scale >= 0.0) {
         bail!("--noise-scale must be a finite number ≥ 0, got {}", args.noise_scale);
     }
-    if args.max_epochs == 0 {
-        bail!("--max-epochs must be at least 1");
-    }
+    // A train job's limits (jobs::limits): 1..=5000 epochs, 1..=16 flows.
+    use crate::jobs::limits::{ENSEMBLE, EPOCHS, check};
+    check(&EPOCHS, args.max_epochs).map_err(|m| anyhow::anyhow!("--max-epochs {m}"))?;
     if !(1..=1000).contains(&args.patience) {
         bail!("--patience must be between 1 and 1000 epochs, got {}", args.patience);
     }
-    if !(1..=16).contains(&args.ensemble) {
-        bail!("--ensemble must be between 1 and 16, got {}", args.ensemble);
-    }
+    check(&ENSEMBLE, args.ensemble).map_err(|m| anyhow::anyhow!("--ensemble {m}"))?;
     let mut ds = Dataset::load(&args.data)?;
     if let Some(p) = &args.noise_table {
         ds.noise_std = crate::dataset::read_noise_table(p, &ds.feature_names).context("--noise-table")?;

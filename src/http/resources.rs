@@ -1,7 +1,7 @@
 //! Health, models, jobs and datasets.
 
 use super::{AppState, Principal, Problem, json_body};
-use crate::jobs::{self, KINDS};
+use crate::jobs::{self, JobSpec};
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -147,31 +147,24 @@ pub async fn create_job(
     body: Bytes,
 ) -> Result<Response, Problem> {
     let req: NewJob = json_body(&headers, &body)?;
-    if !KINDS.contains(&req.kind.as_str()) {
-        return Err(Problem::invalid(vec![(
-            "kind".into(),
-            format!("unknown job kind '{}' (known: {})", req.kind, KINDS.join(", ")),
-        )]));
-    }
-    jobs::validate(&req.kind, &req.params).map_err(Problem::invalid)?;
-    if req.kind == "train" {
-        let ds = req.params["dataset"].as_str().unwrap_or_default();
-        let ok = matches!(visible_job(&st, &who, ds).await?, Some(j) if j.kind == "simulate" && j.state == "succeeded");
-        if !ok {
-            return Err(Problem::invalid(vec![(
-                "params.dataset".into(),
-                format!("'{ds}' is not a succeeded simulate job"),
-            )]));
+    let spec = JobSpec::parse(&req.kind, &req.params).map_err(Problem::invalid)?;
+    match &spec {
+        JobSpec::Train(p) => {
+            let ds = &p.dataset;
+            let found = visible_job(&st, &who, ds).await?;
+            if !matches!(found, Some(j) if j.kind == "simulate" && j.state == "succeeded") {
+                let message = format!("'{ds}' is not a succeeded simulate job");
+                return Err(Problem::invalid(vec![("params.dataset".into(), message)]));
+            }
         }
-    }
-    if req.kind == "diagnose" {
-        diagnose_model(&st, &who, &req.params).await?;
+        JobSpec::Diagnose(p) => diagnose_model(&st, &who, p).await?,
+        JobSpec::Simulate(_) | JobSpec::Resimulate(_) => {}
     }
     let id = jobs::new_id();
     if !st
         .ctx
         .store
-        .insert_tenant_job_within(&id, &who.tenant, &req.kind, &req.params, 3, st.ctx.max_queue)
+        .insert_tenant_job_within(&id, &who.tenant, spec.kind(), &spec.params(), 3, st.ctx.max_queue)
         .await
         .map_err(Problem::internal)?
     {
@@ -181,7 +174,7 @@ pub async fn create_job(
         ));
     }
     st.ctx.notify.notify_one();
-    tracing::info!(job = %id, kind = %req.kind, tenant = %who.tenant, "job queued");
+    tracing::info!(job = %id, kind = spec.kind(), tenant = %who.tenant, "job queued");
     let job =
         st.ctx.store.job(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
     let mut r = (StatusCode::ACCEPTED, Json(job_doc(&job, &who))).into_response();
@@ -191,12 +184,10 @@ pub async fn create_job(
 
 /// A diagnose job's base model (`params.model`, else the default) must be registered and
 /// take as many features as `params.x` has: both answered now, not when the job runs.
-async fn diagnose_model(st: &AppState, who: &Principal, params: &serde_json::Value) -> Result<(), Problem> {
-    let (field, id) = match params["model"].as_str() {
-        Some(m) => ("params.model", m.to_string()),
-        None => ("params", "default".to_string()),
-    };
-    if jobs::is_plain_id(&id) && visible_model(st, who, &id).await?.is_none() {
+async fn diagnose_model(st: &AppState, who: &Principal, p: &jobs::DiagnoseParams) -> Result<(), Problem> {
+    let id = p.model_id().to_string();
+    let field = if p.model.is_some() { "params.model" } else { "params" };
+    if visible_model(st, who, &id).await?.is_none() {
         return Err(Problem::invalid(vec![(field.into(), format!("model '{id}' is not registered"))]));
     }
     let ctx = st.ctx.clone();
@@ -205,7 +196,7 @@ async fn diagnose_model(st: &AppState, who: &Principal, params: &serde_json::Val
         .await
         .map_err(Problem::internal)?
         .map_err(|e| Problem::invalid(vec![(field.into(), format!("{e:#}"))]))?;
-    let (n, want) = (params["x"].as_array().map_or(0, Vec::len), npe.header.feature_names.len());
+    let (n, want) = (p.x.len(), npe.header.feature_names.len());
     if n != want {
         return Err(Problem::invalid(vec![(
             "params.x".into(),

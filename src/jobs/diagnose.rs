@@ -1,0 +1,118 @@
+//! `diagnose`: the discrepancy workflow on one observation against a registered model
+//! (fit, check, name the missing effect, add it and retrain), with a report page, its
+//! figures and the extended model.
+
+use super::spec::{FieldError, effect_names, in_range, plain_id};
+use super::{Ctx, Reporter, Stopped, limits, registered_model};
+use crate::sim::params::{EFFECTS, Effects};
+use crate::sim::{Model, ModelConfig};
+use anyhow::{Result, bail};
+use serde::{Deserialize, Serialize};
+use std::sync::atomic::Ordering;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiagnoseParams {
+    /// Base model id; the default model if absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
+    /// The observation: 250 features in the model's order (see GET /models/{id}). A
+    /// patient's measurement: shown to its tenant only.
+    pub x: Vec<f64>,
+    /// Effect names; all if absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub candidates: Option<Vec<String>>,
+    #[serde(default = "yes")]
+    pub extend: bool,
+    #[serde(default = "rows")]
+    pub train_rows: usize,
+    #[serde(default = "super::train::epochs")]
+    pub max_epochs: usize,
+    #[serde(default = "nulls")]
+    pub null_cases: usize,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn yes() -> bool {
+    true
+}
+fn rows() -> usize {
+    10_000
+}
+fn nulls() -> usize {
+    40
+}
+
+impl DiagnoseParams {
+    /// The checks that need no model (its existence and feature count are checked
+    /// against the store when the job is posted).
+    pub(super) fn validate(&self, errs: &mut Vec<FieldError>) {
+        if let Some(m) = &self.model {
+            plain_id("params.model", m, errs);
+        }
+        if let Some(i) = self.x.iter().position(|v| !v.is_finite()) {
+            errs.push((format!("params.x[{i}]"), "must be a finite number".into()));
+        }
+        for (i, c) in self.candidates.iter().flatten().enumerate() {
+            if Effects::index(c).is_none() {
+                errs.push((
+                    format!("params.candidates[{i}]"),
+                    format!("unknown effect '{c}' (known: {})", effect_names()),
+                ));
+            }
+        }
+        in_range("params.train_rows", &limits::TRAIN_ROWS, self.train_rows, errs);
+        in_range("params.max_epochs", &limits::EPOCHS, self.max_epochs, errs);
+        in_range("params.null_cases", &limits::NULL_CASES, self.null_cases, errs);
+    }
+
+    /// The base model's id (`default` when absent).
+    pub fn model_id(&self) -> &str {
+        self.model.as_deref().unwrap_or("default")
+    }
+}
+
+pub(super) fn execute(ctx: &Ctx, job_id: &str, p: &DiagnoseParams, r: &Reporter) -> Result<serde_json::Value> {
+    use crate::discrepancy::workflow::{Settings, diagnose};
+    let id = p.model_id();
+    let base = registered_model(ctx, id)?;
+    if p.x.len() != base.header.feature_names.len() {
+        bail!("params.x has {} values; model '{id}' has {} features", p.x.len(), base.header.feature_names.len());
+    }
+    let candidates = match &p.candidates {
+        Some(c) => c.iter().filter_map(|n| Effects::index(n)).collect(),
+        None => (0..EFFECTS.len()).collect(),
+    };
+    let s = Settings {
+        candidates,
+        extend: p.extend,
+        train_rows: p.train_rows,
+        max_epochs: p.max_epochs,
+        null_cases: p.null_cases,
+        seed: p.seed,
+        cancel: Some(r.cancel.clone()),
+        ..Settings::default()
+    };
+    let model = Model::new(ModelConfig::default())?;
+    let steps = ["fit", "check", "null", "name", "add", "training"];
+    let report = diagnose(&model, &base, &p.x, &s, &mut |m| {
+        let k = steps.iter().position(|s| m.contains(s)).unwrap_or(0);
+        let _ = r.report(k as f64 / steps.len() as f64, m.to_string());
+    })
+    .map_err(|e| match e {
+        crate::discrepancy::DiagnoseError::Cancelled => Stopped.into(),
+        e => anyhow::Error::from(e),
+    })?;
+    // Fencing: a job cancelled or interrupted meanwhile writes no report and no model.
+    if r.cancel.load(Ordering::Relaxed) {
+        bail!(Stopped);
+    }
+    r.still_ours(ctx)?;
+    let links = crate::plot::diagnosis::Links {
+        figure: &|n| format!("/jobs/{job_id}/files/{n}"),
+        model: (ctx.data_dir.join("models").join(format!("{job_id}.otofit")), format!("/models/{job_id}")),
+        page: Some(format!("/jobs/{job_id}/files/report.html")),
+    };
+    Ok(crate::plot::diagnosis::write_report(&ctx.data_dir.join("reports").join(job_id), &report, &links)?)
+}

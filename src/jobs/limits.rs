@@ -1,0 +1,40 @@
+//! Bounds on the work one job (or one CLI command) may ask for, defined once: the HTTP
+//! validation (`JobSpec::parse`) and the CLI flags check the same ranges.
+
+use std::fmt::Display;
+use std::ops::RangeInclusive;
+
+/// Rows of one simulate job (prior draws or given rows), and of a diagnose job's
+/// extended training set's upper end.
+pub const MAX_ROWS: usize = 100_000;
+/// Rows of a simulate job.
+pub const SIMULATE_ROWS: RangeInclusive<usize> = 1..=MAX_ROWS;
+/// Rows of a resimulate job.
+pub const RESIMULATE_ROWS: RangeInclusive<usize> = 1..=1_000;
+/// Training epochs (train; diagnose's extended model; `otofit train`/`diagnose`).
+pub const EPOCHS: RangeInclusive<usize> = 1..=5_000;
+/// Flows in a trained ensemble.
+pub const ENSEMBLE: RangeInclusive<usize> = 1..=16;
+/// Rows of a diagnose job's extended training set.
+pub const TRAIN_ROWS: RangeInclusive<usize> = 100..=MAX_ROWS;
+/// Effect-free simulations of a diagnose job's null distribution: fewer than 5 have no
+/// 97.5 % quantile worth the name (0 once disabled every alarm).
+pub const NULL_CASES: RangeInclusive<usize> = 5..=1_000;
+
+/// `Err("must be A..=B, got V")` when `v` is outside `range`.
+pub fn check<T: PartialOrd + Display>(range: &RangeInclusive<T>, v: T) -> Result<(), String> {
+    if range.contains(&v) { Ok(()) } else { Err(format!("must be {}..={}, got {v}", range.start(), range.end())) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn check_names_the_range_and_the_value() {
+        assert_eq!(check(&EPOCHS, 1), Ok(()));
+        assert_eq!(check(&EPOCHS, 5000), Ok(()));
+        assert_eq!(check(&EPOCHS, 0), Err("must be 1..=5000, got 0".into()));
+        assert_eq!(check(&ENSEMBLE, 17), Err("must be 1..=16, got 17".into()));
+    }
+}

@@ -1,0 +1,354 @@
+//! The job queue: a tokio dispatcher claims queued jobs from the store (SQLite or
+//! PostgreSQL) one at a time and runs the CPU work on the blocking pool (simulations fan
+//! out on rayon inside it), so the async runtime never blocks. Progress goes to the
+//! database as the work goes; cancellation and shutdown are checked between chunks.
+//!
+//! Every claim is a lease (see `store`): the dispatcher renews it every third of its
+//! length while the job runs, and a job whose lease is lost (this worker stalled or was
+//! cut off, and another took the job back) is stopped and writes nothing: results are
+//! fenced by the lease token in the database, and files are written into an attempt's own
+//! staging place and moved into place only after a fresh renewal.
+//!
+//! A job is a [`JobSpec`] (`spec`): parsed and validated once when it is posted, stored
+//! as JSON, executed from the typed value. One file per kind holds its params, their
+//! checks and its execution (`simulate`, `train`, `resimulate`, `diagnose`); `limits`
+//! holds the bounds the CLI shares.
+
+mod diagnose;
+pub mod limits;
+mod resimulate;
+mod simulate;
+mod spec;
+mod train;
+
+pub use diagnose::DiagnoseParams;
+pub use limits::MAX_ROWS;
+pub use resimulate::ResimulateParams;
+pub use simulate::{SimulateParams, remove_temporary_files};
+pub use spec::{FieldError, JobSpec, KINDS, MAX_ID, effect_names, field_error, is_plain_id};
+pub use train::TrainParams;
+
+use crate::npe::Npe;
+use crate::store::{JobRow, Store};
+use anyhow::{Result, anyhow, bail};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
+use std::time::Duration;
+use tokio::sync::Notify;
+
+/// Shared service state.
+pub struct Ctx {
+    pub store: Store,
+    pub data_dir: PathBuf,
+    pub notify: Notify,
+    pub shutdown: AtomicBool,
+    models: RwLock<HashMap<String, Arc<Npe>>>,
+    pub max_queue: i64,
+    /// The data directory's lock, held as long as this context lives (see `with_lock`).
+    data_lock: Option<std::fs::File>,
+    /// Slots and deadline of POST /infer.
+    pub infer_gate: crate::http::InferGate,
+    /// This process as a worker (`host:pid`), written into the jobs it claims.
+    pub worker: String,
+    /// Length of a claim's lease; renewed every third of it.
+    pub lease: Duration,
+    /// Counters and histograms of this process, for GET /metrics.
+    pub metrics: crate::http::metrics::Metrics,
+}
+
+/// Default lease of a claimed job: a worker that stops renewing it for this long loses
+/// the job to another.
+pub const DEFAULT_LEASE: Duration = Duration::from_secs(30);
+
+impl Ctx {
+    pub fn new(store: Store, data_dir: PathBuf, max_queue: i64) -> Ctx {
+        Ctx {
+            store,
+            data_dir,
+            notify: Notify::new(),
+            shutdown: AtomicBool::new(false),
+            models: RwLock::new(HashMap::new()),
+            max_queue,
+            data_lock: None,
+            infer_gate: crate::http::InferGate::new(crate::http::InferLimits::default()),
+            worker: crate::store::worker_name(),
+            lease: DEFAULT_LEASE,
+            metrics: Default::default(),
+        }
+    }
+
+    /// Claims jobs with leases of `lease` (renewed every third of it) instead of 30 s.
+    pub fn with_lease(mut self, lease: Duration) -> Ctx {
+        self.lease = lease;
+        self
+    }
+
+    /// Bounds POST /infer by `limits` instead of the defaults.
+    pub fn with_infer_limits(mut self, limits: crate::http::InferLimits) -> Ctx {
+        self.infer_gate = crate::http::InferGate::new(limits);
+        self
+    }
+
+    /// Keeps `lock` (the data directory's lock file, locked) for the life of the context.
+    pub fn with_lock(mut self, lock: std::fs::File) -> Ctx {
+        self.data_lock = Some(lock);
+        self
+    }
+
+    /// A registered model, loaded once and shared.
+    pub fn loaded(&self, id: &str, path: &Path) -> Result<Arc<Npe>> {
+        if let Some(m) = self.models.read().map_err(|_| anyhow!("model cache poisoned"))?.get(id) {
+            return Ok(m.clone());
+        }
+        let m = Arc::new(Npe::load(path)?);
+        self.models.write().map_err(|_| anyhow!("model cache poisoned"))?.insert(id.to_string(), m.clone());
+        Ok(m)
+    }
+
+    pub fn dataset_dir(&self, id: &str) -> PathBuf {
+        self.data_dir.join("datasets").join(id)
+    }
+}
+
+/// Reports progress and tells the worker whether to stop.
+pub struct Reporter {
+    tx: tokio::sync::mpsc::UnboundedSender<(f64, String)>,
+    cancel: Arc<AtomicBool>,
+    /// The claim: (job id, lease token), for the renewal before results are written.
+    claim: (String, String),
+}
+
+impl Reporter {
+    fn report(&self, progress: f64, message: String) -> bool {
+        let _ = self.tx.send((progress, message));
+        !self.cancel.load(Ordering::Relaxed)
+    }
+
+    /// Renews the lease (blocking; called from the job's thread) right before results are
+    /// written: `Err(LeaseLost)` if the job is no longer this worker's, so nothing is
+    /// written. After a renewal no other worker can claim the job for a whole lease.
+    fn still_ours(&self, ctx: &Ctx) -> Result<()> {
+        let (id, token) = (&self.claim.0, &self.claim.1);
+        let renewed = tokio::runtime::Handle::current().block_on(ctx.store.heartbeat(id, token, ctx.lease));
+        match renewed {
+            Ok(true) => Ok(()),
+            Ok(false) => {
+                self.cancel.store(true, Ordering::Relaxed);
+                bail!(LeaseLost)
+            }
+            Err(e) => Err(anyhow!(e).context("renewing the lease before writing results")),
+        }
+    }
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("stopped on request")]
+struct Stopped;
+
+/// The job's lease was lost: another worker may hold it now.
+#[derive(Debug, thiserror::Error)]
+#[error("the job's lease was lost; this worker's results are dropped")]
+pub struct LeaseLost;
+
+impl JobSpec {
+    /// Runs the job `id`'s CPU work (on a blocking thread). Returns its result document.
+    fn execute(&self, ctx: &Ctx, id: &str, r: &Reporter) -> Result<serde_json::Value> {
+        match self {
+            JobSpec::Simulate(p) => simulate::execute(ctx, id, p, r),
+            JobSpec::Train(p) => train::execute(ctx, id, p, r),
+            JobSpec::Resimulate(p) => resimulate::execute(ctx, id, p, r),
+            JobSpec::Diagnose(p) => diagnose::execute(ctx, id, p, r),
+        }
+    }
+}
+
+/// A model by its id, looked up in the store (never a path built from the id). Errors
+/// name the id, not the file: job errors are shown to clients.
+pub fn registered_model(ctx: &Ctx, id: &str) -> Result<Arc<Npe>> {
+    let unknown = || anyhow!("model '{id}' is not registered");
+    if !is_plain_id(id) {
+        return Err(unknown());
+    }
+    let rt = tokio::runtime::Handle::current();
+    let row = rt.block_on(ctx.store.model(id))?.ok_or_else(unknown)?;
+    ctx.loaded(&row.id, Path::new(&row.path)).map_err(|e| {
+        tracing::error!(model = %id, error = %format!("{e:#}"), "model cannot be loaded");
+        anyhow!("model '{id}' cannot be loaded (the server log says why)")
+    })
+}
+
+/// An error message for clients: the server's own directories replaced by names.
+fn scrub(ctx: &Ctx, msg: &str) -> String {
+    let mut out = msg.to_string();
+    let mut dirs: Vec<(PathBuf, &str)> = vec![];
+    if ctx.data_dir.is_absolute() {
+        dirs.push((ctx.data_dir.clone(), "DATA_DIR"));
+    }
+    if let Ok(d) = std::fs::canonicalize(&ctx.data_dir) {
+        dirs.push((d, "DATA_DIR"));
+    }
+    if let Ok(d) = std::env::current_dir() {
+        dirs.push((d, "."));
+    }
+    dirs.sort_by_key(|(d, _)| std::cmp::Reverse(d.as_os_str().len()));
+    for (d, name) in dirs {
+        let d = d.display().to_string();
+        if d.len() > 1 {
+            out = out.replace(&d, name);
+        }
+    }
+    out
+}
+
+/// The dispatcher: takes back jobs whose lease expired, claims and runs jobs until
+/// shutdown. Any number of dispatchers, in any number of processes, may share a store.
+pub async fn dispatcher(ctx: Arc<Ctx>) {
+    loop {
+        if ctx.shutdown.load(Ordering::Relaxed) {
+            break;
+        }
+        match ctx.store.reap_expired().await {
+            Ok((0, 0)) => {}
+            Ok((requeued, failed)) => {
+                ctx.metrics.reaped(requeued + failed);
+                tracing::warn!(requeued, failed, "took back jobs whose lease expired")
+            }
+            Err(e) => tracing::error!(error = %e, "reaping expired leases failed"),
+        }
+        match ctx.store.claim(&ctx.worker, ctx.lease).await {
+            Ok(Some(job)) => {
+                ctx.metrics.claimed();
+                run(ctx.clone(), job).await
+            }
+            Ok(None) => {
+                tokio::select! {
+                    _ = ctx.notify.notified() => {}
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                }
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "claiming a job failed");
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+}
+
+async fn run(ctx: Arc<Ctx>, job: JobRow) {
+    let t0 = std::time::Instant::now();
+    let token = job.lease_token.clone().unwrap_or_default();
+    tracing::info!(job = %job.id, kind = %job.kind, attempt = job.attempts, worker = %ctx.worker, "job started");
+    let cancel = Arc::new(AtomicBool::new(false));
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let reporter = Reporter { tx, cancel: cancel.clone(), claim: (job.id.clone(), token.clone()) };
+    let spec = JobSpec::of(&job);
+    // What the job leaves behind: a dataset folder (simulate), a model (train, diagnose).
+    let makes_dataset = matches!(spec, Ok(JobSpec::Simulate(_)));
+    let makes_model = matches!(spec, Ok(JobSpec::Train(_) | JobSpec::Diagnose(_)));
+    let (c2, id2) = (ctx.clone(), job.id.clone());
+    let mut handle = tokio::task::spawn_blocking(move || {
+        let spec = spec.map_err(|e| anyhow!("the job's stored params do not read: {e}"))?;
+        spec.execute(&c2, &id2, &reporter)
+    });
+    // Intervals, not sleeps inside select!: progress messages must not starve the checks.
+    let mut check = tokio::time::interval(Duration::from_millis(300));
+    let mut renew = tokio::time::interval(ctx.lease / 3);
+    renew.reset();
+    let mut lost = false;
+    let result = loop {
+        tokio::select! {
+            Some((p, m)) = rx.recv() => {
+                if let Err(e) = ctx.store.progress(&job.id, &token, p, &m).await {
+                    tracing::warn!(job = %job.id, error = %e, "progress not saved");
+                }
+            }
+            _ = check.tick() => {
+                if ctx.shutdown.load(Ordering::Relaxed) || ctx.store.cancel_requested(&job.id).await {
+                    cancel.store(true, Ordering::Relaxed);
+                }
+            }
+            _ = renew.tick() => match ctx.store.heartbeat(&job.id, &token, ctx.lease).await {
+                Ok(true) => {}
+                Ok(false) => {
+                    ctx.metrics.lease_lost();
+                    tracing::warn!(job = %job.id, "lease lost: stopping the job; its results will be dropped");
+                    lost = true;
+                    cancel.store(true, Ordering::Relaxed);
+                }
+                // A database hiccup: the lease still has two thirds to run; retried next tick.
+                Err(e) => tracing::warn!(job = %job.id, error = %e, "lease not renewed"),
+            },
+            res = &mut handle => break res,
+        }
+    };
+    let shutting_down = ctx.shutdown.load(Ordering::Relaxed);
+    let cancelled = cancel.load(Ordering::Relaxed);
+    let store = &ctx.store;
+    // Every end is fenced by the lease token this worker claimed (see `Store::finish`).
+    let id = job.id.as_str();
+    let (label, outcome) = match result {
+        _ if lost => ("lease_lost", Ok(false)),
+        Ok(Err(e)) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
+        Err(e) => ("failed", store.finish(id, &token, "failed", Some(&format!("worker panicked: {e}")), None).await),
+        // Interrupted by shutdown: back to the queue, the attempt not counted.
+        Ok(_) if cancelled && shutting_down => ("requeued", store.requeue(id, &token).await),
+        // A cancelled training still returns its best weights: that is a result.
+        Ok(Ok(doc)) => ("succeeded", store.finish(id, &token, "succeeded", None, Some(&doc)).await),
+        Ok(Err(e)) if cancelled || e.is::<Stopped>() => {
+            ("cancelled", store.finish(id, &token, "cancelled", None, None).await)
+        }
+        Ok(Err(e)) => ("failed", store.finish(id, &token, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await),
+    };
+    let label = match outcome {
+        Ok(true) => label,
+        Ok(false) => "lease_lost",
+        Err(_) => "not_saved",
+    };
+    ctx.metrics.job_ended(&job.kind, label, t0.elapsed().as_secs_f64());
+    if makes_dataset {
+        // This attempt's staging folder: moved into place on success, else left over.
+        let staging = simulate::staging_dir(&ctx.dataset_dir(&job.id), &token);
+        if staging.exists() {
+            let _ = std::fs::remove_dir_all(&staging);
+        }
+    }
+    let owned = match outcome {
+        Ok(owned) => owned,
+        Err(e) => {
+            tracing::error!(job = %job.id, error = %e, "job state not saved");
+            false
+        }
+    };
+    if !owned {
+        // Another worker holds the job now: its files and its model are its own.
+        tracing::warn!(job = %job.id, attempt = job.attempts, "the job is no longer this worker's; its outcome is dropped");
+        return;
+    }
+    if makes_dataset {
+        // The job has ended: leftovers of earlier attempts of it are garbage now.
+        remove_temporary_files(&ctx.dataset_dir(&job.id));
+    }
+    if makes_model && let Ok(Some(j)) = ctx.store.job(&job.id).await {
+        let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
+        // Absolute: every process sharing the store (and the data directory, mounted at
+        // the same path) loads the model by this path, whatever its working directory.
+        if j.state == "succeeded"
+            && let Ok(path) = std::fs::canonicalize(&path)
+        {
+            let _ = ctx.store.add_model(&job.id, &path.display().to_string(), false, Some(&job.id)).await;
+        }
+    }
+    tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
+}
+
+/// Removes the `*.tmp` files a simulate job writes before renaming them into place, and
+/// the staging folders (`.attempt-*`) of its attempts: what a failed, cancelled,
+
+/// A new job id: time-ordered, unguessable enough for a local service.
+pub fn new_id() -> String {
+    use rand::Rng;
+    let ms = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default().as_millis();
+    format!("{ms:012x}{:08x}", rand::rng().random::<u32>())
+}

@@ -1,0 +1,89 @@
+//! `resimulate`: given parameter rows (a MAP, posterior draws) through the simulator,
+//! with a figure and a report page; with the observation they were inferred from, ρ per
+//! row and measure.
+
+use super::spec::{FieldError, effects_of, theta_values, with_geometry};
+use super::{Ctx, Reporter, limits};
+use crate::sim::batch::{Design, run_rows};
+use crate::sim::output::feature_names;
+use crate::sim::params::{N_PARAMS, N_TISSUE, PARAMS};
+use crate::sim::{Model, ModelConfig};
+use anyhow::Result;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ResimulateParams {
+    /// Rows of the 10 parameters or the 7 tissue ones (natural units), e.g. a MAP and
+    /// posterior draws.
+    pub theta: Vec<Vec<f64>>,
+    #[serde(default)]
+    pub effects: BTreeMap<String, f64>,
+    /// The observation the rows were inferred from (250 features): drawn in the figure
+    /// and compared by Spearman ρ per measure. A patient's measurement: shown to its
+    /// tenant only.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub observation: Option<Vec<f64>>,
+}
+
+impl ResimulateParams {
+    pub(super) fn validate(&self, errs: &mut Vec<FieldError>) {
+        effects_of(&self.effects, errs);
+        if !limits::RESIMULATE_ROWS.contains(&self.theta.len()) {
+            errs.push(("params.theta".into(), format!("needs 1..={} rows", limits::RESIMULATE_ROWS.end())));
+        }
+        if let Some(i) = self.theta.iter().position(|r| r.len() != N_PARAMS && r.len() != N_TISSUE) {
+            errs.push((
+                format!("params.theta[{i}]"),
+                format!(
+                    "needs {N_PARAMS} values ({}) or the first {N_TISSUE} (nominal geometry)",
+                    PARAMS.map(|p| p.name).join(", ")
+                ),
+            ));
+        } else {
+            theta_values(&with_geometry(&self.theta, 0), errs);
+        }
+        if let Some(x) = &self.observation {
+            let n = 5 * ModelConfig::default().frequencies.len();
+            if x.len() != n {
+                errs.push((
+                    "params.observation".into(),
+                    format!("needs {n} features in the model's order, got {}", x.len()),
+                ));
+            } else if let Some(i) = x.iter().position(|v| !v.is_finite()) {
+                errs.push((format!("params.observation[{i}]"), "must be a finite number".into()));
+            }
+        }
+    }
+}
+
+pub(super) fn execute(ctx: &Ctx, id: &str, p: &ResimulateParams, r: &Reporter) -> Result<serde_json::Value> {
+    let design = Design { fixed: effects_of(&p.effects, &mut vec![]), varied: vec![] };
+    let model = Model::new(ModelConfig::default())?;
+    let theta = with_geometry(&p.theta, 0);
+    let out = run_rows(&model, &design, &theta, 0, None);
+    let x: Vec<serde_json::Value> = out
+        .iter()
+        .map(|res| match res {
+            Ok(x) => serde_json::json!(x),
+            Err(e) => serde_json::json!({ "error": e.to_string() }),
+        })
+        .collect();
+    r.report(1.0, format!("{} rows", p.theta.len()));
+    let ok: Vec<&[f64]> = out.iter().filter_map(|o| o.as_deref().ok()).collect();
+    let page = crate::plot::resimulation(model.frequencies(), &theta, &ok, p.observation.as_deref());
+    r.still_ours(ctx)?;
+    let dir = ctx.data_dir.join("reports").join(id);
+    std::fs::create_dir_all(&dir)?;
+    std::fs::write(dir.join("spectra.svg"), &page.svg)?;
+    std::fs::write(dir.join("report.html"), &page.html)?;
+    let files = |n: &str| format!("/jobs/{id}/files/{n}");
+    Ok(serde_json::json!({
+        "features": feature_names(model.frequencies()),
+        "x": x,
+        "rho": page.rho,
+        "figures": [files("spectra.svg")],
+        "report": files("report.html"),
+    }))
+}

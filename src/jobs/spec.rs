@@ -1,0 +1,259 @@
+//! What a job is: [`JobSpec`], parsed and validated once when it is posted (every bad
+//! field named by its JSON path), stored as its JSON (`kind` and `params` columns) and
+//! executed from the typed value.
+
+use super::diagnose::DiagnoseParams;
+use super::resimulate::ResimulateParams;
+use super::simulate::SimulateParams;
+use super::train::TrainParams;
+use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS, Scale, with_nominal_geometry};
+use crate::store::JobRow;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// The job kinds, as `kind` spells them.
+pub const KINDS: [&str; 4] = ["simulate", "train", "resimulate", "diagnose"];
+
+/// A job: its kind and its params (`{"kind": …, "params": {…}}`, the body of POST /jobs).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(tag = "kind", content = "params", rename_all = "lowercase")]
+pub enum JobSpec {
+    Simulate(SimulateParams),
+    Train(TrainParams),
+    Resimulate(ResimulateParams),
+    Diagnose(DiagnoseParams),
+}
+
+/// A validation problem: the JSON path of the field and what is wrong with it.
+pub type FieldError = (String, String);
+
+impl JobSpec {
+    /// A posted job, parsed and checked, or every problem found naming its field.
+    pub fn parse(kind: &str, params: &serde_json::Value) -> Result<JobSpec, Vec<FieldError>> {
+        let mut errs = Vec::new();
+        let spec = match kind {
+            "simulate" => JobSpec::Simulate(parse(params)?),
+            "train" => JobSpec::Train(parse(params)?),
+            "resimulate" => JobSpec::Resimulate(parse(params)?),
+            "diagnose" => {
+                let p: DiagnoseParams = parse(params)?;
+                if p.model.is_none() && params.get("model").is_some() {
+                    errs.push(("params.model".into(), "must be a model id, or left out for the default model".into()));
+                }
+                JobSpec::Diagnose(p)
+            }
+            other => {
+                let known = KINDS.join(", ");
+                return Err(vec![("kind".into(), format!("unknown job kind '{other}' (known: {known})"))]);
+            }
+        };
+        match &spec {
+            JobSpec::Simulate(p) => p.validate(&mut errs),
+            JobSpec::Train(p) => p.validate(&mut errs),
+            JobSpec::Resimulate(p) => p.validate(&mut errs),
+            JobSpec::Diagnose(p) => p.validate(&mut errs),
+        }
+        if errs.is_empty() { Ok(spec) } else { Err(errs) }
+    }
+
+    /// The spec of a stored job (checked when it was queued).
+    pub fn of(job: &JobRow) -> Result<JobSpec, serde_json::Error> {
+        serde_json::from_value(serde_json::json!({ "kind": job.kind, "params": job.params }))
+    }
+
+    pub fn kind(&self) -> &'static str {
+        match self {
+            JobSpec::Simulate(_) => "simulate",
+            JobSpec::Train(_) => "train",
+            JobSpec::Resimulate(_) => "resimulate",
+            JobSpec::Diagnose(_) => "diagnose",
+        }
+    }
+
+    /// The params as stored: every default written out, so a job shows what it runs with.
+    pub fn params(&self) -> serde_json::Value {
+        let mut v = serde_json::to_value(self).unwrap_or_default();
+        v["params"].take()
+    }
+}
+
+/// A job's params as `T`; an error names the full JSON path of the field
+/// (`params.theta[0][1]`, `params.bogus` for an unknown or missing one).
+fn parse<T: serde::de::DeserializeOwned>(params: &serde_json::Value) -> Result<T, Vec<FieldError>> {
+    let bytes = serde_json::to_vec(params).map_err(|e| vec![("params".to_string(), e.to_string())])?;
+    // axum's Json tracks the path (serde_path_to_error): "…target type: theta[0][1]: invalid type: …".
+    axum::Json::<T>::from_bytes(&bytes).map(|j| j.0).map_err(|r| vec![field_error("params", &r.body_text())])
+}
+
+/// (field, message) from the text of an axum Json data rejection, the field's path under
+/// `root` (which may be empty).
+pub fn field_error(root: &str, text: &str) -> FieldError {
+    let text = text.split_once(": ").map_or(text, |(_, rest)| rest);
+    let (path, message) = match text.split_once(": ") {
+        Some((p, m)) if !p.contains(' ') => (p, m),
+        _ => ("", text),
+    };
+    let mut field = root.to_string();
+    if !path.is_empty() && path != "." {
+        field += if path.starts_with('[') || field.is_empty() { "" } else { "." };
+        field += path;
+    }
+    let named = message.strip_prefix("unknown field `").or_else(|| message.strip_prefix("missing field `"));
+    // An unknown field's path ends with it already; a missing one's is its parent.
+    if let Some(name) = named.and_then(|r| r.split('`').next())
+        && !field.ends_with(&format!(".{name}"))
+        && field != name
+    {
+        field = format!("{field}.{name}");
+    }
+    // The position is in a re-serialised copy of params: no use to the client.
+    let message = message.split(" at line ").next().unwrap_or(message);
+    (field, message.to_string())
+}
+
+/// `errs` gets `field`'s problem when `v` is outside `range` (see `limits`).
+pub(super) fn in_range(field: &str, range: &std::ops::RangeInclusive<usize>, v: usize, errs: &mut Vec<FieldError>) {
+    if let Err(m) = super::limits::check(range, v) {
+        errs.push((field.into(), m));
+    }
+}
+
+/// `errs` gets `field`'s problem unless `v` is a finite number ≥ 0.
+pub(super) fn non_negative(field: &str, v: f64, errs: &mut Vec<FieldError>) {
+    if !(v.is_finite() && v >= 0.0) {
+        errs.push((field.into(), "must be a finite number ≥ 0".into()));
+    }
+}
+
+/// Longest id a job may name (models, datasets).
+pub const MAX_ID: usize = 64;
+
+/// An id that names a row of the store: ASCII letters, digits, `_` and `-`, 1..=64 long.
+/// Ids are looked up, never joined into a path, but a plain id keeps that true for
+/// anything that might (`../../etc/model` is refused before it gets near the disk).
+pub fn is_plain_id(id: &str) -> bool {
+    (1..=MAX_ID).contains(&id.len()) && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+pub(super) fn plain_id(field: &str, id: &str, errs: &mut Vec<FieldError>) {
+    if !is_plain_id(id) {
+        errs.push((field.into(), format!("must be a plain id (1..={MAX_ID} of A-Z a-z 0-9 _ -)")));
+    }
+}
+
+/// The fixed effects of `params.effects`; unknown names and bad values go to `errs`.
+pub(super) fn effects_of(map: &BTreeMap<String, f64>, errs: &mut Vec<FieldError>) -> Effects {
+    let mut fx = Effects::default();
+    for (name, v) in map {
+        if let Err(e) = fx.set(name, *v) {
+            errs.push((format!("params.effects.{name}"), e.to_string()));
+        }
+    }
+    fx
+}
+
+/// How far outside its prior box a requested parameter may lie: one decade each way
+/// (log parameters) is far enough for any what-if, and keeps values such as 1e-308,
+/// which no ear has and which break the solver's and the figures' arithmetic, out.
+const THETA_SLACK_DECADES: f64 = 1.0;
+
+/// Rows of `params.theta` with the nominal geometry inserted after the tissue columns
+/// where a row gives only those (and then `n_effects` effect columns).
+pub(super) fn with_geometry(rows: &[Vec<f64>], n_effects: usize) -> Vec<Vec<f64>> {
+    rows.iter().map(|r| if r.len() == N_TISSUE + n_effects { with_nominal_geometry(r) } else { r.clone() }).collect()
+}
+
+/// Checks the parameter values of `params.theta` rows (effects columns are checked
+/// by the simulator's own range guard).
+pub(super) fn theta_values(rows: &[Vec<f64>], errs: &mut Vec<FieldError>) {
+    for (i, row) in rows.iter().enumerate() {
+        for (k, (v, p)) in row.iter().zip(PARAMS.iter()).enumerate() {
+            let slack = 10f64.powf(THETA_SLACK_DECADES);
+            let (lo, hi) = match p.scale {
+                Scale::Log10 => (p.low / slack, p.high * slack),
+                Scale::Linear => (p.low - (p.high - p.low), p.high + (p.high - p.low)),
+            };
+            if !v.is_finite() || *v < lo || *v > hi {
+                errs.push((
+                    format!("params.theta[{i}][{k}]"),
+                    format!(
+                        "{} = {v:e} {} is outside {lo:e}..={hi:e} (the prior box ±{THETA_SLACK_DECADES} decade)",
+                        p.name, p.unit
+                    ),
+                ));
+                return;
+            }
+        }
+    }
+}
+
+/// Known effect names, for error messages.
+pub fn effect_names() -> String {
+    EFFECTS.iter().map(|e| e.name).collect::<Vec<_>>().join(", ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn stored(spec: &JobSpec) -> JobRow {
+        JobRow {
+            id: "j".into(),
+            tenant: "t".into(),
+            kind: spec.kind().into(),
+            state: "queued".into(),
+            params: spec.params(),
+            progress: 0.0,
+            message: String::new(),
+            attempts: 0,
+            max_attempts: 3,
+            cancel_requested: false,
+            error: None,
+            result: None,
+            created_at: String::new(),
+            started_at: None,
+            finished_at: None,
+            lease_token: None,
+            worker: None,
+        }
+    }
+
+    #[test]
+    fn a_job_is_stored_with_its_defaults_and_read_back_as_the_same_spec() {
+        let spec = JobSpec::parse("train", &json!({"dataset": "d1"})).unwrap();
+        let params = spec.params();
+        assert_eq!(
+            params,
+            json!({"dataset": "d1", "noise_scale": 1.0, "seed": 0, "max_epochs": 300, "mask_groups": false, "ensemble": 1})
+        );
+        let back = JobSpec::of(&stored(&spec)).unwrap();
+        assert_eq!((back.kind(), back.params()), ("train", params));
+        // Absent options stay absent (no `"model": null`, no `"theta": null`).
+        let d = JobSpec::parse("diagnose", &json!({"x": [1.0, 2.0]})).unwrap().params();
+        assert!(d.get("model").is_none() && d.get("candidates").is_none(), "{d}");
+        assert_eq!(d["null_cases"], 40);
+        let s = JobSpec::parse("simulate", &json!({"n": 5})).unwrap().params();
+        assert!(s.get("theta").is_none() && s["n"] == 5, "{s}");
+        let back = JobSpec::of(&stored(&JobSpec::parse("simulate", &json!({"n": 5})).unwrap())).unwrap();
+        assert!(matches!(back, JobSpec::Simulate(SimulateParams { n: Some(5), .. })));
+    }
+
+    #[test]
+    fn unknown_kinds_and_out_of_range_limits_name_the_field() {
+        let e = JobSpec::parse("compile", &json!({})).unwrap_err();
+        assert_eq!(e[0].0, "kind");
+        assert!(e[0].1.contains("simulate, train, resimulate, diagnose"), "{e:?}");
+        // One set of limits for every kind (and the CLI): 16 flows, 5000 epochs.
+        assert!(JobSpec::parse("train", &json!({"dataset": "d", "ensemble": 16, "max_epochs": 5000})).is_ok());
+        let e = JobSpec::parse("train", &json!({"dataset": "d", "ensemble": 17, "max_epochs": 5001})).unwrap_err();
+        let fields: Vec<&str> = e.iter().map(|(f, _)| f.as_str()).collect();
+        assert_eq!(fields, ["params.max_epochs", "params.ensemble"], "{e:?}");
+        assert_eq!(e[1].1, "must be 1..=16, got 17");
+        let e = JobSpec::parse("diagnose", &json!({"x": [1.0], "max_epochs": 5001, "null_cases": 4})).unwrap_err();
+        let fields: Vec<&str> = e.iter().map(|(f, _)| f.as_str()).collect();
+        assert_eq!(fields, ["params.max_epochs", "params.null_cases"], "{e:?}");
+        let e = JobSpec::parse("simulate", &json!({"n": 100_001})).unwrap_err();
+        assert_eq!(e[0], ("params.n".into(), "must be 1..=100000, got 100001".into()));
+    }
+}
