@@ -250,6 +250,31 @@ pub fn json_body<T: serde::de::DeserializeOwned>(headers: &axum::http::HeaderMap
     }
 }
 
+/// Longest request target (path and query) answered; longer ones get a 414 problem.
+pub const MAX_URI: usize = 8 * 1024;
+/// Most header fields, and most bytes of header names and values, in one request; more
+/// gets a 431 problem.
+pub const MAX_HEADERS: (usize, usize) = (64, 32 * 1024);
+
+/// 414 and 431 as problems, below hyper's own bounds (a 64 KiB target, 100 fields, a
+/// ~400 KB head), past which hyper answers them itself with an empty body before any
+/// middleware runs.
+async fn head_limits(req: Request, next: Next) -> Response {
+    let target = req.uri().path_and_query().map_or(0, |pq| pq.as_str().len());
+    if target > MAX_URI {
+        let detail = format!("the request target has {target} bytes; at most {MAX_URI} are answered");
+        return Problem::new(StatusCode::URI_TOO_LONG, detail).into_response();
+    }
+    let fields = req.headers().len();
+    let bytes: usize = req.headers().iter().map(|(k, v)| k.as_str().len() + v.len()).sum();
+    if fields > MAX_HEADERS.0 || bytes > MAX_HEADERS.1 {
+        let (n, b) = MAX_HEADERS;
+        let detail = format!("{fields} header fields of {bytes} bytes; at most {n} fields and {b} bytes are answered");
+        return Problem::new(StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE, detail).into_response();
+    }
+    next.run(req).await
+}
+
 /// Every error answer as problem+json: those of axum itself (405, extractor rejections),
 /// of tower-http (413, 408) and of handlers that are not problems yet. The headers that go
 /// with a status (Allow, Retry-After, WWW-Authenticate) are kept.
@@ -317,6 +342,7 @@ pub fn router(state: AppState) -> Router {
         .fallback(|| async { Problem::new(StatusCode::NOT_FOUND, "no such route") })
         .layer(middleware::from_fn_with_state(state.clone(), auth::guard))
         .layer(tower_http::limit::RequestBodyLimitLayer::new(MAX_BODY))
+        .layer(middleware::from_fn(head_limits))
         .layer(middleware::from_fn(problems))
         .layer(tower_http::trace::TraceLayer::new_for_http())
         .with_state(state)

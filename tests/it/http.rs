@@ -1014,6 +1014,32 @@ async fn contract_gaps_are_closed() {
     assert_eq!((status, problem(&headers)), (StatusCode::UNAUTHORIZED, true));
 }
 
+/// Issue 13.8: an over-long request target (414) or too many or too large header fields
+/// (431) get problems, not hyper's empty bodies (which remain past hyper's own bounds).
+#[tokio::test]
+async fn long_targets_and_large_heads_get_problems() {
+    let (app, _) = app(vec![], 8, false).await;
+    let problem = |h: &axum::http::HeaderMap| h[header::CONTENT_TYPE] == "application/problem+json";
+    let max = otofit::http::MAX_URI;
+    let uri = |n: usize| format!("/jobs?state={}", "q".repeat(n - "/jobs?state=".len()));
+    let (status, _, _) = raw(&app, Request::get(uri(max)).body(Body::empty()).unwrap()).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "at the bound: answered (a bad state)");
+    let (status, headers, p) = raw(&app, Request::get(uri(max + 1)).body(Body::empty()).unwrap()).await;
+    assert_eq!((status, problem(&headers)), (StatusCode::URI_TOO_LONG, true), "{p}");
+    let (fields, bytes) = otofit::http::MAX_HEADERS;
+    let mut many = Request::get("/jobs");
+    for i in 0..=fields {
+        many = many.header(format!("x-h{i}"), "v");
+    }
+    let (status, headers, p) = raw(&app, many.body(Body::empty()).unwrap()).await;
+    assert_eq!((status, problem(&headers)), (StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE, true), "{p}");
+    let big = Request::get("/jobs").header("x-big", "b".repeat(bytes)).body(Body::empty()).unwrap();
+    let (status, headers, p) = raw(&app, big).await;
+    assert_eq!((status, problem(&headers)), (StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE, true), "{p}");
+    let fine = Request::get("/jobs").header("x-big", "b".repeat(bytes / 2)).body(Body::empty()).unwrap();
+    assert_eq!(raw(&app, fine).await.0, StatusCode::OK);
+}
+
 /// Issue 13.7: a simulate job that fails leaves no temporary files, and a restart removes
 /// those of runs that were killed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
