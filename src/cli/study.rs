@@ -55,6 +55,17 @@ pub struct StudyArgs {
     pub drum: super::drum::DrumOpts,
 }
 
+/// Posterior draws re-simulated, as figure series (the first one labelled).
+fn draw_series(draws: &[Vec<f64>]) -> impl Iterator<Item = plot::Series<'_>> {
+    draws.iter().enumerate().map(|(k, d)| plot::Series {
+        x: d,
+        color: plot::DRAW,
+        width: 1.0,
+        opacity: 0.5,
+        label: (k == 0).then_some("posterior draws re-simulated"),
+    })
+}
+
 /// Noise-free simulations of prior draws as an in-memory dataset.
 fn simulated(model: &Model, rows: usize, seed: u64) -> Dataset {
     let d = Design::default();
@@ -119,301 +130,358 @@ fn infer_one(
 }
 
 pub fn run(a: StudyArgs) -> Result<()> {
-    if !(1..=100_000).contains(&a.n) {
-        anyhow::bail!("--n must be 1..=100000 (got {})", a.n);
-    }
-    if !(100..=1_000_000).contains(&a.train_rows) {
-        anyhow::bail!("--train-rows must be 100..=1000000 (got {})", a.train_rows);
-    }
-    if !(1..=5000).contains(&a.max_epochs) {
-        anyhow::bail!("--max-epochs must be 1..=5000 (got {})", a.max_epochs);
-    }
-    if a.drum.is_set() && !matches!(a.name, StudyName::Reference) {
-        bail!("--drum and --drum-loss only apply to `study reference`");
-    }
+    check_args(&a)?;
     let mut config = ModelConfig::default();
     a.drum.apply(&mut config)?;
     let model = Model::new(config)?;
     let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed: a.seed ^ 0x0B5 };
-    let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();
     match a.name {
-        StudyName::Validate => {
-            let npe = Npe::load(&a.model)?;
-            let held = simulated(&model, a.n, a.seed ^ 0x7E57);
-            let (mut rhos, mut cvs, mut inside) = (vec![], vec![vec![]; N_PARAMS], vec![0usize; N_PARAMS]);
-            // ρ is blind to offsets (a MAP spectrum 20 dB low can rank-correlate perfectly),
-            // so the RMS residual in noise units, per measure, goes beside it.
-            let mut rms: Vec<Vec<f64>> = vec![vec![]; MEASURES.len()];
-            for (i, (t, x0)) in held.theta.iter().zip(&held.x).enumerate() {
-                let x = noise.apply(x0, i);
-                let (inf, map_x, r) = infer_one(&model, &npe, &x, x0, i as u64)?;
-                for (k, s) in inf.summaries.iter().enumerate() {
-                    cvs[k].push(s.cv);
-                    inside[k] += usize::from(t[k] >= s.q05 && t[k] <= s.q95);
-                }
-                rhos.push(r);
-                let nf = model.frequencies().len();
-                for (m, out) in rms.iter_mut().enumerate() {
-                    let ss: f64 = (m * nf..(m + 1) * nf)
-                        .map(|i| {
-                            (crate::discrepancy::fit::feature_residual(i, nf, map_x[i], x0[i]) / noise.std[i]).powi(2)
-                        })
-                        .sum();
-                    out.push((ss / nf as f64).sqrt());
-                }
-                if i < 5 {
-                    let f = model.frequencies();
-                    // Five posterior draws re-simulated, and the observation's noise band.
-                    let draws: Vec<Vec<f64>> =
-                        run_rows(&model, &Design::default(), &inf.samples[..5.min(inf.samples.len())], 0, None)
-                            .into_iter()
-                            .filter_map(|r| r.ok())
-                            .collect();
-                    let (lo, hi) = plot::plus_minus(&x, &noise.std);
-                    let mut series = vec![plot::Series {
-                        x: &x,
-                        color: plot::OBS,
-                        width: 2.0,
-                        opacity: 1.0,
-                        label: Some("noisy simulation (observation)"),
-                    }];
-                    for (k, d) in draws.iter().enumerate() {
-                        series.push(plot::Series {
-                            x: d,
-                            color: plot::DRAW,
-                            width: 1.0,
-                            opacity: 0.5,
-                            label: (k == 0).then_some("posterior draws re-simulated"),
-                        });
-                    }
-                    series.push(plot::Series {
-                        x: x0,
-                        color: plot::TRUTH,
-                        width: 1.5,
-                        opacity: 1.0,
-                        label: Some("ground truth"),
-                    });
-                    series.push(plot::Series {
-                        x: &map_x,
-                        color: plot::MAP,
-                        width: 1.5,
-                        opacity: 1.0,
-                        label: Some("MAP re-simulation"),
-                    });
-                    let band =
-                        [plot::Band {
-                            lo: &lo, hi: &hi, color: plot::NOISE, label: "observation ± test–retest STD"
-                        }];
-                    write(
-                        &a.out,
-                        &format!("validate_{i}_spectra.svg"),
-                        &plot::spectra(&format!("Unseen simulation {i}"), f, &band, &series),
-                    )?;
-                    write(
-                        &a.out,
-                        &format!("validate_{i}_corner.svg"),
-                        &corner(&npe, &inf.samples, Some(t), &inf.map, &format!("Posterior, unseen simulation {i}")),
-                    )?;
-                }
-            }
-            let n = rhos.len() as f64;
-            let mean_rho: Vec<f64> = (0..MEASURES.len()).map(|m| rhos.iter().map(|r| r[m]).sum::<f64>() / n).collect();
-            let all = mean_rho.iter().sum::<f64>() / MEASURES.len() as f64;
-            let med = |v: Vec<f64>| stats::median_upper(&stats::sorted(v));
-            println!(
-                "validate: {} unseen simulations, 1× noise; mean Spearman ρ (MAP re-simulation vs truth) {all:.4} (study: 0.998)",
-                rhos.len()
-            );
-            for (m, r) in MEASURES.iter().zip(&mean_rho) {
-                println!(
-                    "  ρ {:<11} {r:.4}   median RMS (MAP − truth)/σ {:.2}",
-                    m.name,
-                    med(rms[MEASURES.iter().position(|x| x.name == m.name).unwrap_or(0)].clone())
-                );
-            }
-            println!("{:<14} {:>10} {:>14}", "parameter", "median CV", "in 90 % int.");
-            for k in 0..N_PARAMS {
-                println!("{:<14} {:>10.3} {:>13.1}%", names[k], med(cvs[k].clone()), 100.0 * inside[k] as f64 / n);
-            }
-            let rms_med: Vec<f64> = rms.iter().map(|v| med(v.clone())).collect();
-            let doc = json!({ "n": rhos.len(), "mean_rho": all, "median_rms_sigma": MEASURES.iter().map(|m| m.name).zip(&rms_med).collect::<Vec<_>>(), "rho_per_measure": MEASURES.iter().map(|m| m.name).zip(&mean_rho).collect::<Vec<_>>(),
-                "median_cv": names.iter().zip(cvs.iter().map(|c| med(c.clone()))).collect::<Vec<_>>(),
-                "coverage90": names.iter().zip(inside.iter().map(|&c| c as f64 / n)).collect::<Vec<_>>() });
-            write(&a.out, "validate.json", &serde_json::to_string_pretty(&doc)?)?;
-            let mut p = Page::new("otofit study validate: unseen simulations");
-            p.text(&format!("{} unseen prior draws, simulated, 1× test–retest noise added, inferred with {}; MAP re-simulated and compared with the noise-free truth. Study (Motallebzadeh et al. 2025, Fig. 2): mean ρ 0.998.", rhos.len(), a.model.display()));
-            p.heading("MAP re-simulation vs truth").table(
-                &["measure", "mean Spearman ρ", "median RMS residual / σ"],
-                MEASURES
-                    .iter()
-                    .zip(&mean_rho)
-                    .zip(&rms_med)
-                    .map(|((m, r), e)| vec![m.name.into(), format!("{r:.4}"), format!("{e:.2}")])
-                    .chain([vec!["all".into(), format!("{all:.4}"), String::new()]])
-                    .collect(),
-            );
-            p.heading("Parameters").table(
-                &["parameter", "median CV", "truth inside 90 % interval"],
-                (0..N_PARAMS)
-                    .map(|k| {
-                        vec![
-                            names[k].into(),
-                            format!("{:.3}", med(cvs[k].clone())),
-                            format!("{:.1} %", 100.0 * inside[k] as f64 / n),
-                        ]
-                    })
-                    .collect(),
-            );
-            p.heading("Five unseen simulations");
-            for i in 0..rhos.len().min(5) {
-                p.figure(
-                    &format!("validate_{i}_spectra.svg"),
-                    &format!("simulation {i}: observation ± STD, five posterior draws, truth, MAP re-simulation"),
-                );
-                p.figure(
-                    &format!("validate_{i}_corner.svg"),
-                    &format!("simulation {i}: posterior, truth (green), MAP (red)"),
-                );
-            }
-            write(&a.out, "report.html", &p.render())?;
-        }
-        StudyName::Reference => reference(&model, &a.model, &a.out, a.seed)?,
-        StudyName::Noise | StudyName::Size => {
-            let sizes: Vec<usize> = match a.name {
-                StudyName::Size => vec![a.train_rows / 100, a.train_rows / 10, a.train_rows],
-                _ => vec![a.train_rows],
-            };
-            if sizes[0] < 20 {
-                bail!("--train-rows too small for this study (smallest set {} < 20)", sizes[0]);
-            }
-            let levels: Vec<f64> = match a.name {
-                StudyName::Noise => vec![0.1, 1.0, 10.0],
-                _ => vec![1.0],
-            };
-            let ds = simulated(&model, *sizes.last().unwrap(), a.seed);
-            // The same observation for every model: a mid-prior ear with 1× noise.
-            let truth = Design::default().draw(a.seed ^ 0x0B5E, 0, 1).remove(0);
-            let x0 = run_rows(&model, &Design::default(), std::slice::from_ref(&truth), 0, None).remove(0)?;
-            let x = noise.apply(&x0, 0);
-            let mut rows = vec![];
-            let (mut table, mut figs, mut runs) = (vec![], vec![], vec![]);
-            for &size in &sizes {
-                for &level in &levels {
-                    let sub = Dataset {
-                        theta: ds.theta[..size].to_vec(),
-                        x: ds.x[..size].to_vec(),
-                        ..simulated(&model, 0, 0)
-                    };
-                    let s = TrainSettings {
-                        noise_scale: level,
-                        seed: a.seed,
-                        max_epochs: a.max_epochs,
-                        ..TrainSettings::default()
-                    };
-                    let npe = npe::train(&sub, &s, &mut |_| true)?;
-                    let (inf, _, r) = infer_one(&model, &npe, &x, &x0, 1)?;
-                    let label = format!("n{size}_noise{level}");
-                    write(
-                        &a.out,
-                        &format!("{label}_corner.svg"),
-                        &corner(
-                            &npe,
-                            &inf.samples,
-                            Some(&truth),
-                            &inf.map,
-                            &format!("{size} simulations, {level}× noise"),
-                        ),
-                    )?;
-                    let mean_rho = r.iter().sum::<f64>() / r.len() as f64;
-                    let cv: Vec<f64> = inf.summaries.iter().map(|s| s.cv).collect();
-                    // Width in decades of the 90 % interval: robust where CV saturates
-                    // (log-uniform posteriors as wide as the prior have CV > 1).
-                    let width = inf.summaries.iter().map(|s| (s.q95 / s.q05).log10()).sum::<f64>() / N_PARAMS as f64;
-                    println!(
-                        "{size:>6} simulations, noise {level:>4}×: mean 90 % width {width:.3} decades, mean CV {:.3}, mean ρ {mean_rho:.3}, epochs {}  CV per parameter {:?}",
-                        cv.iter().sum::<f64>() / N_PARAMS as f64,
-                        npe.header.training.epochs,
-                        cv.iter().map(|c| (c * 1000.0).round() / 1000.0).collect::<Vec<_>>()
-                    );
-                    let run_label = if matches!(a.name, StudyName::Noise) {
-                        format!("{level}× noise")
-                    } else {
-                        format!("{size} simulations")
-                    };
-                    runs.push((run_label, inf.summaries.iter().map(|s| [s.q05, s.median, s.q95]).collect::<Vec<_>>()));
-                    figs.push((
-                        format!("{label}_corner.svg"),
-                        format!("{size} simulations, {level}× noise: posterior, truth (green), MAP (red)"),
-                    ));
-                    table.push(vec![
-                        size.to_string(),
-                        format!("{level}×"),
-                        format!("{width:.3}"),
-                        format!("{:.3}", cv.iter().sum::<f64>() / N_PARAMS as f64),
-                        format!("{mean_rho:.3}"),
-                        npe.header.training.epochs.to_string(),
-                    ]);
-                    rows.push(json!({ "train_rows": size, "noise_scale": level, "cv": names.iter().zip(&cv).collect::<Vec<_>>(), "mean_cv": cv.iter().sum::<f64>() / N_PARAMS as f64, "mean_width_decades": width, "rho": r, "mean_rho": mean_rho, "epochs": npe.header.training.epochs }));
-                }
-            }
-            let name = if matches!(a.name, StudyName::Noise) { "noise.json" } else { "size.json" };
-            write(&a.out, name, &serde_json::to_string_pretty(&json!({ "truth": truth, "runs": rows }))?)?;
-            let noise_study = matches!(a.name, StudyName::Noise);
-            let stem = if noise_study { "noise" } else { "size" };
-            let dims: Vec<plot::Dim<'_>> = PARAMS
-                .iter()
-                .zip(&truth)
-                .map(|(p, &t)| plot::Dim {
-                    name: p.name,
-                    unit: p.unit,
-                    low: p.low,
-                    high: p.high,
-                    log: p.scale == crate::sim::params::Scale::Log10,
-                    truth: Some(t),
-                    map: None,
-                })
-                .collect();
-            let run_refs: Vec<(&str, Vec<[f64; 3]>)> = runs.iter().map(|(l, q)| (l.as_str(), q.clone())).collect();
-            write(
-                &a.out,
-                &format!("{stem}_intervals.svg"),
-                &plot::intervals(
-                    &format!("Posterior 90 % intervals, one observation ({stem} study)"),
-                    &dims,
-                    &run_refs,
-                ),
-            )?;
-            let mut p = Page::new(if noise_study {
-                "otofit study noise: training noise 0.1×, 1×, 10×"
-            } else {
-                "otofit study size: 100×, 10×, 1× fewer simulations"
-            });
-            p.text(if noise_study {
-                "One observation (a prior draw with 1× noise) inferred by models trained with the noise model scaled 0.1×, 1× and 10×. Study (Fig. 4): CV about 7× larger from 1× to 10×; ρ 0.96 → 0.94."
-            } else {
-                "One observation (a prior draw with 1× noise) inferred by models trained on nested subsets of one simulated set. Study (Fig. 5): posteriors narrow as the training set grows."
-            });
-            p.table(&["simulations", "noise", "mean 90 % width (decades)", "mean CV", "mean ρ", "epochs"], table);
-            p.figure(&format!("{stem}_intervals.svg"), "90 % intervals and medians per parameter, one line per model");
-            for (file, caption) in &figs {
-                p.figure(file, caption);
-            }
-            write(&a.out, "report.html", &p.render())?;
-        }
+        StudyName::Validate => validate(&a, &model, &noise),
+        StudyName::Reference => reference(&model, &a.model, &a.out, a.seed),
+        StudyName::Noise | StudyName::Size => noise_or_size(&a, &model, &noise),
+    }
+}
+
+/// Refuses arguments out of their ranges, naming the flag.
+fn check_args(a: &StudyArgs) -> Result<()> {
+    if !(1..=100_000).contains(&a.n) {
+        bail!("--n must be 1..=100000 (got {})", a.n);
+    }
+    if !(100..=1_000_000).contains(&a.train_rows) {
+        bail!("--train-rows must be 100..=1000000 (got {})", a.train_rows);
+    }
+    if !(1..=5000).contains(&a.max_epochs) {
+        bail!("--max-epochs must be 1..=5000 (got {})", a.max_epochs);
+    }
+    if a.drum.is_set() && !matches!(a.name, StudyName::Reference) {
+        bail!("--drum and --drum-loss only apply to `study reference`");
     }
     Ok(())
+}
+
+/// What `study validate` gathers over the unseen simulations.
+struct Validation {
+    /// ρ per measure, per simulation.
+    rhos: Vec<Vec<f64>>,
+    /// CV per parameter, per simulation.
+    cvs: Vec<Vec<f64>>,
+    /// Simulations with the truth inside the 90 % interval, per parameter.
+    inside: Vec<usize>,
+    /// RMS residual (MAP − truth)/σ per measure, per simulation.
+    rms: Vec<Vec<f64>>,
+}
+
+/// `study validate`: unseen simulations with 1× noise, inferred and re-simulated.
+fn validate(a: &StudyArgs, model: &Model, noise: &Noise) -> Result<()> {
+    let npe = Npe::load(&a.model)?;
+    let held = simulated(model, a.n, a.seed ^ 0x7E57);
+    let mut v = Validation {
+        rhos: vec![],
+        cvs: vec![vec![]; N_PARAMS],
+        inside: vec![0usize; N_PARAMS],
+        // ρ is blind to offsets (a MAP spectrum 20 dB low can rank-correlate perfectly),
+        // so the RMS residual in noise units, per measure, goes beside it.
+        rms: vec![vec![]; MEASURES.len()],
+    };
+    for (i, (t, x0)) in held.theta.iter().zip(&held.x).enumerate() {
+        let x = noise.apply(x0, i);
+        let (inf, map_x, r) = infer_one(model, &npe, &x, x0, i as u64)?;
+        for (k, s) in inf.summaries.iter().enumerate() {
+            v.cvs[k].push(s.cv);
+            v.inside[k] += usize::from(t[k] >= s.q05 && t[k] <= s.q95);
+        }
+        v.rhos.push(r);
+        let nf = model.frequencies().len();
+        for (m, out) in v.rms.iter_mut().enumerate() {
+            let ss: f64 = (m * nf..(m + 1) * nf)
+                .map(|i| (crate::discrepancy::fit::feature_residual(i, nf, map_x[i], x0[i]) / noise.std[i]).powi(2))
+                .sum();
+            out.push((ss / nf as f64).sqrt());
+        }
+        if i < 5 {
+            validate_figures(a, model, &npe, noise, i, (t, x0, &x), &inf, &map_x)?;
+        }
+    }
+    validate_report(a, &v)
+}
+
+/// Figures of unseen simulation `i` (truth θ, noise-free x0, observed x): spectra with
+/// five posterior draws re-simulated, and the corner plot.
+#[allow(clippy::too_many_arguments)]
+fn validate_figures(
+    a: &StudyArgs,
+    model: &Model,
+    npe: &Npe,
+    noise: &Noise,
+    i: usize,
+    (t, x0, x): (&[f64], &[f64], &[f64]),
+    inf: &npe::Inference,
+    map_x: &[f64],
+) -> Result<()> {
+    let f = model.frequencies();
+    // Five posterior draws re-simulated, and the observation's noise band.
+    let draws: Vec<Vec<f64>> = run_rows(model, &Design::default(), &inf.samples[..5.min(inf.samples.len())], 0, None)
+        .into_iter()
+        .filter_map(|r| r.ok())
+        .collect();
+    let (lo, hi) = plot::plus_minus(x, &noise.std);
+    let mut series = vec![plot::Series {
+        x,
+        color: plot::OBS,
+        width: 2.0,
+        opacity: 1.0,
+        label: Some("noisy simulation (observation)"),
+    }];
+    series.extend(draw_series(&draws));
+    series.push(plot::Series { x: x0, color: plot::TRUTH, width: 1.5, opacity: 1.0, label: Some("ground truth") });
+    series.push(plot::Series {
+        x: map_x,
+        color: plot::MAP,
+        width: 1.5,
+        opacity: 1.0,
+        label: Some("MAP re-simulation"),
+    });
+    let band = [plot::Band { lo: &lo, hi: &hi, color: plot::NOISE, label: "observation ± test–retest STD" }];
+    write(
+        &a.out,
+        &format!("validate_{i}_spectra.svg"),
+        &plot::spectra(&format!("Unseen simulation {i}"), f, &band, &series),
+    )?;
+    write(
+        &a.out,
+        &format!("validate_{i}_corner.svg"),
+        &corner(npe, &inf.samples, Some(t), &inf.map, &format!("Posterior, unseen simulation {i}")),
+    )?;
+    Ok(())
+}
+
+/// The table, JSON and page of `study validate`.
+fn validate_report(a: &StudyArgs, v: &Validation) -> Result<()> {
+    let (rhos, cvs, inside, rms) = (&v.rhos, &v.cvs, &v.inside, &v.rms);
+    let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();
+    let n = rhos.len() as f64;
+    let mean_rho: Vec<f64> = (0..MEASURES.len()).map(|m| rhos.iter().map(|r| r[m]).sum::<f64>() / n).collect();
+    let all = mean_rho.iter().sum::<f64>() / MEASURES.len() as f64;
+    let med = |v: Vec<f64>| stats::median_upper(&stats::sorted(v));
+    println!(
+        "validate: {} unseen simulations, 1× noise; mean Spearman ρ (MAP re-simulation vs truth) {all:.4} (study: 0.998)",
+        rhos.len()
+    );
+    for (m, r) in MEASURES.iter().zip(&mean_rho) {
+        println!(
+            "  ρ {:<11} {r:.4}   median RMS (MAP − truth)/σ {:.2}",
+            m.name,
+            med(rms[MEASURES.iter().position(|x| x.name == m.name).unwrap_or(0)].clone())
+        );
+    }
+    println!("{:<14} {:>10} {:>14}", "parameter", "median CV", "in 90 % int.");
+    for k in 0..N_PARAMS {
+        println!("{:<14} {:>10.3} {:>13.1}%", names[k], med(cvs[k].clone()), 100.0 * inside[k] as f64 / n);
+    }
+    let rms_med: Vec<f64> = rms.iter().map(|v| med(v.clone())).collect();
+    let doc = json!({ "n": rhos.len(), "mean_rho": all, "median_rms_sigma": MEASURES.iter().map(|m| m.name).zip(&rms_med).collect::<Vec<_>>(), "rho_per_measure": MEASURES.iter().map(|m| m.name).zip(&mean_rho).collect::<Vec<_>>(),
+        "median_cv": names.iter().zip(cvs.iter().map(|c| med(c.clone()))).collect::<Vec<_>>(),
+        "coverage90": names.iter().zip(inside.iter().map(|&c| c as f64 / n)).collect::<Vec<_>>() });
+    write(&a.out, "validate.json", &serde_json::to_string_pretty(&doc)?)?;
+    let mut p = Page::new("otofit study validate: unseen simulations");
+    p.text(&format!("{} unseen prior draws, simulated, 1× test–retest noise added, inferred with {}; MAP re-simulated and compared with the noise-free truth. Study (Motallebzadeh et al. 2025, Fig. 2): mean ρ 0.998.", rhos.len(), a.model.display()));
+    p.heading("MAP re-simulation vs truth").table(
+        &["measure", "mean Spearman ρ", "median RMS residual / σ"],
+        MEASURES
+            .iter()
+            .zip(&mean_rho)
+            .zip(&rms_med)
+            .map(|((m, r), e)| vec![m.name.into(), format!("{r:.4}"), format!("{e:.2}")])
+            .chain([vec!["all".into(), format!("{all:.4}"), String::new()]])
+            .collect(),
+    );
+    p.heading("Parameters").table(
+        &["parameter", "median CV", "truth inside 90 % interval"],
+        (0..N_PARAMS)
+            .map(|k| {
+                vec![
+                    names[k].into(),
+                    format!("{:.3}", med(cvs[k].clone())),
+                    format!("{:.1} %", 100.0 * inside[k] as f64 / n),
+                ]
+            })
+            .collect(),
+    );
+    p.heading("Five unseen simulations");
+    for i in 0..rhos.len().min(5) {
+        p.figure(
+            &format!("validate_{i}_spectra.svg"),
+            &format!("simulation {i}: observation ± STD, five posterior draws, truth, MAP re-simulation"),
+        );
+        p.figure(&format!("validate_{i}_corner.svg"), &format!("simulation {i}: posterior, truth (green), MAP (red)"));
+    }
+    write(&a.out, "report.html", &p.render())?;
+    Ok(())
+}
+
+/// One model of `study noise`/`size` and what it says about the observation.
+struct SizeRun {
+    row: serde_json::Value,
+    table: Vec<String>,
+    figure: (String, String),
+    run: (String, Vec<[f64; 3]>),
+}
+
+/// Trains on the first `size` rows of `ds` with the noise model scaled by `level` and
+/// infers the observation `x` (noise-free `x0`, parameters `truth`).
+fn size_run(
+    a: &StudyArgs,
+    model: &Model,
+    ds: &Dataset,
+    (size, level): (usize, f64),
+    (truth, x0, x): (&[f64], &[f64], &[f64]),
+) -> Result<SizeRun> {
+    let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();
+    let sub = Dataset { theta: ds.theta[..size].to_vec(), x: ds.x[..size].to_vec(), ..simulated(model, 0, 0) };
+    let s = TrainSettings { noise_scale: level, seed: a.seed, max_epochs: a.max_epochs, ..TrainSettings::default() };
+    let npe = npe::train(&sub, &s, &mut |_| true)?;
+    let (inf, _, r) = infer_one(model, &npe, x, x0, 1)?;
+    let label = format!("n{size}_noise{level}");
+    write(
+        &a.out,
+        &format!("{label}_corner.svg"),
+        &corner(&npe, &inf.samples, Some(truth), &inf.map, &format!("{size} simulations, {level}× noise")),
+    )?;
+    let mean_rho = r.iter().sum::<f64>() / r.len() as f64;
+    let cv: Vec<f64> = inf.summaries.iter().map(|s| s.cv).collect();
+    // Width in decades of the 90 % interval: robust where CV saturates
+    // (log-uniform posteriors as wide as the prior have CV > 1).
+    let width = inf.summaries.iter().map(|s| (s.q95 / s.q05).log10()).sum::<f64>() / N_PARAMS as f64;
+    println!(
+        "{size:>6} simulations, noise {level:>4}×: mean 90 % width {width:.3} decades, mean CV {:.3}, mean ρ {mean_rho:.3}, epochs {}  CV per parameter {:?}",
+        cv.iter().sum::<f64>() / N_PARAMS as f64,
+        npe.header.training.epochs,
+        cv.iter().map(|c| (c * 1000.0).round() / 1000.0).collect::<Vec<_>>()
+    );
+    let run_label =
+        if matches!(a.name, StudyName::Noise) { format!("{level}× noise") } else { format!("{size} simulations") };
+    let run = (run_label, inf.summaries.iter().map(|s| [s.q05, s.median, s.q95]).collect::<Vec<_>>());
+    let figure = (
+        format!("{label}_corner.svg"),
+        format!("{size} simulations, {level}× noise: posterior, truth (green), MAP (red)"),
+    );
+    let table = vec![
+        size.to_string(),
+        format!("{level}×"),
+        format!("{width:.3}"),
+        format!("{:.3}", cv.iter().sum::<f64>() / N_PARAMS as f64),
+        format!("{mean_rho:.3}"),
+        npe.header.training.epochs.to_string(),
+    ];
+    let row = json!({ "train_rows": size, "noise_scale": level, "cv": names.iter().zip(&cv).collect::<Vec<_>>(), "mean_cv": cv.iter().sum::<f64>() / N_PARAMS as f64, "mean_width_decades": width, "rho": r, "mean_rho": mean_rho, "epochs": npe.header.training.epochs });
+    Ok(SizeRun { row, table, figure, run })
+}
+
+/// `study noise` (training noise 0.1×, 1×, 10×) and `study size` (100×, 10×, 1× fewer
+/// simulations): one observation inferred by each model.
+fn noise_or_size(a: &StudyArgs, model: &Model, noise: &Noise) -> Result<()> {
+    let sizes: Vec<usize> = match a.name {
+        StudyName::Size => vec![a.train_rows / 100, a.train_rows / 10, a.train_rows],
+        _ => vec![a.train_rows],
+    };
+    if sizes[0] < 20 {
+        bail!("--train-rows too small for this study (smallest set {} < 20)", sizes[0]);
+    }
+    let levels: Vec<f64> = match a.name {
+        StudyName::Noise => vec![0.1, 1.0, 10.0],
+        _ => vec![1.0],
+    };
+    let ds = simulated(model, *sizes.last().unwrap_or(&0), a.seed);
+    // The same observation for every model: a mid-prior ear with 1× noise.
+    let truth = Design::default().draw(a.seed ^ 0x0B5E, 0, 1).remove(0);
+    let x0 = run_rows(model, &Design::default(), std::slice::from_ref(&truth), 0, None).remove(0)?;
+    let x = noise.apply(&x0, 0);
+    let (mut rows, mut table, mut figs, mut runs) = (vec![], vec![], vec![], vec![]);
+    for &size in &sizes {
+        for &level in &levels {
+            let r = size_run(a, model, &ds, (size, level), (&truth, &x0, &x))?;
+            rows.push(r.row);
+            table.push(r.table);
+            figs.push(r.figure);
+            runs.push(r.run);
+        }
+    }
+    let name = if matches!(a.name, StudyName::Noise) { "noise.json" } else { "size.json" };
+    write(&a.out, name, &serde_json::to_string_pretty(&json!({ "truth": truth, "runs": rows }))?)?;
+    let noise_study = matches!(a.name, StudyName::Noise);
+    let stem = if noise_study { "noise" } else { "size" };
+    let dims: Vec<plot::Dim<'_>> = PARAMS
+        .iter()
+        .zip(&truth)
+        .map(|(p, &t)| plot::Dim {
+            name: p.name,
+            unit: p.unit,
+            low: p.low,
+            high: p.high,
+            log: p.scale == crate::sim::params::Scale::Log10,
+            truth: Some(t),
+            map: None,
+        })
+        .collect();
+    let run_refs: Vec<(&str, Vec<[f64; 3]>)> = runs.iter().map(|(l, q)| (l.as_str(), q.clone())).collect();
+    write(
+        &a.out,
+        &format!("{stem}_intervals.svg"),
+        &plot::intervals(&format!("Posterior 90 % intervals, one observation ({stem} study)"), &dims, &run_refs),
+    )?;
+    let mut p = Page::new(if noise_study {
+        "otofit study noise: training noise 0.1×, 1×, 10×"
+    } else {
+        "otofit study size: 100×, 10×, 1× fewer simulations"
+    });
+    p.text(if noise_study {
+        "One observation (a prior draw with 1× noise) inferred by models trained with the noise model scaled 0.1×, 1× and 10×. Study (Fig. 4): CV about 7× larger from 1× to 10×; ρ 0.96 → 0.94."
+    } else {
+        "One observation (a prior draw with 1× noise) inferred by models trained on nested subsets of one simulated set. Study (Fig. 5): posteriors narrow as the training set grows."
+    });
+    p.table(&["simulations", "noise", "mean 90 % width (decades)", "mean CV", "mean ρ", "epochs"], table);
+    p.figure(&format!("{stem}_intervals.svg"), "90 % intervals and medians per parameter, one line per model");
+    for (file, caption) in &figs {
+        p.figure(file, caption);
+    }
+    write(&a.out, "report.html", &p.render())?;
+    Ok(())
+}
+
+/// What the reference study computes: the posterior, its predictive check, the
+/// least-squares fit and the readings.
+struct ReferenceFit {
+    r: crate::reference::Reference,
+    inf: npe::Inference,
+    c: crate::discrepancy::workflow::Check,
+    draws_rho: Vec<Vec<f64>>,
+    best: crate::discrepancy::Fit,
+    best_x: Vec<f64>,
+    best_rho: Vec<f64>,
+    map_rho: Vec<f64>,
+    mean_abs: f64,
+    best_abs: f64,
+    differential: Vec<npe::normal::Differential>,
+    fit: Result<crate::discrepancy::fitcheck::FitCheck, crate::discrepancy::fitcheck::FitCheckError>,
 }
 
 /// Inference on the measured-like reference ear: MAP and five posterior draws
 /// re-simulated, ρ per measure, predictive check and the differential reading.
 fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     let npe = &Npe::load(path)?;
-    use crate::discrepancy::fit::Observation;
-    use crate::discrepancy::workflow::check;
-    let f = model.frequencies();
-    let r = crate::reference::build(f)?;
+    let r = crate::reference::build(model.frequencies())?;
     write(out, "reference_obs.csv", &crate::reference::csv(&r.feature_names, &r.x))?;
     write(out, "reference_std.csv", &crate::reference::csv(&r.feature_names, &r.std))?;
+    let e = reference_fit(model, npe, r, seed)?;
+    reference_figures(model, npe, out, &e)?;
+    reference_print(path, &e)?;
+    reference_report(out, &e)
+}
+
+/// The posterior of the reference ear, checked and compared with a least-squares fit.
+fn reference_fit(model: &Model, npe: &Npe, r: crate::reference::Reference, seed: u64) -> Result<ReferenceFit> {
+    use crate::discrepancy::fit::Observation;
+    use crate::discrepancy::workflow::check;
     let inf = npe.infer(&Obs { x: &r.x, present: None }, 1000, seed)?;
     let obs = Observation { x: r.x.clone(), sigma: r.std.clone() };
     let c = check(model, &Design::default(), &inf.samples[..200], &inf.map, &obs)?;
@@ -437,33 +505,31 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     {
         npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
     }
+    let best_abs = best_rho.iter().map(|v| v.abs()).sum::<f64>() / best_rho.len() as f64;
+    Ok(ReferenceFit { r, inf, c, draws_rho, best, best_x, best_rho, map_rho, mean_abs, best_abs, differential, fit })
+}
 
-    let (lo_obs, hi_obs) = plot::plus_minus(&r.x, &r.std);
+/// The reference study's spectra, corner and residual figures.
+fn reference_figures(model: &Model, npe: &Npe, out: &Path, e: &ReferenceFit) -> Result<()> {
+    let f = model.frequencies();
+    let (lo_obs, hi_obs) = plot::plus_minus(&e.r.x, &e.r.std);
     let mut series = vec![plot::Series {
-        x: &r.x,
+        x: &e.r.x,
         color: plot::OBS,
         width: 2.0,
         opacity: 1.0,
         label: Some("reference ear (normative means)"),
     }];
-    for (k, d) in c.draws_x.iter().enumerate() {
-        series.push(plot::Series {
-            x: d,
-            color: plot::DRAW,
-            width: 1.0,
-            opacity: 0.5,
-            label: (k == 0).then_some("posterior draws re-simulated"),
-        });
-    }
+    series.extend(draw_series(&e.c.draws_x));
     series.push(plot::Series {
-        x: &c.map_x,
+        x: &e.c.map_x,
         color: plot::MAP,
         width: 1.5,
         opacity: 1.0,
         label: Some("MAP re-simulation"),
     });
     series.push(plot::Series {
-        x: &best_x,
+        x: &e.best_x,
         color: plot::TRUTH,
         width: 1.5,
         opacity: 1.0,
@@ -471,32 +537,41 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     });
     let bands = [
         plot::Band { lo: &lo_obs, hi: &hi_obs, color: plot::NOISE, label: "reference ± test–retest STD" },
-        plot::Band { lo: &c.lo, hi: &c.hi, color: plot::BAND, label: "90 % posterior-predictive band" },
+        plot::Band { lo: &e.c.lo, hi: &e.c.hi, color: plot::BAND, label: "90 % posterior-predictive band" },
     ];
     write(
         out,
         "reference_spectra.svg",
         &plot::spectra("Reference ear: normative means, MAP and posterior draws re-simulated", f, &bands, &series),
     )?;
-    write(out, "reference_corner.svg", &corner(npe, &inf.samples, None, &inf.map, "Posterior, reference ear"))?;
+    write(out, "reference_corner.svg", &corner(npe, &e.inf.samples, None, &e.inf.map, "Posterior, reference ear"))?;
     write(
         out,
         "reference_residuals.svg",
-        &plot::residual_map("Reference ear: standardised residuals (reference − predictive mean) / σ", f, &c.z),
+        &plot::residual_map("Reference ear: standardised residuals (reference − predictive mean) / σ", f, &e.c.z),
     )?;
+    Ok(())
+}
 
+/// The reference study's table on stdout.
+fn reference_print(path: &Path, e: &ReferenceFit) -> Result<()> {
+    let mean_abs = e.mean_abs;
     println!("reference: measured-like ear (reference/ear.json), model {}", path.display());
     println!("{:<11} {:>9} {:>19} {:>19}", "measure", "ρ (MAP)", "ρ (5 draws, mean)", "ρ (least squares)");
     for (m, ms) in MEASURES.iter().enumerate() {
-        let d = draws_rho.iter().map(|r| r[m]).sum::<f64>() / draws_rho.len().max(1) as f64;
-        println!("{:<11} {:>9.3} {:>19.3} {:>19.3}", ms.name, map_rho[m], d, best_rho[m]);
+        let d = e.draws_rho.iter().map(|r| r[m]).sum::<f64>() / e.draws_rho.len().max(1) as f64;
+        println!("{:<11} {:>9.3} {:>19.3} {:>19.3}", ms.name, e.map_rho[m], d, e.best_rho[m]);
     }
-    let best_abs = best_rho.iter().map(|v| v.abs()).sum::<f64>() / best_rho.len() as f64;
+    let best_abs = e.best_abs;
     println!(
         "mean |ρ|: MAP re-simulation {mean_abs:.3}, least-squares fit {best_abs:.3} (study, one temporal bone: 0.964)"
     );
-    println!("reduced χ²: posterior-predictive {:.2}, least-squares fit {:.2}", c.reduced_chi2, best.reduced_chi2());
-    match &fit {
+    println!(
+        "reduced χ²: posterior-predictive {:.2}, least-squares fit {:.2}",
+        e.c.reduced_chi2,
+        e.best.reduced_chi2()
+    );
+    match &e.fit {
         Ok(f) => println!(
             "fit check: ok {:?} (reduced χ² {:.2}, threshold {:.2}){}",
             f.ok,
@@ -506,25 +581,31 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
         ),
         Err(e) => println!("fit check: not available ({e})"),
     }
-    for b in &c.bands {
+    for b in &e.c.bands {
         println!("  misfit: {}", b.describe());
     }
     println!("{:<14} {:>11} {:>11} {:>11} {:>7}", "parameter", "MAP", "q05", "q95", "CV");
-    for s in &inf.summaries {
+    for s in &e.inf.summaries {
         println!("{:<14} {:>11.3e} {:>11.3e} {:>11.3e} {:>7.3}", s.name, s.map, s.q05, s.q95, s.cv);
     }
-    println!("{}", serde_json::to_string_pretty(&differential)?);
+    println!("{}", serde_json::to_string_pretty(&e.differential)?);
+    Ok(())
+}
+
+/// reference.json and the reference study's page.
+fn reference_report(out: &Path, e: &ReferenceFit) -> Result<()> {
+    let (mean_abs, best_abs) = (e.mean_abs, e.best_abs);
     let doc = json!({
         "mean_abs_rho": mean_abs,
-        "rho_map": c.spearman,
-        "rho_draws": draws_rho,
-        "reduced_chi2": c.reduced_chi2,
-        "least_squares": { "row": best.row, "rho": best_rho, "mean_abs_rho": best_abs, "reduced_chi2": best.reduced_chi2() },
-        "misfit_bands": c.bands,
-        "parameters": inf.summaries,
-        "differential": differential,
-        "fit": fit.as_ref().ok(),
-        "citations": MEASURES.iter().map(|m| m.name).zip(&r.citations).collect::<Vec<_>>(),
+        "rho_map": e.c.spearman,
+        "rho_draws": e.draws_rho,
+        "reduced_chi2": e.c.reduced_chi2,
+        "least_squares": { "row": e.best.row, "rho": e.best_rho, "mean_abs_rho": best_abs, "reduced_chi2": e.best.reduced_chi2() },
+        "misfit_bands": e.c.bands,
+        "parameters": e.inf.summaries,
+        "differential": e.differential,
+        "fit": e.fit.as_ref().ok(),
+        "citations": MEASURES.iter().map(|m| m.name).zip(&e.r.citations).collect::<Vec<_>>(),
     });
     write(out, "reference.json", &serde_json::to_string_pretty(&doc)?)?;
     let mut p = Page::new("otofit study reference: a measured-like ear");
@@ -537,19 +618,20 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
             .map(|(m, ms)| {
                 vec![
                     ms.name.into(),
-                    format!("{:.3}", map_rho[m]),
-                    format!("{:.3}", draws_rho.iter().map(|r| r[m]).sum::<f64>() / draws_rho.len().max(1) as f64),
-                    format!("{:.3}", best_rho[m]),
+                    format!("{:.3}", e.map_rho[m]),
+                    format!("{:.3}", e.draws_rho.iter().map(|r| r[m]).sum::<f64>() / e.draws_rho.len().max(1) as f64),
+                    format!("{:.3}", e.best_rho[m]),
                 ]
             })
             .collect(),
     );
-    p.text(&format!("Mean |ρ|: MAP {mean_abs:.3}, least squares {best_abs:.3}. Reduced χ²: posterior-predictive {:.2}, least squares {:.2}.", c.reduced_chi2, best.reduced_chi2()));
+    p.text(&format!("Mean |ρ|: MAP {mean_abs:.3}, least squares {best_abs:.3}. Reduced χ²: posterior-predictive {:.2}, least squares {:.2}.", e.c.reduced_chi2, e.best.reduced_chi2()));
     p.heading("Posterior and normal ranges (information, not a diagnosis)").table(
         &["parameter", "MAP", "90 % interval", "CV", "P(below)", "P(within)", "P(above)", "reading", "associated with"],
-        inf.summaries
+        e.inf
+            .summaries
             .iter()
-            .zip(&differential)
+            .zip(&e.differential)
             .map(|(s, d)| {
                 vec![
                     format!("{} ({})", s.name, s.unit),
@@ -565,15 +647,15 @@ fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
             })
             .collect(),
     );
-    if !c.bands.is_empty() {
+    if !e.c.bands.is_empty() {
         p.heading("Where the reference and the model disagree")
-            .table(&["band"], c.bands.iter().map(|b| vec![b.describe()]).collect());
+            .table(&["band"], e.c.bands.iter().map(|b| vec![b.describe()]).collect());
     }
     p.figure("reference_spectra.svg", "reference ± STD, MAP, five draws, least-squares fit, 90 % predictive band");
     p.figure("reference_residuals.svg", "standardised residuals per measure and frequency");
     p.figure("reference_corner.svg", "posterior (MAP red)");
     p.heading("Sources");
-    for (m, cite) in MEASURES.iter().zip(&r.citations) {
+    for (m, cite) in MEASURES.iter().zip(&e.r.citations) {
         p.text(&format!("{}: {cite}", m.name));
     }
     write(out, "report.html", &p.render())?;

@@ -199,6 +199,47 @@ fn checkpoints_round_trip_and_bad_files_are_refused() {
     }
     let e = model.sample(&Obs { x: &x[..2], present: None }, 5, 0).unwrap_err();
     assert!(e.to_string().contains("expects 3"), "{e}");
+    assert!(e.is_input(), "a short observation is the caller's fault: {e:?}");
+    // Every header field is checked and named (once: NaN standardisation, a panic on a
+    // zero member count or a short `present`).
+    let first_x_std =
+        |h: &str| h.split("\"x_std\":[").nth(1).and_then(|r| r.split([',', ']']).next()).unwrap().to_string();
+    let h = String::from_utf8(bytes[19..19 + u64::from_le_bytes(bytes[11..19].try_into().unwrap()) as usize].to_vec());
+    let x_std = first_x_std(&h.unwrap());
+    for (edit, field) in [
+        (("\"temperature\":1.0".to_string(), "\"temperature\":0.0".to_string()), "checkpoint temperature"),
+        (("\"members\":1".to_string(), "\"members\":0".to_string()), "checkpoint members"),
+        ((format!("\"x_std\":[{x_std}"), "\"x_std\":[0.0".to_string()), "checkpoint x_std"),
+        (("\"high\":4.0".to_string(), "\"high\":-5.0".to_string()), "checkpoint params"),
+    ] {
+        let b = with_header(&bytes, |h| {
+            assert!(h.contains(&edit.0), "{} not in the header", edit.0);
+            h.replacen(&edit.0, &edit.1, 1)
+        });
+        assert!(err(&b).contains(field), "{}: {}", edit.1, err(&b));
+    }
+    let present = [true, true];
+    let e = model.sample(&Obs { x: &x, present: Some(&present) }, 5, 0).unwrap_err();
+    assert!(e.to_string().contains("expects 3"), "{e}");
+    let e = model.log_prob(&obs, &[vec![0.0; 3]]).unwrap_err();
+    assert!(e.to_string().contains("2 parameters"), "{e}");
+}
+
+#[test]
+fn bad_training_and_calibration_settings_are_named_errors() {
+    let ds = linear_gaussian(100, 3);
+    let s = TrainSettings { embedding: false, max_epochs: 1, ..Default::default() };
+    // batch 0 once panicked in `chunks(0)`.
+    let e = npe::train(&ds, &TrainSettings { batch: 0, ..s.clone() }, &mut |_| true).err().unwrap();
+    assert!(matches!(e, npe::NpeError::Settings { field: "batch", .. }) && e.is_input(), "{e:?}");
+    let e = npe::train(&ds, &TrainSettings { val_fraction: 1.0, ..s.clone() }, &mut |_| true).err().unwrap();
+    assert!(matches!(e, npe::NpeError::Settings { field: "val-fraction", .. }), "{e:?}");
+    let e = npe::train(&linear_gaussian(10, 3), &s, &mut |_| true).err().unwrap();
+    assert!(e.to_string().contains("too few to train"), "{e}");
+    // One sample per row once underflowed the marginal interval's index.
+    let rows = vec![(vec![0.0, 0.0], vec![0.0, 0.0, 0.0])];
+    let e = npe::calibrate::calibrate(trained(), &rows, 1, 0).unwrap_err();
+    assert!(matches!(e, npe::NpeError::Settings { field: "samples", .. }), "{e:?}");
 }
 
 #[test]
