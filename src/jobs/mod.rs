@@ -343,9 +343,6 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
 }
 
-/// Removes the `*.tmp` files a simulate job writes before renaming them into place, and
-/// the staging folders (`.attempt-*`) of its attempts: what a failed, cancelled,
-
 /// A new job id: time-ordered, unguessable enough for a local service.
 pub fn new_id() -> String {
     use rand::Rng;
