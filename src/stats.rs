@@ -11,6 +11,8 @@
 //! - [`quantile_floor`] rounds the rank down (predictive bands and marginal coverage:
 //!   never the outermost sample for a 90 % band of few draws).
 
+#![warn(missing_docs)]
+
 /// `q` quantile of ascending `sorted` by linear interpolation between order statistics
 /// at position q·(n − 1). Panics on an empty slice.
 pub fn quantile_linear(sorted: &[f64], q: f64) -> f64 {

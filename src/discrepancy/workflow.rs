@@ -3,6 +3,8 @@
 //! → show (before/after numbers). Returns a report of data only; `plot::diagnosis` draws
 //! it and writes the files.
 
+#![warn(missing_docs)]
+
 use super::{Band, Observation, Thresholds, Verdict, fit, fit_and_rank, locate};
 use crate::npe::{self, Dataset, Npe, NpeError, Obs, TrainSettings};
 use crate::sim::batch::{Design, Noise, run_rows};
@@ -14,6 +16,7 @@ use serde::Serialize;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
+/// How to run the workflow.
 #[derive(Clone, Debug)]
 pub struct Settings {
     /// Effect indices to try.
@@ -24,14 +27,16 @@ pub struct Settings {
     pub draws: usize,
     /// Effect-free simulations for the null distribution of the statistics.
     pub null_cases: usize,
-    /// Training set size and epochs of the extended model.
+    /// Training set size of the extended model.
     pub train_rows: usize,
+    /// Epochs at most of the extended model's training.
     pub max_epochs: usize,
+    /// Seed of the null simulations, the fits' starts and the extended training.
     pub seed: u64,
     /// Thresholds measured earlier for the same base model (skips the null runs).
     pub thresholds: Option<Thresholds>,
     /// Set from outside to stop the workflow: checked between steps, null cases,
-    /// simulation chunks and training epochs; the workflow then returns [`Cancelled`].
+    /// simulation chunks and training epochs; the workflow then returns [`DiagnoseError::Cancelled`].
     pub cancel: Option<Arc<AtomicBool>>,
 }
 
@@ -112,52 +117,77 @@ impl Default for Settings {
 /// Posterior-predictive check of one model against the observation.
 #[derive(Clone, Debug, Serialize)]
 pub struct Check {
+    /// Reduced χ² of the observation against the posterior predictive.
     pub reduced_chi2: f64,
     /// Standardised residuals (obs − predictive mean)/σ_total per feature.
     #[serde(skip)]
     pub z: Vec<f64>,
+    /// Where the misfit lies (|z| > 2.5 over at least 3 neighbouring frequencies).
     pub bands: Vec<Band>,
     /// Spearman ρ per measure between the MAP re-simulation and the observation.
     pub spearman: Vec<(String, f64)>,
+    /// The MAP re-simulated.
     #[serde(skip)]
     pub map_x: Vec<f64>,
+    /// Lower edge of the 90 % predictive band (noise included).
     #[serde(skip)]
     pub lo: Vec<f64>,
+    /// Upper edge of the 90 % predictive band (noise included).
     #[serde(skip)]
     pub hi: Vec<f64>,
+    /// Up to five posterior draws re-simulated.
     #[serde(skip)]
     pub draws_x: Vec<Vec<f64>>,
 }
 
+/// The named effect's posterior under the extended model.
 #[derive(Clone, Debug, Serialize)]
 pub struct EffectPosterior {
+    /// The effect.
     pub effect: &'static str,
+    /// Its unit.
     pub unit: &'static str,
+    /// Posterior median.
     pub median: f64,
+    /// 5 % quantile.
     pub q05: f64,
+    /// 95 % quantile.
     pub q95: f64,
 }
 
+/// The outcome of one diagnosis: data only (`plot::diagnosis` draws and writes it).
 #[derive(Serialize)]
 pub struct Report {
+    /// No discrepancy, an effect named, or unexplained.
     pub verdict: Verdict,
+    /// The alarm thresholds used.
     pub thresholds: Thresholds,
+    /// The base model's predictive check.
     pub before: Check,
+    /// The candidate effects' fits, best first.
     pub candidates: Vec<super::Candidate>,
+    /// The effect named, if any.
     pub named: Option<&'static str>,
     /// Best χ² drop minus the runner-up's.
     pub margin: Option<f64>,
+    /// The extended model's predictive check, when one was trained.
     pub after: Option<Check>,
+    /// The effect's posterior under the extended model.
     pub effect_posterior: Option<EffectPosterior>,
+    /// The base model's MAP.
     pub map_before: Vec<f64>,
+    /// The extended model's MAP.
     pub map_after: Option<Vec<f64>>,
+    /// The extended model, when one was trained.
     #[serde(skip)]
     pub extended_model: Option<Npe>,
-    /// The observation diagnosed and its frequency grid (for the figures).
+    /// The observation diagnosed (for the figures).
     #[serde(skip)]
     pub observation: Vec<f64>,
+    /// The observation's frequency grid.
     #[serde(skip)]
     pub frequencies_hz: Vec<f64>,
+    /// Wall time of the diagnosis.
     pub seconds: f64,
 }
 
@@ -227,7 +257,7 @@ pub fn check_present(
 const CHUNK: usize = 1024;
 
 /// Simulates a training set for `design` and trains an estimator on it, stopping with
-/// [`Cancelled`] between simulation chunks and epochs once `cancelled()` says so.
+/// [`DiagnoseError::Cancelled`] between simulation chunks and epochs once `cancelled()` says so.
 #[allow(clippy::too_many_arguments)]
 pub fn train_for(
     model: &Model,

@@ -6,10 +6,14 @@ use super::{Npe, NpeError, Obs, Result};
 use crate::stats::quantile_floor;
 use serde::Serialize;
 
+/// Coverage and SBC ranks of a model on held-out simulations.
 #[derive(Clone, Debug, Serialize)]
 pub struct Calibration {
+    /// Held-out rows used.
     pub rows: usize,
+    /// Posterior samples drawn per row.
     pub samples_per_row: usize,
+    /// Credible levels 0.05…0.95.
     pub levels: Vec<f64>,
     /// Fraction of rows whose true θ lies inside the level's highest-density region.
     pub coverage: Vec<f64>,
@@ -19,9 +23,12 @@ pub struct Calibration {
     pub marginal_coverage90: Vec<f64>,
 }
 
+/// SBC ranks of one parameter over the rows.
 #[derive(Clone, Debug, Serialize)]
 pub struct ParamRanks {
+    /// The parameter.
     pub name: String,
+    /// Rank of the truth among the samples, per row.
     pub ranks: Vec<usize>,
 }
 
@@ -100,10 +107,13 @@ pub const TUNE_LEVELS: [f64; 4] = [0.5, 0.8, 0.9, 0.95];
 /// The outcome of tuning the base temperature.
 #[derive(Clone, Debug, Serialize)]
 pub struct Tuning {
+    /// The tuned base-distribution temperature.
     pub temperature: f64,
     /// Joint HPD coverage at `TUNE_LEVELS` on the tuning rows, before and after.
     pub levels: Vec<f64>,
+    /// Coverage at temperature 1.
     pub coverage_before: Vec<f64>,
+    /// Coverage at the tuned temperature.
     pub coverage_after: Vec<f64>,
 }
 

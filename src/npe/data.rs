@@ -28,7 +28,9 @@ pub struct Dataset {
     pub groups: Vec<Group>,
     /// 1× noise standard deviation per feature (zeros when the table has none).
     pub noise_std: Vec<f64>,
+    /// θ rows (natural units, inside the prior box).
     pub theta: Vec<Vec<f64>>,
+    /// x rows, aligned with `theta`, all finite.
     pub x: Vec<Vec<f64>>,
     /// Rows dropped for non-finite values or θ outside the prior box.
     pub skipped: usize,

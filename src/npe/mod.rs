@@ -2,6 +2,8 @@
 //! sampling / density / MAP / summaries, calibration, and the checkpoint file.
 //! Synchronous; progress and cancellation go through a callback.
 
+#![warn(missing_docs)]
+
 pub mod calibrate;
 pub mod data;
 mod error;
@@ -38,11 +40,17 @@ const MAGIC: &[u8; 11] = b"OTOFIT-NPE\n";
 /// Everything about a model except its weights (the checkpoint's JSON header).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Header {
+    /// Checkpoint format ([`FORMAT_VERSION`]; 1 is read too).
     pub format_version: u32,
+    /// The otofit version that wrote it.
     pub otofit_version: String,
+    /// The prior box, one per parameter.
     pub params: Vec<Param>,
+    /// One name per input feature.
     pub feature_names: Vec<String>,
+    /// The features' frequency grid (empty when there is none).
     pub frequencies_hz: Vec<f64>,
+    /// Feature groups (modalities).
     pub groups: Vec<Group>,
     /// Whether the network takes group masks (accepts any subset of groups).
     pub mask_groups: bool,
@@ -51,20 +59,28 @@ pub struct Header {
     /// it then accepts observations covering a sub-band, never extrapolated.
     #[serde(default)]
     pub mask_bands: bool,
+    /// Grid points a band may lose at each end (band-masked models).
     #[serde(default)]
     pub band_cut_max: usize,
+    /// Feature means of the training rows.
     pub x_mean: Vec<f64>,
+    /// Feature spreads of the training rows, training noise included.
     pub x_std: Vec<f64>,
     /// How θ maps to the flow's space before standardisation (`logit` in checkpoints
     /// written before the choice existed).
     #[serde(default)]
     pub theta_map: ThetaMap,
+    /// Means of θ in the flow's space.
     pub u_mean: Vec<f64>,
+    /// Spreads of θ in the flow's space.
     pub u_std: Vec<f64>,
     /// 1× noise model and the scale it was trained with.
     pub noise_std: Vec<f64>,
+    /// The multiple of `noise_std` the model was trained with.
     pub noise_scale: f64,
+    /// The flow's architecture.
     pub flow: FlowConfig,
+    /// How training went.
     pub training: TrainingSummary,
     /// Flows in the equal-weight ensemble (trained from different seeds).
     #[serde(default = "one")]
@@ -184,6 +200,7 @@ pub struct FitNull {
     pub measure_chi2: f64,
     /// Held-out cases and posterior draws per case behind the thresholds.
     pub cases: usize,
+    /// Posterior draws per case.
     pub draws: usize,
     /// The same thresholds when only some feature groups are given (models trained with
     /// group masks; e.g. wideband tympanometry without stapes velocity).
@@ -194,25 +211,38 @@ pub struct FitNull {
 /// Fit-check thresholds for one subset of feature groups (names sorted).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct SubsetNull {
+    /// The groups given, names sorted.
     pub groups: Vec<String>,
+    /// Threshold on the posterior-predictive reduced χ².
     pub reduced_chi2: f64,
+    /// Threshold on the worst measure's reduced χ².
     pub measure_chi2: f64,
+    /// Threshold on the input score.
     pub input_score: f64,
 }
 
+/// How a model was trained (stored in its header).
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct TrainingSummary {
+    /// Epochs run, summed over ensemble members.
     pub epochs: usize,
+    /// Epoch of member 0's best validation loss.
     pub best_epoch: usize,
+    /// Mean best validation loss over members.
     pub best_val_loss: f64,
+    /// Training rows.
     pub train_rows: usize,
+    /// Validation rows.
     pub val_rows: usize,
+    /// Wall time of the training.
     pub wall_seconds: f64,
+    /// The training seed.
     pub seed: u64,
 }
 
 /// A trained posterior estimator, ready to answer on the CPU (`flex`) backend.
 pub struct Npe {
+    /// Everything but the weights.
     pub header: Header,
     /// The ensemble's flows (one for a single model), as trained and stored by burn.
     flows: Vec<Flow>,
@@ -267,6 +297,7 @@ impl Mixture<'_> {
 
 /// One observation: features in header order, with the features present.
 pub struct Obs<'a> {
+    /// Features in header order.
     pub x: &'a [f64],
     /// `None`: all features present.
     pub present: Option<&'a [bool]>,
@@ -275,13 +306,21 @@ pub struct Obs<'a> {
 /// Per-parameter posterior summary in natural units.
 #[derive(Clone, Debug, Serialize)]
 pub struct Summary {
+    /// The parameter.
     pub name: String,
+    /// Its unit.
     pub unit: String,
+    /// The posterior mode (MAP).
     pub map: f64,
+    /// Posterior mean.
     pub mean: f64,
+    /// Posterior median.
     pub median: f64,
+    /// 5 % quantile.
     pub q05: f64,
+    /// 95 % quantile.
     pub q95: f64,
+    /// Posterior standard deviation.
     pub std: f64,
     /// Coefficient of variation std/mean (natural units, as the study reports it).
     pub cv: f64,
@@ -330,6 +369,7 @@ impl Npe {
         Npe { header, flows, plains }
     }
 
+    /// The prior box, one per parameter.
     pub fn params(&self) -> &[Param] {
         &self.header.params
     }
@@ -649,11 +689,16 @@ impl Npe {
 /// The result of one inference.
 #[derive(Clone, Debug, Serialize)]
 pub struct Inference {
+    /// Posterior samples, natural units.
     #[serde(skip)]
     pub samples: Vec<Vec<f64>>,
+    /// The MAP, natural units.
     pub map: Vec<f64>,
+    /// Per-parameter summaries.
     pub summaries: Vec<Summary>,
+    /// Time spent sampling.
     pub sample_ms: f64,
+    /// Time spent on the MAP search.
     pub map_ms: f64,
 }
 

@@ -6,15 +6,23 @@
 use super::Param;
 use serde::Serialize;
 
+/// A tissue parameter's normal range, with its source and what leaving it suggests.
 pub struct NormalRange {
+    /// The parameter.
     pub name: &'static str,
+    /// Lower end of the normal range.
     pub low: f64,
+    /// Upper end of the normal range.
     pub high: f64,
+    /// Where the range comes from.
     pub source: &'static str,
+    /// What a value below the range is associated with.
     pub below: &'static str,
+    /// What a value above the range is associated with.
     pub above: &'static str,
 }
 
+/// The normal ranges of the seven tissue parameters.
 pub const NORMAL: [NormalRange; 7] = [
     NormalRange {
         name: "E_eardrum",
@@ -90,13 +98,20 @@ pub const INFORMATIVE_PRIOR_FRACTION: f64 = 0.5;
 /// against it: the model cannot represent the value, so no reading is made from it.
 pub const BOUND_FRACTION: f64 = 0.025;
 
+/// One parameter's posterior read against its normal range.
 #[derive(Clone, Debug, Serialize)]
 pub struct Differential {
+    /// The parameter.
     pub name: String,
+    /// Lower end of the normal range.
     pub normal_low: f64,
+    /// Upper end of the normal range.
     pub normal_high: f64,
+    /// Posterior probability below the range.
     pub p_below: f64,
+    /// Posterior probability within the range.
     pub p_within: f64,
+    /// Posterior probability above the range.
     pub p_above: f64,
     /// "within" (P ≥ `CONFIDENT`), "below" or "above" (P ≥ `ABNORMAL`) when the posterior
     /// is informative; "undetermined" when it does not; "unreliable" when the
@@ -110,6 +125,7 @@ pub struct Differential {
     /// "low" or "high" when the posterior is piled against that prior bound.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub at_prior_bound: Option<&'static str>,
+    /// Where the range comes from.
     pub source: &'static str,
 }
 

@@ -37,6 +37,7 @@ pub struct TrainSettings {
     /// Also cut each kept group's band at random (up to a quarter of the grid at each end)
     /// and give the network per-feature presence flags: one model for sub-band inputs.
     pub mask_bands: bool,
+    /// Fraction of the rows held out for validation (0 < f < 1).
     pub val_fraction: f64,
     /// θ → the flow's space: logit of the box position, or the scale coordinate z-scored.
     pub theta_map: ThetaMap,

@@ -3,6 +3,8 @@
 //! statistics against their null thresholds, where the misfit lies, the candidates) and
 //! [`write_report`], which writes them with report.json for the CLI and the service alike.
 
+#![warn(missing_docs)]
+
 use super::html::Page;
 use super::{BAND, Band, DRAW, MAP, OBS, Series, residual_map, spectra};
 use crate::dataset::FileError;
