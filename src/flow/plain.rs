@@ -95,27 +95,18 @@ impl PlainFlow {
     }
 }
 
-/// Knot positions of one dim's spline from its raw parameters: (cx, cy), K+1 long.
-fn knots(raw: &[f64], bins: usize, bound: f64) -> ([f64; 33], [f64; 33]) {
+/// Softmax weights of one knot axis, scaled so that knot k sits at
+/// −bound + 2·bound·Σ_{j<k} (e_j·scale + min): (e, scale); e is K long.
+fn axis_weights(r: &[f64], min: f64, bins: usize) -> ([f64; 32], f64) {
     assert!(bins < 32, "at most 31 bins");
-    let positions = |r: &[f64], min: f64| -> [f64; 33] {
-        let m = r.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
-        let mut e = [0.0; 33];
-        let mut s = 0.0;
-        for (k, v) in r.iter().enumerate() {
-            e[k] = (v - m).exp();
-            s += e[k];
-        }
-        let mut c = [0.0; 33];
-        let mut acc = 0.0;
-        c[0] = -bound;
-        for k in 0..bins {
-            acc += e[k] / s * (1.0 - bins as f64 * min) + min;
-            c[k + 1] = acc * 2.0 * bound - bound;
-        }
-        c
-    };
-    (positions(&raw[..bins], MIN_WIDTH), positions(&raw[bins..2 * bins], MIN_HEIGHT))
+    let m = r.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
+    let mut e = [0.0; 32];
+    let mut s = 0.0;
+    for (ek, v) in e.iter_mut().zip(r) {
+        *ek = (v - m).exp();
+        s += *ek;
+    }
+    (e, (1.0 - bins as f64 * min) / s)
 }
 
 /// Derivative at knot k (1 at both ends; softplus of the raw value inside). Only the
@@ -128,16 +119,31 @@ fn derivative(raw: &[f64], bins: usize, k: usize) -> f64 {
     r.max(0.0) + (-r.abs()).exp().ln_1p() + MIN_DERIVATIVE
 }
 
-/// Bin holding v among knots c (interior knots counted as burn's `bin_of` does).
-fn bin_of(v: f64, c: &[f64], bins: usize) -> usize {
-    (1..bins).filter(|&k| v >= c[k]).count()
-}
-
-/// The active bin of one dim's spline: (x0, y0, width, height, d at both ends).
+/// The active bin of one dim's spline: (x0, y0, width, height, d at both ends). The bin
+/// holds v among the interior knots of the searched axis (x, or y when `by_y`), counted
+/// as burn's `bin_of` does; only that bin's two knots of the other axis are formed (the
+/// inference path's hot loop: no knot arrays, one division per axis).
 fn bin(v: f64, raw: &[f64], bins: usize, bound: f64, by_y: bool) -> (f64, f64, f64, f64, [f64; 2]) {
-    let (cx, cy) = knots(raw, bins, bound);
-    let k = bin_of(v, if by_y { &cy } else { &cx }, bins);
-    (cx[k], cy[k], cx[k + 1] - cx[k], cy[k + 1] - cy[k], [derivative(raw, bins, k), derivative(raw, bins, k + 1)])
+    let (wx, sx) = axis_weights(&raw[..bins], MIN_WIDTH, bins);
+    let (wy, sy) = axis_weights(&raw[bins..2 * bins], MIN_HEIGHT, bins);
+    let (search, scale, min) = if by_y { (&wy, sy, MIN_HEIGHT) } else { (&wx, sx, MIN_WIDTH) };
+    let (mut acc, mut k) = (0.0, 0);
+    while k + 1 < bins {
+        let next = acc + search[k] * scale + min;
+        if v < next * 2.0 * bound - bound {
+            break;
+        }
+        acc = next;
+        k += 1;
+    }
+    let knot = |w: &[f64; 32], scale: f64, min: f64| {
+        let lo: f64 = w[..k].iter().fold(0.0, |a, e| a + e * scale + min);
+        let hi = lo + w[k] * scale + min;
+        (lo * 2.0 * bound - bound, if k + 1 == bins { bound } else { hi * 2.0 * bound - bound })
+    };
+    let (x0, x1) = knot(&wx, sx, MIN_WIDTH);
+    let (y0, y1) = knot(&wy, sy, MIN_HEIGHT);
+    (x0, y0, x1 - x0, y1 - y0, [derivative(raw, bins, k), derivative(raw, bins, k + 1)])
 }
 
 /// log f′ at position t ∈ [0, 1] in a bin of slope delta with end derivatives d.
