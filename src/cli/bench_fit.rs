@@ -12,10 +12,9 @@ use anyhow::{Result, bail};
 use serde_json::json;
 use std::path::Path;
 
-/// Each effect at the end of its range where it changes the spectra most.
-const STRONG: [(&str, f64); 6] = [
-    ("cavity", 0.5e-6),
-    ("tm_viscoelastic", 0.3),
+/// Each effect at the end of its range where it changes the spectra most (since v3 the
+/// cavity and the eardrum's viscoelasticity are parameters of every model, not hidden).
+const STRONG: [(&str, f64); 4] = [
     ("probe_offset", 3e-3),
     ("probe_leak", 0.5e-3),
     ("ldv_angle", 60.0),

@@ -2,7 +2,7 @@
 
 use crate::dataset::{self, Rows};
 use crate::sim::batch::{self, Design, Noise};
-use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS, with_nominal_geometry};
+use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS};
 use crate::sim::{Model, ModelConfig, Preset};
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
@@ -16,9 +16,9 @@ pub struct SimulateArgs {
     #[arg(long, conflicts_with = "theta", required_unless_present_any = ["theta", "explain"])]
     pub n: Option<usize>,
     /// Simulate these rows instead: CSV whose header names the 7 tissue parameters
-    /// (natural units); the geometry columns (canal_length, canal_area, mic_distance)
-    /// are optional and nominal when absent; extra columns named after effects set that
-    /// effect per row.
+    /// (natural units); the other parameters' columns (canal_length, canal_area,
+    /// mic_distance, cavity, tm_viscoelastic) are each optional and nominal when absent;
+    /// extra columns named after effects set that effect per row.
     #[arg(long)]
     pub theta: Option<PathBuf>,
     /// Output folder (theta.csv, x.csv, meta.json).
@@ -31,7 +31,7 @@ pub struct SimulateArgs {
     /// Seed of the prior draws, the varied effects and the noise (same seed, same dataset).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Effects switched on for every row, e.g. `cavity=2e-6,ldv_angle=20`.
+    /// Effects switched on for every row, e.g. `probe_leak=2e-4,ldv_angle=20`.
     #[arg(long, value_delimiter = ',')]
     pub effects: Vec<String>,
     /// Effects drawn from their ranges per row (they become columns of theta.csv).
@@ -97,14 +97,9 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
     for p in &PARAMS[..N_TISSUE] {
         cols.push(col(p.name).with_context(|| format!("{}: missing column '{}'", path.display(), p.name))?);
     }
-    // Geometry columns: all three or none (then nominal).
-    let geometry: Vec<Option<usize>> = PARAMS[N_TISSUE..].iter().map(|p| col(p.name)).collect();
-    let given_geometry = geometry.iter().all(Option::is_some);
-    if !given_geometry && geometry.iter().any(Option::is_some) {
-        let names: Vec<&str> = PARAMS[N_TISSUE..].iter().map(|p| p.name).collect();
-        bail!("{}: give all geometry columns ({}) or none (nominal)", path.display(), names.join(", "));
-    }
-    cols.extend(geometry.into_iter().flatten());
+    // The other parameters (geometry, cavity, drum viscoelasticity): each optional,
+    // nominal when its column is absent.
+    let rest: Vec<Option<usize>> = PARAMS[N_TISSUE..].iter().map(|p| col(p.name)).collect();
     for h in &table.header {
         if PARAMS.iter().any(|p| p.name == h) {
             continue;
@@ -124,8 +119,10 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
         .rows
         .iter()
         .map(|r| {
-            let row: Vec<f64> = cols.iter().map(|&c| r[c]).collect();
-            if given_geometry { row } else { with_nominal_geometry(&row) }
+            let mut row: Vec<f64> = cols[..N_TISSUE].iter().map(|&c| r[c]).collect();
+            row.extend(PARAMS[N_TISSUE..].iter().zip(&rest).map(|(p, c)| c.map_or(p.nominal, |c| r[c])));
+            row.extend(cols[N_TISSUE..].iter().map(|&c| r[c]));
+            row
         })
         .collect())
 }

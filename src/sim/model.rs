@@ -308,7 +308,7 @@ impl Response {
 /// Why one parameter set could not be simulated.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
-    #[error("parameter {name} = {value} must be finite and positive")]
+    #[error("parameter {name} = {value} must be finite and positive (tm_viscoelastic: ≥ 0)")]
     BadParameter { name: &'static str, value: f64 },
     #[error(transparent)]
     Solve(#[from] SolveError),
@@ -499,7 +499,7 @@ impl Model {
             DrumLoss::Hysteretic { f_ref_hz } => c64::new(1.0, 2.0 * PI * f_ref_hz * theta.damping_beta()),
         };
         // Power-law viscoelastic eardrum, E·(jω/ω0)^n, ω0 = 2π·1 kHz.
-        let n = fx.tm_exponent();
+        let n = theta.tm_exponent();
         let visco = if n == 0.0 {
             c64::new(1.0, 0.0)
         } else {
@@ -515,8 +515,8 @@ impl Model {
         coef[bl.drum_load] = c64::new(1.0, 0.0);
         coef[bl.drum_flow] = jw;
         coef[bl.cavity_load] = c64::new(1.0, 0.0);
-        let v = fx.cavity_volume();
-        coef[bl.cavity_row] = c64::new(if v.is_finite() { self.air.bulk_modulus() / v } else { 0.0 }, 0.0);
+        let v = theta.cavity_volume();
+        coef[bl.cavity_row] = c64::new(self.air.bulk_modulus() / v, 0.0);
         coef[bl.cavity_diag] = c64::new(1.0, 0.0);
         match &self.drum {
             Some(Condensed::Axisymmetric(modes)) => {
@@ -657,7 +657,7 @@ impl Runner<'_> {
     /// solution is then in [`Self::solution`].
     pub fn solve_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
         for (i, v) in theta.0.iter().enumerate() {
-            if !(v.is_finite() && *v > 0.0) {
+            if !super::params::PARAMS[i].physical(*v) {
                 return Err(SimError::BadParameter { name: super::params::PARAMS[i].name, value: *v });
             }
         }

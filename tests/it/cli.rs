@@ -28,7 +28,7 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
             "--noise-scale",
             "1",
             "--vary",
-            "cavity",
+            "probe_leak",
             "--out",
             out.to_str().unwrap(),
         ]);
@@ -38,7 +38,7 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     let x = std::fs::read_to_string(a.join("x.csv")).unwrap();
     assert_eq!(
         theta.lines().next().unwrap(),
-        "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance,cavity"
+        "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance,cavity,tm_viscoelastic,probe_leak"
     );
     assert_eq!(theta.lines().count(), 13);
     assert_eq!(x.lines().count(), 13);
@@ -49,6 +49,7 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     assert_eq!(meta["n_rows"], 12);
     assert_eq!(meta["noise"]["std"].as_array().unwrap().len(), 250);
     assert_eq!(meta["parameters"][10]["name"], "cavity");
+    assert_eq!(meta["parameters"][12]["name"], "probe_leak");
     assert!(!a.join("x.csv.tmp").exists());
 }
 
@@ -71,7 +72,7 @@ fn simulate_errors_name_the_bad_input() {
     let d = scratch("bad");
     let out = d.join("o");
     let cases: [(&[&str], &str); 4] = [
-        (&["--n", "2", "--effects", "cavity=abc"], "cavity"),
+        (&["--n", "2", "--effects", "probe_leak=abc"], "probe_leak"),
         (&["--n", "2", "--effects", "wall=1"], "unknown effect 'wall'"),
         (&["--n", "2", "--noise-scale=-1"], "--noise-scale"),
         (&["--theta", "/nonexistent.csv"], "/nonexistent.csv"),
@@ -87,11 +88,15 @@ fn simulate_errors_name_the_bad_input() {
     std::fs::write(&rows, "E_eardrum,E_ligaments\n1,2\n").unwrap();
     let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("missing column 'E_tendons'"));
-    // Geometry columns: all three or none.
+    // The non-tissue columns are each optional: the one given is used, the others nominal.
     std::fs::write(&rows, "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length\n2e7,5e6,2e6,2e5,6e6,7.5e-5,2.1e10,0.01\n").unwrap();
-    let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap()]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("canal_area") && err.contains("or none"), "{err}");
+    let o = otofit(&["simulate", "--theta", rows.to_str().unwrap(), "--out", out.to_str().unwrap(), "--force"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let theta = std::fs::read_to_string(out.join("theta.csv")).unwrap();
+    let row: Vec<f64> = theta.lines().nth(1).unwrap().split(',').map(|v| v.parse().unwrap()).collect();
+    let nominal: Vec<f64> = otofit::sim::PARAMS.iter().map(|p| p.nominal).collect();
+    assert_eq!(row[7], 0.01);
+    assert_eq!(&row[8..], &nominal[8..], "{theta}");
 }
 
 #[test]

@@ -44,7 +44,7 @@ fn settings(candidates: Vec<usize>) -> Settings {
 fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, Some(("probe_leak", 3e-4)), 5);
-    let r = diagnose(&model, &base(), &x, &settings((0..6).collect()), &mut |_| {}).unwrap();
+    let r = diagnose(&model, &base(), &x, &settings((0..otofit::sim::N_EFFECTS).collect()), &mut |_| {}).unwrap();
     assert_eq!(
         r.verdict,
         Verdict::EffectNamed,
@@ -70,7 +70,7 @@ fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
 fn stays_quiet_without_an_effect() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, None, 6);
-    let r = diagnose(&model, &base(), &x, &settings((0..6).collect()), &mut |_| {}).unwrap();
+    let r = diagnose(&model, &base(), &x, &settings((0..otofit::sim::N_EFFECTS).collect()), &mut |_| {}).unwrap();
     assert_eq!(
         r.verdict,
         Verdict::NoDiscrepancy,
@@ -86,7 +86,7 @@ fn stays_quiet_without_an_effect() {
 fn says_unexplained_when_the_effect_is_not_a_candidate() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, Some(("probe_leak", 3e-4)), 5);
-    let without_leak = vec![0, 4, 5]; // cavity, ldv_angle, cochlear_mass
+    let without_leak = vec![0, 2, 3]; // probe_offset, ldv_angle, cochlear_mass
     let r = diagnose(&model, &base(), &x, &settings(without_leak), &mut |_| {}).unwrap();
     assert_eq!(r.verdict, Verdict::Unexplained);
     assert!(

@@ -188,10 +188,10 @@ async fn bad_requests_get_problems_that_name_the_field() {
     let (status, _, p) = raw(&app, req).await;
     assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE, "{p}");
     let (status, _, p) =
-        call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 5, "effects": {"cavity": 1.0}}})))
+        call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 5, "effects": {"probe_leak": 1.0}}})))
             .await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
-    assert_eq!(p["errors"][0]["field"], "params.effects.cavity", "{p}");
+    assert_eq!(p["errors"][0]["field"], "params.effects.probe_leak", "{p}");
     let (status, _, p) =
         call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": "nope"}}))).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.dataset")));
@@ -353,7 +353,7 @@ async fn diagnose_job_writes_a_report_with_figures() {
     let mut fx = otofit::sim::Effects::default();
     fx.set("probe_leak", 3e-4).unwrap();
     let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &fx).unwrap();
-    let params = json!({"x": x, "extend": false, "null_cases": 5, "candidates": ["probe_leak", "cavity"]});
+    let params = json!({"x": x, "extend": false, "null_cases": 5, "candidates": ["probe_leak", "ldv_angle"]});
     let (status, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": params}))).await;
     assert_eq!(status, StatusCode::ACCEPTED, "{j}");
     let done = wait(&app, j["id"].as_str().unwrap()).await;
@@ -997,7 +997,7 @@ async fn contract_gaps_are_closed() {
     for ct in ["application/json; charset=utf-8", "Application/JSON"] {
         assert_eq!(raw(&app, post(ct, &format!("{job}\n"))).await.0, StatusCode::ACCEPTED, "{ct}");
     }
-    let twice = json!({"kind": "simulate", "params": {"n": 3, "vary": ["cavity", "cavity"]}});
+    let twice = json!({"kind": "simulate", "params": {"n": 3, "vary": ["probe_leak", "probe_leak"]}});
     let (status, _, p) = call(&app, "POST", "/jobs", Some(twice)).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.vary[1]")));
     let null = json!({"kind": "diagnose", "params": {"model": null, "x": [1.0]}});
@@ -1188,7 +1188,7 @@ async fn job_param_errors_carry_the_full_path() {
         ("simulate", json!({"n": 5, "bogus": 1}), "params.bogus"),
         ("simulate", json!({"n": -5}), "params.n"),
         ("train", json!({"dataset": "d", "max_epochs": "many"}), "params.max_epochs"),
-        ("diagnose", json!({"candidates": ["cavity"]}), "params.x"),
+        ("diagnose", json!({"candidates": ["probe_leak"]}), "params.x"),
         ("diagnose", json!({"x": [1.0, null]}), "params.x[1]"),
     ] {
         let (status, headers, p) = call(&app, "POST", "/jobs", Some(json!({"kind": kind, "params": params}))).await;
