@@ -14,12 +14,8 @@ use std::path::Path;
 
 /// Each effect at the end of its range where it changes the spectra most (since v3 the
 /// cavity and the eardrum's viscoelasticity are parameters of every model, not hidden).
-const STRONG: [(&str, f64); 4] = [
-    ("probe_offset", 3e-3),
-    ("probe_leak", 0.5e-3),
-    ("ldv_angle", 60.0),
-    ("cochlear_mass", 1e6),
-];
+const STRONG: [(&str, f64); 4] =
+    [("probe_offset", 3e-3), ("probe_leak", 0.5e-3), ("ldv_angle", 60.0), ("cochlear_mass", 1e6)];
 
 struct Outcome {
     ok: Option<bool>,
