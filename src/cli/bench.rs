@@ -201,7 +201,10 @@ fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
         let wall = t.elapsed().as_secs_f64();
         lat.sort_by(f64::total_cmp);
         let q = |p: f64| crate::stats::quantile_nearest(&lat, p).unwrap_or(f64::NAN);
-        println!("POST /infer, {samples} samples + MAP, {clients} concurrent clients × {requests} requests: p50 {:.0} ms, p90 {:.0} ms, p99 {:.0} ms, max {:.0} ms; {:.1} req/s; {bad} failed (targets p50 ≤ 100 ms, p99 ≤ 300 ms)", q(0.5), q(0.9), q(0.99), lat[lat.len() - 1], lat.len() as f64 / wall);
+        let Some(&max) = lat.last() else {
+            anyhow::bail!("every POST /infer failed ({bad} requests): no latency to report");
+        };
+        println!("POST /infer, {samples} samples + MAP, {clients} concurrent clients × {requests} requests: p50 {:.0} ms, p90 {:.0} ms, p99 {:.0} ms, max {:.0} ms; {:.1} req/s; {bad} failed (targets p50 ≤ 100 ms, p99 ≤ 300 ms)", q(0.5), q(0.9), q(0.99), max, lat.len() as f64 / wall);
         let _ = std::fs::remove_dir_all(&dir);
         anyhow::Ok(())
     })
