@@ -13,8 +13,6 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
-const N_GEOMETRY: usize = N_PARAMS - N_TISSUE;
-
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimulateParams {
@@ -51,14 +49,14 @@ impl SimulateParams {
                 errs.push(("params.theta".into(), format!("needs 1..={} rows", limits::SIMULATE_ROWS.end())))
             }
             (None, Some(rows)) => {
-                let w = N_PARAMS + self.vary.len();
-                if let Some(i) = rows.iter().position(|r| r.len() != w && r.len() != w - N_GEOMETRY) {
+                // Full rows, or tissue-only rows that take the nominal other parameters.
+                let (w, short) = (N_PARAMS + self.vary.len(), N_TISSUE + self.vary.len());
+                if let Some(i) = rows.iter().position(|r| r.len() != w && r.len() != short) {
                     errs.push((
                         format!("params.theta[{i}]"),
                         format!(
-                            "needs {w} values (the {N_PARAMS} parameters, then the varied effects) or {} \
-                             (the {N_TISSUE} tissue parameters with nominal geometry, then the varied effects)",
-                            w - N_GEOMETRY
+                            "needs {w} values (the {N_PARAMS} parameters, then the varied effects) or {short} \
+                             (the {N_TISSUE} tissue parameters with nominal geometry, then the varied effects)"
                         ),
                     ));
                 } else {
