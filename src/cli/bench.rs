@@ -32,6 +32,11 @@ pub enum BenchWhat {
         /// Posterior samples per request.
         #[arg(long, default_value_t = 1000)]
         samples: usize,
+        /// No server: `requests` inferences + fit checks of the same example in this
+        /// process on one thread, timed per phase (each phase's wall time is then its CPU
+        /// time).
+        #[arg(long)]
+        direct: bool,
     },
     /// NPE: training on a two-moons-like toy and on a middle-ear table, inference latency,
     /// held-out log-probability.
@@ -83,7 +88,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
         BenchWhat::Sim { runs } => sim(runs),
         BenchWhat::Npe { data, model, held } => npe_bench(data, &model, held),
-        BenchWhat::Infer { clients, requests, samples } => infer(clients, requests, samples),
+        BenchWhat::Infer { requests, samples, direct: true, .. } => infer_direct(requests, samples),
+        BenchWhat::Infer { clients, requests, samples, direct: false } => infer(clients, requests, samples),
         BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
         BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
         BenchWhat::C2st(a) => super::bench_c2st::run(a),
@@ -140,8 +146,9 @@ fn sim(runs: usize) -> Result<()> {
     Ok(())
 }
 
-/// One HTTP/1.1 request over a fresh connection; returns (status line, milliseconds).
-async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64)> {
+/// One HTTP/1.1 request over a fresh connection; returns (status line, milliseconds,
+/// the answer's `timing_ms`).
+async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64, serde_json::Value)> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let t = Instant::now();
     let mut s = tokio::net::TcpStream::connect(addr).await?;
@@ -152,18 +159,90 @@ async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64)> {
     s.write_all(req.as_bytes()).await?;
     let mut buf = Vec::new();
     s.read_to_end(&mut buf).await?;
-    let status = String::from_utf8_lossy(&buf).lines().next().unwrap_or("").to_string();
-    Ok((status, t.elapsed().as_secs_f64() * 1e3))
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let text = String::from_utf8_lossy(&buf);
+    let status = text.lines().next().unwrap_or("").to_string();
+    let timing = text
+        .split_once("\r\n\r\n")
+        .and_then(|(_, b)| serde_json::from_str::<serde_json::Value>(b).ok())
+        .map(|v| v["timing_ms"].clone())
+        .unwrap_or_default();
+    Ok((status, ms, timing))
 }
 
-fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
+/// CPU seconds this process has used so far (user + system, all threads).
+fn cpu_seconds() -> f64 {
+    #[cfg(unix)]
+    {
+        // SAFETY: getrusage writes into the zeroed struct we own; RUSAGE_SELF is valid.
+        let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+        if unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) } == 0 {
+            let s = |t: libc::timeval| t.tv_sec as f64 + t.tv_usec as f64 * 1e-6;
+            return s(u.ru_utime) + s(u.ru_stime);
+        }
+    }
+    f64::NAN
+}
+
+/// The 1-minute load average (NaN where /proc is absent).
+fn load_average() -> f64 {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().and_then(|v| v.parse().ok()))
+        .unwrap_or(f64::NAN)
+}
+
+/// The `POST /infer` example of openapi.yaml.
+fn infer_example() -> Result<serde_json::Value> {
     let spec = include_str!("../../openapi.yaml");
     let example = spec
         .lines()
         .map(str::trim)
         .find_map(|l| l.strip_prefix("example: ").filter(|e| e.starts_with("{\"measurements\"")))
         .ok_or_else(|| anyhow::anyhow!("no /infer example in openapi.yaml"))?;
-    let mut body: serde_json::Value = serde_json::from_str(example)?;
+    Ok(serde_json::from_str(example)?)
+}
+
+/// What one `POST /infer` computes (features, samples + MAP, fit check), without the
+/// server, on one thread: per-phase medians are CPU times.
+fn infer_direct(requests: usize, samples: usize) -> Result<()> {
+    use crate::npe::{Npe, Obs};
+    let npe = Npe::load(std::path::Path::new("models/default.otofit"))?;
+    let m: crate::measurements::Measurements = serde_json::from_value(infer_example()?["measurements"].clone())?;
+    let (x, present, _) = crate::measurements::features(&npe, &m)?;
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    let obs = Obs { x: &x, present: Some(&present) };
+    let load0 = load_average();
+    let (mut sample, mut map, mut fit, mut total) = (vec![], vec![], vec![], vec![]);
+    pool.install(|| -> Result<()> {
+        for k in 0..=requests {
+            let t = Instant::now();
+            let inf = npe.infer(&obs, samples, 0)?;
+            let tf = Instant::now();
+            crate::discrepancy::fitcheck::fit_check(&npe, &x, &present, &inf)?;
+            if k > 0 {
+                // the first is a warm-up (the simulator is built then)
+                fit.push(tf.elapsed().as_secs_f64() * 1e3);
+                total.push(t.elapsed().as_secs_f64() * 1e3);
+                sample.push(inf.sample_ms);
+                map.push(inf.map_ms);
+            }
+        }
+        Ok(())
+    })?;
+    println!(
+        "POST /infer's work in-process, one thread, {samples} samples, {requests} runs: median {:.1} ms (sample {:.1}, MAP {:.1}, fit check {:.1}); load average {load0:.2} → {:.2}",
+        median(&mut total),
+        median(&mut sample),
+        median(&mut map),
+        median(&mut fit),
+        load_average()
+    );
+    Ok(())
+}
+
+fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
+    let mut body = infer_example()?;
     body["samples"] = samples.into();
     body["return_samples"] = false.into();
     let body = body.to_string();
@@ -176,7 +255,7 @@ fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
         let addr = listener.local_addr()?;
         tokio::spawn(async move { axum::serve(listener, app).await });
         post(addr, &body).await?; // load the model once
-        let t = Instant::now();
+        let (t, cpu0, load0) = (Instant::now(), cpu_seconds(), load_average());
         let mut tasks = Vec::new();
         for _ in 0..clients {
             let body = body.clone();
@@ -189,22 +268,37 @@ fn infer(clients: usize, requests: usize, samples: usize) -> Result<()> {
             }));
         }
         let mut lat = Vec::new();
+        let mut phases: [Vec<f64>; 4] = Default::default();
         let mut bad = 0;
         for task in tasks {
             for r in task.await? {
                 match r {
-                    Ok((status, ms)) if status.contains(" 200 ") => lat.push(ms),
+                    Ok((status, ms, timing)) if status.contains(" 200 ") => {
+                        lat.push(ms);
+                        for (v, k) in phases.iter_mut().zip(["sample", "map", "fit", "total"]) {
+                            v.extend(timing[k].as_f64());
+                        }
+                    }
                     _ => bad += 1,
                 }
             }
         }
         let wall = t.elapsed().as_secs_f64();
+        let cpu = cpu_seconds() - cpu0;
         lat.sort_by(f64::total_cmp);
         let q = |p: f64| crate::stats::quantile_nearest(&lat, p).unwrap_or(f64::NAN);
         let Some(&max) = lat.last() else {
             anyhow::bail!("every POST /infer failed ({bad} requests): no latency to report");
         };
-        println!("POST /infer, {samples} samples + MAP, {clients} concurrent clients × {requests} requests: p50 {:.0} ms, p90 {:.0} ms, p99 {:.0} ms, max {:.0} ms; {:.1} req/s; {bad} failed (targets p50 ≤ 100 ms, p99 ≤ 300 ms)", q(0.5), q(0.9), q(0.99), max, lat.len() as f64 / wall);
+        println!("POST /infer, {samples} samples + MAP + fit check, {clients} concurrent clients × {requests} requests: p50 {:.0} ms, p90 {:.0} ms, p99 {:.0} ms, max {:.0} ms; {:.1} req/s; {bad} failed (targets: one client p50 ≤ 20 ms; 16 clients p50 ≤ 100 ms, p99 ≤ 300 ms)", q(0.5), q(0.9), q(0.99), max, lat.len() as f64 / wall);
+        let [s, m, f, tot] = phases.map(|mut v| if v.is_empty() { f64::NAN } else { median(&mut v) });
+        println!(
+            "CPU {:.1} ms per request (process user + system over {} requests, {} threads); server-side medians: sample {s:.1} ms, MAP {m:.1} ms, fit check {f:.1} ms, handler total {tot:.1} ms; load average {load0:.2} → {:.2}",
+            cpu * 1e3 / (lat.len() + bad).max(1) as f64,
+            lat.len() + bad,
+            rayon::current_num_threads(),
+            load_average()
+        );
         let _ = std::fs::remove_dir_all(&dir);
         anyhow::Ok(())
     })

@@ -155,10 +155,11 @@ pub async fn infer(
     let band_hz = bands_used(&npe, &present);
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
-    let (inf, fit) = tokio::task::spawn_blocking(move || {
+    let (inf, fit, fit_ms) = tokio::task::spawn_blocking(move || {
         let inf = npe2.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
+        let t = std::time::Instant::now();
         let fit = crate::discrepancy::fitcheck::fit_check(&npe2, &x, &present, &inf);
-        Ok::<_, NpeError>((inf, fit.map(|f| (f, x))))
+        Ok::<_, NpeError>((inf, fit.map(|f| (f, x)), t.elapsed().as_secs_f64() * 1e3))
     })
     .await
     .map_err(Problem::internal)?
@@ -205,7 +206,7 @@ pub async fn infer(
         },
         "samples_count": n,
         "seed": seed,
-        "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms, "total": t0.elapsed().as_secs_f64() * 1e3 },
+        "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms, "fit": fit_ms, "total": t0.elapsed().as_secs_f64() * 1e3 },
     });
     if !next.is_null() {
         doc["next"] = next;
