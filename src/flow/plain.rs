@@ -32,6 +32,7 @@ fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, la
         1.0,
         Par::Seq,
     );
+    clear_upper();
     for col in y.chunks_exact_mut(o) {
         for (v, b) in col.iter_mut().zip(bias) {
             *v += b;
@@ -41,6 +42,26 @@ fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, la
         }
     }
     y
+}
+
+/// Clears the upper halves of the vector registers (`vzeroupper`). faer's matmul kernels
+/// (AVX-512 on this project's hosts) return with them dirty, and the SSE code compiled for
+/// baseline x86-64 that runs after them — the rest of this file, and the simulator of the
+/// fit check on the same thread — then ran 2–3× slower (measured: `DrumModes::schur` 2.8×,
+/// a whole `POST /infer` 33 → 19 ms of CPU on one thread, `otofit bench infer --direct`).
+#[inline]
+fn clear_upper() {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU has AVX (just detected).
+        unsafe { zeroupper() }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn zeroupper() {
+    std::arch::x86_64::_mm256_zeroupper();
 }
 
 /// The flow's weights and architecture.
@@ -95,37 +116,86 @@ impl PlainFlow {
     }
 }
 
+/// e^x for x ≤ 0 (a softmax after its maximum, softplus's e^−|r|), inlined so that the
+/// knot loops stay free of calls: Cody–Waite reduction x = n ln 2 + r, |r| ≤ ln 2 / 2, and
+/// the degree-13 Taylor polynomial of e^r (truncation < 1e-17 relative; the test measures
+/// ≤ 4 ulp against `f64::exp`). Below −708 the argument is clamped there (e^−708 ≈ 3e-308
+/// instead of a denormal: nothing beside a softmax sum ≥ 1 or 1 + e); NaN stays NaN.
+#[inline(always)]
+fn exp_neg<const FMA: bool>(x: f64) -> f64 {
+    const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5·2^52: adding it rounds to an integer
+    // ln 2 split so that n·LN2_HI is exact (fdlibm's constants).
+    const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
+    const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
+    let x = if x < -708.0 { -708.0 } else { x };
+    let shifted = x * std::f64::consts::LOG2_E + SHIFT;
+    let n = shifted - SHIFT;
+    let r = (x - n * LN2_HI) - n * LN2_LO;
+    // Horner on 1/k!, k = 13 down to 0.
+    const INV_FACT: [f64; 13] = [
+        1.0 / 479_001_600.0,
+        1.0 / 39_916_800.0,
+        1.0 / 3_628_800.0,
+        1.0 / 362_880.0,
+        1.0 / 40_320.0,
+        1.0 / 5_040.0,
+        1.0 / 720.0,
+        1.0 / 120.0,
+        1.0 / 24.0,
+        1.0 / 6.0,
+        0.5,
+        1.0,
+        1.0,
+    ];
+    let mut p = 1.0 / 6_227_020_800.0;
+    for c in INV_FACT {
+        p = mul_add::<FMA>(p, r, c);
+    }
+    // 2^n from the integer in the shifted value's low mantissa bits (n ∈ −1022..=0).
+    let k = (shifted.to_bits() as i64).wrapping_sub(SHIFT.to_bits() as i64);
+    p * f64::from_bits(((k + 1023) as u64) << 52)
+}
+
+/// a·b + c, fused where the caller was compiled with FMA (`FMA`), else two operations
+/// (`f64::mul_add` without the instruction is a slow library call).
+#[inline(always)]
+fn mul_add<const FMA: bool>(a: f64, b: f64, c: f64) -> f64 {
+    if FMA { a.mul_add(b, c) } else { a * b + c }
+}
+
 /// Softmax weights of one knot axis, scaled so that knot k sits at
 /// −bound + 2·bound·Σ_{j<k} (e_j·scale + min): (e, scale); e is K long.
-fn axis_weights(r: &[f64], min: f64, bins: usize) -> ([f64; 32], f64) {
+#[inline(always)]
+fn axis_weights<const FMA: bool>(r: &[f64], min: f64, bins: usize) -> ([f64; 32], f64) {
     assert!(bins < 32, "at most 31 bins");
     let m = r.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
     let mut e = [0.0; 32];
-    let mut s = 0.0;
     for (ek, v) in e.iter_mut().zip(r) {
-        *ek = (v - m).exp();
-        s += *ek;
+        *ek = exp_neg::<FMA>(v - m);
     }
+    let s: f64 = e[..bins].iter().sum();
     (e, (1.0 - bins as f64 * min) / s)
 }
 
 /// Derivative at knot k (1 at both ends; softplus of the raw value inside). Only the
 /// two knots of the active bin are needed, so they are computed on demand.
-fn derivative(raw: &[f64], bins: usize, k: usize) -> f64 {
+#[inline(always)]
+fn derivative<const FMA: bool>(raw: &[f64], bins: usize, k: usize) -> f64 {
     if k == 0 || k == bins {
         return 1.0;
     }
     let r = raw[2 * bins + k - 1];
-    r.max(0.0) + (-r.abs()).exp().ln_1p() + MIN_DERIVATIVE
+    r.max(0.0) + exp_neg::<FMA>(-r.abs()).ln_1p() + MIN_DERIVATIVE
 }
 
 /// The active bin of one dim's spline: (x0, y0, width, height, d at both ends). The bin
 /// holds v among the interior knots of the searched axis (x, or y when `by_y`), counted
 /// as burn's `bin_of` does; only that bin's two knots of the other axis are formed (the
 /// inference path's hot loop: no knot arrays, one division per axis).
-fn bin(v: f64, raw: &[f64], bins: usize, bound: f64, by_y: bool) -> (f64, f64, f64, f64, [f64; 2]) {
-    let (wx, sx) = axis_weights(&raw[..bins], MIN_WIDTH, bins);
-    let (wy, sy) = axis_weights(&raw[bins..2 * bins], MIN_HEIGHT, bins);
+#[inline(always)]
+fn bin<const FMA: bool>(v: f64, raw: &[f64], bins: usize, bound: f64, by_y: bool) -> (f64, f64, f64, f64, [f64; 2]) {
+    let (wx, sx) = axis_weights::<FMA>(&raw[..bins], MIN_WIDTH, bins);
+    let (wy, sy) = axis_weights::<FMA>(&raw[bins..2 * bins], MIN_HEIGHT, bins);
     let (search, scale, min) = if by_y { (&wy, sy, MIN_HEIGHT) } else { (&wx, sx, MIN_WIDTH) };
     let (mut acc, mut k) = (0.0, 0);
     while k + 1 < bins {
@@ -143,10 +213,11 @@ fn bin(v: f64, raw: &[f64], bins: usize, bound: f64, by_y: bool) -> (f64, f64, f
     };
     let (x0, x1) = knot(&wx, sx, MIN_WIDTH);
     let (y0, y1) = knot(&wy, sy, MIN_HEIGHT);
-    (x0, y0, x1 - x0, y1 - y0, [derivative(raw, bins, k), derivative(raw, bins, k + 1)])
+    (x0, y0, x1 - x0, y1 - y0, [derivative::<FMA>(raw, bins, k), derivative::<FMA>(raw, bins, k + 1)])
 }
 
 /// log f′ at position t ∈ [0, 1] in a bin of slope delta with end derivatives d.
+#[inline(always)]
 fn log_slope(delta: f64, d: [f64; 2], t: f64) -> f64 {
     let t1 = t * (1.0 - t);
     let den = delta + (d[0] + d[1] - 2.0 * delta) * t1;
@@ -155,11 +226,12 @@ fn log_slope(delta: f64, d: [f64; 2], t: f64) -> f64 {
 }
 
 /// y = f(x) and log |f'(x)| for one dim.
-fn spline_forward(x: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
+#[inline(always)]
+fn spline_forward<const FMA: bool>(x: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
     if x.abs() > bound {
         return (x, 0.0);
     }
-    let (x0, y0, w, h, d) = bin(x, raw, bins, bound, false);
+    let (x0, y0, w, h, d) = bin::<FMA>(x, raw, bins, bound, false);
     let delta = h / w;
     let t = ((x - x0) / w).clamp(0.0, 1.0);
     let t1 = t * (1.0 - t);
@@ -168,11 +240,12 @@ fn spline_forward(x: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
 }
 
 /// x = f⁻¹(y) and log |f'(x)| for one dim.
-fn spline_inverse(y: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
+#[inline(always)]
+fn spline_inverse<const FMA: bool>(y: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
     if y.abs() > bound {
         return (y, 0.0);
     }
-    let (x0, y0, w, h, d) = bin(y, raw, bins, bound, true);
+    let (x0, y0, w, h, d) = bin::<FMA>(y, raw, bins, bound, true);
     let delta = h / w;
     let dy = y - y0;
     let s = d[0] + d[1] - 2.0 * delta;
@@ -182,6 +255,53 @@ fn spline_inverse(y: f64, raw: &[f64], bins: usize, bound: f64) -> (f64, f64) {
     let disc = (b * b - 4.0 * a * c).max(0.0);
     let t = ((2.0 * c) / (-b - disc.sqrt())).clamp(0.0, 1.0);
     (t * w + x0, log_slope(delta, d, t))
+}
+
+/// One coupling's splines over a block: the layout and direction.
+struct Splines {
+    d: usize,
+    dc: usize,
+    bins: usize,
+    bound: f64,
+    inverse: bool,
+}
+
+/// Every transformed dim of every column of u [d × n] through its spline (parameters
+/// `raw`, dt·(3K−1) per column), adding log |f′| to `logdet`. The exponentials of the
+/// knot softmaxes are most of a sample's cost: on x86-64 with AVX2 and FMA (detected once
+/// at run time) the same code is compiled for them, 4-wide and fused.
+fn splines(s: &Splines, u: &mut [f64], raw: &[f64], logdet: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features `splines_avx2` is compiled for (just detected).
+        return unsafe { splines_avx2(s, u, raw, logdet) };
+    }
+    splines_with::<false>(s, u, raw, logdet);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn splines_avx2(s: &Splines, u: &mut [f64], raw: &[f64], logdet: &mut [f64]) {
+    splines_with::<true>(s, u, raw, logdet);
+}
+
+#[inline(always)]
+fn splines_with<const FMA: bool>(s: &Splines, u: &mut [f64], raw: &[f64], logdet: &mut [f64]) {
+    let (d, dc) = (s.d, s.dc);
+    let dt = d - dc;
+    let np = 3 * s.bins - 1;
+    for ((col, r), ld) in u.chunks_exact_mut(d).zip(raw.chunks_exact(dt * np)).zip(logdet.iter_mut()) {
+        for k in 0..dt {
+            let p = &r[k * np..(k + 1) * np];
+            let (y, l) = if s.inverse {
+                spline_inverse::<FMA>(col[dc + k], p, s.bins, s.bound)
+            } else {
+                spline_forward::<FMA>(col[dc + k], p, s.bins, s.bound)
+            };
+            col[dc + k] = y;
+            *ld += l;
+        }
+    }
 }
 
 /// Applies permutation p to every row of u (new[j] = old[p[j]], as burn's `select`), or
@@ -249,22 +369,10 @@ impl Bound<'_> {
     fn couple(&self, t: usize, u: &mut [f64], n: usize, inverse: bool, logdet: &mut [f64]) {
         let cfg = &self.flow.cfg;
         let d = cfg.dim;
-        let (dc, dt) = (d / 2, d - d / 2);
-        let np = 3 * cfg.bins - 1;
+        let dc = d / 2;
         let a: Vec<f64> = u.chunks_exact(d).flat_map(|c| c[..dc].iter().copied()).collect();
         let raw = self.raw(t, &a, n);
-        for ((col, r), ld) in u.chunks_exact_mut(d).zip(raw.chunks_exact(dt * np)).zip(logdet.iter_mut()) {
-            for k in 0..dt {
-                let p = &r[k * np..(k + 1) * np];
-                let (y, l) = if inverse {
-                    spline_inverse(col[dc + k], p, cfg.bins, cfg.bound)
-                } else {
-                    spline_forward(col[dc + k], p, cfg.bins, cfg.bound)
-                };
-                col[dc + k] = y;
-                *ld += l;
-            }
-        }
+        splines(&Splines { d, dc, bins: cfg.bins, bound: cfg.bound, inverse }, u, &raw, logdet);
     }
 
     /// Standard-normal draws z (n rows of d, row-major) → points v (same layout) and
@@ -340,17 +448,29 @@ mod tests {
     }
 
     #[test]
+    fn exp_neg_matches_std_within_4_ulp() {
+        for i in 0..=200_000 {
+            let x = -708.0 * (i as f64 / 200_000.0).powi(3);
+            let (a, b) = (exp_neg::<false>(x), x.exp());
+            assert!((a - b).abs() <= 4.0 * f64::EPSILON * b, "e^{x}: {a} vs {b}");
+        }
+        assert!(exp_neg::<false>(f64::NAN).is_nan());
+        assert!(exp_neg::<false>(-1e4) >= 0.0 && exp_neg::<false>(-1e4) < 1e-300);
+    }
+
+    #[test]
     fn spline_inverse_undoes_forward_with_the_same_log_slope() {
         let bins = 8;
         let raw: Vec<f64> = (0..3 * bins - 1).map(|i| ((i * 7919 % 101) as f64 / 50.0 - 1.0) * 2.0).collect();
         for i in 0..40 {
             let x = -5.5 + 11.0 * i as f64 / 39.0;
-            let (y, ld) = spline_forward(x, &raw, bins, 5.0);
-            let (back, ld2) = spline_inverse(y, &raw, bins, 5.0);
+            let (y, ld) = spline_forward::<false>(x, &raw, bins, 5.0);
+            let (back, ld2) = spline_inverse::<false>(y, &raw, bins, 5.0);
             assert!((back - x).abs() < 1e-9, "{x} → {y} → {back}");
             assert!((ld - ld2).abs() < 1e-7);
             let h = 1e-6;
-            let fd = (spline_forward(x + h, &raw, bins, 5.0).0 - spline_forward(x - h, &raw, bins, 5.0).0) / (2.0 * h);
+            let f = |x: f64| spline_forward::<false>(x, &raw, bins, 5.0).0;
+            let fd = (f(x + h) - f(x - h)) / (2.0 * h);
             assert!((fd.ln() - ld).abs() < 1e-5, "x = {x}: {} vs {ld}", fd.ln());
         }
     }
