@@ -127,7 +127,7 @@ fn finite_or_str<S: serde::Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error>
     if v.is_finite() { s.serialize_f64(*v) } else { s.serialize_str("inf") }
 }
 
-#[derive(Serialize, Clone, Debug)]
+#[derive(Serialize, serde::Deserialize, Clone, Debug)]
 pub struct Failed {
     pub row: usize,
     pub reason: String,
@@ -276,41 +276,231 @@ pub fn simulate_to_dir(
     progress: &mut dyn FnMut(usize, usize) -> bool,
 ) -> Result<Meta> {
     let start = std::time::Instant::now();
-    let (n, seed) = match rows {
-        Rows::Prior { n, seed } => (*n, Some(*seed)),
-        Rows::Given(g) => (g.len(), None),
-    };
-    let mut meta = Meta::new(design, preset, model.frequencies(), noise, seed);
+    let n = rows.len();
+    let mut meta = Meta::new(design, preset, model.frequencies(), noise, rows.seed());
     let mut writer = Writer::create(dir, &meta)?;
-    let chunk = 1024;
-    for first in (0..n).step_by(chunk) {
-        let len = chunk.min(n - first);
-        let batch = match rows {
-            Rows::Given(g) => g[first..first + len].to_vec(),
-            Rows::Prior { seed, .. } => design.draw(*seed, first, len),
-        };
-        let results = crate::sim::batch::run_rows(model, design, &batch, first, Some(noise));
-        for (k, (row, res)) in batch.iter().zip(results).enumerate() {
-            let (_, fx) = design.split(row);
-            let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
-            let fail = |reason: String| Failed { row: first + k, reason };
-            match (res, bad_effect) {
-                (_, Some((e, v))) => {
-                    meta.failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high)))
-                }
-                (Ok(x), None) if x.iter().all(|v| v.is_finite()) => writer.push(row, &x)?,
-                (Ok(_), None) => meta.failed.push(fail("non-finite output".into())),
-                (Err(e), None) => meta.failed.push(fail(e.to_string())),
-            }
-        }
-        if !progress(first + len, n) && first + len < n {
+    let batch = Batch { model, design, rows, noise };
+    let mut done = 0;
+    let finished = batch.run(0, n, &mut meta.failed, &mut |t, x| writer.push(t, x), &mut |d| {
+        done = d;
+        progress(d, n)
+    });
+    match finished {
+        Ok(true) => {}
+        Ok(false) => {
             writer.abandon();
-            return Err(DatasetError::Cancelled(Cancelled { done: first + len, total: n }));
+            return Err(DatasetError::Cancelled(Cancelled { done, total: n }));
+        }
+        Err(e) => {
+            writer.abandon();
+            return Err(e);
         }
     }
     meta.wall_seconds = start.elapsed().as_secs_f64();
     writer.finish(&mut meta)?;
     Ok(meta)
+}
+
+impl Rows {
+    /// How many rows.
+    pub fn len(&self) -> usize {
+        match self {
+            Rows::Prior { n, .. } => *n,
+            Rows::Given(g) => g.len(),
+        }
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The seed of prior draws (`None` for given rows).
+    pub fn seed(&self) -> Option<u64> {
+        match self {
+            Rows::Prior { seed, .. } => Some(*seed),
+            Rows::Given(_) => None,
+        }
+    }
+}
+
+/// Where finished rows go: (theta, x).
+type RowSink<'a> = dyn FnMut(&[f64], &[f64]) -> Result<()> + 'a;
+
+/// Rows through the simulator: what one dataset run needs.
+struct Batch<'a> {
+    model: &'a crate::sim::Model,
+    design: &'a Design,
+    rows: &'a Rows,
+    noise: &'a Noise,
+}
+
+impl Batch<'_> {
+    /// Simulates rows `first .. first + len` in sub-batches of 1,024 on rayon: finite
+    /// outputs go to `push`, failed rows to `failed` (by their row number in the whole
+    /// dataset). Every row's draw and noise come from its own stream (seed, row), so the
+    /// rows are the same whatever the split. `progress(rows done of these)` after each
+    /// sub-batch; `false` stops: `Ok(false)` unless it was the last.
+    fn run(
+        &self,
+        first: usize,
+        len: usize,
+        failed: &mut Vec<Failed>,
+        push: &mut RowSink<'_>,
+        progress: &mut dyn FnMut(usize) -> bool,
+    ) -> Result<bool> {
+        const SUB: usize = 1024;
+        let end = first + len;
+        for from in (first..end).step_by(SUB) {
+            let k = SUB.min(end - from);
+            let batch = match self.rows {
+                Rows::Given(g) => g[from..from + k].to_vec(),
+                Rows::Prior { seed, .. } => self.design.draw(*seed, from, k),
+            };
+            let results = crate::sim::batch::run_rows(self.model, self.design, &batch, from, Some(self.noise));
+            for (i, (row, res)) in batch.iter().zip(results).enumerate() {
+                let (_, fx) = self.design.split(row);
+                let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
+                let fail = |reason: String| Failed { row: from + i, reason };
+                match (res, bad_effect) {
+                    (_, Some((e, v))) => failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high))),
+                    (Ok(x), None) if x.iter().all(|v| v.is_finite()) => push(row, &x)?,
+                    (Ok(_), None) => failed.push(fail("non-finite output".into())),
+                    (Err(e), None) => failed.push(fail(e.to_string())),
+                }
+            }
+            if !progress(from + k - first) && from + k < end {
+                return Ok(false);
+            }
+        }
+        Ok(true)
+    }
+}
+
+/// The folder of a dataset's parts, `DIR/parts`: one part per chunk of rows, written
+/// by whichever worker ran the chunk.
+pub const PARTS: &str = "parts";
+
+/// A finished part: rows `first .. first + len` of a dataset, in `part-NNNNN.theta.csv`
+/// and `part-NNNNN.x.csv` (rows without a header) and `part-NNNNN.json` (this, written
+/// last: a part is finished when its JSON is in place).
+#[derive(Serialize, serde::Deserialize, Clone, Debug)]
+pub struct Part {
+    pub first: usize,
+    pub len: usize,
+    /// Rows written (`len` less the failed ones).
+    pub rows: usize,
+    pub failed: Vec<Failed>,
+    pub wall_seconds: f64,
+}
+
+/// The file `file` (`theta.csv`, `x.csv`, `json`) of part `idx` in `parts`.
+pub fn part_file(parts: &Path, idx: usize, file: &str) -> PathBuf {
+    parts.join(format!("part-{idx:05}.{file}"))
+}
+
+/// Part `idx` of `parts` if it is finished (its JSON reads and its tables exist).
+pub fn read_part(parts: &Path, idx: usize) -> Option<Part> {
+    let part: Part = serde_json::from_slice(&std::fs::read(part_file(parts, idx, "json")).ok()?).ok()?;
+    let tables = [FILES[0], FILES[1]].iter().all(|f| part_file(parts, idx, f).is_file());
+    tables.then_some(part)
+}
+
+/// The parts of a dataset run: the rows to simulate and how.
+pub struct PartRun<'a> {
+    pub model: &'a crate::sim::Model,
+    pub design: &'a Design,
+    pub rows: &'a Rows,
+    pub noise: &'a Noise,
+    /// The parts folder (`DIR/parts`); it must exist (a job that ended removed it, and a
+    /// late worker must not bring it back).
+    pub parts: &'a Path,
+}
+
+impl PartRun<'_> {
+    /// Simulates rows `first .. first + len` as part `idx`, under temporary names that
+    /// carry `tag` (the claim's, so two workers on one chunk never share a file), then
+    /// renamed into place, the JSON last. The part is the same bytes whoever runs it.
+    /// `progress(rows done)` after each sub-batch; `false` stops (`Cancelled`), and
+    /// the temporary files are removed, as after any error.
+    pub fn simulate(
+        &self,
+        idx: usize,
+        first: usize,
+        len: usize,
+        tag: &str,
+        progress: &mut dyn FnMut(usize) -> bool,
+    ) -> Result<Part> {
+        let start = std::time::Instant::now();
+        let tmp = |file: &str| self.parts.join(format!("part-{idx:05}.{file}.{tag}.tmp"));
+        let names = [FILES[0], FILES[1], "json"];
+        let out = (|| {
+            let open = |f: &str| File::create(tmp(f)).map(BufWriter::new).map_err(io("write", &tmp(f)));
+            let (mut theta, mut x) = (open(FILES[0])?, open(FILES[1])?);
+            let mut part = Part { first, len, rows: 0, failed: vec![], wall_seconds: 0.0 };
+            let batch = Batch { model: self.model, design: self.design, rows: self.rows, noise: self.noise };
+            let mut push = |t: &[f64], v: &[f64]| {
+                write_row(&mut theta, t).map_err(io("write", &tmp(FILES[0])))?;
+                write_row(&mut x, v).map_err(io("write", &tmp(FILES[1])))?;
+                part.rows += 1;
+                Ok(())
+            };
+            if !batch.run(first, len, &mut part.failed, &mut push, progress)? {
+                return Err(DatasetError::Cancelled(Cancelled { done: 0, total: len }));
+            }
+            theta.flush().map_err(io("write", &tmp(FILES[0])))?;
+            x.flush().map_err(io("write", &tmp(FILES[1])))?;
+            part.wall_seconds = start.elapsed().as_secs_f64();
+            let json = serde_json::to_vec(&part).map_err(DatasetError::Encode)?;
+            std::fs::write(tmp("json"), json).map_err(io("write", &tmp("json")))?;
+            for f in names {
+                let to = part_file(self.parts, idx, f);
+                std::fs::rename(tmp(f), &to).map_err(io("rename", &to))?;
+            }
+            Ok(part)
+        })();
+        if out.is_err() {
+            for f in names {
+                let _ = std::fs::remove_file(tmp(f));
+            }
+        }
+        out
+    }
+}
+
+/// Joins finished parts `0..n_parts` of `parts` into a dataset in `dir` (theta.csv,
+/// x.csv with their headers, meta.json; renamed into place like [`Writer::finish`]):
+/// the same bytes as [`simulate_to_dir`] with the same rows. `meta` is
+/// [`Meta::new`]'s; its counts, failures and time (the parts' compute) are filled in.
+pub fn merge_parts(parts: &Path, n_parts: usize, dir: &Path, meta: &mut Meta) -> Result<()> {
+    let mut writer = Writer::create(dir, meta)?;
+    let append = |idx: usize, writer: &mut Writer| -> Result<Part> {
+        let part = read_part(parts, idx).ok_or_else(|| {
+            let missing = std::io::Error::new(std::io::ErrorKind::NotFound, "part not finished");
+            DatasetError::Io(FileError { action: "read", path: part_file(parts, idx, "json"), source: missing })
+        })?;
+        for (f, w) in [(FILES[0], &mut writer.theta), (FILES[1], &mut writer.x)] {
+            let from = part_file(parts, idx, f);
+            File::open(&from).and_then(|mut r| std::io::copy(&mut r, w)).map_err(io("read", &from))?;
+        }
+        writer.rows += part.rows;
+        Ok(part)
+    };
+    let mut wall = 0.0;
+    for idx in 0..n_parts {
+        match append(idx, &mut writer) {
+            Ok(part) => {
+                meta.failed.extend(part.failed);
+                wall += part.wall_seconds;
+            }
+            Err(e) => {
+                writer.abandon();
+                return Err(e);
+            }
+        }
+    }
+    meta.wall_seconds = wall;
+    writer.finish(meta)
 }
 
 /// A numeric CSV table with a header row.

@@ -93,7 +93,9 @@ macro_rules! on_pool {
     };
 }
 
+mod chunks;
 mod keys;
+pub use chunks::{ChunkClaim, ChunkRow, chunk_id};
 pub use keys::{ApiKey, KeyOwner, NewKey, key_hash};
 
 #[derive(Clone, Debug, Serialize)]
@@ -298,7 +300,7 @@ impl Store {
 
     /// `sql` with `NOW_MS` replaced by this backend's clock in ms since 1970: the
     /// database's clock, so workers on several hosts agree on lease expiry.
-    fn clocked(&self, sql: &'static str) -> AssertSqlSafe<String> {
+    fn clocked(&self, sql: &str) -> AssertSqlSafe<String> {
         let now_ms = match self.pool {
             Pool::Sqlite(_) => "CAST((julianday('now') - 2440587.5) * 86400000.0 AS INTEGER)",
             Pool::Postgres(_) => "CAST(EXTRACT(EPOCH FROM clock_timestamp()) * 1000 AS BIGINT)",
@@ -550,9 +552,12 @@ impl Store {
         const REQUEUE: &str =
             "UPDATE jobs SET state = 'queued', lease_token = NULL, message = 're-queued after a restart'
              WHERE state = 'running'";
+        // Chunks the dead process held: free at once (their leases would run out anyway).
+        const CHUNKS: &str = "UPDATE job_chunks SET state = 'queued', lease_token = NULL WHERE state = 'running'";
         let ts = now();
         let failed = on_pool!(self, p => sqlx::query(FAIL).bind(&ts).execute(p).await?.rows_affected());
         let requeued = on_pool!(self, p => sqlx::query(REQUEUE).execute(p).await?.rows_affected());
+        on_pool!(self, p => sqlx::query(CHUNKS).execute(p).await?.rows_affected());
         Ok((requeued, failed))
     }
 

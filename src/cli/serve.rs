@@ -31,6 +31,11 @@ pub struct ServeArgs {
     /// stops renewing loses the job to another after this long.
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
+    /// Most rows per chunk of a simulate job (each chunk is a part file any worker may
+    /// run; a killed job resumes from its finished chunks). Smaller jobs get smaller
+    /// chunks, at least four when that leaves 1,000 rows each.
+    #[arg(long, default_value_t = jobs::CHUNK_ROWS)]
+    pub chunk_rows: usize,
     /// Checkpoint registered as the default model on first start.
     #[arg(long, default_value = "models/default.otofit")]
     pub default_model: PathBuf,
@@ -152,7 +157,7 @@ pub async fn open_with(
     infer: http::InferLimits,
 ) -> Result<Arc<Ctx>> {
     let db = Database::Sqlite(data_dir.join("otofit.db"));
-    open_db(&db, data_dir, default_model, max_queue, infer, jobs::DEFAULT_LEASE).await
+    open_db(&db, data_dir, default_model, max_queue, infer, jobs::JobSettings::default()).await
 }
 
 /// Most dispatchers one process runs.
@@ -166,12 +171,16 @@ pub fn database_arg(url: Option<&str>, data_dir: &Path) -> Result<Database> {
     }
 }
 
-/// `--lease-seconds`: 1 s ..= 1 h (a renewal every third of it).
-pub fn lease_arg(seconds: f64) -> Result<std::time::Duration> {
-    if !(1.0..=3600.0).contains(&seconds) {
-        bail!("--lease-seconds must be 1..=3600, got {seconds}");
+/// `--lease-seconds` (1 s ..= 1 h; a renewal every third of it) and `--chunk-rows`
+/// (1 ..= 100,000).
+pub fn job_settings(lease_seconds: f64, chunk_rows: usize) -> Result<jobs::JobSettings> {
+    if !(1.0..=3600.0).contains(&lease_seconds) {
+        bail!("--lease-seconds must be 1..=3600, got {lease_seconds}");
     }
-    Ok(std::time::Duration::from_secs_f64(seconds))
+    if !(1..=jobs::MAX_ROWS).contains(&chunk_rows) {
+        bail!("--chunk-rows must be 1..={}, got {chunk_rows}", jobs::MAX_ROWS);
+    }
+    Ok(jobs::JobSettings { lease: std::time::Duration::from_secs_f64(lease_seconds), chunk_rows })
 }
 
 /// Opens the state of a `serve` or `worker` process. With SQLite the process takes the
@@ -179,7 +188,7 @@ pub fn lease_arg(seconds: f64) -> Result<std::time::Duration> {
 /// in the queue and removes their temporary files. With PostgreSQL the data directory is
 /// shared with other processes: no lock, and jobs of workers that died come back when
 /// their lease expires (`Store::reap_expired`).
-pub async fn open_state(db: &Database, data_dir: &Path, lease: std::time::Duration) -> Result<Ctx> {
+pub async fn open_state(db: &Database, data_dir: &Path, settings: jobs::JobSettings) -> Result<Ctx> {
     std::fs::create_dir_all(data_dir).with_context(|| format!("cannot create {}", data_dir.display()))?;
     let lock = match db {
         Database::Sqlite(_) => Some(lock_data_dir(data_dir)?),
@@ -192,18 +201,19 @@ pub async fn open_state(db: &Database, data_dir: &Path, lease: std::time::Durati
             tracing::warn!(requeued, failed, "recovered jobs left running by a previous process");
         }
         // No job runs yet (the lock is ours): temporary files are leftovers of runs that
-        // failed or were killed; a re-queued run writes its own again from the start.
-        let stale: usize = std::fs::read_dir(data_dir.join("datasets"))
-            .into_iter()
-            .flatten()
-            .flatten()
-            .map(|d| jobs::remove_temporary_files(&d.path()))
-            .sum();
+        // failed or were killed. Finished parts stay for the jobs that will run again
+        // (they resume from them); those of jobs that ended go.
+        let mut stale = 0;
+        for d in std::fs::read_dir(data_dir.join("datasets")).into_iter().flatten().flatten() {
+            let id = d.file_name().to_string_lossy().into_owned();
+            let active = store.job(&id).await?.is_some_and(|j| j.state == "queued" || j.state == "running");
+            stale += jobs::remove_temporary_files(&d.path(), !active);
+        }
         if stale > 0 {
             tracing::info!(files = stale, "removed temporary files of interrupted simulate jobs");
         }
     }
-    let ctx = Ctx::new(store, data_dir.to_path_buf(), 0).with_lease(lease);
+    let ctx = Ctx::new(store, data_dir.to_path_buf(), 0).with_settings(settings);
     Ok(match lock {
         Some(l) => ctx.with_lock(l),
         None => ctx,
@@ -217,9 +227,9 @@ pub async fn open_db(
     default_model: &Path,
     max_queue: i64,
     infer: http::InferLimits,
-    lease: std::time::Duration,
+    settings: jobs::JobSettings,
 ) -> Result<Arc<Ctx>> {
-    let mut ctx = open_state(db, data_dir, lease).await?;
+    let mut ctx = open_state(db, data_dir, settings).await?;
     ctx.max_queue = max_queue;
     let store = &ctx.store;
     if default_model.exists() {
@@ -277,7 +287,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     }
     let limits = args.infer_limits()?;
     let database = database_arg(args.database.as_deref(), &args.data_dir)?;
-    let lease = lease_arg(args.lease_seconds)?;
+    let settings = job_settings(args.lease_seconds, args.chunk_rows)?;
     if args.workers > MAX_WORKERS {
         bail!("--workers must be 0..={MAX_WORKERS}, got {}", args.workers);
     }
@@ -285,7 +295,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
         let default_model = resolve_default_model(&args.default_model);
-        let ctx = open_db(&database, &args.data_dir, &default_model, args.max_queue, limits, lease).await?;
+        let ctx = open_db(&database, &args.data_dir, &default_model, args.max_queue, limits, settings).await?;
         if !args.addr.ip().is_loopback() && keys.is_empty() && !ctx.store.has_keys().await? {
             tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
         }

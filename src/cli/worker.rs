@@ -3,7 +3,7 @@
 //! claim's lease while it runs, and stops at SIGTERM/Ctrl-C after putting its running job
 //! back in the queue.
 
-use super::serve::{database_arg, lease_arg, open_state, shutdown_signal, stop_dispatchers};
+use super::serve::{database_arg, job_settings, open_state, shutdown_signal, stop_dispatchers};
 use crate::jobs;
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -28,6 +28,9 @@ pub struct WorkerArgs {
     /// Seconds a claimed job's lease lasts; renewed every third of it.
     #[arg(long, default_value_t = 30.0)]
     pub lease_seconds: f64,
+    /// Most rows per chunk of the simulate jobs this worker starts (see `serve`).
+    #[arg(long, default_value_t = jobs::CHUNK_ROWS)]
+    pub chunk_rows: usize,
     /// Serve GET /metrics (Prometheus text: this worker's claims, simulated rows, job
     /// durations, and the job table) on this address; no API, no keys: keep it on
     /// loopback or a private network.
@@ -41,7 +44,7 @@ pub struct WorkerArgs {
 pub fn run(args: WorkerArgs) -> Result<()> {
     super::serve::init_logs(args.log_json);
     let database = database_arg(args.database.as_deref(), &args.data_dir)?;
-    let lease = lease_arg(args.lease_seconds)?;
+    let settings = job_settings(args.lease_seconds, args.chunk_rows)?;
     if !(1..=super::serve::MAX_WORKERS).contains(&args.concurrency) {
         bail!("--concurrency must be 1..={}, got {}", super::serve::MAX_WORKERS, args.concurrency);
     }
@@ -53,13 +56,14 @@ pub fn run(args: WorkerArgs) -> Result<()> {
     }
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
-        let ctx = Arc::new(open_state(&database, &args.data_dir, lease).await?);
+        let ctx = Arc::new(open_state(&database, &args.data_dir, settings).await?);
         tracing::info!(
             worker = %ctx.worker,
             database = %database.redacted(),
             data_dir = %args.data_dir.display(),
             concurrency = args.concurrency,
-            lease_seconds = lease.as_secs_f64(),
+            lease_seconds = settings.lease.as_secs_f64(),
+            chunk_rows = settings.chunk_rows,
             "otofit worker started"
         );
         if let Some(addr) = args.metrics_addr {

@@ -24,7 +24,7 @@ mod train;
 pub use diagnose::DiagnoseParams;
 pub use limits::MAX_ROWS;
 pub use resimulate::ResimulateParams;
-pub use simulate::{SimulateParams, remove_temporary_files};
+pub use simulate::{CHUNK_ROWS, SimulateParams, chunk_plan, remove_temporary_files};
 pub use spec::{FieldError, JobSpec, KINDS, MAX_ID, effect_names, field_error, is_plain_id};
 pub use train::TrainParams;
 
@@ -56,6 +56,23 @@ pub struct Ctx {
     pub lease: Duration,
     /// Counters and histograms of this process, for GET /metrics.
     pub metrics: crate::http::metrics::Metrics,
+    /// Most rows per chunk of the simulate jobs this process plans (`simulate::chunk_plan`).
+    pub chunk_rows: usize,
+}
+
+/// How a `serve` or `worker` process runs jobs (its flags).
+#[derive(Clone, Copy, Debug)]
+pub struct JobSettings {
+    /// Length of a claim's lease (`--lease-seconds`).
+    pub lease: Duration,
+    /// Most rows per chunk of the simulate jobs this process plans (`--chunk-rows`).
+    pub chunk_rows: usize,
+}
+
+impl Default for JobSettings {
+    fn default() -> Self {
+        JobSettings { lease: DEFAULT_LEASE, chunk_rows: CHUNK_ROWS }
+    }
 }
 
 /// Default lease of a claimed job: a worker that stops renewing it for this long loses
@@ -76,7 +93,19 @@ impl Ctx {
             worker: crate::store::worker_name(),
             lease: DEFAULT_LEASE,
             metrics: Default::default(),
+            chunk_rows: CHUNK_ROWS,
         }
+    }
+
+    /// Plans simulate jobs in chunks of at most `rows` rows instead of 10,000.
+    pub fn with_chunk_rows(mut self, rows: usize) -> Ctx {
+        self.chunk_rows = rows.max(1);
+        self
+    }
+
+    /// Runs jobs with `s` (lease, chunks).
+    pub fn with_settings(self, s: JobSettings) -> Ctx {
+        self.with_lease(s.lease).with_chunk_rows(s.chunk_rows)
     }
 
     /// Claims jobs with leases of `lease` (renewed every third of it) instead of 30 s.
@@ -115,6 +144,7 @@ impl Ctx {
 /// Reports progress and tells the worker whether to stop.
 pub struct Reporter {
     tx: tokio::sync::mpsc::UnboundedSender<(f64, String)>,
+    /// Raised when the job must stop: cancel, shutdown, its lease lost.
     cancel: Arc<AtomicBool>,
     /// The claim: (job id, lease token), for the renewal before results are written.
     claim: (String, String),
@@ -203,7 +233,8 @@ fn scrub(ctx: &Ctx, msg: &str) -> String {
 }
 
 /// The dispatcher: takes back jobs whose lease expired, claims and runs jobs until
-/// shutdown. Any number of dispatchers, in any number of processes, may share a store.
+/// shutdown; with no job queued it helps with a chunk of a running simulate job (any
+/// worker's). Any number of dispatchers, in any number of processes, may share a store.
 pub async fn dispatcher(ctx: Arc<Ctx>) {
     loop {
         if ctx.shutdown.load(Ordering::Relaxed) {
@@ -222,12 +253,19 @@ pub async fn dispatcher(ctx: Arc<Ctx>) {
                 ctx.metrics.claimed();
                 run(ctx.clone(), job).await
             }
-            Ok(None) => {
-                tokio::select! {
-                    _ = ctx.notify.notified() => {}
-                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+            Ok(None) => match ctx.store.claim_chunk(None, &ctx.worker, ctx.lease).await {
+                Ok(Some(chunk)) => simulate::help(ctx.clone(), chunk).await,
+                Ok(None) => {
+                    tokio::select! {
+                        _ = ctx.notify.notified() => {}
+                        _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                    }
                 }
-            }
+                Err(e) => {
+                    tracing::error!(error = %e, "claiming a chunk failed");
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                }
+            },
             Err(e) => {
                 tracing::error!(error = %e, "claiming a job failed");
                 tokio::time::sleep(Duration::from_secs(1)).await;
@@ -327,8 +365,9 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         return;
     }
     if makes_dataset {
-        // The job has ended: leftovers of earlier attempts of it are garbage now.
-        remove_temporary_files(&ctx.dataset_dir(&job.id));
+        // Ended: its parts and the leftovers of earlier attempts are garbage now. Re-queued
+        // (shutdown): the finished parts stay, the next attempt resumes from them.
+        remove_temporary_files(&ctx.dataset_dir(&job.id), label != "requeued");
     }
     if makes_model && let Ok(Some(j)) = ctx.store.job(&job.id).await {
         let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));

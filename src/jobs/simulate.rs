@@ -1,17 +1,23 @@
 //! `simulate`: prior draws or given rows through the simulator into a dataset folder,
-//! `datasets/<job id>/` (written by each attempt into its own staging folder, moved into
-//! place after a fresh renewal of its lease).
+//! `datasets/<job id>/`, in chunks: each chunk (claimed by the job's worker or by any
+//! idle one) is written as a part file in `datasets/<job id>/parts/`; a re-claimed job
+//! resumes from the finished parts; at the end the parts are joined in this attempt's
+//! staging folder and moved into place after a fresh renewal of its lease.
 
 use super::spec::{FieldError, effects_of, non_negative, theta_values, with_geometry};
-use super::{Ctx, Reporter, Stopped, limits};
+use super::{Ctx, JobSpec, Reporter, Stopped, limits};
 use crate::dataset::{self, Rows};
 use crate::sim::batch::{Design, Noise, default_noise_std};
 use crate::sim::params::{Effects, N_PARAMS, N_TISSUE};
 use crate::sim::{Model, ModelConfig};
+use crate::store::{ChunkClaim, ChunkRow};
 use anyhow::{Context, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -70,38 +76,215 @@ impl SimulateParams {
     }
 }
 
-/// Simulates the rows into this attempt's staging folder, then (the lease renewed) moves
-/// the files into `datasets/<id>/`.
+/// What a simulate job's chunks are run with, from its params.
+struct Setup {
+    model: Model,
+    design: Design,
+    noise: Noise,
+    rows: Rows,
+}
+
+impl Setup {
+    fn of(p: &SimulateParams) -> Result<Setup> {
+        let mut design = Design { fixed: effects_of(&p.effects, &mut vec![]), varied: vec![] };
+        design.varied = p.vary.iter().filter_map(|v| Effects::index(v)).collect();
+        let model = Model::new(ModelConfig::default())?;
+        let noise = Noise { std: default_noise_std(&model), scale: p.noise_scale, seed: p.seed };
+        let rows = match &p.theta {
+            Some(t) => Rows::Given(with_geometry(t, design.varied.len())),
+            None => Rows::Prior { n: p.n.unwrap_or(0), seed: p.seed },
+        };
+        Ok(Setup { model, design, noise, rows })
+    }
+
+    fn parts<'a>(&'a self, parts: &'a Path) -> dataset::PartRun<'a> {
+        dataset::PartRun { model: &self.model, design: &self.design, rows: &self.rows, noise: &self.noise, parts }
+    }
+}
+
+/// Rows per chunk by default (`serve`/`worker --chunk-rows`).
+pub const CHUNK_ROWS: usize = 10_000;
+
+/// The chunks (first row, rows) of a job of `n` rows with chunks of at most `chunk_rows`:
+/// at least 4 chunks when `n` allows chunks of 1,000 rows (or of `chunk_rows`, if
+/// smaller), so that a small job still resumes and spreads over workers.
+pub fn chunk_plan(n: usize, chunk_rows: usize) -> Vec<(usize, usize)> {
+    let floor = chunk_rows.clamp(1, 1_000);
+    let size = chunk_rows.max(1).min(n.div_ceil(4).max(floor));
+    (0..n).step_by(size).map(|first| (first, size.min(n - first))).collect()
+}
+
+/// Runs a simulate job as chunks (planned at its first attempt, kept across attempts):
+/// claims the chunks nobody holds, one after another, each written as a part file by
+/// `run_chunk`, while idle dispatchers anywhere may claim others (`help`); waits for
+/// those; then (the lease renewed) joins the parts into `datasets/<id>/` through this
+/// attempt's staging folder. Chunks finished by an earlier attempt, or by a worker that
+/// died after writing its part, are not run again: the job resumes from them, and its
+/// dataset is the same bytes as an uninterrupted run (every row has its own streams).
 pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> Result<serde_json::Value> {
-    let mut design = Design { fixed: effects_of(&p.effects, &mut vec![]), varied: vec![] };
-    design.varied = p.vary.iter().filter_map(|v| Effects::index(v)).collect();
-    let model = Model::new(ModelConfig::default())?;
-    let noise = Noise { std: default_noise_std(&model), scale: p.noise_scale, seed: p.seed };
-    let rows = match &p.theta {
-        Some(t) => Rows::Given(with_geometry(t, design.varied.len())),
-        None => Rows::Prior { n: p.n.unwrap_or(0), seed: p.seed },
-    };
+    let setup = Setup::of(p)?;
+    let n = setup.rows.len();
+    let rt = tokio::runtime::Handle::current();
     let dir = ctx.dataset_dir(id);
+    let parts = dir.join(dataset::PARTS);
+    std::fs::create_dir_all(&parts).with_context(|| format!("creating {}", parts.display()))?;
+    let mut chunks = rt.block_on(ctx.store.plan_chunks(id, &chunk_plan(n, ctx.chunk_rows)))?;
+    let finished = |c: &ChunkRow| dataset::read_part(&parts, c.idx).is_some();
+    let resumed = chunks.iter().filter(|c| finished(c)).count();
+    if resumed > 0 {
+        tracing::info!(job = %id, resumed, chunks = chunks.len(), "resuming from finished chunks");
+    }
+    loop {
+        // The parts on disk say what is finished; the table is brought in line with them.
+        let (mut done, mut done_rows) = (0, 0);
+        for c in &chunks {
+            match (finished(c), c.state.as_str()) {
+                (true, _) => (done, done_rows) = (done + 1, done_rows + c.n_rows),
+                (false, "done") => rt.block_on(ctx.store.set_chunk_state(&c.id, "queued"))?,
+                _ => {}
+            }
+        }
+        let status = |rows: usize| format!("simulated {rows}/{n} rows ({done}/{} chunks)", chunks.len());
+        if !r.report(done_rows as f64 / n.max(1) as f64, status(done_rows)) {
+            return Err(Stopped.into());
+        }
+        if done == chunks.len() {
+            break;
+        }
+        match rt.block_on(ctx.store.claim_chunk(Some(id), &ctx.worker, ctx.lease))? {
+            Some(claim) if finished(&claim.chunk) => {
+                rt.block_on(ctx.store.end_chunk(&claim, true))?;
+            }
+            Some(claim) => {
+                let mut progress =
+                    |rows: usize| r.report((done_rows + rows) as f64 / n as f64, status(done_rows + rows));
+                match run_chunk(ctx, &setup, &parts, &claim, &mut progress) {
+                    // The job is stopping (cancel, shutdown, its lease lost).
+                    Err(e) if e.is::<Stopped>() && r.cancel.load(Ordering::Relaxed) => return Err(e),
+                    // Only the chunk's lease was lost: another worker runs it.
+                    Err(e) if e.is::<Stopped>() => {}
+                    res => res?,
+                }
+            }
+            // Every chunk left is held by another worker: wait for its part.
+            None => std::thread::sleep(Duration::from_millis(200)),
+        }
+        chunks = rt.block_on(ctx.store.chunks(id))?;
+    }
+    let mut meta = dataset::Meta::new(
+        &setup.design,
+        setup.model.config.preset,
+        setup.model.frequencies(),
+        &setup.noise,
+        setup.rows.seed(),
+    );
     let staging = staging_dir(&dir, &r.claim.1);
-    let mut last = 0;
-    let meta =
-        dataset::simulate_to_dir(&model, &design, &rows, &noise, model.config.preset, &staging, &mut |done, n| {
-            ctx.metrics.simulated(done.saturating_sub(last) as u64);
-            last = done;
-            r.report(done as f64 / n as f64, format!("simulated {done}/{n}"))
-        })
-        .map_err(|e| match e {
-            dataset::DatasetError::Cancelled(_) => Stopped.into(),
-            e => anyhow::Error::from(e),
-        })?;
+    dataset::merge_parts(&parts, chunks.len(), &staging, &mut meta)?;
     r.still_ours(ctx)?;
     publish_dataset(&staging, &dir)?;
+    // The parts are in the dataset now: gone before the job is marked done, so that no
+    // end of this process (even a kill right after) leaves them behind.
+    remove_temporary_files(&dir, true);
     Ok(serde_json::json!({
         "dataset": format!("/datasets/{id}"),
         "rows": meta.n_rows,
         "failed": meta.failed.len(),
         "wall_seconds": meta.wall_seconds,
+        "chunks": chunks.len(),
+        "resumed_chunks": resumed,
     }))
+}
+
+/// Runs one claimed chunk into its part file under the chunk's lease (renewed on the
+/// runtime meanwhile), then marks it done; a chunk that stops or fails goes back to the
+/// queue for any worker. `Err(Stopped)` when `progress` or the lease stopped it.
+fn run_chunk(
+    ctx: &Ctx,
+    setup: &Setup,
+    parts: &Path,
+    claim: &ChunkClaim,
+    progress: &mut dyn FnMut(usize) -> bool,
+) -> Result<()> {
+    let rt = tokio::runtime::Handle::current();
+    let c = &claim.chunk;
+    let lost = Arc::new(AtomicBool::new(false));
+    let renewal = rt.spawn(renew_chunk(ctx.store.clone(), claim.clone(), ctx.lease, lost.clone()));
+    let mut last = 0;
+    let res = setup.parts(parts).simulate(c.idx, c.first_row, c.n_rows, &claim.token[..16], &mut |rows| {
+        ctx.metrics.simulated(rows.saturating_sub(last) as u64);
+        last = rows;
+        progress(rows) && !lost.load(Ordering::Relaxed)
+    });
+    renewal.abort();
+    let ended = rt.block_on(ctx.store.end_chunk(claim, res.is_ok()));
+    match res {
+        Ok(_) => {
+            ended?;
+            Ok(())
+        }
+        Err(dataset::DatasetError::Cancelled(_)) => Err(Stopped.into()),
+        Err(e) => Err(anyhow::Error::from(e).context(format!(
+            "chunk {} (rows {}..{})",
+            c.idx,
+            c.first_row,
+            c.first_row + c.n_rows
+        ))),
+    }
+}
+
+/// Renews a chunk's lease every third of it until aborted; raises `lost` if it is lost.
+async fn renew_chunk(store: crate::store::Store, claim: ChunkClaim, lease: Duration, lost: Arc<AtomicBool>) {
+    loop {
+        tokio::time::sleep(lease / 3).await;
+        match store.chunk_heartbeat(&claim, lease).await {
+            Ok(true) => {}
+            Ok(false) => {
+                tracing::warn!(chunk = %claim.chunk.id, "chunk lease lost: another worker runs it");
+                lost.store(true, Ordering::Relaxed);
+                return;
+            }
+            // A database hiccup: two thirds of the lease remain; retried next time.
+            Err(e) => tracing::warn!(chunk = %claim.chunk.id, error = %e, "chunk lease not renewed"),
+        }
+    }
+}
+
+/// An idle dispatcher's share of another job: runs the claimed chunk of a simulate job
+/// that some worker owns. It stops when the job is cancelled, ends or the process shuts
+/// down (checked every 300 ms on the runtime), and gives the chunk back.
+pub(super) async fn help(ctx: Arc<Ctx>, claim: ChunkClaim) {
+    let c = claim.chunk.clone();
+    let stop = Arc::new(AtomicBool::new(false));
+    let (c2, s2) = (ctx.clone(), stop.clone());
+    let mut work = tokio::task::spawn_blocking(move || -> Result<()> {
+        let rt = tokio::runtime::Handle::current();
+        let job = rt.block_on(c2.store.job(&claim.chunk.job_id))?.context("the job is gone")?;
+        let JobSpec::Simulate(p) = JobSpec::of(&job).map_err(|e| anyhow::anyhow!("{e}"))? else {
+            anyhow::bail!("not a simulate job")
+        };
+        let setup = Setup::of(&p)?;
+        let parts = c2.dataset_dir(&job.id).join(dataset::PARTS);
+        run_chunk(&c2, &setup, &parts, &claim, &mut |_| !s2.load(Ordering::Relaxed))
+    });
+    let mut check = tokio::time::interval(Duration::from_millis(300));
+    let res = loop {
+        tokio::select! {
+            res = &mut work => break res,
+            _ = check.tick() => {
+                let job = ctx.store.job(&c.job_id).await.ok().flatten();
+                let going = job.is_some_and(|j| j.state == "running" && !j.cancel_requested);
+                if !going || ctx.shutdown.load(Ordering::Relaxed) {
+                    stop.store(true, Ordering::Relaxed);
+                }
+            }
+        }
+    };
+    match res {
+        Ok(Ok(())) => tracing::info!(chunk = %c.id, rows = c.n_rows, "chunk of another worker's job done"),
+        Ok(Err(e)) if e.is::<Stopped>() => tracing::info!(chunk = %c.id, "chunk stopped and given back"),
+        Ok(Err(e)) => tracing::warn!(chunk = %c.id, error = %format!("{e:#}"), "chunk failed and given back"),
+        Err(e) => tracing::error!(chunk = %c.id, error = %e, "chunk panicked"),
+    }
 }
 
 /// Moves a finished simulate attempt's files from its staging folder into `dir`.
@@ -119,20 +302,53 @@ pub(super) fn staging_dir(dir: &Path, token: &str) -> PathBuf {
     dir.join(format!(".attempt-{}", &token[..token.len().min(16)]))
 }
 
-/// Removes the `*.tmp` files a simulate job writes before renaming them into place, and
-/// the staging folders (`.attempt-*`) of its attempts: what a failed, cancelled,
-/// interrupted or superseded run leaves behind. Returns how many went.
-pub fn remove_temporary_files(dir: &Path) -> usize {
-    let Ok(entries) = std::fs::read_dir(dir) else { return 0 };
-    entries
-        .flatten()
-        .filter(|e| {
-            let name = e.file_name().to_string_lossy().into_owned();
-            if name.starts_with(".attempt-") {
-                std::fs::remove_dir_all(e.path()).is_ok()
-            } else {
-                name.ends_with(".tmp") && std::fs::remove_file(e.path()).is_ok()
+/// Removes what a simulate run leaves besides its dataset: `*.tmp` files (in the
+/// folder and among the parts), the staging folders (`.attempt-*`) of its attempts,
+/// and, with `parts`, the finished parts too (the job has ended: they are in its
+/// dataset, or no longer wanted). Finished parts are kept otherwise: a re-queued job
+/// resumes from them. Returns how many entries went.
+pub fn remove_temporary_files(dir: &Path, parts: bool) -> usize {
+    let tmp = |d: &Path| -> usize {
+        let Ok(entries) = std::fs::read_dir(d) else { return 0 };
+        entries
+            .flatten()
+            .filter(|e| {
+                let name = e.file_name().to_string_lossy().into_owned();
+                if name.starts_with(".attempt-") {
+                    std::fs::remove_dir_all(e.path()).is_ok()
+                } else {
+                    name.ends_with(".tmp") && std::fs::remove_file(e.path()).is_ok()
+                }
+            })
+            .count()
+    };
+    let parts_dir = dir.join(dataset::PARTS);
+    let n = tmp(dir) + tmp(&parts_dir);
+    if parts && parts_dir.exists() {
+        return n + usize::from(std::fs::remove_dir_all(&parts_dir).is_ok());
+    }
+    n
+}
+
+#[cfg(test)]
+mod tests {
+    use super::chunk_plan;
+
+    #[test]
+    fn chunk_plans_cover_every_row_once_in_chunks_of_at_most_the_limit() {
+        assert_eq!(chunk_plan(100_000, 10_000).len(), 10);
+        assert_eq!(chunk_plan(30_000, 10_000), [(0, 7500), (7500, 7500), (15_000, 7500), (22_500, 7500)]);
+        assert_eq!(chunk_plan(200, 10_000), [(0, 200)]);
+        assert_eq!(chunk_plan(5000, 500).len(), 10);
+        for (n, size) in [(1, 1), (999, 10_000), (4001, 1000), (12_345, 333)] {
+            let plan = chunk_plan(n, size);
+            assert!(plan.iter().all(|(_, len)| (1..=size).contains(len)), "{n} {size}: {plan:?}");
+            let mut next = 0;
+            for (first, len) in plan {
+                assert_eq!(first, next);
+                next += len;
             }
-        })
-        .count()
+            assert_eq!(next, n);
+        }
+    }
 }

@@ -6,5 +6,6 @@ mod http;
 mod npe;
 mod pg;
 mod physics;
+mod resume;
 mod sim;
 mod tenants;

@@ -147,7 +147,7 @@ fn cluster() -> Option<&'static Cluster> {
 }
 
 /// A fresh database on the throwaway cluster: its URL.
-async fn fresh_database() -> Option<String> {
+pub(crate) async fn fresh_database() -> Option<String> {
     use sqlx::Connection;
     let c = cluster()?;
     static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
@@ -158,7 +158,7 @@ async fn fresh_database() -> Option<String> {
     Some(format!("postgres://postgres@127.0.0.1:{}/{name}", c.port))
 }
 
-fn temp_dir(tag: &str) -> PathBuf {
+pub(crate) fn temp_dir(tag: &str) -> PathBuf {
     static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
     let d = std::env::temp_dir().join(format!("otofit-{tag}-{}-{n}", std::process::id()));
@@ -285,7 +285,7 @@ pub(crate) fn ctx_on(store: Store, data: &Path, worker: &str, lease: Duration) -
     Arc::new(ctx)
 }
 
-async fn wait_state(store: &Store, id: &str, states: &[&str], secs: u64) -> otofit::store::JobRow {
+pub(crate) async fn wait_state(store: &Store, id: &str, states: &[&str], secs: u64) -> otofit::store::JobRow {
     let t0 = Instant::now();
     loop {
         let j = store.job(id).await.unwrap().unwrap();
@@ -341,13 +341,18 @@ async fn a_worker_that_lost_its_lease_stops_and_writes_nothing() {
     tokio::spawn(jobs::dispatcher(a.clone()));
     let j = wait_state(&server, "big", &["running"], 30).await;
     assert_eq!(j.worker.as_deref(), Some("a"));
-    // A is writing its rows into its own staging folder.
-    let a_staging = data.join("datasets").join("big").join(format!(".attempt-{}", &j.lease_token.unwrap()[..16]));
+    // A is writing a chunk into a part file under a name of its own (`*.<its tag>.tmp`).
+    let parts = data.join("datasets").join("big").join("parts");
+    let a_files = || -> Vec<String> {
+        let names = std::fs::read_dir(&parts).into_iter().flatten().flatten();
+        names.map(|e| e.file_name().to_string_lossy().into_owned()).filter(|n| n.ends_with(".tmp")).collect()
+    };
     let t0 = Instant::now();
-    while !a_staging.join("x.csv.tmp").exists() && t0.elapsed() < Duration::from_secs(30) {
+    while a_files().is_empty() && t0.elapsed() < Duration::from_secs(30) {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    assert!(a_staging.join("x.csv.tmp").exists(), "A writes into {}", a_staging.display());
+    let a_tmp = a_files();
+    assert!(!a_tmp.is_empty(), "A writes a part into {}", parts.display());
     // A stall, as seen from the database: A's lease ran out and a reaper took the job
     // back (what `Store::reap_expired` does, here at once so that A cannot renew first).
     let pool = match &server.pool {
@@ -361,24 +366,28 @@ async fn a_worker_that_lost_its_lease_stops_and_writes_nothing() {
     while server.job("big").await.unwrap().unwrap().attempts < 2 && t0.elapsed() < Duration::from_secs(30) {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    // A notices at its next renewal (a third of its lease), stops within a chunk and
-    // removes its staging folder, while B is still at work.
+    // A notices at its next renewal (a third of its lease), stops within 1,024 rows and
+    // removes its temporary files, while B is still at work.
     let t0 = Instant::now();
-    while a_staging.exists() && t0.elapsed() < Duration::from_secs(4) {
+    while a_files().iter().any(|f| a_tmp.contains(f)) && t0.elapsed() < Duration::from_secs(4) {
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    assert!(!a_staging.exists(), "A still at work {:?} after losing its lease", t0.elapsed());
+    assert!(!a_files().iter().any(|f| a_tmp.contains(f)), "A still at work {:?} after losing its lease", t0.elapsed());
     let now = server.job("big").await.unwrap().unwrap();
     assert_eq!((now.state.as_str(), now.worker.as_deref()), ("running", Some("b")), "B is still at work");
     let done = wait_state(&server, "big", &["succeeded", "failed", "cancelled"], 120).await;
     assert_eq!((done.state.as_str(), done.attempts, done.worker.as_deref()), ("succeeded", 2, Some("b")), "{done:?}");
     let x = std::fs::read_to_string(data.join("datasets").join("big").join("x.csv")).unwrap();
     assert_eq!(x.lines().count(), 30_001, "one complete dataset, not a mix of two attempts");
-    // A noticed at its next renewal and stopped; its staging folder is gone.
+    // A stopped; nothing but the dataset is left (no staging folder, parts or *.tmp).
     tokio::time::sleep(Duration::from_secs(2)).await;
-    let left: Vec<_> =
-        std::fs::read_dir(data.join("datasets").join("big")).unwrap().flatten().map(|e| e.file_name()).collect();
-    assert!(left.iter().all(|n| !n.to_string_lossy().starts_with(".attempt-")), "{left:?}");
+    let mut left: Vec<_> = std::fs::read_dir(data.join("datasets").join("big"))
+        .unwrap()
+        .flatten()
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(left, ["meta.json", "theta.csv", "x.csv"]);
     a.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
     b.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
 }
@@ -439,7 +448,7 @@ async fn a_killed_worker_process_loses_its_job_to_another_after_the_lease() {
 }
 
 /// Child processes killed when the test ends, also when it fails half-way.
-struct Procs(Vec<std::process::Child>);
+pub(crate) struct Procs(pub Vec<std::process::Child>);
 
 impl Drop for Procs {
     fn drop(&mut self) {

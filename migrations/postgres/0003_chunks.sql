@@ -1,0 +1,19 @@
+-- The same as migrations/0004_chunks.sql (SQLite).
+-- Chunked simulate jobs (issues 13.7, 14.2): a simulate job of n rows is split into
+-- chunks planned once, at its first attempt; any worker may claim a chunk of a running
+-- job (a lease per chunk, like a job's), writes it as a part file of the dataset and
+-- marks it done. A re-claimed job resumes from the finished parts. Rows are kept after
+-- the job ends: who simulated what, for operators.
+CREATE TABLE job_chunks (
+    id               TEXT PRIMARY KEY,  -- '<job id>:<idx, 5 digits>'
+    job_id           TEXT NOT NULL,
+    idx              BIGINT NOT NULL,
+    first_row        BIGINT NOT NULL,
+    n_rows           BIGINT NOT NULL,
+    state            TEXT NOT NULL DEFAULT 'queued' CHECK (state IN ('queued', 'running', 'done')),
+    lease_token      TEXT,
+    lease_expires_ms BIGINT,
+    worker           TEXT,
+    attempts         BIGINT NOT NULL DEFAULT 0
+);
+CREATE INDEX job_chunks_job ON job_chunks (job_id, idx);

@@ -1,0 +1,177 @@
+//! Chunked, resumable simulate jobs (issues 13.7 and 14.2) on both backends: a worker
+//! process killed mid-job leaves finished part files; the job, taken up again (SQLite:
+//! a new process; PostgreSQL: another worker after the lease), resumes from them, and
+//! its dataset is the same bytes as an uninterrupted run with the same seed.
+
+use crate::pg::{Procs, backends, temp_dir, wait_state};
+use otofit::jobs::{self, JobSpec};
+use otofit::store::{Database, Store};
+use serde_json::json;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+const ROWS: usize = 5000;
+const CHUNK: usize = 500;
+const SEED: u64 = 7;
+
+fn spawn_worker(db: &Database, data: &Path, lease: &str) -> std::process::Child {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_otofit"));
+    c.args(["worker", "--data-dir", data.to_str().unwrap(), "--lease-seconds", lease]);
+    c.args(["--threads", "1", "--chunk-rows", &CHUNK.to_string()]);
+    if let Database::Postgres(url) = db {
+        c.args(["--database", url]);
+    }
+    c.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap()
+}
+
+/// The reference: the same rows by `otofit simulate` in one uninterrupted pass.
+fn reference(dir: &Path) {
+    let out = Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["simulate", "--n", &ROWS.to_string(), "--seed", &SEED.to_string(), "--noise-scale", "1"])
+        .args(["--out", dir.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+async fn done_chunks(store: &Store, id: &str) -> usize {
+    store.chunks(id).await.unwrap().iter().filter(|c| c.state == "done").count()
+}
+
+/// Every file under `dir`, recursively, by name.
+fn files_under(dir: &Path) -> Vec<String> {
+    let mut out = vec![];
+    for e in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            out.push(format!("{}/", e.file_name().to_string_lossy()));
+            out.extend(files_under(&p));
+        } else {
+            out.push(e.file_name().to_string_lossy().into_owned());
+        }
+    }
+    out
+}
+
+/// A 5,000-row simulate job in chunks of 500 (10 parts), its worker process stopped
+/// (SIGSTOP, so that it cannot finish meanwhile) once a chunk is done and killed
+/// (SIGKILL: no re-queue, no clean-up); a new worker process takes the job up (SQLite:
+/// at its start; PostgreSQL: after the dead worker's lease) and resumes from the parts.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_simulate_resumes_from_its_finished_chunks_with_the_same_bytes() {
+    let ref_dir = temp_dir("resume-ref");
+    reference(&ref_dir);
+    for (name, db) in backends().await {
+        let data = temp_dir(&format!("resume-{name}"));
+        // SQLite: the database in the data directory, as `otofit worker` opens it.
+        let db = match db {
+            Database::Sqlite(_) => Database::Sqlite(data.join("otofit.db")),
+            pg => pg,
+        };
+        let store = Store::connect(&db).await.unwrap();
+        let spec = JobSpec::parse("simulate", &json!({"n": ROWS, "seed": SEED, "noise_scale": 1})).unwrap();
+        assert!(store.insert_job_within("big", "simulate", &spec.params(), 3, 8).await.unwrap());
+        let mut procs = Procs(vec![spawn_worker(&db, &data, "2")]);
+        let t0 = Instant::now();
+        while done_chunks(&store, "big").await == 0 && t0.elapsed() < Duration::from_secs(60) {
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        let pid = procs.0[0].id() as i32;
+        // SAFETY: a signal to our own child.
+        unsafe { libc::kill(pid, libc::SIGSTOP) };
+        let before = done_chunks(&store, "big").await;
+        assert!((1..10).contains(&before), "{name}: {before} of 10 chunks done at the kill");
+        procs.0[0].kill().unwrap();
+        procs.0[0].wait().unwrap();
+        let parts = data.join("datasets/big/parts");
+        let finished = (0..10).filter(|i| parts.join(format!("part-{i:05}.json")).exists()).count();
+        assert!(finished >= before, "{name}: the done chunks' parts are on disk ({finished})");
+        assert_eq!(store.job("big").await.unwrap().unwrap().state, "running", "{name}");
+        procs.0.push(spawn_worker(&db, &data, "2"));
+        let j = wait_state(&store, "big", &["succeeded", "failed", "cancelled"], 120).await;
+        drop(procs);
+        assert_eq!((j.state.as_str(), j.attempts), ("succeeded", 2), "{name}: {:?}", j.error);
+        let result = j.result.unwrap();
+        assert_eq!((result["rows"].as_u64(), result["chunks"].as_u64()), (Some(ROWS as u64), Some(10)), "{name}");
+        let resumed = result["resumed_chunks"].as_u64().unwrap();
+        assert!(resumed as usize >= finished, "{name}: resumed from {resumed} chunks, {finished} were finished");
+        for f in ["theta.csv", "x.csv"] {
+            let (got, want) =
+                (std::fs::read(data.join("datasets/big").join(f)).unwrap(), std::fs::read(ref_dir.join(f)).unwrap());
+            assert!(
+                got == want,
+                "{name}: {f} differs from the uninterrupted run ({} vs {} bytes)",
+                got.len(),
+                want.len()
+            );
+        }
+        // Nothing but the dataset is left: no parts, no temporary files.
+        let mut left = files_under(&data.join("datasets/big"));
+        left.sort();
+        assert_eq!(left, ["meta.json", "theta.csv", "x.csv"], "{name}");
+    }
+}
+
+/// With PostgreSQL, the chunks of one job are run by every idle worker: three
+/// dispatchers (as three worker processes would) share the 20 chunks of one job, and
+/// the dataset is the same bytes as one uninterrupted run.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn the_chunks_of_one_job_are_shared_by_all_workers() {
+    let Some(url) = crate::pg::fresh_database().await else { return };
+    let db = Database::Postgres(url);
+    let data = temp_dir("chunks-pg");
+    let ref_dir = temp_dir("chunks-ref");
+    reference(&ref_dir);
+    let store = Store::connect(&db).await.unwrap();
+    let spec = JobSpec::parse("simulate", &json!({"n": ROWS, "seed": SEED, "noise_scale": 1})).unwrap();
+    assert!(store.insert_job_within("shared", "simulate", &spec.params(), 3, 8).await.unwrap());
+    let mut ctxs = vec![];
+    for w in 0..3 {
+        let ctx =
+            crate::pg::ctx_on(Store::connect(&db).await.unwrap(), &data, &format!("w{w}"), Duration::from_secs(30));
+        let ctx = std::sync::Arc::new(std::sync::Arc::into_inner(ctx).unwrap().with_chunk_rows(250));
+        tokio::spawn(jobs::dispatcher(ctx.clone()));
+        ctxs.push(ctx);
+    }
+    let j = wait_state(&store, "shared", &["succeeded", "failed", "cancelled"], 120).await;
+    for c in &ctxs {
+        c.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+    assert_eq!((j.state.as_str(), j.attempts), ("succeeded", 1), "{:?}", j.error);
+    let chunks = store.chunks("shared").await.unwrap();
+    assert_eq!(chunks.len(), 20);
+    let by: std::collections::BTreeSet<_> = chunks.iter().filter_map(|c| c.worker.clone()).collect();
+    assert!(by.len() >= 2, "the chunks were run by one worker only: {by:?}");
+    for f in ["theta.csv", "x.csv"] {
+        let (got, want) =
+            (std::fs::read(data.join("datasets/shared").join(f)).unwrap(), std::fs::read(ref_dir.join(f)).unwrap());
+        assert!(got == want, "{f} differs from the uninterrupted run");
+    }
+}
+
+/// A cancelled chunked simulate removes everything it wrote: finished parts, the
+/// temporary files of the chunk under way, staging folders.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_cancelled_simulate_leaves_no_parts_or_temporary_files() {
+    for (name, db) in backends().await {
+        let data = temp_dir(&format!("cancel-{name}"));
+        let store = Store::connect(&db).await.unwrap();
+        let spec = JobSpec::parse("simulate", &json!({"n": 100_000, "seed": 1})).unwrap();
+        assert!(store.insert_job_within("c", "simulate", &spec.params(), 3, 8).await.unwrap());
+        let ctx = crate::pg::ctx_on(store.clone(), &data, "w", Duration::from_secs(30));
+        let ctx = std::sync::Arc::new(std::sync::Arc::into_inner(ctx).unwrap().with_chunk_rows(2000));
+        tokio::spawn(jobs::dispatcher(ctx.clone()));
+        let t0 = Instant::now();
+        while done_chunks(&store, "c").await == 0 && t0.elapsed() < Duration::from_secs(60) {
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        assert!(data.join("datasets/c/parts/part-00000.json").exists(), "{name}: a part is written");
+        store.cancel("c").await.unwrap();
+        let j = wait_state(&store, "c", &["succeeded", "failed", "cancelled"], 60).await;
+        ctx.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+        assert_eq!(j.state, "cancelled", "{name}");
+        let left = files_under(&data.join("datasets/c"));
+        assert!(left.is_empty(), "{name}: {left:?}");
+    }
+}
