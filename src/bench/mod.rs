@@ -4,6 +4,8 @@
 //! reference posterior draws with a classifier two-sample test (C2ST).
 
 pub mod c2st;
+pub mod glm;
+pub mod mcmc;
 pub mod tasks;
 
 use crate::npe::{self, Dataset, Obs, TrainSettings};

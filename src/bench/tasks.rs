@@ -3,9 +3,11 @@
 //! box, a simulator and exact-or-MCMC reference posterior draws for an observation.
 //!
 //! Reference posteriors: analytic for the Gaussian tasks (truncated normals), exact
-//! sampling by inverting the simulator's noise for two moons, and Metropolis chains
-//! started from a likelihood-weighted resample of the prior for SLCP.
+//! sampling by inverting the simulator's noise for two moons, Metropolis chains
+//! started from a likelihood-weighted resample of the prior for SLCP, and Langevin
+//! chains around the Laplace approximation for the Bernoulli GLM ([`super::glm`]).
 
+use super::glm;
 use crate::npe::{Param, Scale};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -23,11 +25,15 @@ pub enum Task {
     Slcp,
     /// 2-D, x ~ ½ N(θ, I) + ½ N(θ, 0.01 I), θ uniform on [−10, 10]².
     GaussianMixture,
+    /// 10-D, a bias and a 9-tap filter with a Gaussian smoothness prior; 100 Bernoulli
+    /// trials through a logistic link, observed through their 10-D sufficient statistic.
+    BernoulliGlm,
 }
 
-pub const ALL: [Task; 4] = [Task::TwoMoons, Task::GaussianLinearUniform, Task::Slcp, Task::GaussianMixture];
+pub const ALL: [Task; 5] =
+    [Task::TwoMoons, Task::GaussianLinearUniform, Task::Slcp, Task::GaussianMixture, Task::BernoulliGlm];
 
-fn normal(rng: &mut ChaCha8Rng) -> f64 {
+pub(super) fn normal(rng: &mut ChaCha8Rng) -> f64 {
     StandardNormal.sample(rng)
 }
 
@@ -38,6 +44,7 @@ impl Task {
             Task::GaussianLinearUniform => "gaussian_linear_uniform",
             Task::Slcp => "slcp",
             Task::GaussianMixture => "gaussian_mixture",
+            Task::BernoulliGlm => "bernoulli_glm",
         }
     }
 
@@ -45,43 +52,57 @@ impl Task {
         ALL.into_iter().find(|t| t.name() == s)
     }
 
-    /// Prior box per dimension.
-    fn bounds(self) -> (usize, f64) {
+    pub fn dim(self) -> usize {
         match self {
-            Task::TwoMoons => (2, 1.0),
-            Task::GaussianLinearUniform => (10, 1.0),
-            Task::Slcp => (5, 3.0),
-            Task::GaussianMixture => (2, 10.0),
+            Task::TwoMoons | Task::GaussianMixture => 2,
+            Task::GaussianLinearUniform => 10,
+            Task::Slcp => 5,
+            Task::BernoulliGlm => glm::DIM,
         }
     }
 
-    pub fn dim(self) -> usize {
-        self.bounds().0
+    /// The prior box's half-width in dimension k (the box is centred on 0).
+    fn half_width(self, k: usize) -> f64 {
+        match self {
+            Task::TwoMoons | Task::GaussianLinearUniform => 1.0,
+            Task::Slcp => 3.0,
+            Task::GaussianMixture => 10.0,
+            Task::BernoulliGlm => glm::glm().half_width[k],
+        }
     }
 
     pub fn params(self) -> Vec<Param> {
-        let (d, b) = self.bounds();
-        (0..d)
-            .map(|k| Param { name: format!("theta{k}"), unit: String::new(), scale: Scale::Linear, low: -b, high: b })
+        (0..self.dim())
+            .map(|k| {
+                let b = self.half_width(k);
+                Param { name: format!("theta{k}"), unit: String::new(), scale: Scale::Linear, low: -b, high: b }
+            })
             .collect()
     }
 
     pub fn features(self) -> usize {
         match self {
             Task::TwoMoons | Task::GaussianMixture => 2,
-            Task::GaussianLinearUniform => 10,
+            Task::GaussianLinearUniform | Task::BernoulliGlm => 10,
             Task::Slcp => 8,
         }
     }
 
+    /// A prior draw: uniform in the box, except the GLM's Gaussian (restricted to its box).
     pub fn prior(self, rng: &mut ChaCha8Rng) -> Vec<f64> {
-        let (d, b) = self.bounds();
-        (0..d).map(|_| rng.random_range(-b..b)).collect()
+        if self == Task::BernoulliGlm {
+            return glm::glm().prior(rng);
+        }
+        (0..self.dim())
+            .map(|k| {
+                let b = self.half_width(k);
+                rng.random_range(-b..b)
+            })
+            .collect()
     }
 
     fn in_prior(self, theta: &[f64]) -> bool {
-        let b = self.bounds().1;
-        theta.iter().all(|v| v.abs() <= b)
+        theta.iter().enumerate().all(|(k, v)| v.abs() <= self.half_width(k))
     }
 
     pub fn simulate(self, theta: &[f64], rng: &mut ChaCha8Rng) -> Vec<f64> {
@@ -106,6 +127,7 @@ impl Task {
                 let s = if rng.random::<bool>() { 1.0 } else { 0.1 };
                 theta.iter().map(|t| t + s * normal(rng)).collect()
             }
+            Task::BernoulliGlm => glm::glm().simulate(theta, rng),
         }
     }
 
@@ -144,6 +166,7 @@ impl Task {
                     .collect()
             }
             Task::Slcp => slcp_reference(x, n, rng),
+            Task::BernoulliGlm => glm::glm().reference(x, n, rng),
         }
     }
 }

@@ -9,8 +9,9 @@ use std::path::PathBuf;
 
 #[derive(Args, Debug)]
 pub struct C2stArgs {
-    /// Tasks, comma-separated (two_moons, gaussian_linear_uniform, slcp, gaussian_mixture).
-    #[arg(long, default_value = "two_moons,gaussian_linear_uniform,slcp,gaussian_mixture")]
+    /// Tasks, comma-separated (two_moons, gaussian_linear_uniform, slcp, gaussian_mixture,
+    /// bernoulli_glm).
+    #[arg(long, default_value = "two_moons,gaussian_linear_uniform,slcp,gaussian_mixture,bernoulli_glm")]
     pub tasks: String,
     /// Training simulations per task.
     #[arg(long, default_value_t = 10_000)]
