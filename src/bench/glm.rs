@@ -1,5 +1,5 @@
 //! The Bernoulli GLM task of the SBI benchmark (Lueckmann et al. 2021,
-//! arXiv:2101.04653, appendix T.5; sbibm's `bernoulli_glm`): a neuron's spikes in 100
+//! arXiv:2101.04653; sbibm's `bernoulli_glm`): a neuron's spikes in 100
 //! time bins of a white-noise stimulus through a logistic link.
 //!
 //! - θ = (β₀, h₁ … h₉): a bias and a 9-tap linear filter on the stimulus.
