@@ -234,6 +234,23 @@ pub struct QueueCount {
     pub count: i64,
 }
 
+/// Most active (queued + running) jobs: in all, and of one tenant.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct QueueBounds {
+    pub queue: i64,
+    pub per_tenant: i64,
+}
+
+/// Whether a job was queued, or which bound refused it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Admission {
+    Queued,
+    /// The queue holds its limit of active (queued + running) jobs.
+    QueueFull,
+    /// The tenant has its limit of active jobs.
+    TenantFull,
+}
+
 /// A fresh lease token: 128 random bits, hex.
 pub fn new_token() -> String {
     use rand::Rng;
@@ -368,10 +385,14 @@ impl Store {
         max_attempts: i64,
         limit: i64,
     ) -> Result<bool, sqlx::Error> {
-        self.insert_tenant_job_within(id, DEFAULT_TENANT, kind, params, max_attempts, limit).await
+        let bounds = QueueBounds { queue: limit, per_tenant: limit };
+        let admitted = self.insert_tenant_job_within(id, DEFAULT_TENANT, kind, params, max_attempts, bounds).await?;
+        Ok(admitted == Admission::Queued)
     }
 
-    /// `insert_job_within` for a job of `tenant`.
+    /// `insert_job_within` for a job of `tenant`, which may have at most `bounds.per_tenant`
+    /// jobs queued or running (so that one tenant cannot fill the whole queue): both
+    /// counts and the insert are one statement, as there.
     pub async fn insert_tenant_job_within(
         &self,
         id: &str,
@@ -379,16 +400,26 @@ impl Store {
         kind: &str,
         params: &serde_json::Value,
         max_attempts: i64,
-        limit: i64,
-    ) -> Result<bool, sqlx::Error> {
+        bounds: QueueBounds,
+    ) -> Result<Admission, sqlx::Error> {
+        let QueueBounds { queue: limit, per_tenant: tenant_limit } = bounds;
         const SQL: &str = "INSERT INTO jobs (id, kind, params, max_attempts, created_at, tenant)
              SELECT $1, $2, $3, $4, $5, $7
-             WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < $6";
+             WHERE (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')) < $6
+               AND (SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running') AND tenant = $7) < $8";
         let (params, ts) = (params.to_string(), now());
         // The same statement for both drivers (a macro: the query type depends on the driver).
         macro_rules! insert {
             () => {
-                sqlx::query(SQL).bind(id).bind(kind).bind(&params).bind(max_attempts).bind(&ts).bind(limit).bind(tenant)
+                sqlx::query(SQL)
+                    .bind(id)
+                    .bind(kind)
+                    .bind(&params)
+                    .bind(max_attempts)
+                    .bind(&ts)
+                    .bind(limit)
+                    .bind(tenant)
+                    .bind(tenant_limit)
             };
         }
         let done = match &self.pool {
@@ -403,7 +434,13 @@ impl Store {
                 n
             }
         };
-        Ok(done == 1)
+        if done == 1 {
+            return Ok(Admission::Queued);
+        }
+        // Which bound refused it, for the answer (counted again: a job may have ended since).
+        const MINE: &str = "SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running') AND tenant = $1";
+        let mine: i64 = on_pool!(self, p => sqlx::query_scalar(MINE).bind(tenant).fetch_one(p).await?);
+        Ok(if mine >= tenant_limit { Admission::TenantFull } else { Admission::QueueFull })
     }
 
     pub async fn job(&self, id: &str) -> Result<Option<JobRow>, sqlx::Error> {

@@ -2,7 +2,7 @@
 
 use crate::http::{self, AppState};
 use crate::jobs::{self, Ctx};
-use crate::store::{Database, Store};
+use crate::store::{Database, QueueBounds, Store};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::net::SocketAddr;
@@ -54,6 +54,10 @@ pub struct ServeArgs {
     /// Most queued + running jobs before POST /jobs answers 429.
     #[arg(long, default_value_t = 64)]
     pub max_queue: i64,
+    /// Most queued + running jobs of one tenant before its POST /jobs answers 429, so
+    /// that one tenant cannot fill the whole queue (default: half of --max-queue).
+    #[arg(long)]
+    pub max_queue_per_tenant: Option<i64>,
     /// Most inferences running at once (default: 2 × cores).
     #[arg(long)]
     pub infer_concurrency: Option<usize>,
@@ -157,7 +161,8 @@ pub async fn open_with(
     infer: http::InferLimits,
 ) -> Result<Arc<Ctx>> {
     let db = Database::Sqlite(data_dir.join("otofit.db"));
-    open_db(&db, data_dir, default_model, max_queue, infer, jobs::JobSettings::default()).await
+    let queue = QueueBounds { queue: max_queue, per_tenant: max_queue };
+    open_db(&db, data_dir, default_model, queue, infer, jobs::JobSettings::default()).await
 }
 
 /// Most dispatchers one process runs.
@@ -181,6 +186,18 @@ pub fn job_settings(lease_seconds: f64, chunk_rows: usize) -> Result<jobs::JobSe
         bail!("--chunk-rows must be 1..={}, got {chunk_rows}", jobs::MAX_ROWS);
     }
     Ok(jobs::JobSettings { lease: std::time::Duration::from_secs_f64(lease_seconds), chunk_rows })
+}
+
+/// `--max-queue` (≥ 1) and `--max-queue-per-tenant` (1 ..= --max-queue; default half).
+pub fn queue_bounds(max_queue: i64, per_tenant: Option<i64>) -> Result<QueueBounds> {
+    if max_queue < 1 {
+        bail!("--max-queue must be at least 1, got {max_queue}");
+    }
+    let per_tenant = per_tenant.unwrap_or((max_queue / 2).max(1));
+    if !(1..=max_queue).contains(&per_tenant) {
+        bail!("--max-queue-per-tenant must be 1..={max_queue} (--max-queue), got {per_tenant}");
+    }
+    Ok(QueueBounds { queue: max_queue, per_tenant })
 }
 
 /// Opens the state of a `serve` or `worker` process. With SQLite the process takes the
@@ -225,12 +242,12 @@ pub async fn open_db(
     db: &Database,
     data_dir: &Path,
     default_model: &Path,
-    max_queue: i64,
+    queue: QueueBounds,
     infer: http::InferLimits,
     settings: jobs::JobSettings,
 ) -> Result<Arc<Ctx>> {
     let mut ctx = open_state(db, data_dir, settings).await?;
-    ctx.max_queue = max_queue;
+    (ctx.max_queue, ctx.max_queue_per_tenant) = (queue.queue, queue.per_tenant);
     let store = &ctx.store;
     if default_model.exists() {
         let path = std::fs::canonicalize(default_model)?;
@@ -288,6 +305,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let limits = args.infer_limits()?;
     let database = database_arg(args.database.as_deref(), &args.data_dir)?;
     let settings = job_settings(args.lease_seconds, args.chunk_rows)?;
+    let queue = queue_bounds(args.max_queue, args.max_queue_per_tenant)?;
     if args.workers > MAX_WORKERS {
         bail!("--workers must be 0..={MAX_WORKERS}, got {}", args.workers);
     }
@@ -295,7 +313,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
         let default_model = resolve_default_model(&args.default_model);
-        let ctx = open_db(&database, &args.data_dir, &default_model, args.max_queue, limits, settings).await?;
+        let ctx = open_db(&database, &args.data_dir, &default_model, queue, limits, settings).await?;
         if !args.addr.ip().is_loopback() && keys.is_empty() && !ctx.store.has_keys().await? {
             tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
         }

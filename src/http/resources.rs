@@ -2,6 +2,7 @@
 
 use super::{AppState, Principal, Problem, json_body};
 use crate::jobs::{self, JobSpec};
+use crate::store::{Admission, QueueBounds};
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -81,6 +82,7 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
 pub async fn list_models(
     State(st): State<AppState>,
     Extension(who): Extension<Principal>,
+    _: StrictQuery<NoQuery>,
 ) -> Result<Json<serde_json::Value>, Problem> {
     let rows = st.ctx.store.models(who.scope()).await.map_err(Problem::internal)?;
     Ok(Json(json!({ "models": rows.iter().map(|m| model_doc(&st, m)).collect::<Vec<_>>() })))
@@ -161,17 +163,33 @@ pub async fn create_job(
         JobSpec::Simulate(_) | JobSpec::Resimulate(_) => {}
     }
     let id = jobs::new_id();
-    if !st
+    let bounds = QueueBounds { queue: st.ctx.max_queue, per_tenant: st.ctx.max_queue_per_tenant };
+    let admitted = st
         .ctx
         .store
-        .insert_tenant_job_within(&id, &who.tenant, spec.kind(), &spec.params(), 3, st.ctx.max_queue)
+        .insert_tenant_job_within(&id, &who.tenant, spec.kind(), &spec.params(), 3, bounds)
         .await
-        .map_err(Problem::internal)?
-    {
-        return Err(Problem::new(
-            StatusCode::TOO_MANY_REQUESTS,
-            format!("the queue is full ({} active jobs); retry later", st.ctx.max_queue),
-        ));
+        .map_err(Problem::internal)?;
+    let full = |detail: String| {
+        let mut r = Problem::new(StatusCode::TOO_MANY_REQUESTS, detail).into_response();
+        r.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(10));
+        Ok(r)
+    };
+    match admitted {
+        Admission::Queued => {}
+        Admission::QueueFull => {
+            return full(format!(
+                "the queue is full: {} active (queued or running) jobs, the limit (--max-queue); retry later",
+                bounds.queue
+            ));
+        }
+        Admission::TenantFull => {
+            return full(format!(
+                "tenant '{}' has {} active (queued or running) jobs, its limit (--max-queue-per-tenant); \
+                 retry when one ends",
+                who.tenant, bounds.per_tenant
+            ));
+        }
     }
     st.ctx.notify.notify_one();
     tracing::info!(job = %id, kind = spec.kind(), tenant = %who.tenant, "job queued");
@@ -207,15 +225,55 @@ async fn diagnose_model(st: &AppState, who: &Principal, p: &jobs::DiagnoseParams
 }
 
 #[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct JobQuery {
     state: Option<String>,
     limit: Option<i64>,
 }
 
+/// The query of a route that takes none.
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NoQuery {}
+
+/// A query string read into `T` (`deny_unknown_fields`): a parameter the route does not
+/// take is a 400 naming it, not silently ignored (a misspelt `limt=5` would otherwise
+/// answer 100 rows as if it had been heard).
+pub struct StrictQuery<T>(pub T);
+
+impl<S: Send + Sync, T: serde::de::DeserializeOwned> axum::extract::FromRequestParts<S> for StrictQuery<T> {
+    type Rejection = Response;
+
+    async fn from_request_parts(parts: &mut axum::http::request::Parts, state: &S) -> Result<Self, Response> {
+        match Query::<T>::from_request_parts(parts, state).await {
+            Ok(Query(q)) => Ok(StrictQuery(q)),
+            Err(e) => {
+                let text = e.body_text();
+                let Some(name) = text.split_once("unknown field `").and_then(|(_, r)| r.split_once('`')).map(|x| x.0)
+                else {
+                    // A bad value: the `problems` layer names its parameter.
+                    return Err(e.into_response());
+                };
+                let takes = match text.split_once(", expected ") {
+                    Some((_, names)) => format!("this route takes {}", names.replace('`', "")),
+                    None => "this route takes none".into(),
+                };
+                let mut p =
+                    Problem::new(StatusCode::BAD_REQUEST, format!("unknown query parameter '{name}' ({takes})"));
+                p.errors = vec![super::FieldProblem {
+                    field: name.into(),
+                    message: format!("unknown query parameter; {takes}"),
+                }];
+                Err(p.into_response())
+            }
+        }
+    }
+}
+
 pub async fn list_jobs(
     State(st): State<AppState>,
     Extension(who): Extension<Principal>,
-    Query(q): Query<JobQuery>,
+    StrictQuery(q): StrictQuery<JobQuery>,
 ) -> Result<Json<serde_json::Value>, Problem> {
     const STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
     if let Some(s) = &q.state

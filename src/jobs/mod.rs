@@ -46,6 +46,8 @@ pub struct Ctx {
     pub shutdown: AtomicBool,
     models: RwLock<HashMap<String, Arc<Npe>>>,
     pub max_queue: i64,
+    /// Most active jobs of one tenant (`--max-queue-per-tenant`; default half the queue).
+    pub max_queue_per_tenant: i64,
     /// The data directory's lock, held as long as this context lives (see `with_lock`).
     data_lock: Option<std::fs::File>,
     /// Slots and deadline of POST /infer.
@@ -88,6 +90,7 @@ impl Ctx {
             shutdown: AtomicBool::new(false),
             models: RwLock::new(HashMap::new()),
             max_queue,
+            max_queue_per_tenant: max_queue,
             data_lock: None,
             infer_gate: crate::http::InferGate::new(crate::http::InferLimits::default()),
             worker: crate::store::worker_name(),

@@ -230,3 +230,79 @@ async fn keys_are_added_listed_and_revoked_from_the_command_line() {
     assert!(!ok && err.contains("--tenant"), "{err}");
     std::fs::remove_dir_all(&data).unwrap();
 }
+
+/// One tenant cannot fill the whole queue: at its own limit (`--max-queue-per-tenant`)
+/// its posts get a 429 naming that limit while another tenant's still go in, up to the
+/// queue's limit (`--max-queue`), named in its own 429. On both backends.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tenant_cannot_fill_the_whole_queue() {
+    for (name, db) in backends().await {
+        let store = otofit::store::Store::connect(&db).await.unwrap();
+        let data = crate::pg::temp_dir(&format!("tenant-queue-{name}"));
+        let mut ctx = Arc::into_inner(ctx_on(store, &data, "test", Duration::from_secs(30))).unwrap();
+        (ctx.max_queue, ctx.max_queue_per_tenant) = (3, 2);
+        let ctx = Arc::new(ctx);
+        let app = router(AppState::new(ctx.clone(), vec![]));
+        let alpha = ctx.store.add_key("alpha", false).await.unwrap().key;
+        let beta = ctx.store.add_key("beta", false).await.unwrap().key;
+        let job = || Some(json!({"kind": "simulate", "params": {"n": 10}}));
+        for _ in 0..2 {
+            assert_eq!(send(&app, Some(&alpha), "POST", "/jobs", job()).await.0, StatusCode::ACCEPTED, "{name}");
+        }
+        let (status, p) = send(&app, Some(&alpha), "POST", "/jobs", job()).await;
+        assert_eq!(status, StatusCode::TOO_MANY_REQUESTS, "{name}: {p}");
+        let detail = p["detail"].as_str().unwrap();
+        assert!(detail.contains("--max-queue-per-tenant") && detail.contains("'alpha'"), "{name}: {detail}");
+        // Beta still gets in, until the queue as a whole is full.
+        assert_eq!(send(&app, Some(&beta), "POST", "/jobs", job()).await.0, StatusCode::ACCEPTED, "{name}");
+        let (status, p) = send(&app, Some(&beta), "POST", "/jobs", job()).await;
+        assert_eq!(status, StatusCode::TOO_MANY_REQUESTS, "{name}: {p}");
+        let detail = p["detail"].as_str().unwrap();
+        assert!(detail.contains("(--max-queue)") && !detail.contains("per-tenant"), "{name}: {detail}");
+        // A job of alpha's ends: alpha may post again.
+        let claimed = ctx.store.claim("test", Duration::from_secs(30)).await.unwrap().unwrap();
+        let token = claimed.lease_token.unwrap();
+        assert!(ctx.store.finish(&claimed.id, &token, "succeeded", None, None).await.unwrap());
+        assert_eq!(send(&app, Some(&alpha), "POST", "/jobs", job()).await.0, StatusCode::ACCEPTED, "{name}");
+    }
+}
+
+/// The flags: --max-queue-per-tenant defaults to half of --max-queue and must lie in
+/// 1..=--max-queue; an error names the flag.
+#[test]
+fn queue_flags_are_checked_naming_the_flag() {
+    use otofit::cli::serve::queue_bounds;
+    assert_eq!(queue_bounds(64, None).unwrap(), otofit::store::QueueBounds { queue: 64, per_tenant: 32 });
+    assert_eq!(queue_bounds(1, None).unwrap().per_tenant, 1);
+    assert!(queue_bounds(8, Some(9)).unwrap_err().to_string().contains("--max-queue-per-tenant"));
+    assert!(queue_bounds(8, Some(0)).unwrap_err().to_string().contains("--max-queue-per-tenant"));
+    assert!(queue_bounds(0, None).unwrap_err().to_string().contains("--max-queue"));
+}
+
+/// Unknown query parameters of the list routes are refused (400, problem+json, the
+/// parameter named) instead of silently ignored; known ones still work.
+#[tokio::test]
+async fn unknown_query_parameters_of_list_routes_are_named() {
+    let data = crate::pg::temp_dir("strict-query");
+    let store = otofit::store::Store::open(&data.join("otofit.db")).await.unwrap();
+    let ctx = ctx_on(store, &data, "test", Duration::from_secs(30));
+    let app = router(AppState::new(ctx, vec![]));
+    for (uri, name, takes) in [
+        ("/jobs?limt=5", "limt", "takes state or limit"),
+        ("/jobs?state=queued&tenant=beta", "tenant", "takes state or limit"),
+        ("/models?limit=3", "limit", "takes none"),
+    ] {
+        let req = Request::get(uri).body(Body::empty()).unwrap();
+        let res = app.clone().oneshot(req).await.unwrap();
+        assert_eq!(res.status(), StatusCode::BAD_REQUEST, "{uri}");
+        assert_eq!(res.headers()[header::CONTENT_TYPE], "application/problem+json", "{uri}");
+        let bytes = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
+        let p: Value = serde_json::from_slice(&bytes).unwrap();
+        assert_eq!(p["errors"][0]["field"], name, "{uri}: {p}");
+        let detail = p["detail"].as_str().unwrap();
+        assert!(detail.contains(&format!("'{name}'")) && detail.contains(takes), "{uri}: {detail}");
+    }
+    for uri in ["/jobs?state=queued&limit=5", "/jobs", "/models"] {
+        assert_eq!(send(&app, None, "GET", uri, None).await.0, StatusCode::OK, "{uri}");
+    }
+}
