@@ -4,14 +4,15 @@
 //! extrapolated). Shared by `POST /infer` and `otofit infer --obs file.json`.
 
 use crate::npe::Npe;
+use crate::sim::output::N_MEASURES;
 use serde::{Deserialize, Serialize};
 use serde_json::json;
 
 /// Why measurements cannot become a feature vector.
 #[derive(Debug, thiserror::Error)]
 pub enum MeasurementError {
-    /// The model's features are not otofit's five measures on a frequency grid.
-    #[error("this model was not trained on otofit's five measures; use a feature table")]
+    /// The model's features are not otofit's measures on a frequency grid.
+    #[error("this model was not trained on otofit's measures; use a feature table")]
     NotOtofitModel,
     /// Bad fields: (JSON path, what is wrong).
     #[error("invalid measurements: {}", .0.iter().map(|(f, m)| format!("{f}: {m}")).collect::<Vec<_>>().join("; "))]
@@ -26,6 +27,8 @@ pub struct Measurements {
     /// Ear-canal impedance |Z| in Pa·s/m³ and its phase in rad.
     pub impedance: Option<MagPhase>,
     pub absorbance: Option<Values>,
+    /// |V_umbo/P_ec| in m/s/Pa (clinical LDV through the canal) and its phase in rad.
+    pub umbo_velocity: Option<MagPhase>,
 }
 
 #[derive(Debug, Deserialize, Serialize)]
@@ -88,7 +91,7 @@ fn phase_rad(field: &str, mp: &MagPhase, errs: &mut Vec<(String, String)>) -> Op
 /// A hint when a magnitude outside the physical envelope looks like another unit.
 fn magnitude_hint(block: usize, v: f64) -> &'static str {
     match block {
-        0 if v > 1e-2 && v <= 1e2 => "; it looks like mm/s/Pa: send \"magnitude_unit\": \"mm/s/Pa\"",
+        0 | 5 if v > 1e-2 && v <= 1e2 => "; it looks like mm/s/Pa: send \"magnitude_unit\": \"mm/s/Pa\"",
         2 if (1e-2..1e5).contains(&v) => {
             "; it looks like MΩ or CGS acoustic ohms: send \"magnitude_unit\": \"MOhm\" or \"cgs\""
         }
@@ -185,38 +188,33 @@ fn check_values(field: &str, v: &[f64], positive: bool, errs: &mut Vec<(String, 
     }
 }
 
+/// The request field of each measure (`MEASURES` order).
+const FIELDS: [&str; N_MEASURES] =
+    ["stapes_velocity", "stapes_velocity", "impedance", "impedance", "absorbance", "umbo_velocity", "umbo_velocity"];
+
 /// Rejects features outside the physical envelope of their measure, naming the request
 /// field and the model-grid frequency, with a hint where the value looks like a unit slip.
 fn plausible(x: &[f64], grid: &[f64], errs: &mut Vec<(String, String)>) {
     use crate::sim::output::{MEASURES, implausible};
     let n = grid.len();
     let present: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
-    for (m, i, v) in implausible(x, &present) {
+    for (m, i, v) in implausible(x, &present, n) {
         let f = grid[i % n];
-        let (field, shown, range, hint) = match m {
-            0 | 2 => {
-                let (lo, hi) = MEASURES[m].envelope;
-                let field = if m == 0 { "stapes_velocity.magnitude" } else { "impedance.magnitude" };
-                let unit = if m == 0 { "m/s/Pa" } else { "Pa·s/m³" };
-                let shown = format!("{:.3e} {unit}", 10f64.powf(v));
-                (
-                    field,
-                    shown,
-                    format!("{:.0e}–{:.0e} {unit}", 10f64.powf(lo), 10f64.powf(hi)),
-                    magnitude_hint(m, 10f64.powf(v)),
-                )
-            }
-            1 | 3 => {
-                let (lo, hi) = MEASURES[m].envelope;
-                let field = if m == 1 { "stapes_velocity.phase" } else { "impedance.phase" };
+        let (lo, hi) = MEASURES[m].envelope;
+        let (part, shown, range, hint) = match MEASURES[m].name {
+            "absorbance" => ("values", format!("{v:.3}"), "0–1".into(), ""),
+            name if name.ends_with("_phase") => {
                 let hint = if v.abs() <= 1100.0 { "; phases in degrees need \"phase_unit\": \"deg\"" } else { "" };
-                let range = format!("{:.2}…{:.2} rad (unwrapped)", lo, hi);
-                (field, format!("{v:.2} rad"), range, hint)
+                ("phase", format!("{v:.2} rad"), format!("{lo:.2}…{hi:.2} rad (unwrapped)"), hint)
             }
-            _ => ("absorbance.values", format!("{v:.3}"), "0–1".into(), ""),
+            _ => {
+                let unit = if m == 2 { "Pa·s/m³" } else { "m/s/Pa" };
+                let range = format!("{:.0e}–{:.0e} {unit}", 10f64.powf(lo), 10f64.powf(hi));
+                ("magnitude", format!("{:.3e} {unit}", 10f64.powf(v)), range, magnitude_hint(m, 10f64.powf(v)))
+            }
         };
         errs.push((
-            format!("measurements.{field}"),
+            format!("measurements.{}.{part}", FIELDS[m]),
             format!("{shown} at {f:.0} Hz is outside the physical range {range} of a human ear{hint}"),
         ));
     }
@@ -237,6 +235,16 @@ pub fn bands_used(npe: &Npe, present: &[bool]) -> serde_json::Map<String, serde_
         .collect()
 }
 
+/// How many of otofit's measures the model takes (5: without umbo velocity, as models
+/// before v4; 7: all), from its feature names; `None` when they are not otofit's.
+pub fn model_measures(npe: &Npe) -> Option<usize> {
+    let names = &npe.header.feature_names;
+    let n = npe.header.frequencies_hz.len();
+    let measures = names.len().checked_div(n).unwrap_or(0);
+    let ours = |m: usize| names[m * n].split('@').next() == Some(crate::sim::output::MEASURES[m].name);
+    ([5, N_MEASURES].contains(&measures) && names.len() == measures * n && (0..measures).all(ours)).then_some(measures)
+}
+
 /// The model's feature vector and presence flags from the measurements.
 /// Features on the model grid, which are present, and the measures used.
 pub type Features = (Vec<f64>, Vec<bool>, Vec<&'static str>);
@@ -246,22 +254,25 @@ pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementErro
     let cut = npe.header.mask_bands.then_some(npe.header.band_cut_max);
     let n = grid.len();
     let mut errs = Vec::new();
-    if n == 0 || npe.header.feature_names.len() != 5 * n {
-        return Err(MeasurementError::NotOtofitModel);
-    }
-    let mut x = vec![f64::NAN; 5 * n];
+    let measures = model_measures(npe).ok_or(MeasurementError::NotOtofitModel)?;
+    let mut x = vec![f64::NAN; measures * n];
     let mut used = Vec::new();
     let mut magphase =
         |field: &'static str, mp: &MagPhase, block: usize, x: &mut Vec<f64>, errs: &mut Vec<(String, String)>| {
             let fld = format!("measurements.{field}");
-            let units: &[(&[&str], Option<f64>)] = if block == 0 { &VELOCITY_UNITS } else { &IMPEDANCE_UNITS };
+            if block >= measures {
+                errs.push((fld, format!("this model was trained on {measures} measures, without {field}")));
+                return;
+            }
+            let velocity = block != 2;
+            let units: &[(&[&str], Option<f64>)] = if velocity { &VELOCITY_UNITS } else { &IMPEDANCE_UNITS };
             let (Some(mag), Some(phase)) = (magnitude_si(&fld, mp, units, errs), phase_rad(&fld, mp, errs)) else {
                 return;
             };
             let decibels = mp.magnitude_unit.as_deref().is_some_and(|u| u.starts_with("dB"));
             if decibels {
                 check_values(&format!("{fld}.magnitude"), &mp.magnitude, false, errs);
-            } else if mp.magnitude.iter().any(|v| *v <= 0.0) && block == 0 {
+            } else if mp.magnitude.iter().any(|v| *v <= 0.0) && velocity {
                 let i = mp.magnitude.iter().position(|v| *v <= 0.0).unwrap_or(0);
                 errs.push((
                     format!("{fld}.magnitude[{i}]"),
@@ -288,6 +299,9 @@ pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementErro
     if let Some(mp) = &m.impedance {
         magphase("impedance", mp, 2, &mut x, &mut errs);
     }
+    if let Some(mp) = &m.umbo_velocity {
+        magphase("umbo_velocity", mp, 5, &mut x, &mut errs);
+    }
     if let Some(a) = &m.absorbance {
         check_values("measurements.absorbance.values", &a.values, false, &mut errs);
         if let Some(i) = a.values.iter().position(|v| !(-0.05..=1.05).contains(v)) {
@@ -300,7 +314,7 @@ pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementErro
             ));
         }
         if let Some(v) = resample("measurements.absorbance", &a.frequencies_hz, &a.values, grid, cut, &mut errs) {
-            x[4 * n..].copy_from_slice(&v);
+            x[4 * n..5 * n].copy_from_slice(&v);
             used.push("absorbance");
         }
     }
@@ -313,13 +327,13 @@ pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementErro
     if used.is_empty() {
         return Err(MeasurementError::Invalid(vec![(
             "measurements".into(),
-            "give at least one of stapes_velocity, impedance, absorbance".into(),
+            "give at least one of stapes_velocity, impedance, absorbance, umbo_velocity".into(),
         )]));
     }
     let present: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
     if !npe.header.mask_groups && present.iter().any(|p| !p) {
-        let missing: Vec<&str> =
-            ["stapes_velocity", "impedance", "absorbance"].into_iter().filter(|f| !used.contains(f)).collect();
+        let mut missing: Vec<&str> = FIELDS[..measures].iter().copied().filter(|f| !used.contains(f)).collect();
+        missing.dedup();
         return Err(MeasurementError::Invalid(vec![(
             "measurements".into(),
             format!("this model needs every measure; missing: {}", missing.join(", ")),

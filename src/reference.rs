@@ -1,6 +1,8 @@
 //! The measured-like reference ear: normative mean spectra with citations
 //! (`reference/ear.json`), interpolated onto a model's frequency grid as an observation
-//! (250 features) with a test–retest STD per feature.
+//! (350 features) with a test–retest STD per feature. The table holds no umbo velocity
+//! (the design notes cite no normative umbo curve): those features are NaN, absent; their
+//! STD is the noise model's, so that std.csv stays a complete noise table.
 
 use crate::sim::output::{MEASURES, feature_names, interpolate_log_f, noise_std};
 use serde::Deserialize;
@@ -69,25 +71,27 @@ fn interpolate(c: &Curve, name: &'static str, grid: &[f64]) -> Result<Vec<f64>> 
 /// Builds the reference ear on `freqs` (the model grid).
 pub fn build(freqs: &[f64]) -> Result<Reference> {
     let t: Table = serde_json::from_str(EAR_JSON).map_err(ReferenceError::Json)?;
-    let mut x = Vec::with_capacity(5 * freqs.len());
+    let mut x = Vec::with_capacity(MEASURES.len() * freqs.len());
     // vst in feature units: log10(m/s/Pa) from dB re 1 mm/s/Pa; phases in rad.
     x.extend(interpolate(&t.vst_mag_db, "vst_mag_db", freqs)?.iter().map(|db| db / 20.0 - 3.0));
     x.extend(interpolate(&t.vst_phase_deg, "vst_phase_deg", freqs)?.iter().map(|d| d.to_radians()));
     x.extend(interpolate(&log10(&t.zec_mag), "zec_mag", freqs)?);
     x.extend(interpolate(&t.zec_phase_deg, "zec_phase_deg", freqs)?.iter().map(|d| d.to_radians()));
     x.extend(interpolate(&t.absorbance, "absorbance", freqs)?);
+    x.resize(MEASURES.len() * freqs.len(), f64::NAN);
     // STD: the noise model's shape in frequency, at the table's level per measure.
     let mut std = noise_std(freqs);
-    for (m, measure) in MEASURES.iter().enumerate() {
+    for (m, measure) in MEASURES.iter().enumerate().take(5) {
         let level = t.std.get(measure.name).and_then(|v| v.as_f64()).ok_or(ReferenceError::MissingStd(measure.name))?;
         for s in &mut std[m * freqs.len()..(m + 1) * freqs.len()] {
             *s *= level / measure.noise_std;
         }
     }
-    let citations = [&t.vst_mag_db, &t.vst_phase_deg, &t.zec_mag, &t.zec_phase_deg, &t.absorbance]
+    let mut citations: Vec<String> = [&t.vst_mag_db, &t.vst_phase_deg, &t.zec_mag, &t.zec_phase_deg, &t.absorbance]
         .iter()
         .map(|c| c.citation.clone())
         .collect();
+    citations.resize(MEASURES.len(), "none: no normative umbo velocity in the design notes; absent".into());
     Ok(Reference { feature_names: feature_names(freqs), x, std, citations })
 }
 
@@ -99,10 +103,13 @@ fn log10(c: &Curve) -> Curve {
     }
 }
 
-/// One-row CSV with a header of feature names (the OBS format of `otofit infer`).
+/// One-row CSV with a header of feature names (the OBS format of `otofit infer`);
+/// absent (non-finite) features are left out, as `otofit infer` reads absent columns.
 pub fn csv(names: &[String], row: &[f64]) -> String {
-    let cells: Vec<String> = row.iter().map(|v| format!("{v:.6e}")).collect();
-    format!("{}\n{}\n", names.join(","), cells.join(","))
+    let on: Vec<usize> = (0..row.len()).filter(|&i| row[i].is_finite()).collect();
+    let head: Vec<&str> = on.iter().map(|&i| names[i].as_str()).collect();
+    let cells: Vec<String> = on.iter().map(|&i| format!("{:.6e}", row[i])).collect();
+    format!("{}\n{}\n", head.join(","), cells.join(","))
 }
 
 #[cfg(test)]

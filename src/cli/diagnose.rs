@@ -14,7 +14,7 @@ pub struct DiagnoseArgs {
     /// Base model (trained on otofit's simulator without effects).
     #[arg(long)]
     pub model: PathBuf,
-    /// One observation: CSV with a header of all 250 feature names.
+    /// One observation: CSV with a header of all the model's feature names.
     #[arg(long)]
     pub obs: PathBuf,
     /// Report folder (created): report.html, report.json, the figures and, with an
@@ -66,7 +66,8 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
     let Some(row) = table.rows.first() else { bail!("{}: no observation row", args.obs.display()) };
     let (x, present) = super::infer::align(&base, &table.header, row)?;
     if let Some(i) = present.iter().position(|p| !p) {
-        bail!("{}: feature '{}' is missing (diagnose needs all 250)", args.obs.display(), base.header.feature_names[i]);
+        let (obs, names) = (args.obs.display(), &base.header.feature_names);
+        bail!("{obs}: feature '{}' is missing (diagnose needs all {})", names[i], names.len());
     }
     let model = Model::new(ModelConfig::default())?;
     let s = Settings {

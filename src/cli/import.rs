@@ -30,9 +30,9 @@ pub enum ImportWhat {
     },
     /// Any long-layout CSV (comma, semicolon or tab separated; one row per frequency):
     /// Frequency, and any of Absorbance, Zmag + Zang, Ymag + Yang (admittance), Rmag
-    /// (+ Rang) or PowerReflectance, AreaCanal, VstMag + VstAng; each magnitude, phase
-    /// and area with its unit in the header (`Zmag [cgs]`, `Zang [deg]`, `Ymag [mmho]`,
-    /// `AreaCanal [mm2]`) or from --unit. Reflectance with its phase and the canal area
+    /// (+ Rang) or PowerReflectance, AreaCanal, VstMag + VstAng, VuMag + VuAng (umbo
+    /// velocity); each magnitude, phase and area with its unit in the header (`Zmag
+    /// [cgs]`, `Zang [deg]`, `Ymag [mmho]`, `AreaCanal [mm2]`) or from --unit. Reflectance with its phase and the canal area
     /// becomes the impedance Z = Z0 (1 + R)/(1 − R), Z0 = ρc/S (air at 37 °C).
     Csv {
         #[command(flatten)]
@@ -49,7 +49,7 @@ pub enum ImportWhat {
         #[arg(long)]
         out: PathBuf,
         /// Which measure the FRF is (the file does not say where the laser pointed):
-        /// stapes_velocity.
+        /// stapes_velocity or umbo_velocity (clinical LDV through the canal).
         #[arg(long)]
         measure: crate::formats::uff58::Measure,
         /// Which dataset 58 of the file (1-based), when it holds several.

@@ -133,7 +133,10 @@ fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<(Vec<f
             let (x, present) =
                 align(model, &table.header, row).with_context(|| format!("{}: row {}", path.display(), r + 1))?;
             // The JSON path checks this in measurements::features; a feature table here.
-            if otofit_model && let Some((_, i, v)) = crate::sim::output::implausible(&x, &present).first() {
+            if otofit_model
+                && let Some((_, i, v)) =
+                    crate::sim::output::implausible(&x, &present, model.header.frequencies_hz.len()).first()
+            {
                 bail!(
                     "{}: row {}: {} = {v} is outside the physical range of a human ear (phases in rad, magnitudes as \
                      log10 of m/s/Pa and Pa·s/m³)",

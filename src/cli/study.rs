@@ -459,6 +459,8 @@ struct ReferenceFit {
     best_x: Vec<f64>,
     best_rho: Vec<f64>,
     map_rho: Vec<f64>,
+    /// The measures the reference ear holds (`MEASURES` indices; no umbo velocity).
+    measured: Vec<usize>,
     mean_abs: f64,
     best_abs: f64,
     differential: Vec<npe::normal::Differential>,
@@ -494,8 +496,15 @@ fn reference_fit(model: &Model, npe: &Npe, r: crate::reference::Reference, seed:
         .ok_or_else(|| anyhow::anyhow!("least-squares fit failed to simulate"))?;
     let best_x = run_rows(model, &Design::default(), std::slice::from_ref(&best.row), 0, None).remove(0)?;
     let best_rho = rho(&best_x, &r.x);
-    let map_rho: Vec<f64> = c.spearman.iter().map(|(_, v)| *v).collect();
-    let mean_abs = map_rho.iter().map(|v| v.abs()).sum::<f64>() / map_rho.len() as f64;
+    let n = model.frequencies().len();
+    let measured: Vec<usize> =
+        (0..MEASURES.len()).filter(|m| r.x[m * n..(m + 1) * n].iter().all(|v| v.is_finite())).collect();
+    let map_rho: Vec<f64> = MEASURES
+        .iter()
+        .map(|ms| c.spearman.iter().find(|(name, _)| name == ms.name).map_or(f64::NAN, |(_, v)| *v))
+        .collect();
+    let mean_over = |v: &[f64]| measured.iter().map(|&m| v[m].abs()).sum::<f64>() / measured.len().max(1) as f64;
+    let (mean_abs, best_abs) = (mean_over(&map_rho), mean_over(&best_rho));
     let mut differential = npe::normal::read(npe.params(), &inf.samples);
     // The fit check every inference carries (with the model's training noise, as a
     // request would get it; the check above uses the ear's own test-retest STD).
@@ -505,8 +514,21 @@ fn reference_fit(model: &Model, npe: &Npe, r: crate::reference::Reference, seed:
     {
         npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
     }
-    let best_abs = best_rho.iter().map(|v| v.abs()).sum::<f64>() / best_rho.len() as f64;
-    Ok(ReferenceFit { r, inf, c, draws_rho, best, best_x, best_rho, map_rho, mean_abs, best_abs, differential, fit })
+    Ok(ReferenceFit {
+        r,
+        inf,
+        c,
+        draws_rho,
+        best,
+        best_x,
+        best_rho,
+        map_rho,
+        measured,
+        mean_abs,
+        best_abs,
+        differential,
+        fit,
+    })
 }
 
 /// The reference study's spectra, corner and residual figures.
@@ -558,9 +580,9 @@ fn reference_print(path: &Path, e: &ReferenceFit) -> Result<()> {
     let mean_abs = e.mean_abs;
     println!("reference: measured-like ear (reference/ear.json), model {}", path.display());
     println!("{:<11} {:>9} {:>19} {:>19}", "measure", "ρ (MAP)", "ρ (5 draws, mean)", "ρ (least squares)");
-    for (m, ms) in MEASURES.iter().enumerate() {
+    for &m in &e.measured {
         let d = e.draws_rho.iter().map(|r| r[m]).sum::<f64>() / e.draws_rho.len().max(1) as f64;
-        println!("{:<11} {:>9.3} {:>19.3} {:>19.3}", ms.name, e.map_rho[m], d, e.best_rho[m]);
+        println!("{:<11} {:>9.3} {:>19.3} {:>19.3}", MEASURES[m].name, e.map_rho[m], d, e.best_rho[m]);
     }
     let best_abs = e.best_abs;
     println!(
@@ -612,12 +634,11 @@ fn reference_report(out: &Path, e: &ReferenceFit) -> Result<()> {
     p.text("Normative mean spectra (reference/ear.json, citations below) inferred as one observation, MAP and five posterior draws re-simulated; a least-squares fit shows the best the simulator can do. Study (one temporal bone, Fig. 3): mean |ρ| 0.964.");
     p.heading("Spearman ρ against the reference").table(
         &["measure", "MAP", "5 draws (mean)", "least squares"],
-        MEASURES
+        e.measured
             .iter()
-            .enumerate()
-            .map(|(m, ms)| {
+            .map(|&m| {
                 vec![
-                    ms.name.into(),
+                    MEASURES[m].name.into(),
                     format!("{:.3}", e.map_rho[m]),
                     format!("{:.3}", e.draws_rho.iter().map(|r| r[m]).sum::<f64>() / e.draws_rho.len().max(1) as f64),
                     format!("{:.3}", e.best_rho[m]),

@@ -36,12 +36,14 @@ pub fn feature_residual(feature: usize, n_freq: usize, sim: f64, obs: f64) -> f6
     if MEASURES[feature / n_freq].name.ends_with("_phase") { d - TAU * ((d + PI) / TAU).floor() } else { d }
 }
 
-/// Standardised residuals (sim − obs)/σ; `None` if the simulation failed.
+/// Standardised residuals (sim − obs)/σ over the observed features (a non-finite
+/// observation is absent and has none); `None` if the simulation failed.
 pub fn residuals(runner: &mut Runner<'_>, design: &Design, row: &[f64], obs: &Observation) -> Option<Vec<f64>> {
     let (theta, fx) = design.split(row);
     let x = simulate(runner, &theta, &fx).ok()?;
     let nf = x.len() / MEASURES.len();
-    Some((0..x.len()).map(|i| feature_residual(i, nf, x[i], obs.x[i]) / obs.sigma[i]).collect())
+    let on = (0..x.len().min(obs.x.len())).filter(|&i| obs.x[i].is_finite());
+    Some(on.map(|i| feature_residual(i, nf, x[i], obs.x[i]) / obs.sigma[i]).collect())
 }
 
 #[derive(Clone, Debug)]

@@ -34,7 +34,7 @@ impl Band {
 pub fn locate(z: &[f64], freqs: &[f64], threshold: f64, min_len: usize) -> Vec<Band> {
     let n = freqs.len();
     let mut bands = Vec::new();
-    for (m, measure) in MEASURES.iter().enumerate() {
+    for (m, measure) in MEASURES.iter().enumerate().take(z.len() / n.max(1)) {
         let zs = &z[m * n..(m + 1) * n];
         let mut i = 0;
         while i < n {

@@ -36,6 +36,10 @@ pub enum Quantity {
     VstMag,
     /// ∠(V_stapes/P_ec).
     VstAng,
+    /// |V_umbo/P_ec| (clinical LDV through the canal).
+    VuMag,
+    /// ∠(V_umbo/P_ec).
+    VuAng,
     /// |Y| of the ear-canal admittance (1/Z).
     Ymag,
     /// ∠Y.
@@ -52,13 +56,15 @@ pub enum Quantity {
 
 /// Each quantity's canonical column name and the names it is found by (lower case,
 /// letters and digits only: `|Z|` is `z`, `Zang_deg` would be `zangdeg`).
-pub const COLUMNS: [(Quantity, &str, &[&str]); 12] = [
+pub const COLUMNS: [(Quantity, &str, &[&str]); 14] = [
     (Quantity::Frequency, "Frequency", &["frequency", "freq", "f", "hz", "frequencyhz"]),
     (Quantity::Absorbance, "Absorbance", &["absorbance", "a", "powerabsorbance", "energyabsorbance"]),
     (Quantity::Zmag, "Zmag", &["zmag", "z", "zmagnitude", "impedancemagnitude", "impedancemag"]),
     (Quantity::Zang, "Zang", &["zang", "zangle", "zphase", "impedanceangle", "impedancephase"]),
     (Quantity::VstMag, "VstMag", &["vstmag", "vst", "stapesvelocity", "stapesvelocitymagnitude", "stapesvelocitymag"]),
     (Quantity::VstAng, "VstAng", &["vstang", "vstphase", "stapesvelocityphase", "stapesvelocityangle"]),
+    (Quantity::VuMag, "VuMag", &["vumag", "vu", "umbovelocity", "umbovelocitymagnitude", "umbovelocitymag"]),
+    (Quantity::VuAng, "VuAng", &["vuang", "vuphase", "umbovelocityphase", "umbovelocityangle"]),
     (Quantity::Ymag, "Ymag", &["ymag", "y", "ymagnitude", "admittancemagnitude", "admittancemag", "admittance"]),
     (Quantity::Yang, "Yang", &["yang", "yangle", "yphase", "admittanceangle", "admittancephase"]),
     (
@@ -424,16 +430,19 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
         "stapes_velocity",
         &mut columns,
     )?;
+    m.umbo_velocity =
+        mag_phase(&t, find(Quantity::VuMag), find(Quantity::VuAng), &VELOCITY_UNITS, "umbo_velocity", &mut columns)?;
     // An error about a measure's frequencies is one about the frequency column.
     let given = [
         ("impedance", m.impedance.is_some()),
         ("absorbance", m.absorbance.is_some()),
         ("stapes_velocity", m.stapes_velocity.is_some()),
+        ("umbo_velocity", m.umbo_velocity.is_some()),
     ];
     for (field, _) in given.into_iter().filter(|(_, on)| *on) {
         columns.insert(0, (format!("measurements.{field}.frequencies_hz"), fcol.name.clone()));
     }
-    if m.absorbance.is_none() && m.impedance.is_none() && m.stapes_velocity.is_none() {
+    if m.absorbance.is_none() && m.impedance.is_none() && m.stapes_velocity.is_none() && m.umbo_velocity.is_none() {
         let known: Vec<&str> = COLUMNS.iter().skip(1).map(|(_, n, _)| *n).collect();
         return Err(FormatError::Table(format!(
             "no measure found: the columns are {}; otofit reads {}",

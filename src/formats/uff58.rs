@@ -207,6 +207,8 @@ fn dataset(lines: &[&str], start: usize, end: usize) -> Result<Frf, FormatError>
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Measure {
     StapesVelocity,
+    /// The umbo, as clinical LDV through the ear canal sees it.
+    UmboVelocity,
 }
 
 impl std::str::FromStr for Measure {
@@ -215,7 +217,8 @@ impl std::str::FromStr for Measure {
     fn from_str(s: &str) -> Result<Measure, String> {
         match s {
             "stapes_velocity" => Ok(Measure::StapesVelocity),
-            _ => Err(format!("unknown measure '{s}' (known: stapes_velocity)")),
+            "umbo_velocity" => Ok(Measure::UmboVelocity),
+            _ => Err(format!("unknown measure '{s}' (known: stapes_velocity, umbo_velocity)")),
         }
     }
 }
@@ -249,6 +252,10 @@ pub fn read(text: &str, pick: Option<usize>, measure: Measure) -> Result<Importe
         Measure::StapesVelocity => {
             m.stapes_velocity = Some(mp);
             "measurements.stapes_velocity"
+        }
+        Measure::UmboVelocity => {
+            m.umbo_velocity = Some(mp);
+            "measurements.umbo_velocity"
         }
     };
     let notes = vec![format!(
@@ -304,6 +311,10 @@ mod tests {
         let e = read(&two, None, Measure::StapesVelocity).unwrap_err();
         assert!(e.message().contains("--dataset N (1: LDV umbo; 2: LDV umbo)"), "{e}");
         assert!(read(&two, Some(2), Measure::StapesVelocity).is_ok());
+        let umbo = read(&two, Some(1), Measure::UmboVelocity).unwrap();
+        assert!(umbo.measurements.umbo_velocity.is_some() && umbo.measurements.stapes_velocity.is_none());
+        assert_eq!(umbo.columns[0].0, "measurements.umbo_velocity");
+        assert!("umbo".parse::<Measure>().unwrap_err().contains("umbo_velocity"));
         let short = even(200.0, 500.0, &v, "m/s", "Pa").replacen("         2         1", "         3         1", 1);
         let e = read(&short, None, Measure::StapesVelocity).unwrap_err();
         assert!(e.field().starts_with("record 12") && e.message().contains("4 numbers for 3"), "{e}");

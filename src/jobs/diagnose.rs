@@ -16,7 +16,7 @@ pub struct DiagnoseParams {
     /// Base model id; the default model if absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub model: Option<String>,
-    /// The observation: 250 features in the model's order (see GET /models/{id}). A
+    /// The observation: the model's features in its order (see GET /models/{id}). A
     /// patient's measurement: shown to its tenant only.
     pub x: Vec<f64>,
     /// Effect names; all if absent.

@@ -20,7 +20,7 @@ pub struct ResimulateParams {
     pub theta: Vec<Vec<f64>>,
     #[serde(default)]
     pub effects: BTreeMap<String, f64>,
-    /// The observation the rows were inferred from (250 features): drawn in the figure
+    /// The observation the rows were inferred from (the model's features): drawn in the figure
     /// and compared by Spearman ρ per measure. A patient's measurement: shown to its
     /// tenant only.
     #[serde(skip_serializing_if = "Option::is_none")]

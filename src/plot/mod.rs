@@ -27,9 +27,9 @@ pub fn plus_minus(x: &[f64], s: &[f64]) -> (Vec<f64>, Vec<f64>) {
 /// How each measure is shown: its label and the map from feature value to plotted value.
 fn display(measure: usize, v: f64) -> f64 {
     match MEASURES[measure].name {
-        "vst_mag" => 20.0 * (v + 3.0), // log10(m/s/Pa) → dB re 1 mm/s/Pa
-        "zec_mag" => v,                // log10(Pa·s/m³)
-        "vst_phase" | "zec_phase" => v.to_degrees(),
+        "vst_mag" | "vu_mag" => 20.0 * (v + 3.0), // log10(m/s/Pa) → dB re 1 mm/s/Pa
+        "zec_mag" => v,                           // log10(Pa·s/m³)
+        "vst_phase" | "zec_phase" | "vu_phase" => v.to_degrees(),
         _ => v,
     }
 }
@@ -40,11 +40,13 @@ fn label(measure: usize) -> &'static str {
         "vst_phase" => "Vst/P phase (deg)",
         "zec_mag" => "log10 |Zec| (Pa·s/m³)",
         "zec_phase" => "Zec phase (deg)",
+        "vu_mag" => "|Vumbo/P| (dB re 1 mm/s/Pa)",
+        "vu_phase" => "Vumbo/P phase (deg)",
         _ => "absorbance",
     }
 }
 
-/// One spectrum to draw, as 250 features (measure-major on `freqs`).
+/// One spectrum to draw, as features (measure-major on `freqs`, `MEASURES` order).
 pub struct Series<'a> {
     pub x: &'a [f64],
     pub color: &'a str,
@@ -61,43 +63,45 @@ pub struct Band<'a> {
     pub label: &'a str,
 }
 
-/// Five panels (one per measure): optional bands under the series.
+/// One panel per measure (as many as the shortest series holds): optional bands under
+/// the series; non-finite values (an absent measure) are not drawn.
 pub fn spectra(title: &str, freqs: &[f64], bands: &[Band<'_>], series: &[Series<'_>]) -> String {
-    let n = freqs.len();
+    let n = freqs.len().max(1);
+    let measures = series.iter().map(|s| s.x.len() / n).min().unwrap_or(0).min(MEASURES.len());
+    let rows = measures.div_ceil(2).max(1) + usize::from(measures % 2 == 0);
     let (pw, ph) = (420.0, 240.0);
-    let mut c = Canvas::new(2.0 * pw + 40.0, 3.0 * ph + 60.0);
+    let mut c = Canvas::new(2.0 * pw + 40.0, rows as f64 * ph + 60.0);
     c.text(20.0, 28.0, 16.0, "start", title);
-    for m in 0..MEASURES.len() {
+    for m in 0..measures {
         let (col, row) = (m % 2, m / 2);
         let (x0, y0) = (20.0 + col as f64 * pw, 40.0 + row as f64 * ph);
         let shown = |x: &[f64]| -> Vec<f64> { x[m * n..(m + 1) * n].iter().map(|&v| display(m, v)).collect() };
         let mut lo = f64::INFINITY;
         let mut hi = f64::NEG_INFINITY;
-        for s in series {
-            for v in shown(s.x) {
-                lo = lo.min(v);
-                hi = hi.max(v);
-            }
+        let all = series
+            .iter()
+            .flat_map(|s| shown(s.x))
+            .chain(bands.iter().flat_map(|b| shown(b.lo).into_iter().chain(shown(b.hi))));
+        for v in all.filter(|v| v.is_finite()) {
+            lo = lo.min(v);
+            hi = hi.max(v);
         }
-        for b in bands {
-            for v in shown(b.lo).into_iter().chain(shown(b.hi)) {
-                lo = lo.min(v);
-                hi = hi.max(v);
-            }
+        if lo > hi {
+            (lo, hi) = (0.0, 1.0);
         }
         let pad = 0.05 * (hi - lo).max(1e-6);
         let ax =
             Axes::new(x0 + 60.0, y0 + 10.0, pw - 80.0, ph - 60.0, (freqs[0], freqs[n - 1]), (lo - pad, hi + pad), true);
         c.axes(&ax, "frequency (Hz)", label(m));
-        for b in bands {
+        for b in bands.iter().filter(|b| shown(b.lo).iter().chain(&shown(b.hi)).all(|v| v.is_finite())) {
             c.band(&ax, freqs, &shown(b.lo), &shown(b.hi), b.color, 0.2);
         }
         for s in series {
             c.line(&ax, freqs, &shown(s.x), s.color, s.width, s.opacity);
         }
     }
-    // Legend in the empty sixth panel.
-    let (lx, mut ly) = (40.0 + pw, 80.0 + 2.0 * ph);
+    // Legend in the panel after the last measure.
+    let (lx, mut ly) = (40.0 + (measures % 2) as f64 * pw, 80.0 + (measures / 2) as f64 * ph);
     for s in series.iter().filter(|s| s.label.is_some()) {
         c.rect(lx, ly - 8.0, 24.0, 3.0, s.color, 1.0);
         c.text(lx + 32.0, ly - 2.0, 12.0, "start", s.label.unwrap_or(""));
@@ -116,9 +120,11 @@ pub fn residual_map(title: &str, freqs: &[f64], z: &[f64]) -> String {
     let n = freqs.len();
     let (cw, chh) = (12.0, 28.0);
     let (left, top) = (150.0, 50.0);
-    let mut c = Canvas::new(left + cw * n as f64 + 120.0, top + chh * 5.0 + 70.0);
+    let rows = (z.len() / n.max(1)).min(MEASURES.len());
+    let bottom = top + chh * rows as f64;
+    let mut c = Canvas::new(left + cw * n as f64 + 120.0, bottom + 70.0);
     c.text(20.0, 28.0, 16.0, "start", title);
-    for m in 0..MEASURES.len() {
+    for m in 0..rows {
         c.text(left - 8.0, top + chh * (m as f64 + 0.65), 12.0, "end", MEASURES[m].name);
         for i in 0..n {
             c.rect(left + cw * i as f64, top + chh * m as f64, cw, chh, &diverging(z[m * n + i] / 4.0), 1.0);
@@ -126,9 +132,9 @@ pub fn residual_map(title: &str, freqs: &[f64], z: &[f64]) -> String {
     }
     for &f in &[200.0, 500.0, 1000.0, 2000.0, 4000.0, 8000.0] {
         let i = freqs.iter().position(|&g| g >= f * 0.999).unwrap_or(n - 1);
-        c.text(left + cw * (i as f64 + 0.5), top + chh * 5.0 + 16.0, 11.0, "middle", &format!("{f:.0}"));
+        c.text(left + cw * (i as f64 + 0.5), bottom + 16.0, 11.0, "middle", &format!("{f:.0}"));
     }
-    c.text(left + cw * n as f64 / 2.0, top + chh * 5.0 + 36.0, 12.0, "middle", "frequency (Hz)");
+    c.text(left + cw * n as f64 / 2.0, bottom + 36.0, 12.0, "middle", "frequency (Hz)");
     // Colour bar.
     let bx = left + cw * n as f64 + 30.0;
     for k in 0..20 {
@@ -365,6 +371,22 @@ mod tests {
         );
         well_formed(&s);
         assert_eq!(s.matches("<polyline").count(), 5);
+        // Seven measures, the umbo's absent from the observation: seven panels, no NaN.
+        let mut x7: Vec<f64> = (0..350).map(|i| (i as f64 * 0.1).sin()).collect();
+        let sim = x7.clone();
+        x7[250..].fill(f64::NAN);
+        let s = spectra(
+            "t",
+            &freqs,
+            &[],
+            &[
+                Series { x: &x7, color: OBS, width: 2.0, opacity: 1.0, label: Some("observation") },
+                Series { x: &sim, color: MAP, width: 1.0, opacity: 1.0, label: Some("MAP") },
+            ],
+        );
+        well_formed(&s);
+        assert_eq!(s.matches("Vumbo/P phase").count(), 1, "the seventh panel is drawn");
+        well_formed(&residual_map("r", &freqs, &sim));
         well_formed(&residual_map("r", &freqs, &x));
         let dims = [
             Dim { name: "a", unit: "Pa", low: 1.0, high: 100.0, log: true, truth: Some(10.0), map: Some(12.0) },

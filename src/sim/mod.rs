@@ -1,5 +1,6 @@
-//! The FE middle-ear simulator: θ (7 tissue parameters and 3 measurement-geometry
-//! nuisances) + optional effects → 250 features (five measures on a log-frequency grid).
+//! The FE middle-ear simulator: θ (7 tissue parameters, 3 measurement-geometry nuisances,
+//! the cavity volume and the drum's viscoelasticity) + optional effects → 350 features
+//! (seven measures on a log-frequency grid).
 //!
 //! Parts: the residual canal as an exact viscothermal line (`air`; its FE twin `canal`,
 //! a 1D Webster-horn FE, verifies it), `shell` (axisymmetric

@@ -1,5 +1,6 @@
-//! From complex responses to the 250 features: five measures × the frequency grid, in
-//! the order and units of simulator.md, and the test–retest noise model.
+//! From complex responses to the 350 features: seven measures × the frequency grid, in
+//! the order and units of simulator.md, and the test–retest noise model. Umbo velocity
+//! comes last so that the first 250 features keep the order of five-measure models.
 
 use super::model::Response;
 use serde::Serialize;
@@ -22,19 +23,26 @@ pub struct Measure {
     pub envelope: (f64, f64),
 }
 
-pub const MEASURES: [Measure; 5] = [
+/// The number of measures in a feature vector (five before umbo velocity joined).
+pub const N_MEASURES: usize = 7;
+
+pub const MEASURES: [Measure; N_MEASURES] = [
     Measure { name: "vst_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-11.0, -2.0) },
     Measure { name: "vst_phase", unit: "rad", noise_std: 0.10, envelope: (-6.0 * PI, 2.0 * PI) },
     Measure { name: "zec_mag", unit: "log10(Pa·s/m³)", noise_std: 0.05, envelope: (5.0, 10.0) },
     Measure { name: "zec_phase", unit: "rad", noise_std: 0.05, envelope: (-0.5 * PI - 0.35, 0.5 * PI + 0.35) },
     Measure { name: "absorbance", unit: "1", noise_std: 0.03, envelope: (-0.05, 1.05) },
+    // Umbo LDV through the canal: the stapes LDV's test–retest STD and envelope (the
+    // design notes hold no separate umbo figure; the umbo moves 2–10× the stapes).
+    Measure { name: "vu_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-11.0, -2.0) },
+    Measure { name: "vu_phase", unit: "rad", noise_std: 0.10, envelope: (-6.0 * PI, 2.0 * PI) },
 ];
 
 /// The first feature of each measure outside its physical envelope, as (measure index,
 /// feature index, value); absent features (`present[i]` false) are skipped.
-pub fn implausible(x: &[f64], present: &[bool]) -> Vec<(usize, usize, f64)> {
-    let n = x.len() / MEASURES.len();
-    MEASURES
+pub fn implausible(x: &[f64], present: &[bool], n_freq: usize) -> Vec<(usize, usize, f64)> {
+    let n = n_freq.max(1);
+    MEASURES[..(x.len() / n).min(N_MEASURES)]
         .iter()
         .enumerate()
         .filter_map(|(m, ms)| {
@@ -46,10 +54,11 @@ pub fn implausible(x: &[f64], present: &[bool]) -> Vec<(usize, usize, f64)> {
 }
 
 /// Feature groups a model can be asked to work without (modalities).
-pub const GROUPS: [(&str, &[&str]); 3] = [
+pub const GROUPS: [(&str, &[&str]); 4] = [
     ("stapes_velocity", &["vst_mag", "vst_phase"]),
     ("impedance", &["zec_mag", "zec_phase"]),
     ("absorbance", &["absorbance"]),
+    ("umbo_velocity", &["vu_mag", "vu_phase"]),
 ];
 
 /// `measure@frequency` names, measure-major.
@@ -60,12 +69,14 @@ pub fn feature_names(freqs: &[f64]) -> Vec<String> {
 /// The feature vector of one run (measure-major, phases unwrapped along frequency).
 pub fn features(responses: &[Response]) -> Vec<f64> {
     let n = responses.len();
-    let mut out = Vec::with_capacity(5 * n);
+    let mut out = Vec::with_capacity(N_MEASURES * n);
     out.extend(responses.iter().map(|r| r.vst_over_p.norm().log10()));
     out.extend(unwrap(responses.iter().map(|r| r.vst_over_p.arg())));
     out.extend(responses.iter().map(|r| r.zec.norm().log10()));
     out.extend(unwrap(responses.iter().map(|r| r.zec.arg())));
     out.extend(responses.iter().map(|r| r.absorbance()));
+    out.extend(responses.iter().map(|r| r.vu_over_p.norm().log10()));
+    out.extend(unwrap(responses.iter().map(|r| r.vu_over_p.arg())));
     out
 }
 

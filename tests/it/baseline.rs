@@ -64,7 +64,7 @@ impl Baseline {
     }
 }
 
-/// The nominal ear's 250 features as recorded in tests/data/nominal_features.json: the
+/// The nominal ear's 350 features as recorded in tests/data/nominal_features.json: the
 /// simulator the shipped default model was trained on (models/README.md). Any change of
 /// simulator output fails here, physical or not; if it is meant, retrain the default
 /// model and re-record with `OTOFIT_RECORD_NOMINAL=1 cargo test --test it nominal_features`.

@@ -42,12 +42,12 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     );
     assert_eq!(theta.lines().count(), 13);
     assert_eq!(x.lines().count(), 13);
-    assert_eq!(x.lines().next().unwrap().split(',').count(), 250);
+    assert_eq!(x.lines().next().unwrap().split(',').count(), 350);
     assert!(x.starts_with("vst_mag@200.0,"));
     assert_eq!(x, std::fs::read_to_string(b.join("x.csv")).unwrap(), "same seed, same data");
     let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("meta.json")).unwrap()).unwrap();
     assert_eq!(meta["n_rows"], 12);
-    assert_eq!(meta["noise"]["std"].as_array().unwrap().len(), 250);
+    assert_eq!(meta["noise"]["std"].as_array().unwrap().len(), 350);
     assert_eq!(meta["parameters"][10]["name"], "cavity");
     assert_eq!(meta["parameters"][12]["name"], "probe_leak");
     assert!(!a.join("x.csv.tmp").exists());

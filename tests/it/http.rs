@@ -258,7 +258,7 @@ async fn simulate_train_and_infer_through_jobs() {
     )
     .await;
     let done = wait(&app, r["id"].as_str().unwrap()).await;
-    assert_eq!(done["result"]["x"][0].as_array().unwrap().len(), 250, "{done}");
+    assert_eq!(done["result"]["x"][0].as_array().unwrap().len(), 350, "{done}");
     // With the observation: ρ per row and measure, a figure and a report page.
     let obs = done["result"]["x"][0].clone();
     let theta = json!([[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10], [2e7, 5e6, 2e6, 1e6, 6e6, 7.5e-5, 2.1e10]]);
@@ -657,14 +657,14 @@ async fn diagnose_models_are_registered_ids_never_paths() {
     // is refused now, not when the job runs.
     let (status, _, p) = call(&app, "POST", "/jobs", Some(diag(json!("default"), json!([1.0])))).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.x")));
-    assert!(p["errors"][0]["message"].as_str().unwrap().contains("model 'default' takes 250"), "{p}");
+    assert!(p["errors"][0]["message"].as_str().unwrap().contains("model 'default' takes 350"), "{p}");
     // Jobs queued without that check (an older server) fail naming the id, no path.
     let (_, ctx2) = self::app(vec![], 8, false).await;
     let dir = ctx2.data_dir.display().to_string();
     let cases = [
         ("t1", "../../../../etc/model", "model '../../../../etc/model' is not registered"),
         ("t2", "ghost", "model 'ghost' is not registered"),
-        ("t3", "default", "params.x has 1 values; model 'default' has 250 features"),
+        ("t3", "default", "params.x has 1 values; model 'default' has 350 features"),
     ];
     for (id, model, _) in cases {
         let params = json!({"model": model, "x": [1.0]});
@@ -860,6 +860,52 @@ async fn wideband_tympanometry_alone_on_a_sub_band_gets_a_posterior() {
     let (status, _, p) = call(&app, "POST", "/infer", Some(wbt_request(500.0, 3000.0))).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
     assert_eq!(p["errors"][0]["field"], "measurements.impedance.frequencies_hz", "{p}");
+}
+
+/// A clinic's inputs: wideband tympanometry plus umbo LDV through the canal (in dB re
+/// 1 mm/s/Pa and degrees, as vibrometer software shows them), from the nominal ear.
+fn clinic_request() -> Value {
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &Default::default()).unwrap();
+    let n = model.frequencies().len();
+    let mut req = wbt_request(226.0, 8000.0);
+    req["measurements"]["umbo_velocity"] = json!({
+        "frequencies_hz": model.frequencies(),
+        "magnitude": x[5 * n..6 * n].iter().map(|v| 20.0 * (v + 3.0)).collect::<Vec<f64>>(),
+        "magnitude_unit": "dB re 1 mm/s/Pa",
+        "phase": x[6 * n..].iter().map(|v| v.to_degrees()).collect::<Vec<f64>>(),
+        "phase_unit": "deg",
+    });
+    req
+}
+
+/// Umbo velocity (issue 11.5, issue 16): WBT + umbo LDV is answered, the umbo narrows the
+/// posterior of the tissue parameters on average, and its fields are checked by name.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn wideband_tympanometry_with_umbo_ldv_gets_a_narrower_posterior() {
+    let (app, _) = app(vec![], 8, false).await;
+    let (status, _, wbt) = call(&app, "POST", "/infer", Some(wbt_request(226.0, 8000.0))).await;
+    assert_eq!(status, StatusCode::OK, "{wbt}");
+    let (status, _, both) = call(&app, "POST", "/infer", Some(clinic_request())).await;
+    assert_eq!(status, StatusCode::OK, "{both}");
+    assert_eq!(both["inputs"]["used"], json!(["impedance", "umbo_velocity", "absorbance"]));
+    assert_eq!(both["fit"]["ok"], true, "{}", both["fit"]);
+    for d in both["differential"].as_array().unwrap() {
+        assert!(["within", "undetermined"].contains(&d["reading"].as_str().unwrap()), "{d}");
+    }
+    let mean_cv = |b: &Value| {
+        let p = b["parameters"].as_array().unwrap();
+        p[..7].iter().map(|s| s["cv"].as_f64().unwrap()).sum::<f64>() / 7.0
+    };
+    let (a, u) = (mean_cv(&wbt), mean_cv(&both));
+    eprintln!("mean CV of the tissue parameters: WBT {a:.3}, WBT + umbo {u:.3}");
+    assert!(u < a * 0.95, "the umbo adds no information: mean CV {a:.3} → {u:.3}");
+    // Phases sent as degrees but declared radians are refused, naming the umbo's field.
+    let mut bad = clinic_request();
+    bad["measurements"]["umbo_velocity"]["phase_unit"] = json!("rad");
+    let (status, _, p) = call(&app, "POST", "/infer", Some(bad)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert_eq!(p["errors"][0]["field"], "measurements.umbo_velocity.phase", "{p}");
 }
 
 /// A router whose /infer has the given limits (its own data dir).

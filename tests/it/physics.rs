@@ -155,3 +155,33 @@ fn cochlea_receives_at_least_30_percent_at_1_to_4_khz() {
         assert!(share >= 0.30, "cochlear share at {f} Hz: {:.1} %", 100.0 * share);
     }
 }
+
+/// Umbo velocity is the malleus point under the umbo. Closed form: with the chain made
+/// rigid (ligaments, tendons and joints 10⁴× stiffer: malleus and incus turn as one body
+/// about the fixed axis, and the incudostapedial shear spring holds the stapes head on
+/// its path) the stiffness-controlled ratio V_umbo/V_stapes at 200 Hz is the lever ratio
+/// l_umbo/l_lenticular over cos α, α the stapes tilt (the head's axial motion is
+/// x_s/cos α once its lateral motion is held at zero), in phase. With the nominal,
+/// flexible chain the umbo moves more than that lever carries to the stapes.
+#[test]
+fn umbo_over_stapes_is_the_lever_ratio_when_the_chain_is_rigid() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let g = &model.config.geometry;
+    let lever = g.arm_umbo / (g.arm_lp * g.stapes_tilt.cos());
+    let mut runner = model.runner();
+    let mut ratio = |theta: &Theta| {
+        let r = runner.response_at(theta, &Effects::default(), 200.0).unwrap();
+        r.vu_over_p / r.vst_over_p
+    };
+    let mut rigid = Theta::nominal();
+    for k in [1, 2, 4] {
+        rigid.0[k] *= 1e4; // ligaments, tendons, joints
+    }
+    let q = ratio(&rigid);
+    eprintln!("rigid chain: |Vu/Vst| {:.4} (closed form {lever:.4}), phase {:.3}°", q.norm(), q.arg().to_degrees());
+    assert!((q.norm() / lever - 1.0).abs() < 0.01, "|Vu/Vst| {:.4} vs {lever:.4}", q.norm());
+    assert!(q.arg().abs() < 1f64.to_radians(), "phase {:.2}°", q.arg().to_degrees());
+    let q = ratio(&Theta::nominal());
+    eprintln!("nominal: |Vu/Vst| {:.4}", q.norm());
+    assert!(q.norm() > lever * 1.1, "nominal |Vu/Vst| {:.4}", q.norm());
+}
