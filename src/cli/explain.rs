@@ -92,7 +92,7 @@ pub fn report(config: ModelConfig, theta: &Theta, fx: &Effects) -> Result<()> {
         let v = runner.response_at(theta, fx, f)?.vu_over_p;
         umbo.push(format!("{:.1} @ {f:.0} Hz", 20.0 * (v.norm().log10() + 3.0)));
     }
-    println!("umbo velocity V/P (not a feature yet), dB re 1 mm/s/Pa: {}", umbo.join(", "));
+    println!("umbo velocity V/P (vu_mag), dB re 1 mm/s/Pa: {}", umbo.join(", "));
 
     println!("power budget, % of the power entering the middle ear (canal: % of the probe's)");
     println!("    f Hz  canal  drum  lig+tend  joints   SAL  cochlea");

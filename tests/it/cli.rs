@@ -793,6 +793,30 @@ fn infer_with_the_shipped_model(obs: &std::path::Path, out: &std::path::Path) ->
     serde_json::from_slice(&o.stdout).unwrap()
 }
 
+/// Issue 16: a clinic's umbo LDV export (tests/data/ldv_umbo.uff: the nominal ear's umbo
+/// velocity, mm/s over Pa) imports as `umbo_velocity` and infers alone with the shipped
+/// model, which fits it.
+#[test]
+fn a_uff58_umbo_ldv_export_imports_and_infers_alone() {
+    let d = scratch("uff-umbo");
+    let uff = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/data/ldv_umbo.uff");
+    let obs = d.join("umbo.json");
+    let args = ["import", "uff58", "--in", uff, "--measure", "umbo_velocity", "--out", obs.to_str().unwrap()];
+    let o = otofit(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&obs).unwrap()).unwrap();
+    let got = &doc["measurements"]["umbo_velocity"]["magnitude"];
+    let nominal: serde_json::Value = serde_json::from_str(include_str!("../data/nominal_features.json")).unwrap();
+    for (a, v) in got.as_array().unwrap().iter().zip(&nominal["features"].as_array().unwrap()[250..300]) {
+        let (a, want) = (a.as_f64().unwrap(), 10f64.powf(v.as_f64().unwrap()));
+        assert!((a / want - 1.0).abs() < 1e-4, "umbo |V/P| {a} vs {want}");
+    }
+    let r = infer_with_the_shipped_model(&obs, &d.join("s.csv"));
+    assert_eq!(r["fit"]["features"], 100, "{}", r["fit"]);
+    assert_eq!(r["fit"]["ok"], true, "{}", r["fit"]);
+    let _ = std::fs::remove_dir_all(&d);
+}
+
 #[test]
 fn a_uff58_ldv_export_imports_and_infers() {
     // tests/data/ldv_stapes.uff: the openapi example's stapes velocity as a vibrometer's
