@@ -33,8 +33,13 @@ pub struct InferArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Samples CSV (parameter names; plus `obs` when OBS has several rows).
-    #[arg(long)]
-    pub out: PathBuf,
+    #[arg(long, required_unless_present = "log_prob")]
+    pub out: Option<PathBuf>,
+    /// Instead of sampling: log q(θ|x) of the given parameter sets (CSV, header = the
+    /// model's parameter names, natural units), one JSON line per observation; θ outside
+    /// the prior box has density 0 (null, listed in `outside_prior`).
+    #[arg(long, conflicts_with_all = ["out", "plot"])]
+    pub log_prob: Option<PathBuf>,
     /// Folder for one corner plot per observation (corner_<row>.svg: the posterior over the
     /// prior box, MAP marked, tick values in the parameters' units).
     #[arg(long)]
@@ -150,14 +155,59 @@ fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<(Vec<f
         .collect()
 }
 
+/// The parameter sets of a `--log-prob` table, in the model's parameter order.
+fn theta_rows(model: &Npe, path: &Path) -> Result<Vec<Vec<f64>>> {
+    let table = read_csv(path).with_context(|| "--log-prob".to_string())?;
+    let names: Vec<&str> = model.params().iter().map(|p| p.name.as_str()).collect();
+    if let Some(h) = table.header.iter().find(|h| !names.contains(&h.as_str())) {
+        bail!("--log-prob {}: column '{h}' is not a parameter of this model ({})", path.display(), names.join(", "));
+    }
+    let cols: Vec<usize> = names
+        .iter()
+        .map(|n| {
+            table.header.iter().position(|h| h == n).with_context(|| {
+                format!("--log-prob {}: column '{n}' missing (the table needs every parameter)", path.display())
+            })
+        })
+        .collect::<Result<_>>()?;
+    if table.rows.is_empty() {
+        bail!("--log-prob {}: no parameter rows", path.display());
+    }
+    Ok(table.rows.iter().map(|r| cols.iter().map(|&c| r[c]).collect()).collect())
+}
+
+/// `--log-prob`: log q(θ|x) of every given θ for every observation, one JSON line each.
+fn log_probs(model: &Npe, rows: &[(Vec<f64>, Vec<bool>)], path: &Path) -> Result<()> {
+    let thetas = theta_rows(model, path)?;
+    let inside = |t: &[f64]| model.params().iter().zip(t).all(|(p, v)| v.is_finite() && (p.low..=p.high).contains(v));
+    let mut stdout = std::io::stdout().lock();
+    for (r, (x, present)) in rows.iter().enumerate() {
+        let lp = model
+            .log_prob(&Obs { x, present: Some(present) }, &thetas)
+            .with_context(|| format!("observation {}", r + 1))?;
+        let outside: Vec<usize> = (0..thetas.len()).filter(|&i| !inside(&thetas[i])).collect();
+        let lp: Vec<Option<f64>> =
+            lp.iter().enumerate().map(|(i, v)| (!outside.contains(&i) && v.is_finite()).then_some(*v)).collect();
+        let line = serde_json::json!({ "observation": r, "log_prob": lp, "outside_prior": outside });
+        writeln!(stdout, "{line}")?;
+    }
+    Ok(())
+}
+
 pub fn run(args: InferArgs) -> Result<()> {
     if args.samples == 0 || args.samples > 1_000_000 {
         bail!("--samples must be between 1 and 1000000");
     }
-    if let Some(dir) = args.out.parent().filter(|d| !d.as_os_str().is_empty())
+    if let Some(theta) = &args.log_prob {
+        let model = Npe::load(&args.model)?;
+        let rows = observations(&model, &args.obs, &args)?;
+        return log_probs(&model, &rows, theta);
+    }
+    let out_path = args.out.clone().context("--out is required")?;
+    if let Some(dir) = out_path.parent().filter(|d| !d.as_os_str().is_empty())
         && !dir.is_dir()
     {
-        bail!("--out {}: the folder {} does not exist", args.out.display(), dir.display());
+        bail!("--out {}: the folder {} does not exist", out_path.display(), dir.display());
     }
     if let Some(dir) = &args.plot {
         std::fs::create_dir_all(dir).with_context(|| format!("--plot {}: cannot create it", dir.display()))?;
@@ -202,9 +252,9 @@ pub fn run(args: InferArgs) -> Result<()> {
         let json = serde_json::json!({ "observation": r, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
         summaries.push(json.to_string());
     }
-    let tmp = args.out.with_extension("tmp");
+    let tmp = out_path.with_extension("tmp");
     std::fs::write(&tmp, out).with_context(|| format!("cannot write {}", tmp.display()))?;
-    std::fs::rename(&tmp, &args.out)?;
+    std::fs::rename(&tmp, &out_path)?;
     let mut stdout = std::io::stdout().lock();
     for line in summaries {
         writeln!(stdout, "{line}")?;

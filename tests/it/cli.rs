@@ -859,3 +859,41 @@ fn a_uff58_ldv_export_imports_and_infers() {
     );
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// Issue 16.5: `infer --log-prob` gives log q(θ|x) of given parameter sets: on the
+/// openapi example (the nominal ear) the nominal θ is far more probable than one with the
+/// eardrum 10× softer; a θ outside the prior box is null and listed.
+#[test]
+fn infer_log_prob_ranks_the_truth_above_a_wrong_eardrum() {
+    use otofit::sim::params::PARAMS;
+    let d = scratch("logprob");
+    let spec = include_str!("../../openapi.yaml");
+    let line = spec.lines().find_map(|l| l.trim().strip_prefix("example: {\"measurements\"")).unwrap();
+    let obs = d.join("ear.json");
+    std::fs::write(&obs, format!("{{\"measurements\"{line}")).unwrap();
+    let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();
+    let nominal: Vec<f64> = PARAMS.iter().map(|p| p.nominal).collect();
+    let mut soft = nominal.clone();
+    soft[0] /= 10.0;
+    let mut outside = nominal.clone();
+    outside[0] = PARAMS[0].high * 2.0;
+    let row = |v: &[f64]| v.iter().map(|x| format!("{x:e}")).collect::<Vec<_>>().join(",");
+    let theta = d.join("theta.csv");
+    std::fs::write(&theta, format!("{}\n{}\n{}\n{}\n", names.join(","), row(&nominal), row(&soft), row(&outside)))
+        .unwrap();
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let args = ["infer", "--model", model, "--obs", obs.to_str().unwrap(), "--log-prob", theta.to_str().unwrap()];
+    let o = otofit(&args);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let lp = r["log_prob"].as_array().unwrap();
+    let (truth, wrong) = (lp[0].as_f64().unwrap(), lp[1].as_f64().unwrap());
+    eprintln!("log q: nominal {truth:.2}, eardrum 10x softer {wrong:.2}");
+    assert!(truth > wrong + 5.0, "log q nominal {truth} vs soft eardrum {wrong}");
+    assert!(lp[2].is_null() && r["outside_prior"] == serde_json::json!([2]), "{r}");
+    // A table without every parameter is refused naming the column.
+    std::fs::write(&theta, "E_eardrum\n2e7\n").unwrap();
+    let o = otofit(&args);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("column 'E_ligaments' missing"), "{o:?}");
+    let _ = std::fs::remove_dir_all(&d);
+}
