@@ -260,17 +260,24 @@ fn subset_null(
     present: &[bool],
     seed: u64,
 ) -> Result<SubsetNull, FitCheckError> {
-    let (mut chi, mut scores, mut worst) = (Vec::new(), Vec::new(), Vec::new());
-    for (k, x) in sims.iter().enumerate() {
-        let obs = Obs { x, present: Some(present) };
-        let inf = npe
-            .infer(&obs, NULL_SAMPLES, seed.wrapping_add(k as u64))
-            .map_err(|e| FitCheckError::Inference(format!("{e:#}")))?;
-        let (c, score) = statistics(model, npe, x, present, &inf)?;
-        chi.push(c.reduced_chi2);
-        scores.push(score);
-        worst.push(worst_measure(&c.z, present).map_or(0.0, |w| w.1));
-    }
+    use rayon::prelude::*;
+    // One case per task: each seed is the case's own, so the result does not depend on
+    // the number of threads.
+    let per_case: Vec<(f64, f64, f64)> = sims
+        .par_iter()
+        .enumerate()
+        .map(|(k, x)| {
+            let obs = Obs { x, present: Some(present) };
+            let inf = npe
+                .infer(&obs, NULL_SAMPLES, seed.wrapping_add(k as u64))
+                .map_err(|e| FitCheckError::Inference(format!("{e:#}")))?;
+            let (c, score) = statistics(model, npe, x, present, &inf)?;
+            Ok((c.reduced_chi2, score, worst_measure(&c.z, present).map_or(0.0, |w| w.1)))
+        })
+        .collect::<Result<_, FitCheckError>>()?;
+    let chi: Vec<f64> = per_case.iter().map(|c| c.0).collect();
+    let scores: Vec<f64> = per_case.iter().map(|c| c.1).collect();
+    let worst: Vec<f64> = per_case.iter().map(|c| c.2).collect();
     Ok(SubsetNull {
         groups: present_groups(npe, present),
         reduced_chi2: null_quantile(chi, NULL_QUANTILE),
