@@ -64,11 +64,8 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
     let base = crate::npe::Npe::load(&args.model)?;
     let table = crate::dataset::read_csv(&args.obs)?;
     let Some(row) = table.rows.first() else { bail!("{}: no observation row", args.obs.display()) };
-    let (x, present) = super::infer::align(&base, &table.header, row)?;
-    if let Some(i) = present.iter().position(|p| !p) {
-        let (obs, names) = (args.obs.display(), &base.header.feature_names);
-        bail!("{obs}: feature '{}' is missing (diagnose needs all {})", names[i], names.len());
-    }
+    // Absent columns are measures not taken (NaN): the base model must accept the subset.
+    let (x, _) = super::infer::align(&base, &table.header, row)?;
     let model = Model::new(ModelConfig::default())?;
     let s = Settings {
         candidates,
@@ -111,7 +108,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed };
     let t0 = Instant::now();
     let mut s = Settings { extend: false, null_cases: NULL_CASES, seed, ..Settings::default() };
-    let t = null_thresholds(&model, &base, &noise, &s)?;
+    let t = null_thresholds(&model, &base, &noise, &vec![true; base.header.feature_names.len()], &s)?;
     s.thresholds = Some(t);
     let q = 100.0 * crate::discrepancy::workflow::ALARM_QUANTILE;
     println!(

@@ -256,13 +256,15 @@ pub fn check_present(
 /// Rows simulated between two cancellation checks.
 const CHUNK: usize = 1024;
 
-/// Simulates a training set for `design` and trains an estimator on it, stopping with
+/// Simulates a training set for `design` and trains an estimator on it, on the features
+/// marked in `given` (those the observation has), stopping with
 /// [`DiagnoseError::Cancelled`] between simulation chunks and epochs once `cancelled()` says so.
 #[allow(clippy::too_many_arguments)]
 pub fn train_for(
     model: &Model,
     design: &Design,
     noise: &Noise,
+    given: &[bool],
     rows: usize,
     max_epochs: usize,
     seed: u64,
@@ -277,21 +279,23 @@ pub fn train_for(
         }
         out.extend(run_rows(model, design, chunk, k * CHUNK, None));
     }
+    let keep = |v: Vec<f64>| -> Vec<f64> { v.into_iter().zip(given).filter(|(_, g)| **g).map(|(f, _)| f).collect() };
     let (mut t, mut x) = (Vec::new(), Vec::new());
     for (row, r) in theta.into_iter().zip(out) {
         if let Ok(v) = r
             && v.iter().all(|f| f.is_finite())
         {
             t.push(row);
-            x.push(v);
+            x.push(keep(v));
         }
     }
+    let names = feature_names(model.frequencies()).into_iter().zip(given).filter(|(_, g)| **g).map(|(n, _)| n);
     let ds = Dataset {
         params: design.columns().iter().map(npe::Param::from).collect(),
-        feature_names: feature_names(model.frequencies()),
+        feature_names: names.collect(),
         frequencies_hz: model.frequencies().to_vec(),
         groups: vec![],
-        noise_std: noise.std.clone(),
+        noise_std: keep(noise.std.clone()),
         theta: t,
         x,
         skipped: 0,
@@ -315,7 +319,8 @@ pub const ALARM_QUANTILE: f64 = 0.975;
 
 /// The null: effect-free simulations from the prior, pushed through the same fit and
 /// candidate ranking; their `ALARM_QUANTILE` quantiles are the alarm thresholds.
-pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -> Result<Thresholds> {
+/// `given`: the features the observation has; the null's ears lack the same ones.
+pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, given: &[bool], s: &Settings) -> Result<Thresholds> {
     let design = Design::default();
     let rows = design.draw(s.seed ^ 0x4E55, 0, s.null_cases);
     let noisy = Noise { seed: s.seed ^ 0x4E55, ..noise.clone() };
@@ -328,7 +333,8 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, s: &Settings) -
     let (mut chi, mut drops) = (Vec::new(), Vec::new());
     for (k, x) in sims.into_iter().enumerate() {
         s.go_on()?;
-        let Ok(x) = x else { continue };
+        let Ok(mut x) = x else { continue };
+        x.iter_mut().zip(given).filter(|(_, g)| !**g).for_each(|(v, _)| *v = f64::NAN);
         let obs = Observation { x, sigma: noise.std.clone() };
         let inf = base.infer(&Obs { x: &obs.x, present: None }, s.draws, s.seed + k as u64)?;
         s.go_on()?;
@@ -352,6 +358,12 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     if x.len() != base.header.feature_names.len() {
         return Err(DiagnoseError::Observation { got: x.len(), expected: base.header.feature_names.len() });
     }
+    // Absent features (NaN: a measure not taken) stay out of every statistic; the base
+    // model must accept the subset (group masks), and the extended one is trained on it.
+    let given: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
+    if !given.iter().any(|g| *g) {
+        return Err(DiagnoseError::Observation { got: 0, expected: x.len() });
+    }
     let noise = Noise { std: base.header.noise_std.clone(), scale: 1.0, seed: s.seed };
     let obs = Observation { x: x.to_vec(), sigma: noise.std.clone() };
     progress("fit: base posterior");
@@ -364,7 +376,7 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         Some(t) => t,
         None => {
             progress("null distribution of the statistics");
-            null_thresholds(model, base, &noise, s)?
+            null_thresholds(model, base, &noise, &given, s)?
         }
     };
     s.go_on()?;
@@ -384,9 +396,11 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         let e = EFFECTS.iter().position(|x| x.name == name).expect("named effect");
         let design = Design { varied: vec![e], ..Design::default() };
         progress(&format!("add: simulating {} rows with {name} in the prior", s.train_rows));
-        let npe2 = train_for(model, &design, &noise, s.train_rows, s.max_epochs, s.seed, progress, &|| s.cancelled())?;
+        let cancelled = || s.cancelled();
+        let npe2 = train_for(model, &design, &noise, &given, s.train_rows, s.max_epochs, s.seed, progress, &cancelled)?;
         s.go_on()?;
-        let inf2 = npe2.infer(&Obs { x, present: None }, s.draws.max(200), s.seed)?;
+        let x_given: Vec<f64> = x.iter().copied().filter(|v| v.is_finite()).collect();
+        let inf2 = npe2.infer(&Obs { x: &x_given, present: None }, s.draws.max(200), s.seed)?;
         let c2 = check(model, &design, &inf2.samples[..s.draws.min(inf2.samples.len())], &inf2.map, &obs)?;
         let p = &inf2.summaries[N_PARAMS];
         effect_posterior =

@@ -172,14 +172,13 @@ pub async fn infer(
             if f.ok == Some(false) {
                 let why = f.reason.clone().unwrap_or_default();
                 crate::npe::normal::withdraw(&mut differential, &why);
+                // Features not measured are null: the diagnose job leaves them out.
                 let mut params = json!({ "x": x });
                 if let Some(m) = &req.model {
                     params["model"] = json!(m);
                 }
                 next = json!({ "why": "look for the physical effect the model is missing", "method": "POST", "path": "/jobs" });
-                if x.iter().all(|v| v.is_finite()) {
-                    next["body"] = json!({ "kind": "diagnose", "params": params });
-                }
+                next["body"] = json!({ "kind": "diagnose", "params": params });
             }
             json!(f)
         }

@@ -16,9 +16,10 @@ pub struct DiagnoseParams {
     /// Base model id; the default model if absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub model: Option<String>,
-    /// The observation: the model's features in its order (see GET /models/{id}). A
-    /// patient's measurement: shown to its tenant only.
-    pub x: Vec<f64>,
+    /// The observation: the model's features in its order (see GET /models/{id}), `null`
+    /// for a feature not measured (a whole measure, e.g. no umbo LDV: the base model must
+    /// accept that subset). A patient's measurement: shown to its tenant only.
+    pub x: Vec<Option<f64>>,
     /// Effect names; all if absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub candidates: Option<Vec<String>>,
@@ -51,8 +52,11 @@ impl DiagnoseParams {
         if let Some(m) = &self.model {
             plain_id("params.model", m, errs);
         }
-        if let Some(i) = self.x.iter().position(|v| !v.is_finite()) {
-            errs.push((format!("params.x[{i}]"), "must be a finite number".into()));
+        if let Some(i) = self.x.iter().position(|v| v.is_some_and(|v| !v.is_finite())) {
+            errs.push((format!("params.x[{i}]"), "must be a finite number or null (not measured)".into()));
+        }
+        if !self.x.is_empty() && self.x.iter().all(Option::is_none) {
+            errs.push(("params.x".into(), "holds no measured feature (every value is null)".into()));
         }
         for (i, c) in self.candidates.iter().flatten().enumerate() {
             if Effects::index(c).is_none() {
@@ -96,7 +100,8 @@ pub(super) fn execute(ctx: &Ctx, job_id: &str, p: &DiagnoseParams, r: &Reporter)
     };
     let model = Model::new(ModelConfig::default())?;
     let steps = ["fit", "check", "null", "name", "add", "training"];
-    let report = diagnose(&model, &base, &p.x, &s, &mut |m| {
+    let x: Vec<f64> = p.x.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
+    let report = diagnose(&model, &base, &x, &s, &mut |m| {
         let k = steps.iter().position(|s| m.contains(s)).unwrap_or(0);
         let _ = r.report(k as f64 / steps.len() as f64, m.to_string());
     })

@@ -45,7 +45,7 @@ impl ResimulateParams {
             theta_values(&with_geometry(&self.theta, 0), errs);
         }
         if let Some(x) = &self.observation {
-            let n = 5 * ModelConfig::default().frequencies.len();
+            let n = crate::sim::output::N_MEASURES * ModelConfig::default().frequencies.len();
             if x.len() != n {
                 errs.push((
                     "params.observation".into(),

@@ -66,6 +66,24 @@ fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
     assert!(otofit::plot::diagnosis::html(&r).contains("spectra_after.svg"));
 }
 
+/// A temporal bone's measures (stapes velocity and WBT, no umbo LDV): the absent measure
+/// stays out of every statistic, the null lacks it too, and the extended model is trained
+/// on the measures given.
+#[test]
+fn names_a_hidden_probe_leak_without_umbo_velocity() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let mut x = observation(&model, Some(("probe_leak", 3e-4)), 5);
+    let n = model.frequencies().len();
+    x[5 * n..].fill(f64::NAN);
+    let r = diagnose(&model, &base(), &x, &settings((0..otofit::sim::N_EFFECTS).collect()), &mut |_| {}).unwrap();
+    assert_eq!((r.verdict, r.named), (Verdict::EffectNamed, Some("probe_leak")), "χ²ν {}", r.before.reduced_chi2);
+    let extended = r.extended_model.as_ref().unwrap();
+    assert_eq!(extended.header.feature_names.len(), 5 * n, "trained on the measures given");
+    let after = r.after.as_ref().unwrap();
+    assert!(after.reduced_chi2 < r.before.reduced_chi2 / 5.0, "χ²ν {} → {}", r.before.reduced_chi2, after.reduced_chi2);
+    assert!(r.before.z[5 * n..].iter().all(|z| *z == 0.0), "the absent umbo has no residual");
+}
+
 #[test]
 fn stays_quiet_without_an_effect() {
     let model = Model::new(ModelConfig::default()).unwrap();
