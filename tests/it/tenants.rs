@@ -73,7 +73,7 @@ async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend
     ctx.store.add_model("ma", &default.path, false, Some(&ja)).await.unwrap();
     assert_eq!(ctx.store.model("ma").await.unwrap().unwrap().tenant.as_deref(), Some("alpha"), "{backend}");
     // Alpha's resimulate job carries a measurement (the observation).
-    let obs = vec![0.5; 250];
+    let obs = vec![0.5; 350];
     let resim = json!({"kind": "resimulate", "params": {"theta": [[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]], "observation": obs}});
     let (status, r) = send(app, a, "POST", "/jobs", Some(resim)).await;
     assert_eq!(status, StatusCode::ACCEPTED, "{backend}: {r}");
@@ -116,7 +116,7 @@ async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend
     let train = json!({"kind": "train", "params": {"dataset": ja}});
     let (status, p) = send(app, b, "POST", "/jobs", Some(train)).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.dataset")));
-    let diagnose = json!({"kind": "diagnose", "params": {"model": "ma", "x": vec![0.5; 250]}});
+    let diagnose = json!({"kind": "diagnose", "params": {"model": "ma", "x": vec![0.5; 350]}});
     let (status, p) = send(app, b, "POST", "/jobs", Some(diagnose)).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.model")));
     let mut infer = crate::http::nominal_request();
@@ -131,7 +131,7 @@ async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend
     assert!(j["params"].get("observation").is_none() && j["params"].get("theta").is_some(), "{backend}: {j}");
     assert_eq!(j["redacted"], json!(["params.observation"]), "{backend}");
     let (_, j) = send(app, a, "GET", &format!("/jobs/{jr}"), None).await;
-    assert_eq!(j["params"]["observation"].as_array().map(Vec::len), Some(250), "{backend}: the owner sees it");
+    assert_eq!(j["params"]["observation"].as_array().map(Vec::len), Some(350), "{backend}: the owner sees it");
 
     // A revoked key is refused; the server stays keyed.
     let keys = ctx.store.keys().await.unwrap();
