@@ -1245,7 +1245,9 @@ async fn job_param_errors_carry_the_full_path() {
         ("simulate", json!({"n": -5}), "params.n"),
         ("train", json!({"dataset": "d", "max_epochs": "many"}), "params.max_epochs"),
         ("diagnose", json!({"candidates": ["probe_leak"]}), "params.x"),
-        ("diagnose", json!({"x": [1.0, null]}), "params.x[1]"),
+        ("diagnose", json!({"x": [1.0, "high"]}), "params.x[1]"),
+        // null is a feature not measured; an observation of nothing is refused.
+        ("diagnose", json!({"x": [null, null]}), "params.x"),
     ] {
         let (status, headers, p) = call(&app, "POST", "/jobs", Some(json!({"kind": kind, "params": params}))).await;
         assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
