@@ -127,6 +127,9 @@ pub struct JobRow {
     pub created_at: String,
     pub started_at: Option<String>,
     pub finished_at: Option<String>,
+    /// A failed attempt's job waits in the queue until then (RFC 3339; `error` says why
+    /// the attempt failed); `None`: claimable at once, or not queued.
+    pub retry_at: Option<String>,
     /// The fencing token of the current claim (never shown to clients).
     #[serde(skip)]
     pub lease_token: Option<String>,
@@ -138,7 +141,13 @@ pub struct JobRow {
 /// RFC 3339 UTC timestamp of now, to the millisecond.
 pub fn now() -> String {
     let d = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap_or_default();
-    let secs = d.as_secs() as i64;
+    rfc3339_ms(d.as_millis() as i64)
+}
+
+/// RFC 3339 UTC timestamp of `ms` since 1970, to the millisecond.
+pub fn rfc3339_ms(ms: i64) -> String {
+    let secs = ms.div_euclid(1000);
+    let millis = ms.rem_euclid(1000);
     let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
     // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
     let z = days + 719_468;
@@ -150,13 +159,7 @@ pub fn now() -> String {
     let day = doy - (153 * mp + 2) / 5 + 1;
     let month = if mp < 10 { mp + 3 } else { mp - 9 };
     let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{:03}Z",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60,
-        d.subsec_millis()
-    )
+    format!("{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{:03}Z", rem / 3600, rem % 3600 / 60, rem % 60, millis)
 }
 
 /// Typed column access shared by the two drivers' rows.
@@ -210,6 +213,7 @@ fn job_from(row: &impl Cols) -> JobRow {
         created_at: row.text("created_at"),
         started_at: row.opt_text("started_at"),
         finished_at: row.opt_text("finished_at"),
+        retry_at: row.opt_int("run_after_ms").filter(|_| row.text("state") == "queued").map(rfc3339_ms),
         lease_token: row.opt_text("lease_token"),
         worker: row.opt_text("worker"),
     }
@@ -468,21 +472,21 @@ impl Store {
             .collect()))
     }
 
-    /// Claims the oldest queued job atomically (one statement), counting the attempt,
+    /// Claims the oldest queued job that is due (not waiting out a retry's backoff)
+    /// atomically (one statement), counting the attempt,
     /// with a fresh lease token and a lease of `lease` on the database clock. With
     /// PostgreSQL the row is picked `FOR UPDATE SKIP LOCKED`, so concurrent claimers
     /// take different jobs instead of queueing on the same row; SQLite serialises writers.
     pub async fn claim(&self, worker: &str, lease: Duration) -> Result<Option<JobRow>, sqlx::Error> {
-        const SQLITE: &str = "UPDATE jobs SET state = 'running', attempts = attempts + 1, started_at = $1, message = 'started',
-                 lease_token = $2, lease_expires_ms = NOW_MS + $3, worker = $4
-             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY created_at, id LIMIT 1) AND state = 'queued'
-             RETURNING *";
-        const POSTGRES: &str = "UPDATE jobs SET state = 'running', attempts = attempts + 1, started_at = $1, message = 'started',
-                 lease_token = $2, lease_expires_ms = NOW_MS + $3, worker = $4
-             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' ORDER BY created_at, id LIMIT 1 FOR UPDATE SKIP LOCKED)
+        const SQL: &str =
+            "UPDATE jobs SET state = 'running', attempts = attempts + 1, started_at = $1, message = 'started',
+                 lease_token = $2, lease_expires_ms = NOW_MS + $3, worker = $4, run_after_ms = NULL
+             WHERE id = (SELECT id FROM jobs WHERE state = 'queued' AND (run_after_ms IS NULL OR run_after_ms <= NOW_MS)
+                         ORDER BY created_at, id LIMIT 1 SKIP_LOCKED)
                AND state = 'queued'
              RETURNING *";
-        let sql = self.clocked(if self.is_postgres() { POSTGRES } else { SQLITE });
+        let skip = if self.is_postgres() { "FOR UPDATE SKIP LOCKED" } else { "" };
+        let sql = self.clocked(&SQL.replace("SKIP_LOCKED", skip));
         let (ts, token, ms) = (now(), new_token(), lease.as_millis() as i64);
         Ok(on_pool!(self, p => sqlx::query(sql)
             .bind(&ts)
@@ -556,6 +560,38 @@ impl Store {
             .await?
             .rows_affected());
         Ok(n == 1)
+    }
+
+    /// A failed attempt, fenced like `finish`: with attempts left the job goes back to the
+    /// queue, claimable from `backoff` after now (database clock), keeping the attempt's
+    /// `error`; on its last attempt it fails. One statement. Returns the job's state
+    /// after it (`queued` or `failed`), or `None` if the attempt was no longer this
+    /// worker's.
+    pub async fn fail_or_retry(
+        &self,
+        id: &str,
+        token: &str,
+        error: &str,
+        backoff: Duration,
+    ) -> Result<Option<String>, sqlx::Error> {
+        const SQL: &str = "UPDATE jobs SET
+                 state = CASE WHEN attempts < max_attempts THEN 'queued' ELSE 'failed' END,
+                 finished_at = CASE WHEN attempts < max_attempts THEN NULL ELSE $1 END,
+                 run_after_ms = CASE WHEN attempts < max_attempts THEN NOW_MS + $2 ELSE NULL END,
+                 message = CASE WHEN attempts < max_attempts THEN 'failed; retried after a backoff' ELSE message END,
+                 error = $3, lease_token = NULL
+             WHERE id = $4 AND state = 'running' AND lease_token = $5
+             RETURNING state";
+        let sql = self.clocked(SQL);
+        let (ts, ms) = (now(), backoff.as_millis() as i64);
+        Ok(on_pool!(self, p => sqlx::query_scalar(sql)
+            .bind(&ts)
+            .bind(ms)
+            .bind(error)
+            .bind(id)
+            .bind(token)
+            .fetch_optional(p)
+            .await?))
     }
 
     /// Requests cancellation: a queued job ends at once; a running one at its next check.

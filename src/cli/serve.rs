@@ -27,15 +27,8 @@ pub struct ServeArgs {
     /// Job dispatchers this process runs (0: HTTP only, jobs run by `otofit worker`s).
     #[arg(long, default_value_t = 1)]
     pub workers: usize,
-    /// Seconds a claimed job's lease lasts; renewed every third of it. A worker that
-    /// stops renewing loses the job to another after this long.
-    #[arg(long, default_value_t = 30.0)]
-    pub lease_seconds: f64,
-    /// Most rows per chunk of a simulate job (each chunk is a part file any worker may
-    /// run; a killed job resumes from its finished chunks). Smaller jobs get smaller
-    /// chunks, at least four when that leaves 1,000 rows each.
-    #[arg(long, default_value_t = jobs::CHUNK_ROWS)]
-    pub chunk_rows: usize,
+    #[command(flatten)]
+    pub jobs: JobFlags,
     /// Checkpoint registered as the default model on first start.
     #[arg(long, default_value = "models/default.otofit")]
     pub default_model: PathBuf,
@@ -176,8 +169,46 @@ pub fn database_arg(url: Option<&str>, data_dir: &Path) -> Result<Database> {
     }
 }
 
+/// The flags of how a process runs jobs, shared by `serve` and `worker`.
+#[derive(Args, Debug, Clone)]
+pub struct JobFlags {
+    /// Seconds a claimed job's lease lasts; renewed every third of it. A worker that
+    /// stops renewing loses the job to another after this long.
+    #[arg(long, default_value_t = 30.0)]
+    pub lease_seconds: f64,
+    /// Most rows per chunk of a simulate job (each chunk is a part file any worker may
+    /// run; a killed job resumes from its finished chunks). Smaller jobs get smaller
+    /// chunks, at least four when that leaves 1,000 rows each.
+    #[arg(long, default_value_t = jobs::CHUNK_ROWS)]
+    pub chunk_rows: usize,
+    /// Seconds a job waits in the queue after its first failed attempt before it is
+    /// tried again (doubling after each further failure; 3 attempts in all).
+    #[arg(long, default_value_t = 10.0)]
+    pub retry_backoff_seconds: f64,
+    /// The longest wait between two attempts of a failing job.
+    #[arg(long, default_value_t = 600.0)]
+    pub retry_backoff_max_seconds: f64,
+}
+
+impl JobFlags {
+    /// The settings, each flag checked (an error names it).
+    pub fn settings(&self) -> Result<jobs::JobSettings> {
+        let mut s = job_settings(self.lease_seconds, self.chunk_rows)?;
+        let (first, max) = (self.retry_backoff_seconds, self.retry_backoff_max_seconds);
+        if !(0.0..=86_400.0).contains(&first) {
+            bail!("--retry-backoff-seconds must be 0..=86400, got {first}");
+        }
+        if !(first..=86_400.0).contains(&max) {
+            bail!("--retry-backoff-max-seconds must be --retry-backoff-seconds ({first})..=86400, got {max}");
+        }
+        let secs = std::time::Duration::from_secs_f64;
+        s.retry = jobs::Backoff { first: secs(first), max: secs(max) };
+        Ok(s)
+    }
+}
+
 /// `--lease-seconds` (1 s ..= 1 h; a renewal every third of it) and `--chunk-rows`
-/// (1 ..= 100,000).
+/// (1 ..= 100,000), with the default retry backoff.
 pub fn job_settings(lease_seconds: f64, chunk_rows: usize) -> Result<jobs::JobSettings> {
     if !(1.0..=3600.0).contains(&lease_seconds) {
         bail!("--lease-seconds must be 1..=3600, got {lease_seconds}");
@@ -185,7 +216,8 @@ pub fn job_settings(lease_seconds: f64, chunk_rows: usize) -> Result<jobs::JobSe
     if !(1..=jobs::MAX_ROWS).contains(&chunk_rows) {
         bail!("--chunk-rows must be 1..={}, got {chunk_rows}", jobs::MAX_ROWS);
     }
-    Ok(jobs::JobSettings { lease: std::time::Duration::from_secs_f64(lease_seconds), chunk_rows })
+    let lease = std::time::Duration::from_secs_f64(lease_seconds);
+    Ok(jobs::JobSettings { lease, chunk_rows, ..Default::default() })
 }
 
 /// `--max-queue` (≥ 1) and `--max-queue-per-tenant` (1 ..= --max-queue; default half).
@@ -304,7 +336,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     }
     let limits = args.infer_limits()?;
     let database = database_arg(args.database.as_deref(), &args.data_dir)?;
-    let settings = job_settings(args.lease_seconds, args.chunk_rows)?;
+    let settings = args.jobs.settings()?;
     let queue = queue_bounds(args.max_queue, args.max_queue_per_tenant)?;
     if args.workers > MAX_WORKERS {
         bail!("--workers must be 0..={MAX_WORKERS}, got {}", args.workers);

@@ -3,7 +3,7 @@
 //! claim's lease while it runs, and stops at SIGTERM/Ctrl-C after putting its running job
 //! back in the queue.
 
-use super::serve::{database_arg, job_settings, open_state, shutdown_signal, stop_dispatchers};
+use super::serve::{database_arg, open_state, shutdown_signal, stop_dispatchers};
 use crate::jobs;
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -25,12 +25,8 @@ pub struct WorkerArgs {
     /// Threads for the simulations and training of this process (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// Seconds a claimed job's lease lasts; renewed every third of it.
-    #[arg(long, default_value_t = 30.0)]
-    pub lease_seconds: f64,
-    /// Most rows per chunk of the simulate jobs this worker starts (see `serve`).
-    #[arg(long, default_value_t = jobs::CHUNK_ROWS)]
-    pub chunk_rows: usize,
+    #[command(flatten)]
+    pub jobs: super::serve::JobFlags,
     /// Serve GET /metrics (Prometheus text: this worker's claims, simulated rows, job
     /// durations, and the job table) on this address; no API, no keys: keep it on
     /// loopback or a private network.
@@ -44,7 +40,7 @@ pub struct WorkerArgs {
 pub fn run(args: WorkerArgs) -> Result<()> {
     super::serve::init_logs(args.log_json);
     let database = database_arg(args.database.as_deref(), &args.data_dir)?;
-    let settings = job_settings(args.lease_seconds, args.chunk_rows)?;
+    let settings = args.jobs.settings()?;
     if !(1..=super::serve::MAX_WORKERS).contains(&args.concurrency) {
         bail!("--concurrency must be 1..={}, got {}", super::serve::MAX_WORKERS, args.concurrency);
     }

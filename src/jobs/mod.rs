@@ -60,6 +60,8 @@ pub struct Ctx {
     pub metrics: crate::http::metrics::Metrics,
     /// Most rows per chunk of the simulate jobs this process plans (`simulate::chunk_plan`).
     pub chunk_rows: usize,
+    /// Backoff of a failed attempt's retry.
+    pub retry: Backoff,
 }
 
 /// How a `serve` or `worker` process runs jobs (its flags).
@@ -69,11 +71,36 @@ pub struct JobSettings {
     pub lease: Duration,
     /// Most rows per chunk of the simulate jobs this process plans (`--chunk-rows`).
     pub chunk_rows: usize,
+    /// How long a failed attempt's job waits before it is claimed again.
+    pub retry: Backoff,
 }
 
 impl Default for JobSettings {
     fn default() -> Self {
-        JobSettings { lease: DEFAULT_LEASE, chunk_rows: CHUNK_ROWS }
+        JobSettings { lease: DEFAULT_LEASE, chunk_rows: CHUNK_ROWS, retry: Backoff::default() }
+    }
+}
+
+/// Exponential backoff of retries: after failed attempt k (1, 2, …) a job waits
+/// `first × 2^(k−1)`, at most `max` (`--retry-backoff-seconds`, `--retry-backoff-max-seconds`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Backoff {
+    pub first: Duration,
+    pub max: Duration,
+}
+
+impl Default for Backoff {
+    /// 10 s, 20 s, 40 s, … at most 10 minutes.
+    fn default() -> Self {
+        Backoff { first: Duration::from_secs(10), max: Duration::from_secs(600) }
+    }
+}
+
+impl Backoff {
+    /// The wait after failed attempt `attempt` (1-based).
+    pub fn after(&self, attempt: i64) -> Duration {
+        let doublings = attempt.clamp(1, 64) as u32 - 1;
+        self.first.checked_mul(1u32.checked_shl(doublings).unwrap_or(u32::MAX)).unwrap_or(self.max).min(self.max)
     }
 }
 
@@ -97,6 +124,7 @@ impl Ctx {
             lease: DEFAULT_LEASE,
             metrics: Default::default(),
             chunk_rows: CHUNK_ROWS,
+            retry: Backoff::default(),
         }
     }
 
@@ -106,8 +134,9 @@ impl Ctx {
         self
     }
 
-    /// Runs jobs with `s` (lease, chunks).
-    pub fn with_settings(self, s: JobSettings) -> Ctx {
+    /// Runs jobs with `s` (lease, chunks, retries).
+    pub fn with_settings(mut self, s: JobSettings) -> Ctx {
+        self.retry = s.retry;
         self.with_lease(s.lease).with_chunk_rows(s.chunk_rows)
     }
 
@@ -329,10 +358,21 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     let store = &ctx.store;
     // Every end is fenced by the lease token this worker claimed (see `Store::finish`).
     let id = job.id.as_str();
+    // A failed attempt with attempts left goes back to the queue after a backoff.
+    let backoff = ctx.retry.after(job.attempts);
+    let claim = token.as_str();
+    let fail = |msg: String| async move {
+        match store.fail_or_retry(id, claim, &msg, backoff).await {
+            Ok(Some(state)) if state == "queued" => ("retried", Ok(true)),
+            Ok(Some(_)) => ("failed", Ok(true)),
+            Ok(None) => ("failed", Ok(false)),
+            Err(e) => ("failed", Err(e)),
+        }
+    };
     let (label, outcome) = match result {
         _ if lost => ("lease_lost", Ok(false)),
         Ok(Err(e)) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
-        Err(e) => ("failed", store.finish(id, &token, "failed", Some(&format!("worker panicked: {e}")), None).await),
+        Err(e) => fail(format!("worker panicked: {e}")).await,
         // Interrupted by shutdown: back to the queue, the attempt not counted.
         Ok(_) if cancelled && shutting_down => ("requeued", store.requeue(id, &token).await),
         // A cancelled training still returns its best weights: that is a result.
@@ -340,8 +380,11 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         Ok(Err(e)) if cancelled || e.is::<Stopped>() => {
             ("cancelled", store.finish(id, &token, "cancelled", None, None).await)
         }
-        Ok(Err(e)) => ("failed", store.finish(id, &token, "failed", Some(&scrub(&ctx, &format!("{e:#}"))), None).await),
+        Ok(Err(e)) => fail(scrub(&ctx, &format!("{e:#}"))).await,
     };
+    if label == "retried" {
+        tracing::warn!(job = %job.id, attempt = job.attempts, retry_in_s = backoff.as_secs_f64(), "job failed; retried after a backoff");
+    }
     let label = match outcome {
         Ok(true) => label,
         Ok(false) => "lease_lost",
@@ -369,8 +412,8 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     }
     if makes_dataset {
         // Ended: its parts and the leftovers of earlier attempts are garbage now. Re-queued
-        // (shutdown): the finished parts stay, the next attempt resumes from them.
-        remove_temporary_files(&ctx.dataset_dir(&job.id), label != "requeued");
+        // (shutdown, a retry): the finished parts stay, the next attempt resumes from them.
+        remove_temporary_files(&ctx.dataset_dir(&job.id), !matches!(label, "requeued" | "retried"));
     }
     if makes_model && let Ok(Some(j)) = ctx.store.job(&job.id).await {
         let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));

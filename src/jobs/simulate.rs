@@ -287,10 +287,17 @@ pub(super) async fn help(ctx: Arc<Ctx>, claim: ChunkClaim) {
     }
 }
 
-/// Moves a finished simulate attempt's files from its staging folder into `dir`.
+/// Moves a finished simulate attempt's files from its staging folder into `dir`;
+/// meta.json goes last; if a move fails, the files moved before it are taken away again,
+/// so that a failed job leaves no half dataset.
 fn publish_dataset(staging: &Path, dir: &Path) -> Result<()> {
-    for name in dataset::FILES {
-        std::fs::rename(staging.join(name), dir.join(name)).with_context(|| format!("moving {name} into place"))?;
+    for (i, name) in dataset::FILES.iter().enumerate() {
+        if let Err(e) = std::fs::rename(staging.join(name), dir.join(name)) {
+            for moved in &dataset::FILES[..i] {
+                let _ = std::fs::remove_file(dir.join(moved));
+            }
+            return Err(anyhow::Error::from(e).context(format!("moving {name} into place")));
+        }
     }
     let _ = std::fs::remove_dir(staging);
     Ok(())

@@ -214,6 +214,7 @@ mod tests {
             created_at: String::new(),
             started_at: None,
             finished_at: None,
+            retry_at: None,
             lease_token: None,
             worker: None,
         }

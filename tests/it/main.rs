@@ -7,5 +7,6 @@ mod npe;
 mod pg;
 mod physics;
 mod resume;
+mod retry;
 mod sim;
 mod tenants;
