@@ -208,13 +208,14 @@ impl JobFlags {
 }
 
 /// `--lease-seconds` (1 s ..= 1 h; a renewal every third of it) and `--chunk-rows`
-/// (1 ..= 100,000), with the default retry backoff.
+/// (100 ..= 100,000), with the default retry backoff.
 pub fn job_settings(lease_seconds: f64, chunk_rows: usize) -> Result<jobs::JobSettings> {
     if !(1.0..=3600.0).contains(&lease_seconds) {
         bail!("--lease-seconds must be 1..=3600, got {lease_seconds}");
     }
-    if !(1..=jobs::MAX_ROWS).contains(&chunk_rows) {
-        bail!("--chunk-rows must be 1..={}, got {chunk_rows}", jobs::MAX_ROWS);
+    // At least 100: a job's worker looks at every part between its chunks.
+    if !(100..=jobs::MAX_ROWS).contains(&chunk_rows) {
+        bail!("--chunk-rows must be 100..={}, got {chunk_rows}", jobs::MAX_ROWS);
     }
     let lease = std::time::Duration::from_secs_f64(lease_seconds);
     Ok(jobs::JobSettings { lease, chunk_rows, ..Default::default() })

@@ -543,7 +543,13 @@ fn metrics_text(port: u16) -> String {
 /// The scale-out flags are checked before anything starts, each error naming its flag.
 #[test]
 fn scale_out_flags_are_validated_naming_the_flag() {
-    let cases: [(&[&str], &str); 6] = [
+    let cases: [(&[&str], &str); 9] = [
+        (&["worker", "--chunk-rows", "99"], "--chunk-rows"),
+        (&["serve", "--retry-backoff-seconds=-1"], "--retry-backoff-seconds"),
+        (
+            &["worker", "--retry-backoff-seconds", "20", "--retry-backoff-max-seconds", "10"],
+            "--retry-backoff-max-seconds",
+        ),
         (&["worker", "--database", "mysql://db/otofit"], "--database"),
         (&["worker", "--lease-seconds", "0"], "--lease-seconds"),
         (&["worker", "--concurrency", "0"], "--concurrency"),
