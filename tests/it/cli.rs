@@ -897,3 +897,49 @@ fn infer_log_prob_ranks_the_truth_above_a_wrong_eardrum() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("column 'E_ligaments' missing"), "{o:?}");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// Issue 16: the README's commands run verbatim from a clone. Every `otofit` line of its
+/// shell blocks (continuations joined, trailing comments dropped) is parsed by the real
+/// command line, and every file or folder it reads is shipped in the repository or
+/// written by a line before it (`--out`, a `> file` redirect).
+#[test]
+fn readme_commands_parse_and_their_inputs_exist() {
+    use clap::Parser;
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let readme = std::fs::read_to_string(root.join("README.md")).unwrap();
+    let inputs = ["--in", "--obs", "--theta", "--noise-table", "--model", "--data", "--log-prob", "--default-model"];
+    let mut written: Vec<String> = Vec::new();
+    let mut checked = 0;
+    for block in readme.split("```sh\n").skip(1).filter_map(|b| b.split("```").next()) {
+        for line in block.replace("\\\n", " ").lines() {
+            let line = line.split("  #").next().unwrap_or("").trim();
+            if let Some((_, file)) = line.split_once(" > ") {
+                written.push(file.split_whitespace().next().unwrap_or("").to_string());
+            }
+            let Some(rest) = line.strip_prefix("otofit ").or_else(|| line.strip_prefix("cargo run -- ")) else {
+                continue;
+            };
+            let args: Vec<&str> = std::iter::once("otofit").chain(rest.split_whitespace()).collect();
+            if let Err(e) = otofit::cli::Cli::try_parse_from(&args) {
+                panic!("README: `{line}` does not parse: {e}");
+            }
+            for w in args.windows(2) {
+                if inputs.contains(&w[0]) {
+                    let made =
+                        written.iter().any(|o| w[1] == o || w[1].starts_with(&format!("{}/", o.trim_end_matches('/'))));
+                    assert!(
+                        made || root.join(w[1]).exists(),
+                        "README: `{line}` reads {} (not shipped, not written before)",
+                        w[1]
+                    );
+                }
+                if w[0] == "--out" {
+                    written.push(w[1].to_string());
+                }
+            }
+            checked += 1;
+        }
+    }
+    eprintln!("{checked} README commands checked");
+    assert!(checked >= 20, "only {checked} README commands found");
+}
