@@ -31,7 +31,11 @@ use crate::measurements::{MeasurementError, bands_used};
 
 /// The feature vector of a request's measurements, errors as problems naming the field
 /// (for a CSV body, the column it came from).
-fn features(npe: &Npe, m: &Measurements, csv: Option<&Imported>) -> Result<crate::measurements::Features, Problem> {
+pub(super) fn features(
+    npe: &Npe,
+    m: &Measurements,
+    csv: Option<&Imported>,
+) -> Result<crate::measurements::Features, Problem> {
     crate::measurements::features(npe, m).map_err(|e| match e {
         MeasurementError::NotOtofitModel => Problem::new(StatusCode::CONFLICT, e.to_string()),
         MeasurementError::Invalid(errs) => match csv {
@@ -44,7 +48,7 @@ fn features(npe: &Npe, m: &Measurements, csv: Option<&Imported>) -> Result<crate
 /// An inference error as a problem: what the observation lacks for this model is a 422
 /// on `measurements` (the message names the feature or group); anything else is a bug,
 /// logged and answered 500.
-fn npe_problem(e: NpeError) -> Problem {
+pub(super) fn npe_problem(e: NpeError) -> Problem {
     match e {
         NpeError::Observation(o) => Problem::invalid(vec![("measurements".into(), o.to_string())]),
         e => Problem::internal(e),
@@ -118,21 +122,15 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
     Ok((req, Some(imp)))
 }
 
-pub async fn infer(
-    State(st): State<AppState>,
-    axum::Extension(who): axum::Extension<super::Principal>,
-    Query(query): Query<Vec<(String, String)>>,
-    headers: HeaderMap,
-    body: Bytes,
-) -> Result<Json<serde_json::Value>, Problem> {
-    let t0 = std::time::Instant::now();
-    let (req, csv) = request(&headers, &query, &body)?;
-    let n = req.samples.unwrap_or(1000);
-    if n == 0 || n > MAX_SAMPLES {
-        return Err(Problem::invalid(vec![("samples".into(), format!("must be 1..={MAX_SAMPLES}"))]));
-    }
-    let row = match &req.model {
-        Some(id) => super::resources::visible_model(&st, &who, id)
+/// The model a request names (one its tenant may see) or the default model, loaded off the
+/// runtime threads.
+pub(super) async fn model_for(
+    st: &AppState,
+    who: &super::Principal,
+    model: Option<&str>,
+) -> Result<(crate::store::ModelRow, Arc<Npe>), Problem> {
+    let row = match model {
+        Some(id) => super::resources::visible_model(st, who, id)
             .await?
             .ok_or_else(|| Problem::invalid(vec![("model".into(), format!("no model '{id}'"))]))?,
         None => st
@@ -151,6 +149,23 @@ pub async fn infer(
         .map_err(|e| {
             Problem::new(StatusCode::SERVICE_UNAVAILABLE, format!("model '{}' cannot be loaded: {e:#}", row.id))
         })?;
+    Ok((row, npe))
+}
+
+pub async fn infer(
+    State(st): State<AppState>,
+    axum::Extension(who): axum::Extension<super::Principal>,
+    Query(query): Query<Vec<(String, String)>>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Json<serde_json::Value>, Problem> {
+    let t0 = std::time::Instant::now();
+    let (req, csv) = request(&headers, &query, &body)?;
+    let n = req.samples.unwrap_or(1000);
+    if n == 0 || n > MAX_SAMPLES {
+        return Err(Problem::invalid(vec![("samples".into(), format!("must be 1..={MAX_SAMPLES}"))]));
+    }
+    let (row, npe) = model_for(&st, &who, req.model.as_deref()).await?;
     let (x, present, used) = features(&npe, &req.measurements, csv.as_ref())?;
     let band_hz = bands_used(&npe, &present);
     let seed = req.seed.unwrap_or(0);

@@ -6,6 +6,7 @@ pub mod auth;
 pub use auth::{Principal, host_allowed};
 pub mod conn;
 mod infer;
+mod log_prob;
 pub mod metrics;
 mod resources;
 
@@ -22,13 +23,14 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::Duration;
 
 /// Every route the server answers: (method, path). openapi.yaml must list exactly these.
-pub const ROUTES: [(&str, &str); 14] = [
+pub const ROUTES: [(&str, &str); 15] = [
     ("get", "/health"),
     ("get", "/ready"),
     ("get", "/openapi.yaml"),
     ("get", "/models"),
     ("get", "/models/{id}"),
     ("post", "/infer"),
+    ("post", "/log_prob"),
     ("post", "/jobs"),
     ("get", "/jobs"),
     ("get", "/jobs/{id}"),
@@ -332,6 +334,7 @@ pub fn router(state: AppState) -> Router {
         .route("/models", get(list_models))
         .route("/models/{id}", get(get_model))
         .route("/infer", post(infer::infer).layer(middleware::from_fn_with_state(state.clone(), infer_gate)))
+        .route("/log_prob", post(log_prob::log_prob).layer(middleware::from_fn_with_state(state.clone(), infer_gate)))
         .route("/jobs", post(create_job).get(list_jobs))
         .route("/jobs/{id}", get(get_job))
         .route("/jobs/{id}/cancel", post(cancel_job))

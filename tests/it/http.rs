@@ -1384,3 +1384,31 @@ async fn metrics_count_jobs_rows_and_inferences() {
         assert!(text.lines().any(|l| l == line), "no '{line}' in\n{text}");
     }
 }
+
+/// Issue 16.5: POST /log_prob gives log q(θ|x) of given rows for one ear's measurements:
+/// on the nominal ear the nominal θ beats an eardrum 10× softer, a row outside the prior
+/// box is null and listed, and a row of the wrong width is a 422 naming it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn log_prob_ranks_the_truth_and_names_bad_rows() {
+    use otofit::sim::params::PARAMS;
+    let (app, _) = app(vec![], 8, false).await;
+    let nominal: Vec<f64> = PARAMS.iter().map(|p| p.nominal).collect();
+    let mut soft = nominal.clone();
+    soft[0] /= 10.0;
+    let mut outside = nominal.clone();
+    outside[0] = PARAMS[0].high * 2.0;
+    let mut req = nominal_request();
+    let measurements = req["measurements"].take();
+    let body = json!({"measurements": measurements, "theta": [nominal, soft, outside]});
+    let (status, _, r) = call(&app, "POST", "/log_prob", Some(body.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{r}");
+    let lp = r["log_prob"].as_array().unwrap();
+    let (truth, wrong) = (lp[0].as_f64().unwrap(), lp[1].as_f64().unwrap());
+    assert!(truth > wrong + 5.0, "log q nominal {truth} vs soft eardrum {wrong}");
+    assert!(lp[2].is_null() && r["outside_prior"] == json!([2]), "{r}");
+    assert_eq!(r["columns"][0], "E_eardrum");
+    let mut bad = body;
+    bad["theta"] = json!([[1.0, 2.0]]);
+    let (status, _, p) = call(&app, "POST", "/log_prob", Some(bad)).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("theta[0]")), "{p}");
+}

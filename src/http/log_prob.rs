@@ -1,0 +1,77 @@
+//! POST /log_prob: log q(θ|x) of given parameter sets for one ear's measurements (the
+//! same measurements as POST /infer), e.g. to compare candidate ears or to check a
+//! posterior against a known truth.
+
+use super::{AppState, Problem, json_body};
+use crate::measurements::Measurements;
+use crate::npe::Obs;
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::State;
+use axum::http::HeaderMap;
+use serde::Deserialize;
+use serde_json::json;
+
+/// Parameter sets per request: each costs one flow pass, far less than a sample.
+pub const MAX_THETA: usize = 10_000;
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LogProbRequest {
+    pub model: Option<String>,
+    pub measurements: Measurements,
+    /// Rows in the model's parameter order (GET /models/{id}), natural units.
+    pub theta: Vec<Vec<f64>>,
+}
+
+pub async fn log_prob(
+    State(st): State<AppState>,
+    axum::Extension(who): axum::Extension<super::Principal>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Json<serde_json::Value>, Problem> {
+    let req: LogProbRequest = json_body(&headers, &body)?;
+    if req.theta.is_empty() || req.theta.len() > MAX_THETA {
+        return Err(Problem::invalid(vec![("theta".into(), format!("needs 1..={MAX_THETA} rows"))]));
+    }
+    let (row, npe) = super::infer::model_for(&st, &who, req.model.as_deref()).await?;
+    let d = npe.params().len();
+    let mut errs = Vec::new();
+    for (i, t) in req.theta.iter().enumerate() {
+        if t.len() != d {
+            let names: Vec<&str> = npe.params().iter().map(|p| p.name.as_str()).collect();
+            errs.push((
+                format!("theta[{i}]"),
+                format!("has {} values; the model takes {d} ({})", t.len(), names.join(", ")),
+            ));
+        } else if let Some(k) = t.iter().position(|v| !v.is_finite()) {
+            errs.push((format!("theta[{i}][{k}]"), "must be a finite number".into()));
+        }
+    }
+    if !errs.is_empty() {
+        errs.truncate(10);
+        return Err(Problem::invalid(errs));
+    }
+    let (x, present, used) = super::infer::features(&npe, &req.measurements, None)?;
+    let theta = req.theta;
+    let npe2 = npe.clone();
+    let lp = tokio::task::spawn_blocking(move || {
+        npe2.log_prob(&Obs { x: &x, present: Some(&present) }, &theta).map(|lp| (lp, theta))
+    })
+    .await
+    .map_err(Problem::internal)?
+    .map_err(super::infer::npe_problem)?;
+    let (lp, theta) = lp;
+    // Outside the prior box the posterior density is zero: null, and listed.
+    let inside = |t: &[f64]| npe.params().iter().zip(t).all(|(p, v)| (p.low..=p.high).contains(v));
+    let outside: Vec<usize> = (0..theta.len()).filter(|&i| !inside(&theta[i])).collect();
+    let values: Vec<Option<f64>> =
+        lp.iter().enumerate().map(|(i, v)| (!outside.contains(&i) && v.is_finite()).then_some(*v)).collect();
+    Ok(Json(json!({
+        "model": row.id,
+        "columns": npe.params().iter().map(|p| &p.name).collect::<Vec<_>>(),
+        "inputs": { "used": used },
+        "log_prob": values,
+        "outside_prior": outside,
+    })))
+}
