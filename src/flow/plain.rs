@@ -44,6 +44,22 @@ fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, la
     y
 }
 
+/// The gradient through a layer's weights: W g for g [out × n] (column-major), [in × n].
+fn back(w: MatRef<'_, f64>, g: &[f64], n: usize) -> Vec<f64> {
+    let (i, o) = (w.nrows(), w.ncols());
+    let mut out = vec![0.0; i * n];
+    matmul(
+        MatMut::from_column_major_slice_mut(&mut out, i, n),
+        Accum::Replace,
+        w,
+        MatRef::from_column_major_slice(g, o, n),
+        1.0,
+        Par::Seq,
+    );
+    clear_upper();
+    out
+}
+
 /// Clears the upper halves of the vector registers (`vzeroupper`). faer's matmul kernels
 /// (AVX-512 on this project's hosts) return with them dirty, and the SSE code compiled for
 /// baseline x86-64 that runs after them — the rest of this file, and the simulator of the
@@ -188,6 +204,22 @@ fn derivative<const FMA: bool>(raw: &[f64], bins: usize, k: usize) -> f64 {
     r.max(0.0) + exp_neg::<FMA>(-r.abs()).ln_1p() + MIN_DERIVATIVE
 }
 
+/// The bin holding v on an axis of unnormalised weights `w` (× `scale`, + `min` each),
+/// counted as burn's `bin_of` does.
+#[inline(always)]
+fn active(v: f64, w: &[f64; 32], scale: f64, min: f64, bins: usize, bound: f64) -> usize {
+    let (mut acc, mut k) = (0.0, 0);
+    while k + 1 < bins {
+        let next = acc + w[k] * scale + min;
+        if v < next * 2.0 * bound - bound {
+            break;
+        }
+        acc = next;
+        k += 1;
+    }
+    k
+}
+
 /// The active bin of one dim's spline: (x0, y0, width, height, d at both ends). The bin
 /// holds v among the interior knots of the searched axis (x, or y when `by_y`), counted
 /// as burn's `bin_of` does; only that bin's two knots of the other axis are formed (the
@@ -197,15 +229,7 @@ fn bin<const FMA: bool>(v: f64, raw: &[f64], bins: usize, bound: f64, by_y: bool
     let (wx, sx) = axis_weights::<FMA>(&raw[..bins], MIN_WIDTH, bins);
     let (wy, sy) = axis_weights::<FMA>(&raw[bins..2 * bins], MIN_HEIGHT, bins);
     let (search, scale, min) = if by_y { (&wy, sy, MIN_HEIGHT) } else { (&wx, sx, MIN_WIDTH) };
-    let (mut acc, mut k) = (0.0, 0);
-    while k + 1 < bins {
-        let next = acc + search[k] * scale + min;
-        if v < next * 2.0 * bound - bound {
-            break;
-        }
-        acc = next;
-        k += 1;
-    }
+    let k = active(v, search, scale, min, bins, bound);
     let knot = |w: &[f64; 32], scale: f64, min: f64| {
         let lo: f64 = w[..k].iter().fold(0.0, |a, e| a + e * scale + min);
         let hi = lo + w[k] * scale + min;
@@ -255,6 +279,72 @@ fn spline_inverse<const FMA: bool>(y: f64, raw: &[f64], bins: usize, bound: f64)
     let disc = (b * b - 4.0 * a * c).max(0.0);
     let t = ((2.0 * c) / (-b - disc.sqrt())).clamp(0.0, 1.0);
     (t * w + x0, log_slope(delta, d, t))
+}
+
+/// y = f(x), log |f′(x)| and the gradient of gy·y + log |f′(x)| with respect to x
+/// (returned) and to the spline's raw parameters (written to `g_raw`, 3K−1 long): the
+/// MAP's analytic gradient. Within the active bin y depends on t = (x − x0)/w, the slope
+/// δ = h/w, y0, h and the end derivatives; the knots on the softmaxes of the raw widths
+/// and heights (∂W_j/∂r_i = 2B(1 − K·min) S_j (δ_ij − S_i)) and the interior derivatives
+/// on softplus (∂/∂r = σ(r)).
+fn spline_forward_grad(x: f64, raw: &[f64], bins: usize, bound: f64, gy: f64, g_raw: &mut [f64]) -> (f64, f64, f64) {
+    g_raw.iter_mut().for_each(|g| *g = 0.0);
+    if x.abs() > bound {
+        return (x, 0.0, gy);
+    }
+    let (x0, y0, w, h, [d0, d1]) = bin::<false>(x, raw, bins, bound, false);
+    let delta = h / w;
+    let t = ((x - x0) / w).clamp(0.0, 1.0);
+    let t1 = t * (1.0 - t);
+    let s = d0 + d1 - 2.0 * delta;
+    let den = delta + s * t1;
+    let a = delta * t * t + d0 * t1;
+    let y = y0 + h * a / den;
+    let n2 = d1 * t * t + 2.0 * delta * t1 + d0 * (1.0 - t) * (1.0 - t);
+    let ld = (delta * delta * n2 / (den * den)).ln();
+    // ∂ over t, δ, d0, d1 and h (δ held), each of gy·y + ld.
+    let (den_t, den_delta) = (s * (1.0 - 2.0 * t), 1.0 - 2.0 * t1);
+    let a_t = 2.0 * delta * t + d0 * (1.0 - 2.0 * t);
+    let n2_t = 2.0 * d1 * t + 2.0 * delta * (1.0 - 2.0 * t) - 2.0 * d0 * (1.0 - t);
+    let den2 = den * den;
+    let g_t = gy * h * (a_t * den - a * den_t) / den2 + n2_t / n2 - 2.0 * den_t / den;
+    let g_delta = gy * h * (t * t * den - a * den_delta) / den2 + 2.0 / delta + 2.0 * t1 / n2 - 2.0 * den_delta / den;
+    let g_d0 = gy * h * t1 * (den - a) / den2 + (1.0 - t) * (1.0 - t) / n2 - 2.0 * t1 / den;
+    let g_d1 = -gy * h * a * t1 / den2 + t * t / n2 - 2.0 * t1 / den;
+    let g_h = gy * a / den + g_delta / w;
+    let g_x = g_t / w;
+    let (g_x0, g_w) = (-g_t / w, -g_t * t / w - g_delta * delta / w);
+    // Knots: x0 = −B + Σ_{j<k} W_j, w = W_k (heights alike, with y0 and h).
+    let k = {
+        let (e, scale) = axis_weights::<false>(&raw[..bins], MIN_WIDTH, bins);
+        active(x, &e, scale, MIN_WIDTH, bins, bound)
+    };
+    for (axis, (g_lo, g_len), min) in [(0, (g_x0, g_w), MIN_WIDTH), (1, (gy, g_h), MIN_HEIGHT)] {
+        let r = &raw[axis * bins..(axis + 1) * bins];
+        let (e, _) = axis_weights::<false>(r, min, bins);
+        let total: f64 = e[..bins].iter().sum();
+        let c = 2.0 * bound * (1.0 - bins as f64 * min);
+        let sm = |i: usize| e[i] / total;
+        let mean = g_lo * (0..k).map(sm).sum::<f64>() + g_len * sm(k);
+        for (i, g) in g_raw[axis * bins..(axis + 1) * bins].iter_mut().enumerate() {
+            let gi = if i < k {
+                g_lo
+            } else if i == k {
+                g_len
+            } else {
+                0.0
+            };
+            *g = c * sm(i) * (gi - mean);
+        }
+    }
+    let sigmoid = |r: f64| 1.0 / (1.0 + (-r).exp());
+    if k > 0 {
+        g_raw[2 * bins + k - 1] += g_d0 * sigmoid(raw[2 * bins + k - 1]);
+    }
+    if k + 1 < bins {
+        g_raw[2 * bins + k] += g_d1 * sigmoid(raw[2 * bins + k]);
+    }
+    (y, ld, g_x)
 }
 
 /// One coupling's splines over a block: the layout and direction.
@@ -337,8 +427,20 @@ impl Bound<'_> {
     /// Raw spline parameters [P × n] (P = dt·(3K−1)) of transform `t` for the untouched
     /// parts `a` [dc × n].
     fn raw(&self, t: usize, a: &[f64], n: usize) -> Vec<f64> {
+        self.raw_keeping(t, a, n, None)
+    }
+
+    /// [`Self::raw`], keeping in `acts` what its gradient needs: the input of every layer
+    /// after the first (MLP), or each residual block's state h and inner activation s,
+    /// then the final h.
+    fn raw_keeping(&self, t: usize, a: &[f64], n: usize, mut acts: Option<&mut Vec<Vec<f64>>>) -> Vec<f64> {
         let layers = &self.flow.conditioners[t];
-        let dc = a.len() / n.max(1);
+        let dc = self.flow.cfg.dim / 2;
+        let mut keep = |v: &Vec<f64>| {
+            if let Some(acts) = acts.as_deref_mut() {
+                acts.push(v.clone());
+            }
+        };
         // First layer: the untouched rows of W on `a`, plus the folded context term.
         let blocks = self.flow.cfg.blocks;
         let mut h = batch_forward(layers[0].w.as_ref().subrows(0, dc), &self.ctx_bias[t], a, n, blocks > 0);
@@ -346,9 +448,11 @@ impl Bound<'_> {
         if blocks > 0 {
             let width = layers[0].w.ncols();
             for k in 0..blocks {
+                keep(&h);
                 let relu: Vec<f64> = h.iter().map(|v| v.max(0.0)).collect();
                 let (l1, l2) = (&layers[1 + 3 * k], &layers[2 + 3 * k]);
                 let r = batch_forward(l1.w.as_ref(), &l1.b, &relu, n, false);
+                keep(&r);
                 let r = batch_forward(l2.w.as_ref(), &l2.b, &r, n, true);
                 for (hc, rc) in h.chunks_exact_mut(width).zip(r.chunks_exact(width)) {
                     for ((hv, rv), g) in hc.iter_mut().zip(rc).zip(&self.gates[t][k]) {
@@ -356,12 +460,48 @@ impl Bound<'_> {
                     }
                 }
             }
+            keep(&h);
             return batch_forward(layers[last].w.as_ref(), &layers[last].b, &h, n, true);
         }
         for (i, l) in layers.iter().enumerate().skip(1) {
+            keep(&h);
             h = batch_forward(l.w.as_ref(), &l.b, &h, n, i == last);
         }
         h
+    }
+
+    /// The gradient of Σ_i g_raw_i · raw_i with respect to `a`, given the activations
+    /// [`Self::raw_keeping`] kept: ReLU masks from the kept (post-ReLU or pre-ReLU) values.
+    fn raw_backward(&self, t: usize, acts: &[Vec<f64>], g_raw: Vec<f64>, n: usize) -> Vec<f64> {
+        let layers = &self.flow.conditioners[t];
+        let dc = self.flow.cfg.dim / 2;
+        let blocks = self.flow.cfg.blocks;
+        let last = layers.len() - 1;
+        let mask =
+            |g: &mut [f64], by: &[f64]| g.iter_mut().zip(by).for_each(|(g, v)| *g = if *v > 0.0 { *g } else { 0.0 });
+        let mut g = g_raw;
+        if blocks > 0 {
+            let width = layers[0].w.ncols();
+            g = back(layers[last].w.as_ref(), &g, n);
+            for k in (0..blocks).rev() {
+                let (h, s) = (&acts[2 * k], &acts[2 * k + 1]);
+                let mut gr = g.clone();
+                for col in gr.chunks_exact_mut(width) {
+                    col.iter_mut().zip(&self.gates[t][k]).for_each(|(v, gate)| *v *= gate);
+                }
+                let mut gs = back(layers[2 + 3 * k].w.as_ref(), &gr, n);
+                mask(&mut gs, s);
+                let mut gh = back(layers[1 + 3 * k].w.as_ref(), &gs, n);
+                mask(&mut gh, h);
+                g.iter_mut().zip(&gh).for_each(|(a, b)| *a += b);
+            }
+        } else {
+            for l in (1..=last).rev() {
+                g = back(layers[l].w.as_ref(), &g, n);
+                mask(&mut g, &acts[l - 1]);
+            }
+        }
+        back(layers[0].w.as_ref().subrows(0, dc), &g, n)
     }
 
     /// One coupling transform on u [d × n] (after its permutation), forward or inverse;
@@ -407,6 +547,58 @@ impl Bound<'_> {
     }
 }
 
+impl Bound<'_> {
+    /// log q(v) and its gradient ∂ log q / ∂v for points v (n rows of d, row-major), by
+    /// one forward pass that keeps its activations and one backward pass (the MAP search;
+    /// `tests::log_prob_grad_matches_finite_differences` checks it).
+    pub fn log_prob_grad(&self, v: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        let cfg = &self.flow.cfg;
+        let d = cfg.dim;
+        let (dc, dt) = (d / 2, d - d / 2);
+        let np = 3 * cfg.bins - 1;
+        let n = v.len() / d;
+        let mut logdet = vec![0.0; n];
+        let mut u = v.to_vec();
+        // Per transform: its input (after the permutation), activations and raw parameters.
+        let mut tape = Vec::with_capacity(cfg.transforms);
+        for t in 0..cfg.transforms {
+            permute(&mut u, &cfg.permutations[t], false);
+            let a: Vec<f64> = u.chunks_exact(d).flat_map(|c| c[..dc].iter().copied()).collect();
+            let mut acts = Vec::new();
+            let raw = self.raw_keeping(t, &a, n, Some(&mut acts));
+            let before = u.clone();
+            splines(&Splines { d, dc, bins: cfg.bins, bound: cfg.bound, inverse: false }, &mut u, &raw, &mut logdet);
+            tape.push((before, acts, raw));
+        }
+        let t2 = self.temperature * self.temperature;
+        let lp = u.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c, self.temperature) + ld).collect();
+        // g = ∂ log q / ∂u, from the base density back through every transform.
+        let mut g: Vec<f64> = u.iter().map(|z| -z / t2).collect();
+        let mut g_raw = vec![0.0; dt * np * n];
+        for t in (0..cfg.transforms).rev() {
+            let (before, acts, raw) = &tape[t];
+            for (((gc, bc), rc), grc) in g
+                .chunks_exact_mut(d)
+                .zip(before.chunks_exact(d))
+                .zip(raw.chunks_exact(dt * np))
+                .zip(g_raw.chunks_exact_mut(dt * np))
+            {
+                for k in 0..dt {
+                    let p = &rc[k * np..(k + 1) * np];
+                    let gp = &mut grc[k * np..(k + 1) * np];
+                    gc[dc + k] = spline_forward_grad(bc[dc + k], p, cfg.bins, cfg.bound, gc[dc + k], gp).2;
+                }
+            }
+            let g_a = self.raw_backward(t, acts, g_raw.clone(), n);
+            for (gc, ga) in g.chunks_exact_mut(d).zip(g_a.chunks_exact(dc.max(1))) {
+                gc[..dc].iter_mut().zip(ga).for_each(|(x, y)| *x += y);
+            }
+            permute(&mut g, &cfg.permutations[t], true);
+        }
+        (lp, g)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -444,6 +636,37 @@ mod tests {
         for ((a, b), c) in lp.iter().zip(&lp_burn).zip(&lp2) {
             assert!((a - *b as f64).abs() < 1e-3 * (1.0 + a.abs()), "log q {a} vs burn {b}");
             assert!((a - c).abs() < 1e-9, "one-pass log q {a} vs forward {c}");
+        }
+    }
+
+    /// Central differences (h = 1e-5) of the one-pass log-density against the analytic
+    /// gradient, for an MLP and a residual conditioner, at points inside and beyond the
+    /// splines' bound.
+    #[test]
+    fn log_prob_grad_matches_finite_differences() {
+        for cfg in [FlowConfig::new(5, 4, true), FlowConfig { blocks: 2, ..FlowConfig::new(4, 4, true) }] {
+            let dev = Device::flex();
+            let plain = Flow::new(&cfg, &dev).plain(&cfg);
+            let bound = plain.bind(&[0.3, -0.2, 0.5, 1.1]).with_temperature(1.3);
+            let d = cfg.dim;
+            let v: Vec<f64> = (0..8 * d).map(|i| ((i * 7919 % 113) as f64 / 113.0 - 0.5) * 2.5 * cfg.bound).collect();
+            let (lp, g) = bound.log_prob_grad(&v);
+            let lp0 = bound.log_prob(&v);
+            let h = 1e-5;
+            for (i, gi) in g.iter().enumerate() {
+                assert!((lp[i / d] - lp0[i / d]).abs() < 1e-12, "log q with and without the tape");
+                let (mut up, mut dn) = (v.clone(), v.clone());
+                up[i] += h;
+                dn[i] -= h;
+                let fd = (bound.log_prob(&up)[i / d] - bound.log_prob(&dn)[i / d]) / (2.0 * h);
+                assert!(
+                    (fd - gi).abs() < 1e-5 * (1.0 + fd.abs()),
+                    "blocks {}, point {} dim {}: fd {fd} vs {gi}",
+                    cfg.blocks,
+                    i / d,
+                    i % d
+                );
+            }
         }
     }
 
