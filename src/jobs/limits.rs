@@ -4,11 +4,14 @@
 use std::fmt::Display;
 use std::ops::RangeInclusive;
 
-/// Rows of one simulate job (prior draws or given rows), and of a diagnose job's
-/// extended training set's upper end.
+/// Rows held in memory at once: given θ rows of a simulate job, a chunk, a diagnose
+/// job's extended training set.
 pub const MAX_ROWS: usize = 100_000;
-/// Rows of a simulate job.
-pub const SIMULATE_ROWS: RangeInclusive<usize> = 1..=MAX_ROWS;
+/// Prior draws of one simulate job (`params.n`). Chunked and streamed to disk, so memory
+/// does not grow with n; disk does (~3.5 KB per row of x.csv: ~3.5 GB at the top).
+pub const SIMULATE_ROWS: RangeInclusive<usize> = 1..=1_000_000;
+/// Given θ rows of a simulate job (`params.theta`, in the request body).
+pub const THETA_ROWS: RangeInclusive<usize> = 1..=MAX_ROWS;
 /// Rows of a resimulate job.
 pub const RESIMULATE_ROWS: RangeInclusive<usize> = 1..=1_000;
 /// Training epochs (train; diagnose's extended model; `otofit train`/`diagnose`).

@@ -51,8 +51,8 @@ impl SimulateParams {
         }
         match (&self.n, &self.theta) {
             (Some(n), None) => super::spec::in_range("params.n", &limits::SIMULATE_ROWS, *n, errs),
-            (None, Some(rows)) if !limits::SIMULATE_ROWS.contains(&rows.len()) => {
-                errs.push(("params.theta".into(), format!("needs 1..={} rows", limits::SIMULATE_ROWS.end())))
+            (None, Some(rows)) if !limits::THETA_ROWS.contains(&rows.len()) => {
+                errs.push(("params.theta".into(), format!("needs 1..={} rows", limits::THETA_ROWS.end())))
             }
             (None, Some(rows)) => {
                 // Full rows, or tissue-only rows that take the nominal other parameters.

@@ -254,7 +254,8 @@ mod tests {
         let e = JobSpec::parse("diagnose", &json!({"x": [1.0], "max_epochs": 5001, "null_cases": 4})).unwrap_err();
         let fields: Vec<&str> = e.iter().map(|(f, _)| f.as_str()).collect();
         assert_eq!(fields, ["params.max_epochs", "params.null_cases"], "{e:?}");
-        let e = JobSpec::parse("simulate", &json!({"n": 100_001})).unwrap_err();
-        assert_eq!(e[0], ("params.n".into(), "must be 1..=100000, got 100001".into()));
+        let e = JobSpec::parse("simulate", &json!({"n": 1_000_001})).unwrap_err();
+        assert_eq!(e[0], ("params.n".into(), "must be 1..=1000000, got 1000001".into()));
+        assert!(JobSpec::parse("simulate", &json!({"n": 200_000})).is_ok(), "a 200,000-row job (chunked)");
     }
 }
