@@ -98,21 +98,7 @@ fn write(out: &Path, name: &str, text: &str) -> Result<()> {
 
 /// Corner plot of posterior samples over the model's prior box (MAP in red, truth in green).
 pub(crate) fn corner(npe: &Npe, samples: &[Vec<f64>], truth: Option<&[f64]>, map: &[f64], title: &str) -> String {
-    let dims: Vec<plot::Dim<'_>> = npe
-        .params()
-        .iter()
-        .enumerate()
-        .map(|(k, p)| plot::Dim {
-            name: &p.name,
-            unit: &p.unit,
-            low: p.low,
-            high: p.high,
-            log: p.scale == npe::Scale::Log10,
-            truth: truth.map(|t| t[k]),
-            map: Some(map[k]),
-        })
-        .collect();
-    plot::corner(title, &dims, samples)
+    plot::posterior_corner(npe.params(), samples, truth, map, title)
 }
 
 /// Posterior summary of one observation: CV per parameter and ρ of the MAP re-simulation.

@@ -23,6 +23,26 @@ pub struct InferRequest {
     pub samples: Option<usize>,
     pub seed: Option<u64>,
     pub return_samples: Option<bool>,
+    /// A figure in the response: `corner` (the posterior's corner plot, SVG).
+    pub plot: Option<Plot>,
+}
+
+/// Figures POST /infer can draw into its response.
+#[derive(Clone, Copy, Debug, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum Plot {
+    /// Pairwise histograms and marginals over the prior box, MAP marked, ticks in units.
+    Corner,
+}
+
+impl std::str::FromStr for Plot {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "corner" => Ok(Plot::Corner),
+            _ => Err(format!("'{s}' is not a figure (known: corner)")),
+        }
+    }
 }
 
 use crate::formats::Imported;
@@ -67,18 +87,25 @@ fn request(
     if media.eq_ignore_ascii_case("text/csv") {
         return csv_request(query, body);
     }
-    if let Some((k, _)) = query.first() {
-        return Err(Problem::invalid(vec![(
-            k.clone(),
-            "query parameters apply to text/csv bodies; with JSON, put it in the body".into(),
-        )]));
+    // `plot` asks for a figure, whatever the body; every other option is the body's.
+    let mut plot = None;
+    for (k, v) in query {
+        if k != "plot" {
+            return Err(Problem::invalid(vec![(
+                k.clone(),
+                "query parameters other than plot apply to text/csv bodies; with JSON, put it in the body".into(),
+            )]));
+        }
+        plot = Some(v.parse().map_err(|m| Problem::invalid(vec![("plot".into(), m)]))?);
     }
-    json_body(headers, body).map(|r| (r, None)).map_err(|mut p| {
+    let mut req: InferRequest = json_body(headers, body).map_err(|mut p| {
         if p.status == StatusCode::UNSUPPORTED_MEDIA_TYPE.as_u16() {
             p.detail = "send Content-Type: application/json (InferRequest) or text/csv (a long-layout table)".into();
         }
         p
-    })
+    })?;
+    req.plot = plot.or(req.plot);
+    Ok((req, None))
 }
 
 /// A `text/csv` body: the table's measurements, the rest of the request from the query
@@ -92,6 +119,7 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
         samples: None,
         seed: None,
         return_samples: None,
+        plot: None,
     };
     let mut opts = LongOptions::default();
     let bad = |k: &str, m: String| Problem::invalid(vec![(k.to_string(), m)]);
@@ -106,10 +134,11 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
             "unit" => opts.units.push(long::pair(v, "unit").map_err(|m| bad(k, m))?),
             "select" => opts.select.push(long::pair(v, "select").map_err(|m| bad(k, m))?),
             "preset" => opts.preset = Some(v.parse().map_err(|m| bad(k, m))?),
+            "plot" => req.plot = Some(v.parse().map_err(|m| bad(k, m))?),
             _ => {
                 return Err(bad(
                     k,
-                    "unknown query parameter (known: model, samples, seed, return_samples, unit, select, preset)"
+                    "unknown query parameter (known: model, samples, seed, return_samples, unit, select, preset, plot)"
                         .into(),
                 ));
             }
@@ -170,11 +199,15 @@ pub async fn infer(
     let band_hz = bands_used(&npe, &present);
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
-    let (inf, fit, fit_ms) = tokio::task::spawn_blocking(move || {
+    let (plot, title) = (req.plot, format!("Posterior, model {}", row.id));
+    let (inf, fit, fit_ms, corner) = tokio::task::spawn_blocking(move || {
         let inf = npe2.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
         let t = std::time::Instant::now();
         let fit = crate::discrepancy::fitcheck::fit_check(&npe2, &x, &present, &inf);
-        Ok::<_, NpeError>((inf, fit.map(|f| (f, x)), t.elapsed().as_secs_f64() * 1e3))
+        let fit_ms = t.elapsed().as_secs_f64() * 1e3;
+        let corner = (plot == Some(Plot::Corner))
+            .then(|| crate::plot::posterior_corner(npe2.params(), &inf.samples, None, &inf.map, &title));
+        Ok::<_, NpeError>((inf, fit.map(|f| (f, x)), fit_ms, corner))
     })
     .await
     .map_err(Problem::internal)?
@@ -234,6 +267,9 @@ pub async fn infer(
             "measurement geometry inferred with the tissue (path from the impedance plane to the eardrum, canal \
              cross-section, V/P microphone distance): nuisances that keep the tissue posterior unbiased, not findings"
         );
+    }
+    if let Some(svg) = corner {
+        doc["figures"] = json!({ "corner": { "media_type": "image/svg+xml", "svg": svg } });
     }
     if req.return_samples.unwrap_or(true) {
         doc["samples"] = json!(inf.samples);

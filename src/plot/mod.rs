@@ -5,8 +5,10 @@ mod canvas;
 pub mod diagnosis;
 pub mod html;
 mod pages;
+mod posterior;
 pub use canvas::{Axes, Canvas};
 pub use pages::{Resimulation, resimulation};
+pub use posterior::posterior_corner;
 
 use crate::sim::output::MEASURES;
 

@@ -1412,3 +1412,38 @@ async fn log_prob_ranks_the_truth_and_names_bad_rows() {
     let (status, _, p) = call(&app, "POST", "/log_prob", Some(bad)).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("theta[0]")), "{p}");
 }
+
+/// Issue 16.5: POST /infer draws the posterior's corner plot on request (`plot=corner` as a
+/// query parameter or a body field), an SVG with tick values, and names a figure it does
+/// not know.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn infer_draws_a_corner_plot_on_request() {
+    let (app, _) = app(vec![], 8, false).await;
+    let mut req = nominal_request();
+    req["return_samples"] = json!(false);
+    let (status, _, r) = call(&app, "POST", "/infer", Some(req.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{r}");
+    assert!(r.get("figures").is_none(), "no figure unless asked");
+    let (status, _, by_query) = call(&app, "POST", "/infer?plot=corner", Some(req.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{by_query}");
+    req["plot"] = json!("corner");
+    let (status, _, by_body) = call(&app, "POST", "/infer", Some(req.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{by_body}");
+    for r in [&by_query, &by_body] {
+        let fig = &r["figures"]["corner"];
+        assert_eq!(fig["media_type"], "image/svg+xml");
+        let svg = fig["svg"].as_str().unwrap();
+        assert!(svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"), "{}", &svg[..80.min(svg.len())]);
+        // One marginal per parameter, labelled with its name and unit.
+        for p in r["parameters"].as_array().unwrap().iter().chain(r["geometry"].as_array().unwrap()) {
+            assert!(svg.contains(p["name"].as_str().unwrap()), "{} not in the plot", p["name"]);
+        }
+    }
+    assert_eq!(by_query["figures"], by_body["figures"], "same seed, same figure");
+    let (status, _, p) = call(&app, "POST", "/infer?plot=pairs", Some(nominal_request())).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("plot")), "{p}");
+    req["plot"] = json!("pairs");
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert!(p.to_string().contains("plot"), "{p}");
+}
