@@ -245,6 +245,9 @@ fn empty(c: &str) -> bool {
     c.is_empty() || ["na", "nan", "n/a"].contains(&c.to_ascii_lowercase().as_str())
 }
 
+/// The header's cells: (name, unit).
+type Header = Vec<(String, Option<String>)>;
+
 /// The table's data rows after `select`: (line number, cells).
 type Rows = Vec<(usize, Vec<String>)>;
 
@@ -299,6 +302,26 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
     let Some((_, head)) = lines.next() else {
         return Err(FormatError::NotThisFormat("empty: expected a CSV table with a header row".into()));
     };
+    let (d, header) = header(head)?;
+    let names: Vec<&str> = header.iter().map(|(n, _)| n.as_str()).collect();
+    let cols = columns(&header, opts)?;
+    let find = |q: Quantity| cols.iter().find(|c| c.quantity == q);
+    let Some(fcol) = find(Quantity::Frequency) else {
+        return Err(FormatError::Column {
+            column: "Frequency".into(),
+            message: format!("no frequency column (Frequency, Freq, f or Hz); the columns are {}", names.join(", ")),
+        });
+    };
+    let (rows, mut notes) = select(lines, d, &names, opts)?;
+    let f = frequencies(&rows, fcol, &names)?;
+    let t = Table { rows: &rows, f: &f };
+    let (measurements, columns) = measures(&t, &find, fcol, &names, &mut notes)?;
+    Ok(Imported { measurements, notes, columns })
+}
+
+/// The header line's delimiter and its cells as (name, unit). JSON is told apart here so
+/// that a JSON body sent as CSV gets an error that says so rather than one about columns.
+fn header(head: &str) -> Result<(char, Header), FormatError> {
     let head = head.trim_start_matches('\u{feff}');
     if head.trim_start().starts_with('{') || head.trim_start().starts_with('[') {
         return Err(FormatError::NotThisFormat(
@@ -306,14 +329,20 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
         ));
     }
     let d = delimiter(head);
-    let header: Vec<(String, Option<String>)> = cells(head, d).iter().map(|c| split_unit(c)).collect();
-    let names: Vec<&str> = header.iter().map(|(n, _)| n.as_str()).collect();
+    let header: Header = cells(head, d).iter().map(|c| split_unit(c)).collect();
     if header.len() < 2 {
         return Err(FormatError::NotThisFormat(format!(
             "not a CSV table with a header row (the first line is '{}')",
             head.chars().take(60).collect::<String>()
         )));
     }
+    Ok((d, header))
+}
+
+/// The columns otofit reads, each with its unit: from the header, else declared by the
+/// caller, else from the preset. A header and a declaration that disagree is an error
+/// rather than a silent choice, since either could be the wrong one.
+fn columns(header: &Header, opts: &LongOptions) -> Result<Vec<Col>, FormatError> {
     let mut cols: Vec<Col> = Vec::new();
     for (index, (name, u)) in header.iter().enumerate() {
         let Some(q) = quantity(name) else { continue };
@@ -351,13 +380,17 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
             col.unit = opts.preset.and_then(|p| p.unit(col.quantity)).map(str::to_string);
         }
     }
-    let find = |q: Quantity| cols.iter().find(|c| c.quantity == q);
-    let Some(fcol) = find(Quantity::Frequency) else {
-        return Err(FormatError::Column {
-            column: "Frequency".into(),
-            message: format!("no frequency column (Frequency, Freq, f or Hz); the columns are {}", names.join(", ")),
-        });
-    };
+    Ok(cols)
+}
+
+/// The data rows that pass `select`, and a note of how many were kept (a wrong select
+/// that keeps too few rows should be visible in the result, not only as an error).
+fn select<'l>(
+    lines: impl Iterator<Item = (usize, &'l str)>,
+    d: char,
+    names: &[&str],
+    opts: &LongOptions,
+) -> Result<(Rows, Vec<String>), FormatError> {
     let mut filters = Vec::new();
     for (c, v) in &opts.select {
         let Some(i) = names.iter().position(|n| n.eq_ignore_ascii_case(c)) else {
@@ -372,11 +405,11 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
     let mut total = 0;
     for (line, l) in lines {
         let r = cells(l, d);
-        if r.len() != header.len() {
+        if r.len() != names.len() {
             return Err(FormatError::Table(format!(
                 "line {line} has {} cells, the header {} (delimiter '{}')",
                 r.len(),
-                header.len(),
+                names.len(),
                 d.escape_default()
             )));
         }
@@ -397,9 +430,15 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
             if filters.is_empty() { "" } else { " left after select" }
         )));
     }
+    Ok((rows, notes))
+}
+
+/// The rows' frequencies in Hz. They must increase: a table that repeats them most often
+/// holds several ears or sessions, and the error says how to pick one.
+fn frequencies(rows: &Rows, fcol: &Col, names: &[&str]) -> Result<Vec<f64>, FormatError> {
     let hz = unit(fcol, &FREQUENCY, Some(1.0))?;
     let mut f = Vec::with_capacity(rows.len());
-    for (line, r) in &rows {
+    for (line, r) in rows {
         let v = number(*line, fcol, &r[fcol.index])? * hz;
         if v <= 0.0 {
             return Err(FormatError::Cell { line: *line, column: fcol.name.clone(), message: "must be > 0".into() });
@@ -417,21 +456,26 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
             if others.is_empty() { String::new() } else { format!(" (other columns: {})", others.join(", ")) }
         )));
     }
+    Ok(f)
+}
+
+/// Every measure the columns give, and which column each measurement field came from (so
+/// that a later validation error names the table's column, not a JSON path).
+fn measures<'c>(
+    t: &Table,
+    find: &impl Fn(Quantity) -> Option<&'c Col>,
+    fcol: &Col,
+    names: &[&str],
+    notes: &mut Vec<String>,
+) -> Result<(Measurements, Vec<(String, String)>), FormatError> {
     let mut m = Measurements::default();
     let mut columns = Vec::new();
-    let t = Table { rows: &rows, f: &f };
-    m.absorbance = absorbance(&t, &find, &mut columns, &mut notes)?;
-    m.impedance = impedance(&t, &find, &mut columns, &mut notes)?;
-    m.stapes_velocity = mag_phase(
-        &t,
-        find(Quantity::VstMag),
-        find(Quantity::VstAng),
-        &VELOCITY_UNITS,
-        "stapes_velocity",
-        &mut columns,
-    )?;
+    m.absorbance = absorbance(t, find, &mut columns, notes)?;
+    m.impedance = impedance(t, find, &mut columns, notes)?;
+    m.stapes_velocity =
+        mag_phase(t, find(Quantity::VstMag), find(Quantity::VstAng), &VELOCITY_UNITS, "stapes_velocity", &mut columns)?;
     m.umbo_velocity =
-        mag_phase(&t, find(Quantity::VuMag), find(Quantity::VuAng), &VELOCITY_UNITS, "umbo_velocity", &mut columns)?;
+        mag_phase(t, find(Quantity::VuMag), find(Quantity::VuAng), &VELOCITY_UNITS, "umbo_velocity", &mut columns)?;
     // An error about a measure's frequencies is one about the frequency column.
     let given = [
         ("impedance", m.impedance.is_some()),
@@ -450,7 +494,7 @@ pub fn read(text: &str, opts: &LongOptions) -> Result<Imported, FormatError> {
             known.join(", ")
         )));
     }
-    Ok(Imported { measurements: m, notes, columns })
+    Ok((m, columns))
 }
 
 /// The selected rows and their frequencies (Hz).
@@ -516,7 +560,6 @@ fn impedance<'c>(
     columns: &mut Vec<(String, String)>,
     notes: &mut Vec<String>,
 ) -> Result<Option<MagPhase>, FormatError> {
-    use super::immittance;
     let (zm, za) = (find(Quantity::Zmag), find(Quantity::Zang));
     let (ym, ya) = (find(Quantity::Ymag), find(Quantity::Yang));
     let (rm, ra, area) = (find(Quantity::Rmag), find(Quantity::Rang), find(Quantity::Area));
@@ -537,35 +580,11 @@ fn impedance<'c>(
         return mag_phase(t, zm, za, &IMPEDANCE_UNITS, "impedance", columns);
     }
     if let Some((ym, ya)) = both(ym, ya)? {
-        let k = unit(ym, &ADMITTANCE, None)?;
-        let phase_unit = unit(ya, &PHASE, None)?;
-        let (fy, v) = series(t.rows, t.f, &[ym, ya])?;
-        if fy.is_empty() {
-            return Ok(None);
+        let z = from_admittance(t, ym, ya, columns, notes)?;
+        if z.is_some() {
+            unused(notes, "the impedance came from the admittance");
         }
-        let mut z = MagPhase {
-            frequencies_hz: fy,
-            magnitude: Vec::new(),
-            phase: Vec::new(),
-            magnitude_unit: Some("Pa·s/m³".into()),
-            phase_unit: Some(phase_unit.into()),
-        };
-        for (y, p) in v[0].iter().zip(&v[1]) {
-            if *y <= 0.0 {
-                return Err(FormatError::Column {
-                    column: ym.name.clone(),
-                    message: format!("{y}: an admittance magnitude must be > 0"),
-                });
-            }
-            let (m, p) = immittance::impedance_from_admittance(y * k, *p);
-            z.magnitude.push(m);
-            z.phase.push(p);
-        }
-        notes.push(format!("impedance from the admittance {}, {}: |Z| = 1/|Y|, ∠Z = −∠Y", ym.name, ya.name));
-        columns.push(("measurements.impedance.magnitude".into(), ym.name.clone()));
-        columns.push(("measurements.impedance.phase".into(), ya.name.clone()));
-        unused(notes, "the impedance came from the admittance");
-        return Ok(Some(z));
+        return Ok(z);
     }
     let (Some(rm), Some(ra)) = (rm, ra) else {
         unused(notes, "no impedance, admittance or reflectance phase to use it with");
@@ -578,6 +597,59 @@ fn impedance<'c>(
         ));
         return Ok(None);
     };
+    from_reflectance(t, [rm, ra, area], columns, notes)
+}
+
+/// The impedance from an admittance column pair: |Z| = 1/|Y|, ∠Z = −∠Y, in the phase's
+/// own unit (negating an angle needs no conversion).
+fn from_admittance(
+    t: &Table,
+    ym: &Col,
+    ya: &Col,
+    columns: &mut Vec<(String, String)>,
+    notes: &mut Vec<String>,
+) -> Result<Option<MagPhase>, FormatError> {
+    use super::immittance;
+    let k = unit(ym, &ADMITTANCE, None)?;
+    let phase_unit = unit(ya, &PHASE, None)?;
+    let (fy, v) = series(t.rows, t.f, &[ym, ya])?;
+    if fy.is_empty() {
+        return Ok(None);
+    }
+    let mut z = MagPhase {
+        frequencies_hz: fy,
+        magnitude: Vec::new(),
+        phase: Vec::new(),
+        magnitude_unit: Some("Pa·s/m³".into()),
+        phase_unit: Some(phase_unit.into()),
+    };
+    for (y, p) in v[0].iter().zip(&v[1]) {
+        if *y <= 0.0 {
+            return Err(FormatError::Column {
+                column: ym.name.clone(),
+                message: format!("{y}: an admittance magnitude must be > 0"),
+            });
+        }
+        let (m, p) = immittance::impedance_from_admittance(y * k, *p);
+        z.magnitude.push(m);
+        z.phase.push(p);
+    }
+    notes.push(format!("impedance from the admittance {}, {}: |Z| = 1/|Y|, ∠Z = −∠Y", ym.name, ya.name));
+    columns.push(("measurements.impedance.magnitude".into(), ym.name.clone()));
+    columns.push(("measurements.impedance.phase".into(), ya.name.clone()));
+    Ok(Some(z))
+}
+
+/// The impedance from pressure reflectance and the canal area, Z = Z0 (1 + R)/(1 − R)
+/// with Z0 = ρc/S. The area is checked against an adult canal's because a wrong unit
+/// there scales |Z| by orders of magnitude without any other sign.
+fn from_reflectance(
+    t: &Table,
+    [rm, ra, area]: [&Col; 3],
+    columns: &mut Vec<(String, String)>,
+    notes: &mut Vec<String>,
+) -> Result<Option<MagPhase>, FormatError> {
+    use super::immittance;
     let s = unit(area, &AREA, None)?;
     let pu = unit(ra, &PHASE, None)?;
     let ph = PHASE_UNITS.iter().find(|(n, _)| *n == pu).map_or(1.0, |(_, k)| *k);
