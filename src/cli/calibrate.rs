@@ -2,7 +2,7 @@
 //! `--tune`, also the post-hoc recalibration (base temperature) and the fit check's null,
 //! written into the model.
 
-use crate::npe::calibrate::{TUNE_LEVELS, calibrate, tune_temperature};
+use crate::npe::calibrate::{TUNE_LEVELS, calibrate_with, tune_temperature};
 use crate::npe::{Dataset, Npe};
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -93,7 +93,9 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
     if let Some(dir) = &args.report {
         std::fs::create_dir_all(dir).with_context(|| format!("--report {}: cannot create it", dir.display()))?;
     }
-    let cal = calibrate(&model, &rows, args.samples, args.seed)?;
+    let mut bar = super::progress::Progress::new("calibrated", "held-out rows", rows.len() as u64);
+    let cal = calibrate_with(&model, &rows, args.samples, args.seed, &mut |done| bar.set(done as u64))?;
+    bar.finish();
     if let Some(dir) = &args.report {
         let ranks: Vec<(&str, Vec<usize>)> = cal.sbc_ranks.iter().map(|r| (r.name.as_str(), r.ranks.clone())).collect();
         let title = format!("Calibration of {} on {} held-out simulations", args.model.display(), cal.rows);

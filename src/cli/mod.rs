@@ -12,6 +12,7 @@ pub mod explain;
 pub mod import;
 pub mod infer;
 pub mod keys;
+mod progress;
 pub mod serve;
 pub mod simulate;
 pub mod study;

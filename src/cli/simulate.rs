@@ -6,9 +6,7 @@ use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS};
 use crate::sim::{Model, ModelConfig, Preset};
 use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
-use std::io::IsTerminal;
 use std::path::PathBuf;
-use std::time::Instant;
 
 #[derive(Args, Debug)]
 pub struct SimulateArgs {
@@ -168,21 +166,12 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         Some(g) => Rows::Given(g),
         None => Rows::Prior { n: args.n.unwrap_or(0), seed: args.seed },
     };
-    let start = Instant::now();
-    let tty = std::io::stderr().is_terminal();
-    let mut last_report = Instant::now();
-    let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, preset, &out, &mut |done, n| {
-        if tty || last_report.elapsed().as_secs_f64() > 5.0 || done == n {
-            let rate = done as f64 / start.elapsed().as_secs_f64();
-            eprint!(
-                "{}simulated {done}/{n} ({rate:.0} runs/s){}",
-                if tty { "\r" } else { "" },
-                if tty && done < n { "" } else { "\n" }
-            );
-            last_report = Instant::now();
-        }
+    let mut bar = super::progress::Progress::new("simulated", "rows", rows.len() as u64);
+    let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, preset, &out, &mut |done, _| {
+        bar.set(done as u64);
         true
     })?;
+    bar.finish();
     for f in &meta.failed {
         eprintln!("row {} failed: {}", f.row, f.reason);
     }

@@ -49,6 +49,17 @@ impl ParamRanks {
 
 /// `rows`: (θ, x) pairs not used in training.
 pub fn calibrate(npe: &Npe, rows: &[(Vec<f64>, Vec<f64>)], samples: usize, seed: u64) -> Result<Calibration> {
+    calibrate_with(npe, rows, samples, seed, &mut |_| {})
+}
+
+/// [`calibrate`], calling `progress` with the number of rows done after each row.
+pub fn calibrate_with(
+    npe: &Npe,
+    rows: &[(Vec<f64>, Vec<f64>)],
+    samples: usize,
+    seed: u64,
+    progress: &mut dyn FnMut(usize),
+) -> Result<Calibration> {
     if samples < 2 {
         return Err(NpeError::settings(
             "samples",
@@ -89,6 +100,7 @@ pub fn calibrate(npe: &Npe, rows: &[(Vec<f64>, Vec<f64>)], samples: usize, seed:
                 marginal[k] += 1;
             }
         }
+        progress(r + 1);
     }
     let n = rows.len().max(1) as f64;
     Ok(Calibration {
