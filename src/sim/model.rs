@@ -336,139 +336,20 @@ impl Line {
 }
 
 impl Model {
+    /// Builds the model: the unknowns' layout, then the drum, the ossicles and the
+    /// pressure coupling each add their terms to one sparse pattern, factorised
+    /// symbolically once for every parameter set and frequency.
     pub fn new(config: ModelConfig) -> Result<Model, SimError> {
         let g = &config.geometry;
         let air = config.preset.air();
-        // The axisymmetric drum's nodes, from the disc edge (index 0) to the clamped rim.
-        let nodes = match g.tm_shape {
-            DrumShape::Axisymmetric => cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements),
-            DrumShape::Manubrium { .. } if !config.reduce_drum => {
-                return Err(SimError::Setup(
-                    "the manubrium drum is always condensed (reduce_drum = false needs DrumShape::Axisymmetric)".into(),
-                ));
-            }
-            DrumShape::Manubrium { .. } => Vec::new(),
-        };
-        let n_interior = 3 * nodes.len().saturating_sub(2);
-        let osc = 1 + if config.reduce_drum { 0 } else { n_interior };
-        let dofs = Dofs {
-            p_drum: 0,
-            umbo: osc,
-            theta_m: osc + 1,
-            x_incus: osc + 2,
-            theta_i: osc + 3,
-            x_stapes: osc + 4,
-            phi_stapes: osc + 5,
-            p_cavity: osc + 6,
-            n: osc + 7,
-        };
-        let condensed_at = match g.tm_shape {
-            DrumShape::Axisymmetric => vec![dofs.umbo, dofs.p_drum, dofs.p_cavity],
-            DrumShape::Manubrium { .. } => vec![dofs.umbo, dofs.theta_m, dofs.p_drum, dofs.p_cavity],
-        };
-
+        let nodes = drum_nodes(&config)?;
+        let dofs = Dofs::layout(config.reduce_drum, nodes.len());
         let mut sb = SystemBuilder::new(dofs.n);
-        let blocks = Blocks {
-            tm: sb.block(),
-            ligaments: sb.block(),
-            tendons: sb.block(),
-            joints: sb.block(),
-            sal: sb.block(),
-            mass: sb.block(),
-            cochlea: sb.block(),
-            drum_load: sb.block(),
-            drum_flow: sb.block(),
-            cavity_load: sb.block(),
-            cavity_row: sb.block(),
-            cavity_diag: sb.block(),
-            drum_schur: {
-                let first = sb.block();
-                for _ in 1..condensed_at.len().pow(2) {
-                    sb.block();
-                }
-                first
-            },
-        };
+        let blocks = Blocks::new(&mut sb, dofs.condensed(g.tm_shape).len());
         let mut b = vec![0.0; dofs.n];
-        let drum = match g.tm_shape {
-            DrumShape::Axisymmetric => {
-                axisymmetric_drum(g, &nodes, &dofs, &blocks, config.reduce_drum, &mut sb, &mut b)?
-                    .map(Condensed::Axisymmetric)
-            }
-            DrumShape::Manubrium { rings, manubrium_to_rim } => {
-                let drum = DrumGeometry {
-                    radius_x: g.tm_radius,
-                    radius_y: g.tm_radius,
-                    depth: g.tm_depth,
-                    bulge: g.tm_bulge,
-                    manubrium_to_rim,
-                    material: ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho },
-                    rings,
-                };
-                Some(Condensed::Manubrium(drum.modes_shared().map_err(SimError::Setup)?))
-            }
-        };
-        if drum.is_some() {
-            for (i, &r) in condensed_at.iter().enumerate() {
-                for (j, &c) in condensed_at.iter().enumerate() {
-                    sb.add(blocks.drum_schur + condensed_at.len() * i + j, r, c, 1.0);
-                }
-            }
-        }
-
-        // Ossicles. Malleus in (w_umbo, θ_m): x_m = w_umbo − l_u θ_m, so a malleus point
-        // at arm l moves by w_umbo + (l − l_u) θ_m along z.
-        let (d, lu) = (&dofs, g.arm_umbo);
-        let malleus_at = |l: f64| vec![(d.umbo, 1.0), (d.theta_m, l - lu)];
-        let incus_at = |l: f64| vec![(d.x_incus, 1.0), (d.theta_i, l)];
-        // Stapes: piston x_s along its axis, tilted by α from z; rocking φ about the
-        // footplate centre moves the head by h·φ across the axis.
-        let (ca, sa, hs) = (g.stapes_tilt.cos(), g.stapes_tilt.sin(), g.stapes_height);
-        let head_z = [(d.x_stapes, ca), (d.phi_stapes, -hs * sa)];
-        let head_y = [(d.x_stapes, sa), (d.phi_stapes, hs * ca)];
-
-        // Masses (centres of mass on the rotation axis, at the footplate for rocking).
-        sb.add_outer(blocks.mass, &malleus_at(0.0), g.m_malleus);
-        sb.add(blocks.mass, d.theta_m, d.theta_m, g.i_malleus);
-        sb.add(blocks.mass, d.x_incus, d.x_incus, g.m_incus);
-        sb.add(blocks.mass, d.theta_i, d.theta_i, g.i_incus);
-        sb.add(blocks.mass, d.x_stapes, d.x_stapes, g.m_stapes);
-        sb.add(blocks.mass, d.phi_stapes, d.phi_stapes, g.i_stapes);
-
-        // Ligaments on the axis: translation plus torsion.
-        sb.add_outer(blocks.ligaments, &malleus_at(0.0), g.g_aml);
-        sb.add(blocks.ligaments, d.theta_m, d.theta_m, g.g_aml_rot);
-        sb.add_outer(blocks.ligaments, &incus_at(0.0), g.g_pil);
-        sb.add(blocks.ligaments, d.theta_i, d.theta_i, g.g_pil_rot);
-        // Tendons: tensor tympani on the malleus neck, stapedius across the stapes head.
-        sb.add_outer(blocks.tendons, &malleus_at(g.arm_ttt), g.g_ttt);
-        sb.add_outer(blocks.tendons, &head_y, g.g_stapedius);
-        // Joints: IMJ (translation at its arm + rotation), ISJ (along z and shear).
-        let mut imj = malleus_at(g.arm_imj);
-        imj.extend(incus_at(g.arm_imj).into_iter().map(|(i, c)| (i, -c)));
-        sb.add_outer(blocks.joints, &imj, g.g_imj);
-        sb.add_outer(blocks.joints, &[(d.theta_m, 1.0), (d.theta_i, -1.0)], g.g_imj_rot);
-        let mut isj = incus_at(g.arm_lp);
-        isj.extend(head_z.iter().map(|&(i, c)| (i, -c)));
-        sb.add_outer(blocks.joints, &isj, g.g_isj);
-        sb.add_outer(blocks.joints, &head_y, g.g_isj_shear);
-        // Stapes annular ligament: piston and rocking.
-        sb.add(blocks.sal, d.x_stapes, d.x_stapes, g.g_sal);
-        sb.add(blocks.sal, d.phi_stapes, d.phi_stapes, g.g_sal_rock);
-        // Cochlear load on the piston: force = Z_c·A_fp²·velocity.
-        sb.add(blocks.cochlea, d.x_stapes, d.x_stapes, g.footplate_area * g.footplate_area);
-
-        // Coupling through b: the canal pressure loads the drum; the drum's volume
-        // velocity is the flow into it; the cavity pressure pushes back.
-        let last = d.p_drum;
-        for (i, &bi) in b.iter().enumerate().filter(|(_, bi)| **bi != 0.0) {
-            sb.add(blocks.drum_load, i, last, -bi);
-            sb.add(blocks.drum_flow, last, i, bi);
-            sb.add(blocks.cavity_load, i, d.p_cavity, bi);
-            sb.add(blocks.cavity_row, d.p_cavity, i, bi);
-        }
-        sb.add(blocks.cavity_diag, d.p_cavity, d.p_cavity, -1.0);
-
+        let drum = drum(&config, &nodes, &dofs, &blocks, &mut sb, &mut b)?;
+        ossicles(g, &dofs, &blocks, &mut sb);
+        couple_pressures(&b, &dofs, &blocks, &mut sb);
         let system = sb.build().map_err(|e| SimError::Setup(format!("symbolic LU: {e:?}")))?;
         Ok(Model { config, air, dofs, system, blocks, b, drum })
     }
@@ -539,18 +420,182 @@ impl Model {
     }
 }
 
-/// Assembles the axisymmetric drum and its umbo disc: into the system directly, or (when
-/// `reduce`) condensed through its modes, leaving the umbo terms and `b` in the system.
-fn axisymmetric_drum(
-    g: &Geometry,
+impl Dofs {
+    /// The unknowns in order: p_drum, the drum's interior (only when it is kept whole,
+    /// so that the tests can compare it with the condensed drum), the ossicles, p_cavity.
+    fn layout(reduce_drum: bool, n_nodes: usize) -> Dofs {
+        let n_interior = 3 * n_nodes.saturating_sub(2);
+        let osc = 1 + if reduce_drum { 0 } else { n_interior };
+        Dofs {
+            p_drum: 0,
+            umbo: osc,
+            theta_m: osc + 1,
+            x_incus: osc + 2,
+            theta_i: osc + 3,
+            x_stapes: osc + 4,
+            phi_stapes: osc + 5,
+            p_cavity: osc + 6,
+            n: osc + 7,
+        }
+    }
+
+    /// The unknowns a condensed drum couples to: the manubrium drum also turns with the
+    /// malleus along its length, the axisymmetric one meets it at the umbo only.
+    fn condensed(&self, shape: DrumShape) -> Vec<usize> {
+        match shape {
+            DrumShape::Axisymmetric => vec![self.umbo, self.p_drum, self.p_cavity],
+            DrumShape::Manubrium { .. } => vec![self.umbo, self.theta_m, self.p_drum, self.p_cavity],
+        }
+    }
+}
+
+impl Blocks {
+    /// One coefficient block per term, and n² for the condensed drum's dense block on its
+    /// `n_condensed` boundary unknowns (each entry varies with frequency on its own).
+    fn new(sb: &mut SystemBuilder, n_condensed: usize) -> Blocks {
+        Blocks {
+            tm: sb.block(),
+            ligaments: sb.block(),
+            tendons: sb.block(),
+            joints: sb.block(),
+            sal: sb.block(),
+            mass: sb.block(),
+            cochlea: sb.block(),
+            drum_load: sb.block(),
+            drum_flow: sb.block(),
+            cavity_load: sb.block(),
+            cavity_row: sb.block(),
+            cavity_diag: sb.block(),
+            drum_schur: {
+                let first = sb.block();
+                for _ in 1..n_condensed.pow(2) {
+                    sb.block();
+                }
+                first
+            },
+        }
+    }
+}
+
+/// The axisymmetric drum's nodes, from the disc edge (index 0) to the clamped rim; none
+/// for the manubrium drum, which meshes itself and exists only condensed.
+fn drum_nodes(config: &ModelConfig) -> Result<Vec<(f64, f64)>, SimError> {
+    let g = &config.geometry;
+    match g.tm_shape {
+        DrumShape::Axisymmetric => Ok(cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements)),
+        DrumShape::Manubrium { .. } if !config.reduce_drum => Err(SimError::Setup(
+            "the manubrium drum is always condensed (reduce_drum = false needs DrumShape::Axisymmetric)".into(),
+        )),
+        DrumShape::Manubrium { .. } => Ok(Vec::new()),
+    }
+}
+
+/// The eardrum: assembled into the system, or condensed through its modes with only the
+/// pattern of its dense block on the boundary unknowns in the system (the values come
+/// per frequency from the modes).
+fn drum(
+    config: &ModelConfig,
     nodes: &[(f64, f64)],
     dofs: &Dofs,
     blocks: &Blocks,
-    reduce: bool,
     sb: &mut SystemBuilder,
     b: &mut [f64],
-) -> Result<Option<DrumModes>, SimError> {
+) -> Result<Option<Condensed>, SimError> {
+    let g = &config.geometry;
+    let drum = match g.tm_shape {
+        DrumShape::Axisymmetric => {
+            axisymmetric_drum(g, nodes, dofs, blocks, config.reduce_drum, sb, b)?.map(Condensed::Axisymmetric)
+        }
+        DrumShape::Manubrium { rings, manubrium_to_rim } => {
+            let drum = DrumGeometry {
+                radius_x: g.tm_radius,
+                radius_y: g.tm_radius,
+                depth: g.tm_depth,
+                bulge: g.tm_bulge,
+                manubrium_to_rim,
+                material: ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho },
+                rings,
+            };
+            Some(Condensed::Manubrium(drum.modes_shared().map_err(SimError::Setup)?))
+        }
+    };
+    if drum.is_some() {
+        let condensed_at = dofs.condensed(g.tm_shape);
+        for (i, &r) in condensed_at.iter().enumerate() {
+            for (j, &c) in condensed_at.iter().enumerate() {
+                sb.add(blocks.drum_schur + condensed_at.len() * i + j, r, c, 1.0);
+            }
+        }
+    }
+    Ok(drum)
+}
+
+/// The ossicular chain: masses, ligaments, tendons, joints, the annular ligament and the
+/// cochlear load, each in its own block so that its modulus scales it per run.
+fn ossicles(g: &Geometry, d: &Dofs, blocks: &Blocks, sb: &mut SystemBuilder) {
+    // Malleus in (w_umbo, θ_m): x_m = w_umbo − l_u θ_m, so a malleus point at arm l
+    // moves by w_umbo + (l − l_u) θ_m along z.
+    let lu = g.arm_umbo;
+    let malleus_at = |l: f64| vec![(d.umbo, 1.0), (d.theta_m, l - lu)];
+    let incus_at = |l: f64| vec![(d.x_incus, 1.0), (d.theta_i, l)];
+    // Stapes: piston x_s along its axis, tilted by α from z; rocking φ about the
+    // footplate centre moves the head by h·φ across the axis.
+    let (ca, sa, hs) = (g.stapes_tilt.cos(), g.stapes_tilt.sin(), g.stapes_height);
+    let head_z = [(d.x_stapes, ca), (d.phi_stapes, -hs * sa)];
+    let head_y = [(d.x_stapes, sa), (d.phi_stapes, hs * ca)];
+
+    // Masses (centres of mass on the rotation axis, at the footplate for rocking).
+    sb.add_outer(blocks.mass, &malleus_at(0.0), g.m_malleus);
+    sb.add(blocks.mass, d.theta_m, d.theta_m, g.i_malleus);
+    sb.add(blocks.mass, d.x_incus, d.x_incus, g.m_incus);
+    sb.add(blocks.mass, d.theta_i, d.theta_i, g.i_incus);
+    sb.add(blocks.mass, d.x_stapes, d.x_stapes, g.m_stapes);
+    sb.add(blocks.mass, d.phi_stapes, d.phi_stapes, g.i_stapes);
+
+    // Ligaments on the axis: translation plus torsion.
+    sb.add_outer(blocks.ligaments, &malleus_at(0.0), g.g_aml);
+    sb.add(blocks.ligaments, d.theta_m, d.theta_m, g.g_aml_rot);
+    sb.add_outer(blocks.ligaments, &incus_at(0.0), g.g_pil);
+    sb.add(blocks.ligaments, d.theta_i, d.theta_i, g.g_pil_rot);
+    // Tendons: tensor tympani on the malleus neck, stapedius across the stapes head.
+    sb.add_outer(blocks.tendons, &malleus_at(g.arm_ttt), g.g_ttt);
+    sb.add_outer(blocks.tendons, &head_y, g.g_stapedius);
+    // Joints: IMJ (translation at its arm + rotation), ISJ (along z and shear).
+    let mut imj = malleus_at(g.arm_imj);
+    imj.extend(incus_at(g.arm_imj).into_iter().map(|(i, c)| (i, -c)));
+    sb.add_outer(blocks.joints, &imj, g.g_imj);
+    sb.add_outer(blocks.joints, &[(d.theta_m, 1.0), (d.theta_i, -1.0)], g.g_imj_rot);
+    let mut isj = incus_at(g.arm_lp);
+    isj.extend(head_z.iter().map(|&(i, c)| (i, -c)));
+    sb.add_outer(blocks.joints, &isj, g.g_isj);
+    sb.add_outer(blocks.joints, &head_y, g.g_isj_shear);
+    // Stapes annular ligament: piston and rocking.
+    sb.add(blocks.sal, d.x_stapes, d.x_stapes, g.g_sal);
+    sb.add(blocks.sal, d.phi_stapes, d.phi_stapes, g.g_sal_rock);
+    // Cochlear load on the piston: force = Z_c·A_fp²·velocity.
+    sb.add(blocks.cochlea, d.x_stapes, d.x_stapes, g.footplate_area * g.footplate_area);
+}
+
+/// Coupling through b, the volume swept per unit of each unknown: the canal pressure
+/// loads the drum; the drum's volume velocity is the flow into it (the row the unit
+/// drive enters); the cavity pressure pushes back.
+fn couple_pressures(b: &[f64], d: &Dofs, blocks: &Blocks, sb: &mut SystemBuilder) {
+    let last = d.p_drum;
+    for (i, &bi) in b.iter().enumerate().filter(|(_, bi)| **bi != 0.0) {
+        sb.add(blocks.drum_load, i, last, -bi);
+        sb.add(blocks.drum_flow, last, i, bi);
+        sb.add(blocks.cavity_load, i, d.p_cavity, bi);
+        sb.add(blocks.cavity_row, d.p_cavity, i, bi);
+    }
+    sb.add(blocks.cavity_diag, d.p_cavity, d.p_cavity, -1.0);
+}
+
+/// The axisymmetric drum's stiffness (per unit E), mass and swept volume, assembled
+/// densely over its local DOFs (interior, then the umbo last): the modes need the
+/// interior block and its coupling column to the umbo apart.
+fn axisymmetric_matrices(g: &Geometry, nodes: &[(f64, f64)]) -> (faer::Mat<f64>, faer::Mat<f64>, Vec<f64>) {
     let n_interior = 3 * (nodes.len() - 2);
+    let nl = n_interior + 1;
     // Local eardrum DOF d of node i: interior index 0..n_interior, the umbo as
     // n_interior, None on the clamped rim.
     let tm_local = |i: usize, d: usize| -> Option<usize> {
@@ -562,9 +607,7 @@ fn axisymmetric_drum(
             Some(3 * (i - 1) + d)
         }
     };
-    // Elements, assembled densely over the local DOFs (interior + umbo).
     let mat = ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho };
-    let nl = n_interior + 1;
     let (mut kd, mut md, mut bd) = (faer::Mat::<f64>::zeros(nl, nl), faer::Mat::<f64>::zeros(nl, nl), vec![0.0; nl]);
     for el in 0..nodes.len() - 1 {
         let se = ShellElement::new(nodes[el], nodes[el + 1], &mat);
@@ -579,6 +622,23 @@ fn axisymmetric_drum(
             }
         }
     }
+    (kd, md, bd)
+}
+
+/// Assembles the axisymmetric drum and its umbo disc: into the system directly, or (when
+/// `reduce`) condensed through its modes, leaving the umbo terms and `b` in the system.
+fn axisymmetric_drum(
+    g: &Geometry,
+    nodes: &[(f64, f64)],
+    dofs: &Dofs,
+    blocks: &Blocks,
+    reduce: bool,
+    sb: &mut SystemBuilder,
+    b: &mut [f64],
+) -> Result<Option<DrumModes>, SimError> {
+    let n_interior = 3 * (nodes.len() - 2);
+    let nl = n_interior + 1;
+    let (kd, md, bd) = axisymmetric_matrices(g, nodes);
     let modes = if reduce {
         let ni = n_interior;
         let col = |a: &faer::Mat<f64>| (0..ni).map(|i| a[(i, ni)]).collect::<Vec<f64>>();
