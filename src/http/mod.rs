@@ -7,7 +7,8 @@ pub use auth::{Principal, host_allowed};
 pub mod conn;
 mod infer;
 mod log_prob;
-pub mod metrics;
+pub use crate::gate::{InferGate, InferLimits};
+pub use crate::metrics;
 mod resources;
 
 use crate::jobs::Ctx;
@@ -42,43 +43,6 @@ pub const ROUTES: [(&str, &str); 15] = [
 ];
 
 pub const MAX_BODY: usize = 2 * 1024 * 1024;
-
-/// Bounds on `POST /infer`: at most `concurrency` inferences run at once, at most `queue`
-/// more wait for a slot (503 + Retry-After beyond that), and each answers within
-/// `deadline` (waiting included) or gets a 503.
-#[derive(Clone, Copy, Debug)]
-pub struct InferLimits {
-    pub concurrency: usize,
-    pub queue: usize,
-    pub deadline: Duration,
-}
-
-impl Default for InferLimits {
-    /// Two inferences per core, 32 per core waiting, 10 s each. A request costs ~10–30 ms
-    /// of CPU, so a burst of a few dozen clients waits well under a second instead of
-    /// being turned away; the deadline still bounds every wait.
-    fn default() -> Self {
-        let cores = std::thread::available_parallelism().map_or(2, usize::from);
-        InferLimits { concurrency: 2 * cores, queue: 32 * cores, deadline: Duration::from_secs(10) }
-    }
-}
-
-/// The running state of [`InferLimits`]: slots and the count of requests waiting for one.
-pub struct InferGate {
-    pub limits: InferLimits,
-    slots: Arc<tokio::sync::Semaphore>,
-    waiting: AtomicUsize,
-}
-
-impl InferGate {
-    pub fn new(limits: InferLimits) -> InferGate {
-        InferGate {
-            limits,
-            slots: Arc::new(tokio::sync::Semaphore::new(limits.concurrency.max(1))),
-            waiting: AtomicUsize::new(0),
-        }
-    }
-}
 
 /// Counts a waiting request for as long as it waits (also when its client goes away).
 struct Waiting<'a>(&'a AtomicUsize);

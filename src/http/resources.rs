@@ -29,7 +29,7 @@ pub async fn ready(State(st): State<AppState>) -> Response {
 /// histograms (see `http::metrics`).
 pub async fn metrics(State(st): State<AppState>) -> Result<Response, Problem> {
     let queue = st.ctx.store.queue_counts().await.map_err(Problem::internal)?;
-    let mut r = st.ctx.metrics.render(&queue).into_response();
+    let mut r = st.ctx.metrics.render(&crate::jobs::KINDS, &queue).into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"));
     Ok(r)
 }

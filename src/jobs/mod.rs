@@ -51,13 +51,13 @@ pub struct Ctx {
     /// The data directory's lock, held as long as this context lives (see `with_lock`).
     data_lock: Option<std::fs::File>,
     /// Slots and deadline of POST /infer.
-    pub infer_gate: crate::http::InferGate,
+    pub infer_gate: crate::gate::InferGate,
     /// This process as a worker (`host:pid`), written into the jobs it claims.
     pub worker: String,
     /// Length of a claim's lease; renewed every third of it.
     pub lease: Duration,
     /// Counters and histograms of this process, for GET /metrics.
-    pub metrics: crate::http::metrics::Metrics,
+    pub metrics: crate::metrics::Metrics,
     /// Most rows per chunk of the simulate jobs this process plans (`simulate::chunk_plan`).
     pub chunk_rows: usize,
     /// Backoff of a failed attempt's retry.
@@ -119,7 +119,7 @@ impl Ctx {
             max_queue,
             max_queue_per_tenant: max_queue,
             data_lock: None,
-            infer_gate: crate::http::InferGate::new(crate::http::InferLimits::default()),
+            infer_gate: crate::gate::InferGate::new(crate::gate::InferLimits::default()),
             worker: crate::store::worker_name(),
             lease: DEFAULT_LEASE,
             metrics: Default::default(),
@@ -147,8 +147,8 @@ impl Ctx {
     }
 
     /// Bounds POST /infer by `limits` instead of the defaults.
-    pub fn with_infer_limits(mut self, limits: crate::http::InferLimits) -> Ctx {
-        self.infer_gate = crate::http::InferGate::new(limits);
+    pub fn with_infer_limits(mut self, limits: crate::gate::InferLimits) -> Ctx {
+        self.infer_gate = crate::gate::InferGate::new(limits);
         self
     }
 

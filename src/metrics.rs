@@ -1,4 +1,6 @@
-//! GET /metrics: Prometheus text exposition format (version 0.0.4), written by hand.
+//! Process counters and histograms, rendered for GET /metrics in the Prometheus text
+//! exposition format (version 0.0.4), written by hand. Kept below the job layer, which
+//! records into it.
 //!
 //! A few counters and histograms do not need the `metrics` + `metrics-exporter-prometheus`
 //! stack (a registry, recorders, a second HTTP listener and their dependency trees); the
@@ -121,9 +123,9 @@ impl Metrics {
         self.rows.fetch_add(rows, Ordering::Relaxed);
     }
 
-    /// The exposition: the job table's `queue` counts (kind, state, count) and this
-    /// process's series.
-    pub fn render(&self, queue: &[crate::store::QueueCount]) -> String {
+    /// The exposition: the job table's `queue` counts (kind, state, count) for every job
+    /// kind of `kinds`, and this process's series.
+    pub fn render(&self, kinds: &[&str], queue: &[crate::store::QueueCount]) -> String {
         let mut out = String::new();
         let _ = writeln!(
             out,
@@ -131,7 +133,7 @@ impl Metrics {
              # TYPE otofit_jobs gauge"
         );
         const STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
-        for kind in crate::jobs::KINDS {
+        for &kind in kinds {
             for state in STATES {
                 let n: i64 = queue.iter().filter(|c| c.kind == kind && c.state == state).map(|c| c.count).sum();
                 let _ = writeln!(out, "otofit_jobs{{kind=\"{kind}\",state=\"{state}\"}} {n}");
@@ -179,7 +181,10 @@ mod tests {
         m.inferred(200, 0.2);
         m.inferred(503, 12.0);
         m.simulated(1024);
-        let text = m.render(&[crate::store::QueueCount { kind: "train".into(), state: "queued".into(), count: 2 }]);
+        let text = m.render(
+            &crate::jobs::KINDS,
+            &[crate::store::QueueCount { kind: "train".into(), state: "queued".into(), count: 2 }],
+        );
         assert!(text.contains("otofit_jobs{kind=\"train\",state=\"queued\"} 2\n"), "{text}");
         assert!(text.contains("otofit_jobs{kind=\"simulate\",state=\"running\"} 0\n"));
         assert!(text.contains("otofit_infer_duration_seconds_bucket{code=\"200\",le=\"0.005\"} 1\n"), "{text}");
