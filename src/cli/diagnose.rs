@@ -1,5 +1,6 @@
 //! The discrepancy workflow on the command line, and its benchmark.
 
+use crate::discrepancy::workflow::{Settings, diagnose, null_thresholds};
 use crate::discrepancy::{self, Verdict};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::params::{EFFECTS, N_EFFECTS, N_PARAMS};
@@ -42,7 +43,6 @@ pub struct DiagnoseArgs {
 }
 
 pub fn run(args: DiagnoseArgs) -> Result<()> {
-    use crate::discrepancy::workflow::{Settings, diagnose};
     use crate::plot::diagnosis::{Links, write_report};
     // The diagnose job's limits (jobs::limits).
     use crate::jobs::limits::{EPOCHS, NULL_CASES, TRAIN_ROWS, check};
@@ -102,13 +102,32 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
 /// per case), false alarms on effect-free cases, and the wall time of one full diagnosis
 /// with the retrain.
 pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
-    use crate::discrepancy::workflow::{Settings, diagnose, null_thresholds};
     let model = Model::new(ModelConfig::default())?;
     let base = crate::npe::Npe::load(std::path::Path::new("models/default.otofit"))?;
     let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed };
     let t0 = Instant::now();
+    let s = with_null_thresholds(&model, &base, &noise, seed)?;
+    let draw = Cases { model: &model, noise: &noise, seed };
+    false_alarms(&draw, &base, &s, clean)?;
+    println!("visible: the effect's noise-free signature Σ(Δx/σ)² > {VISIBLE}");
+    println!(
+        "{:<16} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  other verdicts",
+        "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit"
+    );
+    for e in 0..EFFECTS.len() {
+        effect_rates(&draw, &base, &s, e, cases)?;
+    }
+    full_diagnosis(&draw, &base, seed)?;
+    println!("wall {:.0} s", t0.elapsed().as_secs_f64());
+    Ok(())
+}
+
+/// The benchmark's settings: no retrain per case, and alarm thresholds measured once on
+/// more null cases than a single diagnosis uses, so that every case shares them.
+fn with_null_thresholds(model: &Model, base: &crate::npe::Npe, noise: &Noise, seed: u64) -> Result<Settings> {
+    let t0 = Instant::now();
     let mut s = Settings { extend: false, null_cases: NULL_CASES, seed, ..Settings::default() };
-    let t = null_thresholds(&model, &base, &noise, &vec![true; base.header.feature_names.len()], &s)?;
+    let t = null_thresholds(model, base, noise, &vec![true; base.header.feature_names.len()], &s)?;
     s.thresholds = Some(t);
     let q = 100.0 * crate::discrepancy::workflow::ALARM_QUANTILE;
     println!(
@@ -117,7 +136,30 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         t.best_drop,
         t0.elapsed().as_secs_f64()
     );
-    let case = |row: usize, hidden: Option<usize>| -> Option<(Vec<f64>, Option<f64>, f64)> {
+    Ok(s)
+}
+
+/// One benchmark observation: the noisy features, the hidden effect's true value and the
+/// strength of its noise-free signature.
+struct Case {
+    x: Vec<f64>,
+    truth: Option<f64>,
+    strength: f64,
+}
+
+/// Draws the benchmark's cases from the default model.
+struct Cases<'a> {
+    model: &'a Model,
+    noise: &'a Noise,
+    seed: u64,
+}
+
+impl Cases<'_> {
+    /// Case `row`, with `hidden` switched on at a prior draw; `None` when a simulation
+    /// fails. The parameters stay in the central 80 % of the prior so that a miss is the
+    /// workflow's, not an edge of the prior's.
+    fn draw(&self, row: usize, hidden: Option<usize>) -> Option<Case> {
+        let (model, noise, seed) = (self.model, self.noise, self.seed);
         let mut design = Design::default();
         design.varied.extend(hidden);
         let mut r = design.draw(seed, row, 1).remove(0);
@@ -126,24 +168,28 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         for k in 0..N_PARAMS {
             r[k] = cols[k].from_unit(0.1 + 0.8 * unit_of(&cols[k], u[k])); // central 80 % of the prior
         }
-        let x = run_rows(&model, &design, &[r.clone()], row, Some(&noise)).remove(0).ok()?;
+        let x = run_rows(model, &design, &[r.clone()], row, Some(noise)).remove(0).ok()?;
         let strength = match hidden {
             Some(_) => {
-                let on = run_rows(&model, &design, &[r.clone()], row, None).remove(0).ok()?;
-                let off = run_rows(&model, &Design::default(), &[r[..N_PARAMS].to_vec()], row, None).remove(0).ok()?;
+                let on = run_rows(model, &design, &[r.clone()], row, None).remove(0).ok()?;
+                let off = run_rows(model, &Design::default(), &[r[..N_PARAMS].to_vec()], row, None).remove(0).ok()?;
                 (0..on.len())
                     .map(|i| (discrepancy::fit::feature_residual(i, 50, on[i], off[i]) / noise.std[i]).powi(2))
                     .sum()
             }
             None => 0.0,
         };
-        Some((x, hidden.map(|_| r[N_PARAMS]), strength))
-    };
+        Some(Case { x, truth: hidden.map(|_| r[N_PARAMS]), strength })
+    }
+}
+
+/// Effect-free cases that get any verdict but "no discrepancy".
+fn false_alarms(draw: &Cases, base: &crate::npe::Npe, s: &Settings, clean: usize) -> Result<()> {
     let mut false_alarms = 0;
     let mut n_clean = 0;
     for i in 0..clean {
-        let Some((x, _, _)) = case(200_000 + i, None) else { continue };
-        let r = diagnose(&model, &base, &x, &s, &mut |_| {})?;
+        let Some(c) = draw.draw(200_000 + i, None) else { continue };
+        let r = diagnose(draw.model, base, &c.x, s, &mut |_| {})?;
         n_clean += 1;
         false_alarms += usize::from(r.verdict != Verdict::NoDiscrepancy);
     }
@@ -151,53 +197,58 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         "false alarms: {false_alarms} of {n_clean} effect-free cases ({:.1} %; target ≤ 5 %)",
         100.0 * false_alarms as f64 / n_clean.max(1) as f64
     );
-    println!("visible: the effect's noise-free signature Σ(Δx/σ)² > {VISIBLE}");
-    println!(
-        "{:<16} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  other verdicts",
-        "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit"
-    );
-    for (e, effect) in EFFECTS.iter().enumerate() {
-        let (mut n, mut named, mut vis, mut named_vis, mut covered) = (0, 0, 0, 0, 0);
-        let (mut before, mut after) = (Vec::new(), Vec::new());
-        let mut other: std::collections::BTreeMap<String, usize> = Default::default();
-        for i in 0..cases {
-            let Some((x, truth, strength)) = case(e * 1000 + i, Some(e)) else { continue };
-            let r = diagnose(&model, &base, &x, &s, &mut |_| {})?;
-            n += 1;
-            let visible = strength > VISIBLE;
-            vis += usize::from(visible);
-            before.push(r.before.reduced_chi2);
-            if r.named == Some(effect.name) {
-                named += 1;
-                named_vis += usize::from(visible);
-                let c = &r.candidates[0];
-                after.push(c.reduced_chi2);
-                let t = truth.unwrap_or(f64::NAN);
-                covered += usize::from(t >= c.interval90[0] && t <= c.interval90[1]);
-            } else {
-                let key = r.named.map_or_else(|| format!("{:?}", r.verdict), str::to_string);
-                *other.entry(key).or_default() += 1;
-            }
+    Ok(())
+}
+
+/// One row of the table: how often effect `e`, hidden, is named (overall and when its
+/// signature is visible above the noise), how often its 90 % interval covers the truth,
+/// and what the other cases were called instead.
+fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, cases: usize) -> Result<()> {
+    let effect = &EFFECTS[e];
+    let (mut n, mut named, mut vis, mut named_vis, mut covered) = (0, 0, 0, 0, 0);
+    let (mut before, mut after) = (Vec::new(), Vec::new());
+    let mut other: std::collections::BTreeMap<String, usize> = Default::default();
+    for i in 0..cases {
+        let Some(Case { x, truth, strength }) = draw.draw(e * 1000 + i, Some(e)) else { continue };
+        let r = diagnose(draw.model, base, &x, s, &mut |_| {})?;
+        n += 1;
+        let visible = strength > VISIBLE;
+        vis += usize::from(visible);
+        before.push(r.before.reduced_chi2);
+        if r.named == Some(effect.name) {
+            named += 1;
+            named_vis += usize::from(visible);
+            let c = &r.candidates[0];
+            after.push(c.reduced_chi2);
+            let t = truth.unwrap_or(f64::NAN);
+            covered += usize::from(t >= c.interval90[0] && t <= c.interval90[1]);
+        } else {
+            let key = r.named.map_or_else(|| format!("{:?}", r.verdict), str::to_string);
+            *other.entry(key).or_default() += 1;
         }
-        let med = |v: Vec<f64>| crate::stats::median_upper(&crate::stats::sorted(v));
-        println!(
-            "{:<16} {:>5} {:>8.0} {:>7} {:>11.0} {:>10.0} {:>9.2} {:>9.2}  {:?}",
-            effect.name,
-            n,
-            100.0 * named as f64 / n.max(1) as f64,
-            vis,
-            100.0 * named_vis as f64 / vis.max(1) as f64,
-            100.0 * covered as f64 / named.max(1) as f64,
-            med(before),
-            med(after),
-            other
-        );
     }
-    // One full diagnosis, retrain included, at full size.
-    let (x, _, _) = case(999_999, Some(3)).ok_or_else(|| anyhow::anyhow!("simulation failed"))?;
+    let med = |v: Vec<f64>| crate::stats::median_upper(&crate::stats::sorted(v));
+    println!(
+        "{:<16} {:>5} {:>8.0} {:>7} {:>11.0} {:>10.0} {:>9.2} {:>9.2}  {:?}",
+        effect.name,
+        n,
+        100.0 * named as f64 / n.max(1) as f64,
+        vis,
+        100.0 * named_vis as f64 / vis.max(1) as f64,
+        100.0 * covered as f64 / named.max(1) as f64,
+        med(before),
+        med(after),
+        other
+    );
+    Ok(())
+}
+
+/// One full diagnosis, retrain included, at full size: the wall time a user waits.
+fn full_diagnosis(draw: &Cases, base: &crate::npe::Npe, seed: u64) -> Result<()> {
+    let x = draw.draw(999_999, Some(3)).ok_or_else(|| anyhow::anyhow!("simulation failed"))?.x;
     let full = Settings { seed, ..Settings::default() };
     let t1 = Instant::now();
-    let r = diagnose(&model, &base, &x, &full, &mut |_| {})?;
+    let r = diagnose(draw.model, base, &x, &full, &mut |_| {})?;
     println!(
         "one full diagnosis (hidden probe_leak; null of 40 cases, 10,000-row retrain): {:.0} s, verdict {:?} {:?}, χ²ν {:.2} → {:.2} (target ≤ 300 s)",
         t1.elapsed().as_secs_f64(),
@@ -206,7 +257,6 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
         r.before.reduced_chi2,
         r.after.as_ref().map_or(f64::NAN, |a| a.reduced_chi2)
     );
-    println!("wall {:.0} s", t0.elapsed().as_secs_f64());
     Ok(())
 }
 
