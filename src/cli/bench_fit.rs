@@ -45,6 +45,17 @@ fn simulate(npe: &Npe, design: &Design, rows: &[Vec<f64>], seed: u64) -> Result<
     Ok(run_rows(model, design, rows, 0, Some(&noise)).into_iter().filter_map(|r| r.ok()).collect())
 }
 
+/// Infers each simulated ear, case `k` with seed `seed + k`.
+fn infer_all(npe: &Npe, xs: &[Vec<f64>], present: &[bool], seed: u64) -> Result<Vec<Outcome>> {
+    xs.iter().enumerate().map(|(k, x)| infer_one(npe, x, present, seed + k as u64)).collect()
+}
+
+/// Whether every parameter reads as within its normal range or undetermined: what a
+/// normal ear should get.
+fn benign(o: &Outcome) -> bool {
+    o.readings.iter().all(|d| d.reading == "within" || d.reading == "undetermined")
+}
+
 /// `measures`: the feature groups given (e.g. "impedance,absorbance"); all when empty.
 pub fn run(model: &Path, cases: usize, seed: u64, measures: &str) -> Result<()> {
     if !(5..=10_000).contains(&cases) {
@@ -54,88 +65,13 @@ pub fn run(model: &Path, cases: usize, seed: u64, measures: &str) -> Result<()> 
     if npe.header.fit_null.is_none() {
         bail!("{} has no fit-check null: run `otofit calibrate --tune` first", model.display());
     }
-    let f = npe.header.feature_names.len();
-    let mut present = vec![measures.is_empty(); f];
-    for name in measures.split(',').filter(|m| !m.is_empty()) {
-        let Some(g) = npe.header.groups.iter().find(|g| g.name == name.trim()) else {
-            let known: Vec<&str> = npe.header.groups.iter().map(|g| g.name.as_str()).collect();
-            bail!("--measures: unknown group '{name}' (known: {})", known.join(", "));
-        };
-        g.features.iter().for_each(|&i| present[i] = true);
-    }
-    if !measures.is_empty() {
-        println!("measures given: {measures}");
-    }
-    let base = Design::default();
-    // 1. The null: prior draws, no effect, 1× noise (seeds the calibration never used).
-    let rows = base.draw(seed ^ 0xBE7C, 0, cases);
-    let null: Vec<Outcome> = simulate(&npe, &base, &rows, seed)?
-        .iter()
-        .enumerate()
-        .map(|(k, x)| infer_one(&npe, x, &present, seed + k as u64))
-        .collect::<Result<_>>()?;
-    let null_ok = rate(&null, |o| o.ok == Some(true));
-    println!(
-        "fit.ok on {} held-out simulations (null): {:.3} (median χ²ν {:.2}, worst measure {:.2})",
-        null.len(),
-        null_ok,
-        median(&null, |o| o.chi2),
-        median(&null, |o| o.worst)
-    );
-    // 2. Strong hidden effects.
-    let mut detect = Vec::new();
-    for (name, value) in STRONG {
-        let mut fixed = Effects::default();
-        fixed.set(name, value).map_err(anyhow::Error::msg)?;
-        let design = Design { fixed, varied: vec![] };
-        let out: Vec<Outcome> = simulate(&npe, &design, &rows, seed ^ 0xEF)?
-            .iter()
-            .enumerate()
-            .map(|(k, x)| infer_one(&npe, x, &present, seed + k as u64))
-            .collect::<Result<_>>()?;
-        let flagged = rate(&out, |o| o.ok == Some(false));
-        let unit = EFFECTS.iter().find(|e| e.name == name).map_or("", |e| e.unit);
-        println!(
-            "fit.ok false with {name} = {value:e} {unit}: {flagged:.3} of {} (median χ²ν {:.2}, worst measure {:.2})",
-            out.len(),
-            median(&out, |o| o.chi2),
-            median(&out, |o| o.worst)
-        );
-        detect.push(json!({ "effect": name, "value": value, "flagged": flagged, "cases": out.len() }));
-    }
-    // 3. Ears at the centre of every normal range (geometric centre), noisy and noise-free.
-    let centre: Vec<f64> = PARAMS
-        .iter()
-        .map(|p| NORMAL.iter().find(|r| r.name == p.name).map_or(p.nominal, |r| (r.low * r.high).sqrt()))
-        .collect();
-    let model_sim = crate::discrepancy::fitcheck::simulator_for(&npe)?;
-    let clean = run_rows(model_sim, &base, std::slice::from_ref(&centre), 0, None).remove(0)?;
-    let noise = Noise { std: npe.header.noise_std.clone(), scale: 1.0, seed: seed ^ 0xCE };
-    let mut centred = vec![infer_one(&npe, &clean, &present, seed)?];
-    for k in 0..cases {
-        centred.push(infer_one(&npe, &noise.apply(&clean, k), &present, seed + k as u64)?);
-    }
-    let benign = |o: &Outcome| o.readings.iter().all(|d| d.reading == "within" || d.reading == "undetermined");
-    let centred_ok = rate(&centred, benign);
-    println!(
-        "ears at the centre of the normal ranges reading within/undetermined for every parameter: {centred_ok:.3} of {} \
-         (noise-free: {})",
-        centred.len(),
-        benign(&centred[0])
-    );
-    for d in &centred[0].readings {
-        println!("  noise-free centre ear {:<14} {:<12} p_within {:.2}", d.name, d.reading, d.p_within);
-    }
-    // 4. The nominal ear, noise-free (the openapi.yaml example).
-    let nominal = run_rows(model_sim, &base, &[crate::sim::Theta::nominal().0.to_vec()], 0, None).remove(0)?;
-    let nom = infer_one(&npe, &nominal, &present, seed)?;
-    println!("nominal ear (openapi example): fit.ok {:?}, benign readings {}", nom.ok, benign(&nom));
-    for d in &nom.readings {
-        println!(
-            "  nominal {:<14} {:<12} p_below {:.2} p_within {:.2} p_above {:.2}",
-            d.name, d.reading, d.p_below, d.p_within, d.p_above
-        );
-    }
+    let present = present(&npe, measures)?;
+    // Seeds the calibration never used; the same prior draws with and without effects.
+    let rows = Design::default().draw(seed ^ 0xBE7C, 0, cases);
+    let null_ok = null(&npe, &rows, &present, seed)?;
+    let detect = hidden_effects(&npe, &rows, &present, seed)?;
+    let centred_ok = centre(&npe, &present, cases, seed)?;
+    let nom = nominal(&npe, &present, seed)?;
     let doc = json!({
         "model": model.display().to_string(),
         "cases": cases,
@@ -148,4 +84,98 @@ pub fn run(model: &Path, cases: usize, seed: u64, measures: &str) -> Result<()> 
     });
     println!("{doc}");
     Ok(())
+}
+
+/// Which features are given: those of the named groups, or all.
+fn present(npe: &Npe, measures: &str) -> Result<Vec<bool>> {
+    let mut present = vec![measures.is_empty(); npe.header.feature_names.len()];
+    for name in measures.split(',').filter(|m| !m.is_empty()) {
+        let Some(g) = npe.header.groups.iter().find(|g| g.name == name.trim()) else {
+            let known: Vec<&str> = npe.header.groups.iter().map(|g| g.name.as_str()).collect();
+            bail!("--measures: unknown group '{name}' (known: {})", known.join(", "));
+        };
+        g.features.iter().for_each(|&i| present[i] = true);
+    }
+    if !measures.is_empty() {
+        println!("measures given: {measures}");
+    }
+    Ok(present)
+}
+
+/// (1) The null: prior draws, no effect, 1× noise. Returns the fit.ok rate.
+fn null(npe: &Npe, rows: &[Vec<f64>], present: &[bool], seed: u64) -> Result<f64> {
+    let null = infer_all(npe, &simulate(npe, &Design::default(), rows, seed)?, present, seed)?;
+    let null_ok = rate(&null, |o| o.ok == Some(true));
+    println!(
+        "fit.ok on {} held-out simulations (null): {:.3} (median χ²ν {:.2}, worst measure {:.2})",
+        null.len(),
+        null_ok,
+        median(&null, |o| o.chi2),
+        median(&null, |o| o.worst)
+    );
+    Ok(null_ok)
+}
+
+/// (2) Each strong hidden effect on the null's draws: how often the fit check flags it.
+fn hidden_effects(npe: &Npe, rows: &[Vec<f64>], present: &[bool], seed: u64) -> Result<Vec<serde_json::Value>> {
+    let mut detect = Vec::new();
+    for (name, value) in STRONG {
+        let mut fixed = Effects::default();
+        fixed.set(name, value).map_err(anyhow::Error::msg)?;
+        let design = Design { fixed, varied: vec![] };
+        let out = infer_all(npe, &simulate(npe, &design, rows, seed ^ 0xEF)?, present, seed)?;
+        let flagged = rate(&out, |o| o.ok == Some(false));
+        let unit = EFFECTS.iter().find(|e| e.name == name).map_or("", |e| e.unit);
+        println!(
+            "fit.ok false with {name} = {value:e} {unit}: {flagged:.3} of {} (median χ²ν {:.2}, worst measure {:.2})",
+            out.len(),
+            median(&out, |o| o.chi2),
+            median(&out, |o| o.worst)
+        );
+        detect.push(json!({ "effect": name, "value": value, "flagged": flagged, "cases": out.len() }));
+    }
+    Ok(detect)
+}
+
+/// (3) Ears at the centre of every normal range (geometric centre), noise-free and with
+/// `cases` noise draws: how often every reading is benign.
+fn centre(npe: &Npe, present: &[bool], cases: usize, seed: u64) -> Result<f64> {
+    let centre: Vec<f64> = PARAMS
+        .iter()
+        .map(|p| NORMAL.iter().find(|r| r.name == p.name).map_or(p.nominal, |r| (r.low * r.high).sqrt()))
+        .collect();
+    let model_sim = crate::discrepancy::fitcheck::simulator_for(npe)?;
+    let clean = run_rows(model_sim, &Design::default(), std::slice::from_ref(&centre), 0, None).remove(0)?;
+    let noise = Noise { std: npe.header.noise_std.clone(), scale: 1.0, seed: seed ^ 0xCE };
+    let mut centred = vec![infer_one(npe, &clean, present, seed)?];
+    for k in 0..cases {
+        centred.push(infer_one(npe, &noise.apply(&clean, k), present, seed + k as u64)?);
+    }
+    let centred_ok = rate(&centred, benign);
+    println!(
+        "ears at the centre of the normal ranges reading within/undetermined for every parameter: {centred_ok:.3} of {} \
+         (noise-free: {})",
+        centred.len(),
+        benign(&centred[0])
+    );
+    for d in &centred[0].readings {
+        println!("  noise-free centre ear {:<14} {:<12} p_within {:.2}", d.name, d.reading, d.p_within);
+    }
+    Ok(centred_ok)
+}
+
+/// (4) The nominal ear, noise-free (the openapi.yaml example).
+fn nominal(npe: &Npe, present: &[bool], seed: u64) -> Result<Outcome> {
+    let model_sim = crate::discrepancy::fitcheck::simulator_for(npe)?;
+    let nominal =
+        run_rows(model_sim, &Design::default(), &[crate::sim::Theta::nominal().0.to_vec()], 0, None).remove(0)?;
+    let nom = infer_one(npe, &nominal, present, seed)?;
+    println!("nominal ear (openapi example): fit.ok {:?}, benign readings {}", nom.ok, benign(&nom));
+    for d in &nom.readings {
+        println!(
+            "  nominal {:<14} {:<12} p_below {:.2} p_within {:.2} p_above {:.2}",
+            d.name, d.reading, d.p_below, d.p_within, d.p_above
+        );
+    }
+    Ok(nom)
 }
