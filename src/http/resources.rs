@@ -88,12 +88,21 @@ pub async fn list_models(
     Ok(Json(json!({ "models": rows.iter().map(|m| model_doc(&st, m)).collect::<Vec<_>>() })))
 }
 
+/// Whether `id` can name a stored job or model. None holds a NUL, which PostgreSQL text
+/// cannot even hold as a query parameter (an error, once a 500): such an id is unknown.
+fn may_be_stored(id: &str) -> bool {
+    !id.contains('\0')
+}
+
 /// The model `id` if `who` may use it (another tenant's model does not exist for it).
 pub async fn visible_model(
     st: &AppState,
     who: &Principal,
     id: &str,
 ) -> Result<Option<crate::store::ModelRow>, Problem> {
+    if !may_be_stored(id) {
+        return Ok(None);
+    }
     let m = st.ctx.store.model(id).await.map_err(Problem::internal)?;
     Ok(m.filter(|m| who.sees_model(m)))
 }
@@ -111,6 +120,9 @@ pub async fn get_model(
 
 /// The job `id` if `who` may see it (another tenant's job does not exist for it).
 async fn visible_job(st: &AppState, who: &Principal, id: &str) -> Result<Option<crate::store::JobRow>, Problem> {
+    if !may_be_stored(id) {
+        return Ok(None);
+    }
     let j = st.ctx.store.job(id).await.map_err(Problem::internal)?;
     Ok(j.filter(|j| who.sees_job(j)))
 }
