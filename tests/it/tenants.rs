@@ -32,7 +32,7 @@ async fn send(app: &Router, key: Option<&str>, method: &str, uri: &str, body: Op
 
 /// A simulate job posted by `key`, then run to success by hand (claimed and finished, its
 /// dataset files and a report file written), without a dispatcher.
-async fn succeeded_simulate(app: &Router, ctx: &Ctx, key: &str) -> String {
+pub(crate) async fn succeeded_simulate(app: &Router, ctx: &Ctx, key: &str) -> String {
     let (status, j) =
         send(app, Some(key), "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 3}}))).await;
     assert_eq!(status, StatusCode::ACCEPTED, "{j}");
