@@ -2,6 +2,7 @@
 mod baseline;
 mod cli;
 mod discrepancy;
+mod fuzz;
 mod http;
 mod npe;
 mod pg;
