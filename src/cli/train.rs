@@ -44,6 +44,11 @@ pub struct TrainArgs {
     /// ensemble.
     #[arg(long, default_value_t = 1)]
     pub ensemble: usize,
+    /// Keep the training's state in FILE as it goes (at least every 30 s) and, if FILE
+    /// holds a state of this same training (flags and data), resume from it: the model is
+    /// the same as an uninterrupted run's. FILE is removed once the model is written.
+    #[arg(long, value_name = "FILE")]
+    pub checkpoint: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -85,7 +90,9 @@ pub fn run(args: TrainArgs) -> Result<()> {
         ensemble: args.ensemble,
         ..TrainSettings::default()
     };
-    let model = npe::train(&ds, &settings, &mut |r| {
+    let checkpoint =
+        args.checkpoint.as_ref().map(|path| npe::Checkpointing::new(path.clone(), &std::process::id().to_string()));
+    let trained = npe::train_checkpointed(&ds, &settings, checkpoint.as_ref(), &mut |r| {
         let m = if args.ensemble > 1 { format!("member {} ", r.member) } else { String::new() };
         eprintln!(
             "{m}epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)",
@@ -93,7 +100,14 @@ pub fn run(args: TrainArgs) -> Result<()> {
         );
         true
     })?;
+    if trained.resumed_from_epoch > 0 {
+        eprintln!("resumed from epoch {} (summed over members) of the checkpoint", trained.resumed_from_epoch);
+    }
+    let model = trained.model;
     model.save(&args.out)?;
+    if let Some(c) = &checkpoint {
+        npe::remove_checkpoint(&c.path);
+    }
     let t = &model.header.training;
     eprintln!(
         "wrote {} (best epoch {} of {}, val loss {:.4}, {:.1} s)",

@@ -1,11 +1,17 @@
 //! `train`: a posterior estimator on a succeeded simulate job's dataset, saved as
 //! `models/<job id>.otofit` and registered under the job's id (by `super::run`).
+//!
+//! The training keeps a checkpoint, `checkpoints/<job id>.ckpt`, across attempts: an
+//! attempt that takes the job up again (after a kill, a lost lease, a restart) resumes
+//! from it, and the model is the same as an uninterrupted run's. It goes when the job
+//! ends (succeeded, cancelled, failed on its last attempt).
 
 use super::spec::{FieldError, in_range, non_negative, plain_id};
-use super::{Ctx, Reporter, Stopped, limits};
-use crate::npe::{self, Dataset, TrainSettings};
+use super::{Ctx, LeaseLost, Reporter, Stopped, limits};
+use crate::npe::{self, Checkpointing, Dataset, TrainSettings};
 use anyhow::{Context, Result, bail};
 use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -46,7 +52,33 @@ impl TrainParams {
     }
 }
 
+/// The folder of the train jobs' checkpoints in the data directory.
+const CHECKPOINTS: &str = "checkpoints";
+
+/// The checkpoint of train job `id`.
+fn checkpoint_path(data_dir: &Path, id: &str) -> PathBuf {
+    data_dir.join(CHECKPOINTS).join(format!("{id}.ckpt"))
+}
+
 pub(super) fn execute(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_json::Value> {
+    let rt = tokio::runtime::Handle::current();
+    let removed = remove_ended_checkpoints(ctx);
+    if removed > 0 {
+        tracing::info!(files = removed, "removed checkpoints of train jobs that ended");
+    }
+    let res = train(ctx, id, p, r);
+    // A failure on the last attempt ends the job: its checkpoint goes. Stopped (shutdown)
+    // or taken over (lease lost): the job runs again and resumes from it.
+    if let Err(e) = &res
+        && !(e.is::<Stopped>() || e.is::<LeaseLost>())
+        && rt.block_on(ctx.store.job(id)).ok().flatten().is_some_and(|j| j.attempts >= j.max_attempts)
+    {
+        npe::remove_checkpoint(&checkpoint_path(&ctx.data_dir, id));
+    }
+    res
+}
+
+fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_json::Value> {
     let dir = ctx.dataset_dir(&p.dataset);
     let ds = Dataset::load(&dir).with_context(|| format!("dataset '{}'", p.dataset))?;
     let s = TrainSettings {
@@ -57,25 +89,59 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Res
         ensemble: p.ensemble,
         ..TrainSettings::default()
     };
+    // At least every 30 s: the most training time a killed job loses.
+    let checkpoint = Checkpointing::new(checkpoint_path(&ctx.data_dir, id), &r.claim.1[..r.claim.1.len().min(16)]);
+    std::fs::create_dir_all(ctx.data_dir.join(CHECKPOINTS)).context("creating the checkpoint folder")?;
     // Progress over all members (each may stop early, so this is a lower bound).
     let max = (s.max_epochs * s.ensemble) as f64;
-    let model = npe::train(&ds, &s, &mut |e| {
+    let trained = npe::train_checkpointed(&ds, &s, Some(&checkpoint), &mut |e| {
         r.report(
             (e.member * s.max_epochs + e.epoch) as f64 / max,
             format!("member {} epoch {} val loss {:.4}", e.member, e.epoch, e.val_loss),
         )
     })?;
+    if trained.resumed_from_epoch > 0 {
+        tracing::info!(job = %id, epochs = trained.resumed_from_epoch, "training resumed from its checkpoint");
+    }
     if ctx.shutdown.load(Ordering::Relaxed) {
         bail!(Stopped);
     }
     r.still_ours(ctx)?;
     let models = ctx.data_dir.join("models");
     std::fs::create_dir_all(&models)?;
+    let model = trained.model;
     model.save(&models.join(format!("{id}.otofit")))?;
+    // The model is written: the job ends now (succeeded), its checkpoint is garbage.
+    npe::remove_checkpoint(&checkpoint.path);
     Ok(serde_json::json!({
         "model": format!("/models/{id}"),
         "epochs": model.header.training.epochs,
         "best_val_loss": model.header.training.best_val_loss,
         "cancelled_early": r.cancel.load(Ordering::Relaxed),
+        "resumed_from_epoch": trained.resumed_from_epoch,
     }))
+}
+
+/// Removes the checkpoints (and their temporary files) of train jobs that are no longer
+/// queued or running: those whose worker died on the job's last attempt, or that were
+/// ended by hand. Returns how many files went.
+fn remove_ended_checkpoints(ctx: &Ctx) -> usize {
+    let rt = tokio::runtime::Handle::current();
+    let dir = ctx.data_dir.join(CHECKPOINTS);
+    let mut ids: Vec<String> = std::fs::read_dir(&dir)
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter_map(|e| e.file_name().to_string_lossy().split_once(".ckpt").map(|(id, _)| id.to_string()))
+        .collect();
+    ids.sort();
+    ids.dedup();
+    ids.iter()
+        .filter(|id| match rt.block_on(ctx.store.job(id)) {
+            Ok(Some(j)) => !matches!(j.state.as_str(), "queued" | "running"),
+            Ok(None) => true,
+            Err(_) => false,
+        })
+        .map(|id| npe::remove_checkpoint(&checkpoint_path(&ctx.data_dir, id)))
+        .sum()
 }

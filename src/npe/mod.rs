@@ -14,7 +14,10 @@ mod train;
 pub use data::{Dataset, Group};
 pub use error::{CheckpointError, NpeError, ObservationError};
 pub use prior::{Param, Scale};
-pub use train::{EpochReport, TrainSettings, train};
+pub use train::{
+    CHECKPOINT_COST_SHARE, Checkpointing, EpochReport, TrainSettings, Trained, checkpoint_epochs, remove_checkpoint,
+    train, train_checkpointed,
+};
 
 use crate::dataset::FileError;
 use crate::flow::plain::{Bound, PlainFlow};

@@ -1,6 +1,8 @@
 //! Maximum-likelihood training of the flow on (θ, x) pairs with per-batch noise
 //! augmentation, optional group masking, early stopping on a validation split, and the
-//! best-validation weights kept. Deterministic for a seed.
+//! best-validation weights kept. Deterministic for a seed. With a checkpoint file
+//! (`train_checkpointed`) the training saves its whole state as it goes and a new run of
+//! the same training resumes from it, ending with the same weights as an uninterrupted run.
 
 use super::{Dataset, FORMAT_VERSION, Header, Npe, NpeError, Result, ThetaMap, TrainingSummary};
 use crate::flow::{Flow, FlowConfig};
@@ -14,6 +16,11 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
 
 /// How to train (`otofit train`'s flags).
 #[derive(Clone, Debug)]
@@ -271,14 +278,66 @@ fn scalar(loss: Tensor<1>) -> f64 {
     loss.try_into_vec_as::<f32>().map(|v| v[0] as f64).unwrap_or(f64::NAN)
 }
 
-/// What one member's training left: its best weights and when, and its epochs.
-struct Member {
+/// One member's training under way: everything a checkpoint keeps to go on from it.
+struct MemberRun {
+    member: usize,
+    flow: Flow,
+    opt: ModuleOptimizer,
+    /// Drives the batch order and the training noise.
+    rng: ChaCha8Rng,
+    /// The training rows as the last epoch left them (each epoch shuffles them further).
+    order: Vec<usize>,
+    /// Epochs done.
+    epoch: usize,
+    lr: f64,
+    /// Epoch of the last halving or drop (plateaus are counted from it).
+    last_change: usize,
+    /// Epoch of the last drop by 10 (patience is counted from it).
+    last_drop: usize,
+    /// Drops by 10 so far.
+    drops: usize,
     best_val_loss: f64,
     best_epoch: usize,
+    /// The best weights (without autodiff), once an epoch gave a finite validation loss.
     record: Option<ModuleRecord>,
-    epochs: usize,
+}
+
+/// How a member's epochs ended.
+struct MemberEnd {
+    /// It stopped improving or ran out of epochs.
+    done: bool,
     /// The progress callback asked to stop.
     stopped: bool,
+}
+
+/// The members trained to the end: their best weights and the summary's sums.
+#[derive(Default)]
+struct Finished {
+    records: Vec<ModuleRecord>,
+    /// Epochs, summed over the members.
+    epochs: usize,
+    /// Member 0's best epoch.
+    best_epoch: usize,
+    /// Sum of the members' best validation losses.
+    best_sum: f64,
+}
+
+/// Adam with the clipping every member trains with.
+fn optimizer() -> ModuleOptimizer {
+    AdamConfig::new().with_grad_clipping(Some(GradientClippingConfig::Norm(5.0))).init()
+}
+
+/// A new flow; with `seed`, its weights drawn from that seed. The backend's RNG is
+/// process-wide: seeding and initialising under one lock keeps a seed's weights the same
+/// when other trainings run beside this one (a flow whose weights are loaded afterwards
+/// takes the lock too, since it draws as well).
+fn new_flow(cfg: &FlowConfig, device: &Device, seed: Option<u64>) -> Flow {
+    static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one_at_a_time = INIT.lock().unwrap_or_else(|e| e.into_inner());
+    if let Some(seed) = seed {
+        device.seed(seed);
+    }
+    Flow::new(cfg, device)
 }
 
 /// Everything a member's training reads.
@@ -331,59 +390,391 @@ impl Run<'_> {
         vsum / self.n_val as f64
     }
 
-    /// Trains ensemble member `member` from its own seed, keeping its best weights; the
-    /// rate is halved on plateaus and divided by 10 instead of stopping `lr_drops` times.
-    fn member(&self, member: usize, rng: &mut ChaCha8Rng, progress: &mut dyn FnMut(&EpochReport) -> bool) -> Member {
-        let (s, device) = (self.s, &self.device);
-        // The backend's RNG is process-wide: seeding and initialising under one lock keeps
-        // a seed's weights the same when other trainings run beside this one.
-        let mut flow = {
-            static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
-            let _one_at_a_time = INIT.lock().unwrap_or_else(|e| e.into_inner());
-            device.seed(s.seed.wrapping_add(member as u64));
-            Flow::new(self.cfg, device)
-        };
-        let mut opt = AdamConfig::new().with_grad_clipping(Some(GradientClippingConfig::Norm(5.0))).init();
-        let mut out = Member { best_val_loss: f64::INFINITY, best_epoch: 0, record: None, epochs: 0, stopped: false };
-        let mut order = self.train_idx.to_vec();
-        let (mut lr, mut last_change, mut last_drop, mut drops) = (s.lr, 0, 0, 0);
-        for epoch in 1..=s.max_epochs {
-            let t0 = std::time::Instant::now();
-            out.epochs += 1;
+    /// Ensemble member `member` before its first epoch: weights from its own seed, batches
+    /// from `rng`.
+    fn fresh(&self, member: usize, rng: ChaCha8Rng) -> MemberRun {
+        let flow = new_flow(self.cfg, &self.device, Some(self.s.seed.wrapping_add(member as u64)));
+        MemberRun {
+            member,
+            flow,
+            opt: optimizer(),
+            rng,
+            order: self.train_idx.to_vec(),
+            epoch: 0,
+            lr: self.s.lr,
+            last_change: 0,
+            last_drop: 0,
+            drops: 0,
+            best_val_loss: f64::INFINITY,
+            best_epoch: 0,
+            record: None,
+        }
+    }
+
+    /// Trains a member on from where it is, keeping its best weights; the rate is halved on
+    /// plateaus and divided by 10 instead of stopping `lr_drops` times. After each epoch
+    /// that does not end the member, `save` is offered its state (`true`: the training
+    /// stops here, save it whatever the time).
+    fn member(
+        &self,
+        mut m: MemberRun,
+        progress: &mut dyn FnMut(&EpochReport) -> bool,
+        save: &mut dyn FnMut(&MemberRun, bool),
+    ) -> (MemberRun, MemberEnd) {
+        let s = self.s;
+        let mut end = MemberEnd { done: m.epoch >= s.max_epochs, stopped: false };
+        while !end.done {
+            let t0 = Instant::now();
+            m.epoch += 1;
+            let epoch = m.epoch;
             let train_loss;
-            (flow, train_loss) = self.epoch(flow, &mut opt, lr, &mut order, rng);
-            let valid = flow.valid();
+            (m.flow, train_loss) = self.epoch(m.flow, &mut m.opt, m.lr, &mut m.order, &mut m.rng);
+            let valid = m.flow.valid();
             let val_loss = self.validate(&valid);
-            if val_loss < out.best_val_loss {
-                (out.best_val_loss, out.best_epoch, out.record) = (val_loss, epoch, Some(valid.into_record()));
+            if val_loss < m.best_val_loss {
+                (m.best_val_loss, m.best_epoch, m.record) = (val_loss, epoch, Some(valid.into_record()));
+            }
+            end.done = epoch == s.max_epochs;
+            if s.lr_plateau > 0 && epoch - m.best_epoch.max(m.last_change) >= s.lr_plateau {
+                m.lr *= 0.5;
+                m.last_change = epoch;
+            }
+            if epoch - m.best_epoch.max(m.last_drop) >= s.patience {
+                if m.drops == s.lr_drops {
+                    end.done = true;
+                } else {
+                    m.drops += 1;
+                    m.lr *= 0.1;
+                    (m.last_drop, m.last_change) = (epoch, epoch);
+                }
             }
             let seconds = t0.elapsed().as_secs_f64();
-            let report = EpochReport { member, epoch, train_loss, val_loss, best_val_loss: out.best_val_loss, seconds };
-            if !progress(&report) {
-                out.stopped = true;
+            let (member, best_val_loss) = (m.member, m.best_val_loss);
+            let report = EpochReport { member, epoch, train_loss, val_loss, best_val_loss, seconds };
+            end.stopped = !progress(&report);
+            if !end.done {
+                save(&m, end.stopped);
+            }
+            if end.stopped {
                 break;
             }
-            if s.lr_plateau > 0 && epoch - out.best_epoch.max(last_change) >= s.lr_plateau {
-                lr *= 0.5;
-                last_change = epoch;
-            }
-            if epoch - out.best_epoch.max(last_drop) >= s.patience {
-                if drops == s.lr_drops {
-                    break;
-                }
-                drops += 1;
-                lr *= 0.1;
-                (last_drop, last_change) = (epoch, epoch);
-            }
         }
-        out
+        (m, end)
     }
+}
+
+/// Where and how often a training saves the state it resumes from
+/// ([`train_checkpointed`]).
+#[derive(Clone, Debug)]
+pub struct Checkpointing {
+    /// The checkpoint file: a training of the same settings and data resumes from it;
+    /// replaced as the training goes by a temporary file renamed over it.
+    pub path: PathBuf,
+    /// Names this writer's temporary file (`<path>.<tag>.tmp`), so that two writers of
+    /// one checkpoint (a stalled attempt of a job and the one that took over) never share
+    /// one.
+    pub tag: String,
+    /// Most training time between two checkpoints; less when writing one is cheap (at most
+    /// 1/[`CHECKPOINT_COST_SHARE`] of the time goes to checkpoints). One is written too
+    /// when a member ends and when the progress callback stops the training.
+    pub every: Duration,
+}
+
+impl Checkpointing {
+    /// Checkpoints at `path` at least every 30 s; `tag` names this writer's temporary file.
+    pub fn new(path: PathBuf, tag: &str) -> Checkpointing {
+        Checkpointing { path, tag: tag.to_string(), every: Duration::from_secs(30) }
+    }
+}
+
+/// A checkpoint is written once the training since the last one took this many times
+/// what writing the last one took (or `Checkpointing::every`, if sooner).
+pub const CHECKPOINT_COST_SHARE: u32 = 20;
+
+/// A trained model and where its training began.
+pub struct Trained {
+    /// The model, as an uninterrupted training would have made it.
+    pub model: Npe,
+    /// Epochs (summed over members) read back from a checkpoint; 0: from the start.
+    pub resumed_from_epoch: usize,
+}
+
+const CKPT_MAGIC: &[u8; 12] = b"OTOFIT-CKPT\n";
+
+/// A checkpoint's numbers (its JSON part); the weights follow as length-prefixed
+/// records: each finished member's best, then the member under way's current flow, its
+/// optimizer and its best (if it has one). Floats that steer the training are kept as
+/// bits: exact through JSON.
+#[derive(Serialize, Deserialize)]
+struct Saved {
+    /// The settings and the data's standardisation, hashed: a checkpoint of another
+    /// training is not resumed from.
+    fingerprint: String,
+    /// Epochs done over all members: a checkpoint never replaces one further on.
+    epochs_done: usize,
+    /// Finished members and their sums (`Finished`).
+    members: usize,
+    epochs: usize,
+    best_epoch: usize,
+    best_sum_bits: u64,
+    /// Training time before this checkpoint, over all runs.
+    wall_seconds: f64,
+    current: Option<MemberState>,
+}
+
+/// `MemberRun`'s numbers.
+#[derive(Serialize, Deserialize)]
+struct MemberState {
+    member: usize,
+    epoch: usize,
+    lr_bits: u64,
+    last_change: usize,
+    last_drop: usize,
+    drops: usize,
+    best_val_loss_bits: u64,
+    best_epoch: usize,
+    order: Vec<usize>,
+    /// The batch stream: seed (hex), stream, word position (decimal: a u128).
+    rng: (String, u64, String),
+}
+
+/// The hash of what a training depends on besides its seed's streams: every setting and
+/// the header (the data's standardisation and shape).
+fn fingerprint(s: &TrainSettings, header: &Header) -> String {
+    let mut h = Sha256::new();
+    h.update(format!("{s:?}").as_bytes());
+    h.update(serde_json::to_vec(header).unwrap_or_default());
+    hex::encode(h.finalize())
+}
+
+/// A record's bytes.
+fn record_bytes(r: &ModuleRecord) -> std::result::Result<Vec<u8>, String> {
+    r.clone().into_bytes().map(|b| b.to_vec()).map_err(|e| format!("encoding weights: {e:?}"))
+}
+
+/// A record from its bytes, checked against the flow it is for.
+fn record_from(b: &[u8], cfg: &FlowConfig) -> std::result::Result<ModuleRecord, String> {
+    let r = ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec()))
+        .map_err(|e| format!("weights: {e:?}"))?;
+    new_flow(cfg, &Device::flex(), None).try_load_record(r.clone()).map_err(|e| format!("weights: {e:?}"))?;
+    Ok(r)
+}
+
+/// Writes and reads one training's checkpoints.
+struct Saver<'a> {
+    c: &'a Checkpointing,
+    fingerprint: String,
+    /// Training time of earlier runs (from the checkpoint resumed from).
+    wall_before: f64,
+    start: Instant,
+    last: Instant,
+    /// How long writing the last checkpoint took.
+    cost: Duration,
+    /// The finished members' records, encoded once.
+    members: Vec<Vec<u8>>,
+}
+
+impl Saver<'_> {
+    /// Writes a checkpoint of `fin` and `cur` if one is due (or `force`); a failure is
+    /// logged, not fatal: the training goes on.
+    fn offer(&mut self, fin: &Finished, cur: Option<&MemberRun>, force: bool) {
+        if !force && self.last.elapsed() < self.c.every.min(self.cost * CHECKPOINT_COST_SHARE) {
+            return;
+        }
+        let t0 = Instant::now();
+        if let Err(why) = self.write(fin, cur) {
+            tracing::warn!(checkpoint = %self.c.path.display(), %why, "training checkpoint not written");
+        }
+        (self.last, self.cost) = (Instant::now(), t0.elapsed());
+    }
+
+    fn write(&mut self, fin: &Finished, cur: Option<&MemberRun>) -> std::result::Result<(), String> {
+        for r in &fin.records[self.members.len()..] {
+            self.members.push(record_bytes(r)?);
+        }
+        let mut blobs: Vec<Vec<u8>> = vec![];
+        let current = match cur {
+            None => None,
+            Some(m) => {
+                blobs.push(record_bytes(&m.flow.clone().into_record())?);
+                blobs.push(m.opt.into_bytes().map_err(|e| format!("encoding the optimizer: {e:?}"))?.to_vec());
+                if let Some(r) = &m.record {
+                    blobs.push(record_bytes(r)?);
+                }
+                Some(MemberState {
+                    member: m.member,
+                    epoch: m.epoch,
+                    lr_bits: m.lr.to_bits(),
+                    last_change: m.last_change,
+                    last_drop: m.last_drop,
+                    drops: m.drops,
+                    best_val_loss_bits: m.best_val_loss.to_bits(),
+                    best_epoch: m.best_epoch,
+                    order: m.order.clone(),
+                    rng: (hex::encode(m.rng.get_seed()), m.rng.get_stream(), m.rng.get_word_pos().to_string()),
+                })
+            }
+        };
+        let saved = Saved {
+            fingerprint: self.fingerprint.clone(),
+            epochs_done: fin.epochs + cur.map_or(0, |m| m.epoch),
+            members: fin.records.len(),
+            epochs: fin.epochs,
+            best_epoch: fin.best_epoch,
+            best_sum_bits: fin.best_sum.to_bits(),
+            wall_seconds: self.wall_before + self.start.elapsed().as_secs_f64(),
+            current,
+        };
+        let json = serde_json::to_vec(&saved).map_err(|e| e.to_string())?;
+        let mut out = CKPT_MAGIC.to_vec();
+        for part in std::iter::once(&json).chain(&self.members).chain(&blobs) {
+            out.extend_from_slice(&(part.len() as u64).to_le_bytes());
+            out.extend_from_slice(part);
+        }
+        let path = &self.c.path;
+        let mut tmp = path.as_os_str().to_owned();
+        tmp.push(format!(".{}.tmp", self.c.tag));
+        let tmp = PathBuf::from(tmp);
+        let io = |what: &str, e: std::io::Error| format!("{what}: {e}");
+        let mut f = std::fs::File::create(&tmp).map_err(|e| io("create", e))?;
+        f.write_all(&out).and_then(|_| f.sync_all()).map_err(|e| io("write", e))?;
+        drop(f);
+        // Another writer of this training (an attempt that took the job over) got further.
+        if read_head(path).is_some_and(|h| h.fingerprint == saved.fingerprint && h.epochs_done > saved.epochs_done) {
+            let _ = std::fs::remove_file(&tmp);
+            return Ok(());
+        }
+        std::fs::rename(&tmp, path).map_err(|e| io("rename", e))
+    }
+
+    /// The state a checkpoint of this training holds, if there is one: the finished
+    /// members, the member under way, the training time before. `Err` says why a
+    /// checkpoint there is not used.
+    fn load(&self, run: &Run) -> std::result::Result<Option<(Finished, Option<MemberRun>, f64)>, String> {
+        let bytes = match std::fs::read(&self.c.path) {
+            Ok(b) => b,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(e.to_string()),
+        };
+        let bad = || "not a training checkpoint".to_string();
+        let mut rest = bytes.strip_prefix(CKPT_MAGIC.as_slice()).ok_or_else(bad)?;
+        let mut parts = vec![];
+        while !rest.is_empty() {
+            let (part, after) = super::length_prefixed(rest).ok_or_else(bad)?;
+            parts.push(part);
+            rest = after;
+        }
+        let saved: Saved = serde_json::from_slice(parts.first().ok_or_else(bad)?).map_err(|e| e.to_string())?;
+        if saved.fingerprint != self.fingerprint {
+            return Err("a checkpoint of another training (settings or data differ)".into());
+        }
+        let (cfg, members) = (run.cfg, run.s.ensemble.max(1));
+        let blobs = &parts[1..];
+        let fin = Finished {
+            records: blobs
+                .iter()
+                .take(saved.members)
+                .map(|b| record_from(b, cfg))
+                .collect::<std::result::Result<_, _>>()?,
+            epochs: saved.epochs,
+            best_epoch: saved.best_epoch,
+            best_sum: f64::from_bits(saved.best_sum_bits),
+        };
+        if fin.records.len() != saved.members || saved.members > members {
+            return Err(bad());
+        }
+        let Some(st) = saved.current else { return Ok(Some((fin, None, saved.wall_seconds))) };
+        let [flow, opt, best @ ..] = &blobs[saved.members..] else { return Err(bad()) };
+        let mut sorted = st.order.clone();
+        sorted.sort_unstable();
+        let mut want = run.train_idx.to_vec();
+        want.sort_unstable();
+        let has_best = st.best_epoch > 0;
+        if st.member != saved.members || sorted != want || best.len() != usize::from(has_best) {
+            return Err(bad());
+        }
+        let flow = new_flow(cfg, &run.device, None)
+            .try_load_record(record_from(flow, cfg)?)
+            .map_err(|e| format!("weights: {e:?}"))?;
+        let opt = optimizer()
+            .from_bytes(burn::tensor::Bytes::from_bytes_vec(opt.to_vec()))
+            .map_err(|e| format!("optimizer: {e:?}"))?;
+        let seed: [u8; 32] = hex::decode(&st.rng.0).ok().and_then(|s| s.try_into().ok()).ok_or_else(bad)?;
+        let mut rng = ChaCha8Rng::from_seed(seed);
+        rng.set_stream(st.rng.1);
+        rng.set_word_pos(st.rng.2.parse().map_err(|_| bad())?);
+        let m = MemberRun {
+            member: st.member,
+            flow,
+            opt,
+            rng,
+            order: st.order,
+            epoch: st.epoch,
+            lr: f64::from_bits(st.lr_bits),
+            last_change: st.last_change,
+            last_drop: st.last_drop,
+            drops: st.drops,
+            best_val_loss: f64::from_bits(st.best_val_loss_bits),
+            best_epoch: st.best_epoch,
+            record: best.first().map(|b| record_from(b, cfg)).transpose()?,
+        };
+        Ok(Some((fin, Some(m), saved.wall_seconds)))
+    }
+}
+
+/// The JSON part of the checkpoint at `path`, read without its weights.
+fn read_head(path: &Path) -> Option<Saved> {
+    let mut f = std::fs::File::open(path).ok()?;
+    let mut head = [0u8; CKPT_MAGIC.len() + 8];
+    f.read_exact(&mut head).ok()?;
+    if &head[..CKPT_MAGIC.len()] != CKPT_MAGIC {
+        return None;
+    }
+    let n = u64::from_le_bytes(head[CKPT_MAGIC.len()..].try_into().ok()?);
+    let mut json = vec![];
+    f.take(n).read_to_end(&mut json).ok()?;
+    serde_json::from_slice(&json).ok()
+}
+
+/// Epochs done (over all members) in the checkpoint at `path`, if it is one.
+pub fn checkpoint_epochs(path: &Path) -> Option<usize> {
+    read_head(path).map(|h| h.epochs_done)
+}
+
+/// Removes the checkpoint at `path` and the temporary files of its writers
+/// (`<path>.*.tmp`). Returns how many files went.
+pub fn remove_checkpoint(path: &Path) -> usize {
+    let (Some(dir), Some(name)) = (path.parent(), path.file_name()) else { return 0 };
+    let name = name.to_string_lossy();
+    let tmp = |f: &str| f.strip_prefix(&*name).is_some_and(|t| t.starts_with('.') && t.ends_with(".tmp"));
+    let entries = std::fs::read_dir(if dir.as_os_str().is_empty() { Path::new(".") } else { dir });
+    let temporaries = entries
+        .into_iter()
+        .flatten()
+        .flatten()
+        .filter(|e| tmp(&e.file_name().to_string_lossy()) && std::fs::remove_file(e.path()).is_ok())
+        .count();
+    temporaries + usize::from(std::fs::remove_file(path).is_ok())
 }
 
 /// Trains a model. `progress` gets one report per epoch and returns `false` to stop early
 /// (the best weights so far are kept).
 pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochReport) -> bool) -> Result<Npe> {
-    let start = std::time::Instant::now();
+    train_checkpointed(ds, s, None, progress).map(|t| t.model)
+}
+
+/// Trains a model as [`train`] does; with `checkpoint`, resumes from the checkpoint file
+/// if it holds a state of this training (same settings and data) and saves its state
+/// there as it goes. The model is the same, weights and numbers, as an uninterrupted
+/// training's (the wall time apart). The file is left in place: the caller removes it
+/// ([`remove_checkpoint`]) once the model is safe.
+pub fn train_checkpointed(
+    ds: &Dataset,
+    s: &TrainSettings,
+    checkpoint: Option<&Checkpointing>,
+    progress: &mut dyn FnMut(&EpochReport) -> bool,
+) -> Result<Trained> {
+    let start = Instant::now();
     check(ds, s)?;
     let n = ds.theta.len();
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
@@ -411,32 +802,65 @@ pub fn train(ds: &Dataset, s: &TrainSettings, progress: &mut dyn FnMut(&EpochRep
         .collect();
     let run = Run { s, cfg: &cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() };
 
+    let mut saver = checkpoint.map(|c| Saver {
+        c,
+        fingerprint: fingerprint(s, &header),
+        wall_before: 0.0,
+        start,
+        last: start,
+        cost: Duration::ZERO,
+        members: vec![],
+    });
+    let (mut fin, mut current) = (Finished::default(), None);
+    if let Some(sv) = &mut saver {
+        match sv.load(&run) {
+            Ok(Some((f, m, wall))) => {
+                (fin, current, sv.wall_before) = (f, m, wall);
+                tracing::info!(checkpoint = %sv.c.path.display(), epochs = fin.epochs + current.as_ref().map_or(0, |m| m.epoch), "training resumed from its checkpoint");
+            }
+            Ok(None) => {}
+            Err(why) => {
+                tracing::warn!(checkpoint = %sv.c.path.display(), %why, "checkpoint not used; training from the start")
+            }
+        }
+    }
+    let resumed_from_epoch = fin.epochs + current.as_ref().map_or(0, |m| m.epoch);
     // Member 0 uses the seed and the batch stream exactly as a single model does, so a
     // one-member ensemble is the single model.
-    let mut records = Vec::new();
-    let (mut epochs, mut best_epoch, mut best_sum) = (0, 0, 0.0);
-    for member in 0..s.ensemble.max(1) {
-        if member > 0 {
-            rng = ChaCha8Rng::seed_from_u64(s.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(member as u64)));
-        }
-        let m = run.member(member, &mut rng, progress);
-        epochs += m.epochs;
+    while fin.records.len() < s.ensemble.max(1) {
+        let member = fin.records.len();
+        let m = current.take().unwrap_or_else(|| {
+            let stream = match member {
+                0 => rng.clone(),
+                k => ChaCha8Rng::seed_from_u64(s.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(k as u64))),
+            };
+            run.fresh(member, stream)
+        });
+        let (m, end) = run.member(m, progress, &mut |m, force| {
+            if let Some(sv) = &mut saver {
+                sv.offer(&fin, Some(m), force)
+            }
+        });
+        fin.epochs += m.epoch;
         let Some(record) = m.record else { return Err(NpeError::NoFiniteLoss { member }) };
-        records.push(record);
+        fin.records.push(record);
         if member == 0 {
-            best_epoch = m.best_epoch;
+            fin.best_epoch = m.best_epoch;
         }
-        best_sum += m.best_val_loss;
-        if m.stopped {
+        fin.best_sum += m.best_val_loss;
+        if let Some(sv) = saver.as_mut().filter(|_| end.done) {
+            sv.offer(&fin, None, true);
+        }
+        if end.stopped {
             break;
         }
     }
     // Summary: epochs summed over members; best epoch of member 0; mean best val loss.
     let mut header = header;
-    header.members = records.len();
-    header.training.epochs = epochs;
-    header.training.best_epoch = best_epoch;
-    header.training.best_val_loss = best_sum / records.len() as f64;
-    header.training.wall_seconds = start.elapsed().as_secs_f64();
-    Ok(Npe::from_parts(header, records))
+    header.members = fin.records.len();
+    header.training.epochs = fin.epochs;
+    header.training.best_epoch = fin.best_epoch;
+    header.training.best_val_loss = fin.best_sum / fin.records.len() as f64;
+    header.training.wall_seconds = saver.map_or(0.0, |sv| sv.wall_before) + start.elapsed().as_secs_f64();
+    Ok(Trained { model: Npe::from_parts(header, fin.records), resumed_from_epoch })
 }
