@@ -11,3 +11,4 @@ mod resume;
 mod retry;
 mod sim;
 mod tenants;
+mod train_resume;

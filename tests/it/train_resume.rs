@@ -1,0 +1,158 @@
+//! Checkpointed training (issue 13): a training stopped (in process) or killed (a worker
+//! process, SIGKILL) resumes from its last checkpoint, and its model is the same, bit for
+//! bit, as an uninterrupted run's with the same seed.
+
+use crate::pg::{Procs, temp_dir, wait_state};
+use otofit::jobs::JobSpec;
+use otofit::npe::{self, Checkpointing, Dataset, Obs, Param, Scale, TrainSettings};
+use otofit::store::{Database, Store};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::json;
+use std::path::Path;
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+/// 300 rows of x = (θ0 + θ1, θ0 − θ1, θ0 θ1 / 4), θ uniform on [−2, 2]².
+fn tiny(seed: u64) -> Dataset {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let theta: Vec<Vec<f64>> =
+        (0..300).map(|_| vec![rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)]).collect();
+    Dataset {
+        params: ["p", "q"]
+            .iter()
+            .map(|n| Param { name: n.to_string(), unit: "1".into(), scale: Scale::Linear, low: -2.0, high: 2.0 })
+            .collect(),
+        feature_names: vec!["s".into(), "d".into(), "m".into()],
+        frequencies_hz: vec![],
+        groups: vec![],
+        noise_std: vec![0.2; 3],
+        x: theta.iter().map(|t| vec![t[0] + t[1], t[0] - t[1], t[0] * t[1] / 4.0]).collect(),
+        theta,
+        skipped: 0,
+    }
+}
+
+/// The model's numbers and its draws for `x`: what "the same model" is compared by (a
+/// model file also has the wall time, and burn's parameter ids, random per process).
+fn fingerprint(m: &npe::Npe, x: &[f64]) -> (usize, usize, u64, Vec<Vec<f64>>) {
+    let t = &m.header.training;
+    (t.epochs, t.best_epoch, t.best_val_loss.to_bits(), m.sample(&Obs { x, present: None }, 200, 1).unwrap())
+}
+
+/// A two-member ensemble stopped by its progress callback in member 1's 6th epoch (a
+/// checkpoint is written at the stop), then trained again with the checkpoint: it resumes
+/// from epoch 12 + 6 and ends with the model of an uninterrupted training, bit for bit.
+/// A checkpoint of other settings is not resumed from.
+#[test]
+fn a_stopped_training_resumes_from_its_checkpoint_to_the_same_model() {
+    let ds = tiny(1);
+    let s =
+        TrainSettings { embedding: false, max_epochs: 12, patience: 40, ensemble: 2, seed: 4, ..Default::default() };
+    let whole = npe::train(&ds, &s, &mut |_| true).unwrap();
+    assert_eq!(whole.header.training.epochs, 24);
+    let dir = temp_dir("train-ckpt");
+    let c = Checkpointing::new(dir.join("t.ckpt"), "a");
+    let stopped = npe::train_checkpointed(&ds, &s, Some(&c), &mut |e| !(e.member == 1 && e.epoch == 6)).unwrap();
+    assert_eq!((stopped.resumed_from_epoch, stopped.model.header.training.epochs), (0, 18));
+    assert_eq!(npe::checkpoint_epochs(&c.path), Some(18));
+    // Other settings (a seed) do not resume from it, and their checkpoints replace it.
+    let other = TrainSettings { seed: 5, max_epochs: 2, ensemble: 1, ..s.clone() };
+    let o = npe::train_checkpointed(&ds, &other, Some(&Checkpointing::new(dir.join("o.ckpt"), "b")), &mut |_| true);
+    assert_eq!(o.unwrap().resumed_from_epoch, 0);
+    std::fs::copy(&c.path, dir.join("o.ckpt")).unwrap();
+    let o = npe::train_checkpointed(&ds, &other, Some(&Checkpointing::new(dir.join("o.ckpt"), "b")), &mut |_| true);
+    assert_eq!(o.unwrap().resumed_from_epoch, 0, "a checkpoint of another seed was resumed from");
+    assert_eq!(npe::checkpoint_epochs(&dir.join("o.ckpt")), Some(2));
+
+    let resumed = npe::train_checkpointed(&ds, &s, Some(&c), &mut |e| {
+        assert!(e.member == 1 && e.epoch > 6, "epoch {} of member {} trained again", e.epoch, e.member);
+        true
+    })
+    .unwrap();
+    assert_eq!(resumed.resumed_from_epoch, 18);
+    assert_eq!(resumed.model.header.members, 2);
+    let x = [0.5, -0.3, 0.1];
+    assert!(
+        fingerprint(&resumed.model, &x) == fingerprint(&whole, &x),
+        "the resumed model differs from the uninterrupted one"
+    );
+    assert_eq!(npe::remove_checkpoint(&c.path), 1);
+    assert!(!c.path.exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+const ROWS: usize = 400;
+
+fn spawn_worker(data: &Path) -> std::process::Child {
+    Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["worker", "--data-dir", data.to_str().unwrap(), "--lease-seconds", "2", "--threads", "1"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap()
+}
+
+/// A data directory with the dataset `ds` (simulated once, copied) and train job `t`.
+async fn train_job(data: &Path, dataset: &Path) -> Store {
+    let ds = data.join("datasets/ds");
+    std::fs::create_dir_all(&ds).unwrap();
+    for f in ["theta.csv", "x.csv", "meta.json"] {
+        std::fs::copy(dataset.join(f), ds.join(f)).unwrap();
+    }
+    let store = Store::connect(&Database::Sqlite(data.join("otofit.db"))).await.unwrap();
+    let spec = JobSpec::parse("train", &json!({"dataset": "ds", "seed": 3, "max_epochs": 60})).unwrap();
+    assert!(store.insert_job_within("t", "train", &spec.params(), 3, 8).await.unwrap());
+    store
+}
+
+/// A train job's worker process is stopped (SIGSTOP) once the job has a checkpoint and
+/// killed (SIGKILL: no re-queue, no clean-up); a new worker takes the job up and resumes
+/// from the checkpoint. Its model is the same, bit for bit, as that of the same job run
+/// uninterrupted by another worker beside it, and the checkpoint is gone at the end.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_train_job_resumes_from_its_checkpoint_to_the_same_model() {
+    let dataset = temp_dir("train-resume-ds");
+    let out = Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["simulate", "--n", &ROWS.to_string(), "--seed", "2", "--noise-scale", "1"])
+        .args(["--out", dataset.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let (data, reference) = (temp_dir("train-resume"), temp_dir("train-resume-ref"));
+    let (store, ref_store) = (train_job(&data, &dataset).await, train_job(&reference, &dataset).await);
+    let mut procs = Procs(vec![spawn_worker(&data), spawn_worker(&reference)]);
+    let ckpt = data.join("checkpoints/t.ckpt");
+    let t0 = Instant::now();
+    while npe::checkpoint_epochs(&ckpt).unwrap_or(0) < 3 && t0.elapsed() < Duration::from_secs(60) {
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // SAFETY: a signal to our own child.
+    unsafe { libc::kill(procs.0[0].id() as i32, libc::SIGSTOP) };
+    let at_kill = npe::checkpoint_epochs(&ckpt).expect("a checkpoint before the kill");
+    procs.0[0].kill().unwrap();
+    procs.0[0].wait().unwrap();
+    let j = store.job("t").await.unwrap().unwrap();
+    assert_eq!(j.state, "running", "the job ended before the kill: {:?}", j.result);
+    procs.0.push(spawn_worker(&data));
+    let (j, r) = (
+        wait_state(&store, "t", &["succeeded", "failed", "cancelled"], 120).await,
+        wait_state(&ref_store, "t", &["succeeded", "failed", "cancelled"], 120).await,
+    );
+    drop(procs);
+    assert_eq!((j.state.as_str(), j.attempts), ("succeeded", 2), "{:?}", j.error);
+    assert_eq!((r.state.as_str(), r.attempts), ("succeeded", 1), "{:?}", r.error);
+    let (got, want) = (j.result.unwrap(), r.result.unwrap());
+    eprintln!("resumed: {got}\nuninterrupted: {want}");
+    let resumed = got["resumed_from_epoch"].as_u64().unwrap() as usize;
+    assert!(resumed >= at_kill && resumed > 0, "resumed from epoch {resumed}, {at_kill} were checkpointed");
+    assert_eq!(want["resumed_from_epoch"], 0);
+    assert_eq!(got["epochs"], want["epochs"], "epochs in all");
+    assert!(resumed < got["epochs"].as_u64().unwrap() as usize, "the kill came after the last epoch");
+    assert_eq!(got["best_val_loss"], want["best_val_loss"]);
+    let x = Dataset::load(&dataset).unwrap().x.swap_remove(0);
+    let model = |d: &Path| fingerprint(&npe::Npe::load(&d.join("models/t.otofit")).unwrap(), &x);
+    assert!(model(&data) == model(&reference), "the model differs from the uninterrupted run's");
+    let left: Vec<_> = std::fs::read_dir(data.join("checkpoints")).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+}
