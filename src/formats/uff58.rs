@@ -116,8 +116,25 @@ fn dataset(lines: &[&str], start: usize, end: usize) -> Result<Frf, FormatError>
             end.saturating_sub(start)
         )));
     }
-    let ln = |k: usize| start + k; // 1-based line number of record k+1
     let id = lines[start].trim().to_string();
+    let layout = layout(lines, start)?;
+    let k = scale(lines, start)?;
+    values(id, lines, start, end, &layout, k)
+}
+
+/// How record 12 lays out the values (record 7): `n` points, evenly spaced from `x0` by
+/// `dx`, or each with its own abscissa.
+struct Layout {
+    n: usize,
+    even: bool,
+    x0: f64,
+    dx: f64,
+}
+
+/// Records 6 and 7: an FRF (function type 4) with complex values, since the phase is
+/// half of what the measure says.
+fn layout(lines: &[&str], start: usize) -> Result<Layout, FormatError> {
+    let ln = |k: usize| start + k; // 1-based line number of record k+1
     let function: i64 = lines[start + 5].split_whitespace().next().and_then(|t| t.parse().ok()).unwrap_or(-1);
     if function != 4 {
         return Err(err(
@@ -143,6 +160,13 @@ fn dataset(lines: &[&str], start: usize, end: usize) -> Result<Frf, FormatError>
             format!("ordinate data type {ordinate}: an FRF needs complex values (5 or 6), for the phase"),
         ));
     }
+    Ok(Layout { n, even, x0, dx })
+}
+
+/// Records 8–10: the factor from the file's units to m/s/Pa. The data types are checked
+/// first so that a wrong kind of spectrum is named as such, not as a unit problem.
+fn scale(lines: &[&str], start: usize) -> Result<f64, FormatError> {
+    let ln = |k: usize| start + k; // 1-based line number of record k+1
     let (x_kind, x_units) = characteristics(ln(8), lines[start + 7], "record 8")?;
     let (num_kind, num_units) = characteristics(ln(9), lines[start + 8], "record 9")?;
     let (den_kind, den_units) = characteristics(ln(10), lines[start + 9], "record 10")?;
@@ -167,8 +191,15 @@ fn dataset(lines: &[&str], start: usize, end: usize) -> Result<Frf, FormatError>
             format!("ordinate denominator data type {den_kind}: otofit reads velocity over pressure (15)"),
         ));
     }
-    let k = factor(ln(9), "record 9", &num_units, &VELOCITY, "velocity")?
-        / factor(ln(10), "record 10", &den_units, &PRESSURE, "pressure")?;
+    Ok(factor(ln(9), "record 9", &num_units, &VELOCITY, "velocity")?
+        / factor(ln(10), "record 10", &den_units, &PRESSURE, "pressure")?)
+}
+
+/// Record 12: the frequencies and (re, im) values scaled by `k`, as dataset `id`. Points
+/// at or below 0 Hz are dropped (a DC bin has no phase and no place on a log-frequency
+/// grid).
+fn values(id: String, lines: &[&str], start: usize, end: usize, layout: &Layout, k: f64) -> Result<Frf, FormatError> {
+    let &Layout { n, even, x0, dx } = layout;
     let mut numbers = Vec::new();
     for (j, l) in lines[start + 11..end].iter().enumerate() {
         for t in l.split_whitespace() {
@@ -182,7 +213,7 @@ fn dataset(lines: &[&str], start: usize, end: usize) -> Result<Frf, FormatError>
     let per = if even { 2 } else { 3 };
     if numbers.len() != n * per {
         return Err(err(
-            ln(12),
+            start + 12,
             "record 12",
             format!(
                 "{} numbers for {n} {} points (record 7)",
