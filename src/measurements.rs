@@ -245,85 +245,134 @@ pub fn model_measures(npe: &Npe) -> Option<usize> {
     ([5, N_MEASURES].contains(&measures) && names.len() == measures * n && (0..measures).all(ours)).then_some(measures)
 }
 
-/// The model's feature vector and presence flags from the measurements.
 /// Features on the model grid, which are present, and the measures used.
 pub type Features = (Vec<f64>, Vec<bool>, Vec<&'static str>);
 
+/// The model's feature vector and presence flags from the measurements. Every problem
+/// is collected before returning, so that one reply names all the fields to fix.
 pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementError> {
-    let grid = &npe.header.frequencies_hz;
-    let cut = npe.header.mask_bands.then_some(npe.header.band_cut_max);
-    let n = grid.len();
-    let mut errs = Vec::new();
     let measures = model_measures(npe).ok_or(MeasurementError::NotOtofitModel)?;
+    let t = Target {
+        grid: &npe.header.frequencies_hz,
+        cut: npe.header.mask_bands.then_some(npe.header.band_cut_max),
+        measures,
+    };
+    let n = t.grid.len();
+    let mut errs = Vec::new();
     let mut x = vec![f64::NAN; measures * n];
     let mut used = Vec::new();
-    let mut magphase =
-        |field: &'static str, mp: &MagPhase, block: usize, x: &mut Vec<f64>, errs: &mut Vec<(String, String)>| {
-            let fld = format!("measurements.{field}");
-            if block >= measures {
-                errs.push((fld, format!("this model was trained on {measures} measures, without {field}")));
-                return;
-            }
-            let velocity = block != 2;
-            let units: &[(&[&str], Option<f64>)] = if velocity { &VELOCITY_UNITS } else { &IMPEDANCE_UNITS };
-            let (Some(mag), Some(phase)) = (magnitude_si(&fld, mp, units, errs), phase_rad(&fld, mp, errs)) else {
-                return;
-            };
-            let decibels = mp.magnitude_unit.as_deref().is_some_and(|u| u.starts_with("dB"));
-            if decibels {
-                check_values(&format!("{fld}.magnitude"), &mp.magnitude, false, errs);
-            } else if mp.magnitude.iter().any(|v| *v <= 0.0) && velocity {
-                let i = mp.magnitude.iter().position(|v| *v <= 0.0).unwrap_or(0);
-                errs.push((
-                    format!("{fld}.magnitude[{i}]"),
-                    "must be > 0 (for decibels send \"magnitude_unit\": \"dB re 1 mm/s/Pa\")".into(),
-                ));
-            } else {
-                check_values(&format!("{fld}.magnitude"), &mp.magnitude, true, errs);
-            }
-            check_values(&format!("{fld}.phase"), &mp.phase, false, errs);
-            let logmag: Vec<f64> = mag.iter().map(|v| v.log10()).collect();
-            let phase = crate::sim::output::unwrap(phase.into_iter());
-            if let (Some(a), Some(b)) = (
-                resample(&fld, &mp.frequencies_hz, &logmag, grid, cut, errs),
-                resample(&fld, &mp.frequencies_hz, &phase, grid, cut, errs),
-            ) {
-                x[block * n..(block + 1) * n].copy_from_slice(&a);
-                x[(block + 1) * n..(block + 2) * n].copy_from_slice(&b);
-                used.push(field);
-            }
-        };
-    if let Some(mp) = &m.stapes_velocity {
-        magphase("stapes_velocity", mp, 0, &mut x, &mut errs);
-    }
-    if let Some(mp) = &m.impedance {
-        magphase("impedance", mp, 2, &mut x, &mut errs);
-    }
-    if let Some(mp) = &m.umbo_velocity {
-        magphase("umbo_velocity", mp, 5, &mut x, &mut errs);
-    }
-    if let Some(a) = &m.absorbance {
-        check_values("measurements.absorbance.values", &a.values, false, &mut errs);
-        if let Some(i) = a.values.iter().position(|v| !(-0.05..=1.05).contains(v)) {
-            errs.push((
-                format!("measurements.absorbance.values[{i}]"),
-                format!(
-                    "{} is outside 0–1 (absorbance is a fraction of power; ±0.05 is allowed for calibration error)",
-                    a.values[i]
-                ),
-            ));
+    let blocks = [
+        ("stapes_velocity", &m.stapes_velocity, 0),
+        ("impedance", &m.impedance, 2),
+        ("umbo_velocity", &m.umbo_velocity, 5),
+    ];
+    for (field, mp, block) in blocks {
+        if let Some(mp) = mp
+            && mag_phase(field, mp, block, &t, &mut x, &mut errs)
+        {
+            used.push(field);
         }
-        if let Some(v) = resample("measurements.absorbance", &a.frequencies_hz, &a.values, grid, cut, &mut errs) {
-            x[4 * n..5 * n].copy_from_slice(&v);
-            used.push("absorbance");
-        }
+    }
+    if let Some(a) = &m.absorbance
+        && absorbance(a, &t, &mut x, &mut errs)
+    {
+        used.push("absorbance");
     }
     if errs.is_empty() {
-        plausible(&x, grid, &mut errs);
+        plausible(&x, t.grid, &mut errs);
     }
     if !errs.is_empty() {
         return Err(MeasurementError::Invalid(errs));
     }
+    let present = complete(npe, &x, &used, measures)?;
+    Ok((x, present, used))
+}
+
+/// The model's frequency grid, its band cut and how many measures it takes: where the
+/// measurements are resampled to.
+struct Target<'a> {
+    grid: &'a [f64],
+    cut: Option<usize>,
+    measures: usize,
+}
+
+/// A magnitude/phase measure into features `block` (log10 |·|) and `block + 1` (the
+/// unwrapped phase); whether it was used.
+fn mag_phase(
+    field: &'static str,
+    mp: &MagPhase,
+    block: usize,
+    t: &Target,
+    x: &mut [f64],
+    errs: &mut Vec<(String, String)>,
+) -> bool {
+    let (grid, n, measures) = (t.grid, t.grid.len(), t.measures);
+    let fld = format!("measurements.{field}");
+    if block >= measures {
+        errs.push((fld, format!("this model was trained on {measures} measures, without {field}")));
+        return false;
+    }
+    let velocity = block != 2;
+    let units: &[(&[&str], Option<f64>)] = if velocity { &VELOCITY_UNITS } else { &IMPEDANCE_UNITS };
+    let (Some(mag), Some(phase)) = (magnitude_si(&fld, mp, units, errs), phase_rad(&fld, mp, errs)) else {
+        return false;
+    };
+    check_magnitude(&fld, mp, velocity, errs);
+    check_values(&format!("{fld}.phase"), &mp.phase, false, errs);
+    let logmag: Vec<f64> = mag.iter().map(|v| v.log10()).collect();
+    let phase = crate::sim::output::unwrap(phase.into_iter());
+    let (Some(a), Some(b)) = (
+        resample(&fld, &mp.frequencies_hz, &logmag, grid, t.cut, errs),
+        resample(&fld, &mp.frequencies_hz, &phase, grid, t.cut, errs),
+    ) else {
+        return false;
+    };
+    x[block * n..(block + 1) * n].copy_from_slice(&a);
+    x[(block + 1) * n..(block + 2) * n].copy_from_slice(&b);
+    true
+}
+
+/// Magnitudes in decibels may be ≤ 0; linear ones must be > 0, and a velocity that is
+/// not gets a hint, since a dB column sent without its unit is the usual cause.
+fn check_magnitude(fld: &str, mp: &MagPhase, velocity: bool, errs: &mut Vec<(String, String)>) {
+    let decibels = mp.magnitude_unit.as_deref().is_some_and(|u| u.starts_with("dB"));
+    if decibels {
+        check_values(&format!("{fld}.magnitude"), &mp.magnitude, false, errs);
+    } else if mp.magnitude.iter().any(|v| *v <= 0.0) && velocity {
+        let i = mp.magnitude.iter().position(|v| *v <= 0.0).unwrap_or(0);
+        errs.push((
+            format!("{fld}.magnitude[{i}]"),
+            "must be > 0 (for decibels send \"magnitude_unit\": \"dB re 1 mm/s/Pa\")".into(),
+        ));
+    } else {
+        check_values(&format!("{fld}.magnitude"), &mp.magnitude, true, errs);
+    }
+}
+
+/// The absorbance into feature block 4; whether it was used. ±0.05 outside 0–1 is
+/// allowed as calibration error.
+fn absorbance(a: &Values, t: &Target, x: &mut [f64], errs: &mut Vec<(String, String)>) -> bool {
+    let n = t.grid.len();
+    check_values("measurements.absorbance.values", &a.values, false, errs);
+    if let Some(i) = a.values.iter().position(|v| !(-0.05..=1.05).contains(v)) {
+        errs.push((
+            format!("measurements.absorbance.values[{i}]"),
+            format!(
+                "{} is outside 0–1 (absorbance is a fraction of power; ±0.05 is allowed for calibration error)",
+                a.values[i]
+            ),
+        ));
+    }
+    let Some(v) = resample("measurements.absorbance", &a.frequencies_hz, &a.values, t.grid, t.cut, errs) else {
+        return false;
+    };
+    x[4 * n..5 * n].copy_from_slice(&v);
+    true
+}
+
+/// The presence flags, once at least one measure is given and, for a model trained
+/// without masking, every one of them.
+fn complete(npe: &Npe, x: &[f64], used: &[&str], measures: usize) -> Result<Vec<bool>, MeasurementError> {
     if used.is_empty() {
         return Err(MeasurementError::Invalid(vec![(
             "measurements".into(),
@@ -339,5 +388,5 @@ pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementErro
             format!("this model needs every measure; missing: {}", missing.join(", ")),
         )]));
     }
-    Ok((x, present, used))
+    Ok(present)
 }
