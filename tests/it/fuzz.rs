@@ -29,13 +29,27 @@ const SPEC: &str = include_str!("../../openapi.yaml");
 const EXAMPLES: usize = 300;
 
 /// An operation of the spec: method, path template, the parameters it documents
-/// (name, `in`, enum values) and the examples of its request body.
+/// (name, `in`, enum values), the examples of its request body and the required keys of
+/// its first 2xx answer's JSON schema (none when it documents no schema).
 #[derive(Debug, Default)]
 struct Op {
     method: String,
     path: String,
     params: Vec<(String, String, Vec<String>)>,
     examples: Vec<Value>,
+    ok_required: Option<Vec<String>>,
+}
+
+/// The names of a one-line `required: [a, b]`.
+fn required_list(line: &str) -> Vec<String> {
+    let inner = line.trim().trim_start_matches("required: [").trim_end_matches(']');
+    inner.split(", ").map(str::to_string).collect()
+}
+
+/// The required keys of a component schema (the first `required:` below its name).
+fn component_required(schema: &str) -> Vec<String> {
+    let at = SPEC.find(&format!("\n    {schema}:\n")).unwrap_or_else(|| panic!("no schema {schema}"));
+    required_list(SPEC[at..].lines().find(|l| l.trim().starts_with("required: [")).unwrap())
 }
 
 /// The value of `key: ` in a one-line flow mapping such as `{ name: id, in: path, … }`.
@@ -48,7 +62,7 @@ fn flow_value<'a>(line: &'a str, key: &str) -> Option<&'a str> {
 /// spaces, methods at four, `parameters` items and `requestBody` examples below them.
 fn operations() -> Vec<Op> {
     let paths = SPEC.split_once("\npaths:\n").unwrap().1.split_once("\ncomponents:\n").unwrap().0;
-    let (mut ops, mut path, mut section) = (Vec::<Op>::new(), "", "");
+    let (mut ops, mut path, mut section, mut status) = (Vec::<Op>::new(), "", "", "");
     for line in paths.lines() {
         let indent = line.len() - line.trim_start().len();
         let key = line.trim().trim_end_matches(':');
@@ -56,6 +70,7 @@ fn operations() -> Vec<Op> {
             2 => path = key,
             4 => ops.push(Op { method: key.to_string(), path: path.to_string(), ..Op::default() }),
             6 => section = key.split(':').next().unwrap_or(""),
+            8 if section == "responses" => status = key.split(':').next().unwrap_or("").trim_matches('"'),
             _ => {}
         }
         let Some(op) = ops.last_mut() else { continue };
@@ -71,6 +86,13 @@ fn operations() -> Vec<Op> {
             && let Some(ex) = line.trim().strip_prefix("example: ")
         {
             op.examples.push(serde_json::from_str(ex).expect("a request example is JSON"));
+        }
+        if section == "responses" && status.starts_with('2') && op.ok_required.is_none() {
+            if let Some((_, name)) = line.split_once("$ref: \"#/components/schemas/") {
+                op.ok_required = Some(component_required(name.split('"').next().unwrap_or("")));
+            } else if line.trim().starts_with("required: [") {
+                op.ok_required = Some(required_list(line));
+            }
         }
     }
     ops
@@ -493,6 +515,15 @@ fn verdict(status: StatusCode, content_type: Option<&HeaderValue>, body: &[u8], 
     Ok(())
 }
 
+/// Whether a 2xx JSON answer of `op` has the keys its documented schema requires.
+fn conforms(op: &Op, body: &[u8]) -> Result<(), String> {
+    let (Some(required), Ok(v)) = (&op.ok_required, serde_json::from_slice::<Value>(body)) else { return Ok(()) };
+    match required.iter().find(|k| v.get(k.as_str()).is_none()) {
+        Some(k) => Err(format!("a {} {} answer without the required '{k}'", op.method, op.path)),
+        None => Ok(()),
+    }
+}
+
 /// Sends `case` to `app`: the answer's status, content type and body.
 async fn send(app: &Router, case: &Case) -> (StatusCode, Option<HeaderValue>, Vec<u8>) {
     let mut req = Request::builder().method(case.method.as_str()).uri(case.uri.as_str());
@@ -519,6 +550,13 @@ async fn contract_fuzzing_finds_no_5xx_and_only_problem_errors() {
     served.sort();
     listed.sort();
     assert_eq!(listed, served, "the fuzzer reads every operation of openapi.yaml");
+    let with_schema = ops.iter().filter(|o| o.ok_required.is_some()).count();
+    assert_eq!(
+        with_schema,
+        11,
+        "2xx schemas read: {:?}",
+        ops.iter().map(|o| (&o.path, &o.ok_required)).collect::<Vec<_>>()
+    );
     let mut failures = vec![];
     for (backend, db) in backends().await {
         let (app, ctx, keys, ja) = keyed_app(&backend, &db).await;
@@ -543,7 +581,11 @@ async fn contract_fuzzing_finds_no_5xx_and_only_problem_errors() {
                 {
                     w.job_ids.push(id);
                 }
-                if let Err(why) = verdict(status, ct.as_ref(), &body, case.method == "HEAD") {
+                let mut checked = verdict(status, ct.as_ref(), &body, case.method == "HEAD");
+                if status.is_success() && case.method == op.method.to_uppercase() {
+                    checked = checked.and(conforms(op, &body));
+                }
+                if let Err(why) = checked {
                     let answer = String::from_utf8_lossy(&body[..body.len().min(300)]).into_owned();
                     let on = &w.apps[app].0;
                     failures.push(format!(
