@@ -6,7 +6,8 @@
 //! ids (traversal, percent-encoding, very long), with a tenant's key, an admin's, another
 //! tenant's, a wrong one or none, and on a keyless server with foreign Host headers. Every
 //! answer must be below 500, and every 4xx an RFC 9457 problem (application/problem+json
-//! whose `status` is the HTTP status). No dispatcher runs: posted jobs only queue.
+//! whose `status` is the HTTP status); a 2xx must hold the keys its schema requires. On
+//! SQLite and PostgreSQL (`pg::backends`). No dispatcher runs: posted jobs only queue.
 //!
 //! `OTOFIT_FUZZ_SEED` and `OTOFIT_FUZZ_EXAMPLES` change the seed and the count.
 
