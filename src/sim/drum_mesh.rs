@@ -250,21 +250,7 @@ pub fn assemble(
     weight: f64,
     place: impl Fn(usize, usize) -> Option<[f64; 2]>,
 ) -> DrumFe {
-    // `place` returns None for fixed, Some([NaN, _]) for free, Some(c) for malleus.
-    let mut dofs = Vec::with_capacity(6 * nodes.len());
-    let mut n = 0;
-    for node in 0..nodes.len() {
-        for c in 0..6 {
-            dofs.push(match place(node, c) {
-                None => Dof::Fixed,
-                Some(v) if v[0].is_nan() => {
-                    n += 1;
-                    Dof::Free(n - 1)
-                }
-                Some(v) => Dof::Malleus(v),
-            });
-        }
-    }
+    let (dofs, n) = number_dofs(nodes.len(), place);
     let mut fe = DrumFe {
         n,
         k_ii: Vec::new(),
@@ -279,14 +265,42 @@ pub fn assemble(
     };
     for t in tris {
         let el = TriShell::with_drill([nodes[t[0]], nodes[t[1]], nodes[t[2]]], mat, drill);
-        let at = |i: usize| dofs[6 * t[i / 6] + i % 6];
+        fe.add_element(&el, |i| dofs[6 * t[i / 6] + i % 6], weight);
+    }
+    fe.dofs = dofs;
+    fe
+}
+
+/// Each node DOF's place, the free ones numbered in node order, and how many are free.
+/// `place` returns None for fixed, Some([NaN, _]) for free, Some(c) for malleus.
+fn number_dofs(n_nodes: usize, place: impl Fn(usize, usize) -> Option<[f64; 2]>) -> (Vec<Dof>, usize) {
+    let mut dofs = Vec::with_capacity(6 * n_nodes);
+    let mut n = 0;
+    for node in 0..n_nodes {
+        for c in 0..6 {
+            dofs.push(match place(node, c) {
+                None => Dof::Fixed,
+                Some(v) if v[0].is_nan() => {
+                    n += 1;
+                    Dof::Free(n - 1)
+                }
+                Some(v) => Dof::Malleus(v),
+            });
+        }
+    }
+    (dofs, n)
+}
+
+impl DrumFe {
+    /// Adds one element whose local DOF `i` goes to `at(i)`.
+    fn add_element(&mut self, el: &TriShell, at: impl Fn(usize) -> Dof, weight: f64) {
         for i in 0..18 {
             match at(i) {
                 Dof::Fixed => continue,
-                Dof::Free(gi) => fe.b_i[gi] += weight * el.b[i],
+                Dof::Free(gi) => self.b_i[gi] += weight * el.b[i],
                 Dof::Malleus(c) => {
-                    fe.b_b[0] += weight * c[0] * el.b[i];
-                    fe.b_b[1] += weight * c[1] * el.b[i];
+                    self.b_b[0] += weight * c[0] * el.b[i];
+                    self.b_b[1] += weight * c[1] * el.b[i];
                 }
             }
             for j in 0..18 {
@@ -294,36 +308,41 @@ pub fn assemble(
                 if k == 0.0 && m == 0.0 {
                     continue;
                 }
-                match (at(i), at(j)) {
-                    (Dof::Free(gi), Dof::Free(gj)) => {
-                        if k != 0.0 {
-                            fe.k_ii.push((gi, gj, k));
-                        }
-                        if m != 0.0 {
-                            fe.m_ii.push((gi, gj, m));
-                        }
-                    }
-                    (Dof::Free(gi), Dof::Malleus(c)) => {
-                        for (d, &cd) in c.iter().enumerate() {
-                            fe.k_ib[d][gi] += k * cd;
-                            fe.m_ib[d][gi] += m * cd;
-                        }
-                    }
-                    (Dof::Malleus(ci), Dof::Malleus(cj)) => {
-                        for (a, &ca) in ci.iter().enumerate() {
-                            for (b, &cb) in cj.iter().enumerate() {
-                                fe.k_bb[a][b] += k * ca * cb;
-                                fe.m_bb[a][b] += m * ca * cb;
-                            }
-                        }
-                    }
-                    _ => {}
-                }
+                self.add_entry(at(i), at(j), k, m);
             }
         }
     }
-    fe.dofs = dofs;
-    fe
+
+    /// Adds stiffness `k` and mass `m` between two DOFs. The malleus–free block is
+    /// skipped: the element matrices are symmetric, so it is the free–malleus block's
+    /// transpose.
+    fn add_entry(&mut self, a: Dof, b: Dof, k: f64, m: f64) {
+        match (a, b) {
+            (Dof::Free(gi), Dof::Free(gj)) => {
+                if k != 0.0 {
+                    self.k_ii.push((gi, gj, k));
+                }
+                if m != 0.0 {
+                    self.m_ii.push((gi, gj, m));
+                }
+            }
+            (Dof::Free(gi), Dof::Malleus(c)) => {
+                for (d, &cd) in c.iter().enumerate() {
+                    self.k_ib[d][gi] += k * cd;
+                    self.m_ib[d][gi] += m * cd;
+                }
+            }
+            (Dof::Malleus(ci), Dof::Malleus(cj)) => {
+                for (a, &ca) in ci.iter().enumerate() {
+                    for (b, &cb) in cj.iter().enumerate() {
+                        self.k_bb[a][b] += k * ca * cb;
+                        self.m_bb[a][b] += m * ca * cb;
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
 }
 
 /// Free marker for [`assemble`]'s `place`.
@@ -971,6 +990,57 @@ mod tests {
         }
     }
 
+    /// The whole drum and its boundary as one dense system on [interior (n), w, θ, p_d,
+    /// p_c]: the drum's own boundary terms plus `ext`, the rest of the ear's.
+    fn full_system(
+        fe: &DrumFe,
+        (kd, md): (&Mat<f64>, &Mat<f64>),
+        c: &DrumCoefficients,
+        cav: f64,
+        ext: impl Fn(usize, usize) -> c64,
+    ) -> Mat<c64> {
+        let n = fe.n;
+        let mut a = Mat::<c64>::zeros(n + 4, n + 4);
+        for i in 0..n {
+            for j in 0..n {
+                a[(i, j)] = c.kappa * kd[(i, j)] + c.s * md[(i, j)];
+            }
+            for d in 0..2 {
+                let v = c.kappa * fe.k_ib[d][i] + c.s * fe.m_ib[d][i];
+                a[(i, n + d)] = v;
+                a[(n + d, i)] = v;
+            }
+            a[(i, n + 2)] = c64::new(-fe.b_i[i], 0.0);
+            a[(i, n + 3)] = c64::new(fe.b_i[i], 0.0);
+            a[(n + 2, i)] = c.jw * fe.b_i[i];
+            a[(n + 3, i)] = c64::new(cav * fe.b_i[i], 0.0);
+        }
+        let own = DrumModes0.block(fe, c);
+        for i in 0..4 {
+            for j in 0..4 {
+                a[(n + i, n + j)] += own[i][j] + ext(i, j);
+            }
+        }
+        a
+    }
+
+    /// qᴴ K_unit q over the interior and the two malleus DOFs of a full solution `xq`.
+    fn full_stiffness_energy(fe: &DrumFe, kd: &Mat<f64>, xq: impl Fn(usize) -> c64) -> f64 {
+        let n = fe.n;
+        let mut e_full = 0.0;
+        for i in 0..n {
+            let mut kq: c64 = (0..n).map(|j| kd[(i, j)] * xq(j)).sum();
+            kq += fe.k_ib[0][i] * xq(n) + fe.k_ib[1][i] * xq(n + 1);
+            e_full += (xq(i).conj() * kq).re;
+        }
+        for d in 0..2 {
+            let mut kq: c64 = (0..n).map(|j| fe.k_ib[d][j] * xq(j)).sum();
+            kq += fe.k_bb[d][0] * xq(n) + fe.k_bb[d][1] * xq(n + 1);
+            e_full += (xq(n + d).conj() * kq).re;
+        }
+        e_full
+    }
+
     #[test]
     fn condensed_drum_equals_the_full_solve() {
         // The full system: interior (κK + sM) plus the two malleus DOFs with an ossicle-like
@@ -995,29 +1065,8 @@ mod tests {
                     _ => c64::new(0.0, 0.0),
                 }
             };
-            // Full dense system: [interior (n), w, θ, p_d, p_c].
+            let a = full_system(&fe, (&kd, &md), &c, cav, ext);
             let nt = n + 4;
-            let mut a = Mat::<c64>::zeros(nt, nt);
-            for i in 0..n {
-                for j in 0..n {
-                    a[(i, j)] = c.kappa * kd[(i, j)] + c.s * md[(i, j)];
-                }
-                for d in 0..2 {
-                    let v = c.kappa * fe.k_ib[d][i] + c.s * fe.m_ib[d][i];
-                    a[(i, n + d)] = v;
-                    a[(n + d, i)] = v;
-                }
-                a[(i, n + 2)] = c64::new(-fe.b_i[i], 0.0);
-                a[(i, n + 3)] = c64::new(fe.b_i[i], 0.0);
-                a[(n + 2, i)] = c.jw * fe.b_i[i];
-                a[(n + 3, i)] = c64::new(cav * fe.b_i[i], 0.0);
-            }
-            let own = DrumModes0.block(&fe, &c);
-            for i in 0..4 {
-                for j in 0..4 {
-                    a[(n + i, n + j)] += own[i][j] + ext(i, j);
-                }
-            }
             let mut rhs = Mat::<c64>::zeros(nt, 1);
             rhs[(n + 2, 0)] = c64::new(1.0, 0.0);
             let x = a.partial_piv_lu().solve(&rhs);
@@ -1039,18 +1088,7 @@ mod tests {
                 (0..n).map(|i| x[(i, 0)] * fe.b_i[i]).sum::<c64>() + x[(n, 0)] * fe.b_b[0] + x[(n + 1, 0)] * fe.b_b[1];
             assert!((vol - vol_full).norm() <= 1e-8 * vol_full.norm(), "{vol} vs {vol_full}");
             // And the same stiffness energy qᴴ K_unit q (the drum's loss in the power budget).
-            let mut e_full = 0.0;
-            let xq = |i: usize| x[(i, 0)];
-            for i in 0..n {
-                let mut kq: c64 = (0..n).map(|j| kd[(i, j)] * xq(j)).sum();
-                kq += fe.k_ib[0][i] * xq(n) + fe.k_ib[1][i] * xq(n + 1);
-                e_full += (xq(i).conj() * kq).re;
-            }
-            for d in 0..2 {
-                let mut kq: c64 = (0..n).map(|j| fe.k_ib[d][j] * xq(j)).sum();
-                kq += fe.k_bb[d][0] * xq(n) + fe.k_bb[d][1] * xq(n + 1);
-                e_full += (xq(n + d).conj() * kq).re;
-            }
+            let e_full = full_stiffness_energy(&fe, &kd, |i| x[(i, 0)]);
             let e_modal = modes.unit_stiffness_energy(&eta_m, xb[0], xb[1]);
             assert!((e_modal - e_full).abs() <= 1e-8 * e_full.abs(), "{e_modal:e} vs {e_full:e}");
             // The series shortcut equals the explicit modal sum.
@@ -1136,7 +1174,17 @@ mod tests {
     #[ignore = "measurement: prints force areas, modes and timings"]
     fn measure_blocked_force_area_modes_and_cost() {
         let e = 20e6;
-        let l_u = 5.5e-3;
+        print_mesh_convergence(e);
+        for rings in [4, 8, 10, 12, 14, 16] {
+            let modes = print_modes_and_cost(rings, e);
+            if rings == 12 || rings == 16 {
+                print_force_areas(&modes, e);
+            }
+        }
+    }
+
+    /// |F/p| by a direct sparse solve (no modes) as the mesh is refined.
+    fn print_mesh_convergence(e: f64) {
         eprintln!("mesh convergence of |F/p| (mm²), η = 0.2, direct sparse solve:");
         for rings in [8, 12, 16, 24, 32, 48] {
             let geo = DrumGeometry { rings, ..DrumGeometry::default() };
@@ -1149,71 +1197,79 @@ mod tests {
                 .collect();
             eprintln!("  rings {rings} ({} DOFs): {}", fe.n, row.join(", "));
         }
-        for rings in [4, 8, 10, 12, 14, 16] {
-            let geo = DrumGeometry { rings, ..DrumGeometry::default() };
-            let t0 = std::time::Instant::now();
-            let fe = geo.fe();
-            let t_asm = t0.elapsed().as_secs_f64();
-            let (modes, info) = ManubriumModes::new(&fe).unwrap();
-            let freqs = crate::sim::log_grid(200.0, 8000.0, 50);
-            let reps = 200;
-            let mut acc = c64::new(0.0, 0.0);
-            let mut per_fast = 0.0;
-            let mut by_e = vec![];
-            for e_run in [1e6, 3e8, e] {
-                let cs: Vec<DrumCoefficients> = freqs.iter().map(|&f| coefficients(e_run, 0.2, f, 0.0)).collect();
-                let t1 = std::time::Instant::now();
-                for _ in 0..reps {
-                    for c in &cs {
-                        acc += modes.block(c)[0][2];
-                    }
-                }
-                per_fast = t1.elapsed().as_secs_f64() / (reps * cs.len()) as f64;
-                by_e.push(format!("E {e_run:.0e}: {:.2} µs", per_fast * 1e6));
-            }
-            let cs: Vec<DrumCoefficients> = freqs.iter().map(|&f| coefficients(e, 0.2, f, 0.0)).collect();
-            let t2 = std::time::Instant::now();
-            for _ in 0..reps / 10 {
+    }
+
+    /// The set-up cost, the per-frequency cost of the series block (at three moduli:
+    /// the number of modes it needs grows as E falls) and of the explicit modal sum, and
+    /// the first modes.
+    fn print_modes_and_cost(rings: usize, e: f64) -> ManubriumModes {
+        let geo = DrumGeometry { rings, ..DrumGeometry::default() };
+        let t0 = std::time::Instant::now();
+        let fe = geo.fe();
+        let t_asm = t0.elapsed().as_secs_f64();
+        let (modes, info) = ManubriumModes::new(&fe).unwrap();
+        let freqs = crate::sim::log_grid(200.0, 8000.0, 50);
+        let reps = 200;
+        let mut acc = c64::new(0.0, 0.0);
+        let mut per_fast = 0.0;
+        let mut by_e = vec![];
+        for e_run in [1e6, 3e8, e] {
+            let cs: Vec<DrumCoefficients> = freqs.iter().map(|&f| coefficients(e_run, 0.2, f, 0.0)).collect();
+            let t1 = std::time::Instant::now();
+            for _ in 0..reps {
                 for c in &cs {
-                    acc += modes.block_explicit(c)[0][2];
+                    acc += modes.block(c)[0][2];
                 }
             }
-            let per_explicit = t2.elapsed().as_secs_f64() / (reps / 10 * cs.len()) as f64;
-            let f = modes.frequencies(e);
-            let in_band = f.iter().filter(|&&x| x <= 8000.0).count();
-            eprintln!(
-                "rings {rings}: {} interior DOFs, assembly {:.3} s, Cholesky+projection {:.3} s, eigen {:.3} s; \
-                 per frequency {:.2} µs (series) / {:.2} µs (every mode); {in_band} modes ≤ 8 kHz; \
-                 first modes (Hz) {:?}; series cost by E {by_e:?} [{acc:.1e}]",
-                info.n,
-                t_asm,
-                info.cholesky_and_projection_s,
-                info.eigen_s,
-                per_fast * 1e6,
-                per_explicit * 1e6,
-                f.iter().take(8).map(|x| x.round()).collect::<Vec<_>>()
-            );
-            if rings == 12 || rings == 16 {
-                eprintln!(
-                    "  f (Hz) | new drum F/p, |mm²| and phase (°), η = 0.1 / 0.2 / 0.3 | umbo-equivalent (F + M/l_u)/p, η 0.2 | Rayleigh β 7.5e-5 | axisymmetric disc η 0.2 | axisymmetric Rayleigh"
-                );
-                for fq in [100.0, 200.0, 500.0, 1000.0, 2000.0, 3000.0, 4000.0, 6000.0, 8000.0] {
-                    let w = 2.0 * PI * fq;
-                    let mut row = format!("  {fq:6.0}");
-                    for eta in [0.1, 0.2, 0.3] {
-                        let (fa, _) = modes.blocked_force(&coefficients(e, eta, fq, 0.0));
-                        row += &format!(" | {:6.2} {:6.1}", fa.norm() * 1e6, fa.arg().to_degrees());
-                    }
-                    let bl = modes.block(&coefficients(e, 0.2, fq, 0.0));
-                    let eq = -(bl[0][2] + bl[1][2] / l_u);
-                    row += &format!(" | {:6.2}", eq.norm() * 1e6);
-                    let ray = DrumCoefficients { kappa: c64::new(e, e * w * 7.5e-5), ..coefficients(e, 0.0, fq, 0.0) };
-                    row += &format!(" | {:6.2}", modes.block(&ray)[0][2].norm() * 1e6);
-                    row += &format!(" | {:6.2}", axisymmetric_force_area(c64::new(e, 0.2 * e), w).norm() * 1e6);
-                    row += &format!(" | {:6.2}", axisymmetric_force_area(ray.kappa, w).norm() * 1e6);
-                    eprintln!("{row}");
-                }
+            per_fast = t1.elapsed().as_secs_f64() / (reps * cs.len()) as f64;
+            by_e.push(format!("E {e_run:.0e}: {:.2} µs", per_fast * 1e6));
+        }
+        let cs: Vec<DrumCoefficients> = freqs.iter().map(|&f| coefficients(e, 0.2, f, 0.0)).collect();
+        let t2 = std::time::Instant::now();
+        for _ in 0..reps / 10 {
+            for c in &cs {
+                acc += modes.block_explicit(c)[0][2];
             }
+        }
+        let per_explicit = t2.elapsed().as_secs_f64() / (reps / 10 * cs.len()) as f64;
+        let f = modes.frequencies(e);
+        let in_band = f.iter().filter(|&&x| x <= 8000.0).count();
+        eprintln!(
+            "rings {rings}: {} interior DOFs, assembly {:.3} s, Cholesky+projection {:.3} s, eigen {:.3} s; \
+             per frequency {:.2} µs (series) / {:.2} µs (every mode); {in_band} modes ≤ 8 kHz; \
+             first modes (Hz) {:?}; series cost by E {by_e:?} [{acc:.1e}]",
+            info.n,
+            t_asm,
+            info.cholesky_and_projection_s,
+            info.eigen_s,
+            per_fast * 1e6,
+            per_explicit * 1e6,
+            f.iter().take(8).map(|x| x.round()).collect::<Vec<_>>()
+        );
+        modes
+    }
+
+    /// The new drum's blocked force against the loss models and the axisymmetric drum's.
+    fn print_force_areas(modes: &ManubriumModes, e: f64) {
+        let l_u = 5.5e-3;
+        eprintln!(
+            "  f (Hz) | new drum F/p, |mm²| and phase (°), η = 0.1 / 0.2 / 0.3 | umbo-equivalent (F + M/l_u)/p, η 0.2 | Rayleigh β 7.5e-5 | axisymmetric disc η 0.2 | axisymmetric Rayleigh"
+        );
+        for fq in [100.0, 200.0, 500.0, 1000.0, 2000.0, 3000.0, 4000.0, 6000.0, 8000.0] {
+            let w = 2.0 * PI * fq;
+            let mut row = format!("  {fq:6.0}");
+            for eta in [0.1, 0.2, 0.3] {
+                let (fa, _) = modes.blocked_force(&coefficients(e, eta, fq, 0.0));
+                row += &format!(" | {:6.2} {:6.1}", fa.norm() * 1e6, fa.arg().to_degrees());
+            }
+            let bl = modes.block(&coefficients(e, 0.2, fq, 0.0));
+            let eq = -(bl[0][2] + bl[1][2] / l_u);
+            row += &format!(" | {:6.2}", eq.norm() * 1e6);
+            let ray = DrumCoefficients { kappa: c64::new(e, e * w * 7.5e-5), ..coefficients(e, 0.0, fq, 0.0) };
+            row += &format!(" | {:6.2}", modes.block(&ray)[0][2].norm() * 1e6);
+            row += &format!(" | {:6.2}", axisymmetric_force_area(c64::new(e, 0.2 * e), w).norm() * 1e6);
+            row += &format!(" | {:6.2}", axisymmetric_force_area(ray.kappa, w).norm() * 1e6);
+            eprintln!("{row}");
         }
     }
 
