@@ -156,3 +156,29 @@ async fn a_killed_train_job_resumes_from_its_checkpoint_to_the_same_model() {
     let left: Vec<_> = std::fs::read_dir(data.join("checkpoints")).unwrap().flatten().map(|e| e.file_name()).collect();
     assert!(left.is_empty(), "left behind: {left:?}");
 }
+
+/// `otofit train --checkpoint FILE` resumes from a checkpoint of the same training (here
+/// one stopped in process at epoch 4), ends with the uninterrupted model and removes FILE.
+#[test]
+fn otofit_train_resumes_from_its_checkpoint_file() {
+    let dir = temp_dir("train-cli-ckpt");
+    otofit::bench::write_table(otofit::bench::Task::GaussianMixture, 300, 1, &dir).unwrap();
+    let ds = Dataset::load(&dir).unwrap();
+    let s = TrainSettings { seed: 2, max_epochs: 10, ..Default::default() };
+    let ckpt = dir.join("run.ckpt");
+    npe::train_checkpointed(&ds, &s, Some(&Checkpointing::new(ckpt.clone(), "t")), &mut |e| e.epoch < 4).unwrap();
+    assert_eq!(npe::checkpoint_epochs(&ckpt), Some(4));
+    let (data, model, c) = (dir.to_str().unwrap(), dir.join("m.otofit"), ckpt.to_str().unwrap());
+    let out = Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["train", "--data", data, "--out", model.to_str().unwrap(), "--seed", "2", "--max-epochs", "10"])
+        .args(["--checkpoint", c])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success() && err.contains("resumed from epoch 4"), "{err}");
+    assert!(!ckpt.exists(), "the checkpoint is left");
+    let whole = npe::train(&ds, &s, &mut |_| true).unwrap();
+    let x = otofit::bench::observation(otofit::bench::Task::GaussianMixture, 1);
+    assert!(fingerprint(&npe::Npe::load(&model).unwrap(), &x) == fingerprint(&whole, &x));
+    let _ = std::fs::remove_dir_all(&dir);
+}
