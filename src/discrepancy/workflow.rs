@@ -352,18 +352,7 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, given: &[bool],
 /// Runs the workflow for one observation (features in otofit's order) with a base model.
 pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &mut dyn FnMut(&str)) -> Result<Report> {
     let t0 = std::time::Instant::now();
-    if base.header.feature_names != feature_names(model.frequencies()) || base.params().len() != N_PARAMS {
-        return Err(DiagnoseError::NotBaseModel);
-    }
-    if x.len() != base.header.feature_names.len() {
-        return Err(DiagnoseError::Observation { got: x.len(), expected: base.header.feature_names.len() });
-    }
-    // Absent features (NaN: a measure not taken) stay out of every statistic; the base
-    // model must accept the subset (group masks), and the extended one is trained on it.
-    let given: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
-    if !given.iter().any(|g| *g) {
-        return Err(DiagnoseError::Observation { got: 0, expected: x.len() });
-    }
+    let given = given_features(model, base, x)?;
     let noise = Noise { std: base.header.noise_std.clone(), scale: 1.0, seed: s.seed };
     let obs = Observation { x: x.to_vec(), sigma: noise.std.clone() };
     progress("fit: base posterior");
@@ -391,39 +380,17 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     let alarm = before.reduced_chi2 > thresholds.base_reduced_chi2 || best_drop > thresholds.best_drop;
     let candidate = ranked.first().filter(|c| c.score > 0.0 && best_drop > thresholds.best_drop).map(|c| c.effect);
     let margin = (ranked.len() > 1).then(|| ranked[0].score - ranked[1].score);
-    let (mut after, mut effect_posterior, mut map_after, mut extended) = (None, None, None, None);
-    if let (Some(name), true) = (candidate, s.extend && alarm) {
-        let e = EFFECTS.iter().position(|x| x.name == name).expect("named effect");
-        let design = Design { varied: vec![e], ..Design::default() };
-        progress(&format!("add: simulating {} rows with {name} in the prior", s.train_rows));
-        let cancelled = || s.cancelled();
-        let npe2 = train_for(model, &design, &noise, &given, s.train_rows, s.max_epochs, s.seed, progress, &cancelled)?;
-        s.go_on()?;
-        let x_given: Vec<f64> = x.iter().copied().filter(|v| v.is_finite()).collect();
-        let inf2 = npe2.infer(&Obs { x: &x_given, present: None }, s.draws.max(200), s.seed)?;
-        let c2 = check(model, &design, &inf2.samples[..s.draws.min(inf2.samples.len())], &inf2.map, &obs)?;
-        let p = &inf2.summaries[N_PARAMS];
-        effect_posterior =
-            Some(EffectPosterior { effect: name, unit: EFFECTS[e].unit, median: p.median, q05: p.q05, q95: p.q95 });
-        map_after = Some(inf2.map.clone());
-        after = Some(c2);
-        extended = Some(npe2);
-    }
-    // Named when the candidate's fit explains the data: by its direct fit, or (when the
-    // model was extended) by the retrained posterior's predictive check.
-    let explained = |c: &super::Candidate| {
-        c.reduced_chi2 <= thresholds.explained
-            || after.as_ref().is_some_and(|a: &Check| a.reduced_chi2 <= thresholds.explained)
+    let (after, effect_posterior, map_after, extended) = match (candidate, s.extend && alarm) {
+        (Some(name), true) => {
+            let e = extend(model, name, &noise, &given, &obs, s, progress)?;
+            (Some(e.after), Some(e.effect_posterior), Some(e.map_after), Some(e.model))
+        }
+        _ => (None, None, None, None),
     };
-    let v = match (alarm, ranked.first().filter(|c| Some(c.effect) == candidate)) {
-        (false, _) => Verdict::NoDiscrepancy,
-        (true, Some(c)) if explained(c) => Verdict::EffectNamed,
-        _ => Verdict::Unexplained,
-    };
-    let named = (v == Verdict::EffectNamed).then_some(candidate).flatten();
+    let (verdict, named) = decide(alarm, candidate, &ranked, after.as_ref(), &thresholds);
     s.go_on()?;
     Ok(Report {
-        verdict: v,
+        verdict,
         thresholds,
         before,
         candidates: ranked,
@@ -438,4 +405,87 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         frequencies_hz: model.frequencies().to_vec(),
         seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// Which features the observation gives, once it is known to fit the base model. Absent
+/// features (NaN: a measure not taken) stay out of every statistic; the base model must
+/// accept the subset (group masks), and the extended one is trained on it.
+fn given_features(model: &Model, base: &Npe, x: &[f64]) -> Result<Vec<bool>> {
+    if base.header.feature_names != feature_names(model.frequencies()) || base.params().len() != N_PARAMS {
+        return Err(DiagnoseError::NotBaseModel);
+    }
+    if x.len() != base.header.feature_names.len() {
+        return Err(DiagnoseError::Observation { got: x.len(), expected: base.header.feature_names.len() });
+    }
+    let given: Vec<bool> = x.iter().map(|v| v.is_finite()).collect();
+    if !given.iter().any(|g| *g) {
+        return Err(DiagnoseError::Observation { got: 0, expected: x.len() });
+    }
+    Ok(given)
+}
+
+/// The base model extended by the named effect, and what it says about the observation.
+struct Extension {
+    after: Check,
+    effect_posterior: EffectPosterior,
+    map_after: Vec<f64>,
+    model: Npe,
+}
+
+/// Adds effect `name` to the prior, trains an estimator on simulations of it and checks
+/// the observation against the new posterior: the step that shows whether the effect
+/// really explains the data, not only fits it.
+fn extend(
+    model: &Model,
+    name: &'static str,
+    noise: &Noise,
+    given: &[bool],
+    obs: &Observation,
+    s: &Settings,
+    progress: &mut dyn FnMut(&str),
+) -> Result<Extension> {
+    let e = EFFECTS.iter().position(|x| x.name == name).expect("named effect");
+    let design = Design { varied: vec![e], ..Design::default() };
+    progress(&format!("add: simulating {} rows with {name} in the prior", s.train_rows));
+    let cancelled = || s.cancelled();
+    let npe2 = train_for(model, &design, noise, given, s.train_rows, s.max_epochs, s.seed, progress, &cancelled)?;
+    s.go_on()?;
+    let x_given: Vec<f64> = obs.x.iter().copied().filter(|v| v.is_finite()).collect();
+    let inf2 = npe2.infer(&Obs { x: &x_given, present: None }, s.draws.max(200), s.seed)?;
+    let c2 = check(model, &design, &inf2.samples[..s.draws.min(inf2.samples.len())], &inf2.map, obs)?;
+    let p = &inf2.summaries[N_PARAMS];
+    Ok(Extension {
+        after: c2,
+        effect_posterior: EffectPosterior {
+            effect: name,
+            unit: EFFECTS[e].unit,
+            median: p.median,
+            q05: p.q05,
+            q95: p.q95,
+        },
+        map_after: inf2.map.clone(),
+        model: npe2,
+    })
+}
+
+/// The verdict and the effect named. Named when the candidate's fit explains the data:
+/// by its direct fit, or (when the model was extended) by the retrained posterior's
+/// predictive check.
+fn decide(
+    alarm: bool,
+    candidate: Option<&'static str>,
+    ranked: &[super::Candidate],
+    after: Option<&Check>,
+    thresholds: &Thresholds,
+) -> (Verdict, Option<&'static str>) {
+    let explained = |c: &super::Candidate| {
+        c.reduced_chi2 <= thresholds.explained || after.is_some_and(|a: &Check| a.reduced_chi2 <= thresholds.explained)
+    };
+    let v = match (alarm, ranked.first().filter(|c| Some(c.effect) == candidate)) {
+        (false, _) => Verdict::NoDiscrepancy,
+        (true, Some(c)) if explained(c) => Verdict::EffectNamed,
+        _ => Verdict::Unexplained,
+    };
+    let named = (v == Verdict::EffectNamed).then_some(candidate).flatten();
+    (v, named)
 }
