@@ -93,15 +93,27 @@ fn spawn_worker(data: &Path) -> std::process::Child {
         .unwrap()
 }
 
+/// A simulated dataset of `ROWS` rows (`otofit simulate`), in a folder of its own.
+fn simulated() -> std::path::PathBuf {
+    let dataset = temp_dir("train-resume-ds");
+    let out = Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["simulate", "--n", &ROWS.to_string(), "--seed", "2", "--noise-scale", "1"])
+        .args(["--out", dataset.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    dataset
+}
+
 /// A data directory with the dataset `ds` (simulated once, copied) and train job `t`.
-async fn train_job(data: &Path, dataset: &Path) -> Store {
+async fn train_job(data: &Path, dataset: &Path, max_epochs: usize) -> Store {
     let ds = data.join("datasets/ds");
     std::fs::create_dir_all(&ds).unwrap();
     for f in ["theta.csv", "x.csv", "meta.json"] {
         std::fs::copy(dataset.join(f), ds.join(f)).unwrap();
     }
     let store = Store::connect(&Database::Sqlite(data.join("otofit.db"))).await.unwrap();
-    let spec = JobSpec::parse("train", &json!({"dataset": "ds", "seed": 3, "max_epochs": 60})).unwrap();
+    let spec = JobSpec::parse("train", &json!({"dataset": "ds", "seed": 3, "max_epochs": max_epochs})).unwrap();
     assert!(store.insert_job_within("t", "train", &spec.params(), 3, 8).await.unwrap());
     store
 }
@@ -112,21 +124,12 @@ async fn train_job(data: &Path, dataset: &Path) -> Store {
 /// uninterrupted by another worker beside it, and the checkpoint is gone at the end.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_train_job_resumes_from_its_checkpoint_to_the_same_model() {
-    let dataset = temp_dir("train-resume-ds");
-    let out = Command::new(env!("CARGO_BIN_EXE_otofit"))
-        .args(["simulate", "--n", &ROWS.to_string(), "--seed", "2", "--noise-scale", "1"])
-        .args(["--out", dataset.to_str().unwrap()])
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let dataset = simulated();
     let (data, reference) = (temp_dir("train-resume"), temp_dir("train-resume-ref"));
-    let (store, ref_store) = (train_job(&data, &dataset).await, train_job(&reference, &dataset).await);
+    let (store, ref_store) = (train_job(&data, &dataset, 60).await, train_job(&reference, &dataset, 60).await);
     let mut procs = Procs(vec![spawn_worker(&data), spawn_worker(&reference)]);
     let ckpt = data.join("checkpoints/t.ckpt");
-    let t0 = Instant::now();
-    while npe::checkpoint_epochs(&ckpt).unwrap_or(0) < 3 && t0.elapsed() < Duration::from_secs(60) {
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    wait_checkpoint(&ckpt, 3).await;
     // SAFETY: a signal to our own child.
     unsafe { libc::kill(procs.0[0].id() as i32, libc::SIGSTOP) };
     let at_kill = npe::checkpoint_epochs(&ckpt).expect("a checkpoint before the kill");
@@ -181,4 +184,42 @@ fn otofit_train_resumes_from_its_checkpoint_file() {
     let x = otofit::bench::observation(otofit::bench::Task::GaussianMixture, 1);
     assert!(fingerprint(&npe::Npe::load(&model).unwrap(), &x) == fingerprint(&whole, &x));
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Until the checkpoint at `path` holds at least `epochs` epochs (60 s at most).
+async fn wait_checkpoint(path: &Path, epochs: usize) {
+    let t0 = Instant::now();
+    while npe::checkpoint_epochs(path).unwrap_or(0) < epochs && t0.elapsed() < Duration::from_secs(60) {
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+/// In one process: a shutdown re-queues a running train job and keeps its checkpoint
+/// (written at the stop); the next dispatcher resumes from it; a cancel then ends the job
+/// (succeeded with its best weights, `cancelled_early`) and removes the checkpoint.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_shut_down_train_job_keeps_its_checkpoint_and_a_cancelled_one_removes_it() {
+    let (dataset, data) = (simulated(), temp_dir("train-stop"));
+    let store = train_job(&data, &dataset, 1000).await;
+    let ckpt = data.join("checkpoints/t.ckpt");
+    let first = crate::pg::ctx_on(store.clone(), &data, "w1", Duration::from_secs(30));
+    tokio::spawn(otofit::jobs::dispatcher(first.clone()));
+    wait_checkpoint(&ckpt, 2).await;
+    first.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+    let j = wait_state(&store, "t", &["queued"], 30).await;
+    assert_eq!(j.state, "queued", "{:?}", j.error);
+    let kept = npe::checkpoint_epochs(&ckpt).expect("the checkpoint is kept for the next attempt");
+    let second = crate::pg::ctx_on(store.clone(), &data, "w2", Duration::from_secs(30));
+    tokio::spawn(otofit::jobs::dispatcher(second.clone()));
+    wait_checkpoint(&ckpt, kept + 2).await;
+    store.cancel("t").await.unwrap();
+    let j = wait_state(&store, "t", &["succeeded", "failed", "cancelled"], 60).await;
+    second.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+    assert_eq!(j.state, "succeeded", "{:?}", j.error);
+    let result = j.result.unwrap();
+    assert_eq!(result["cancelled_early"], true, "{result}");
+    let resumed = result["resumed_from_epoch"].as_u64().unwrap() as usize;
+    assert!(resumed >= kept && resumed > 0, "resumed from {resumed}, {kept} kept: {result}");
+    let left: Vec<_> = std::fs::read_dir(data.join("checkpoints")).unwrap().flatten().map(|e| e.file_name()).collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
 }
