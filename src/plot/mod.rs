@@ -185,85 +185,115 @@ fn dim_ticks(dim: &Dim<'_>) -> Vec<(f64, String)> {
 /// (green) and MAP (red) marked; log axes for log-scale parameters.
 pub fn corner(title: &str, dims: &[Dim<'_>], samples: &[Vec<f64>]) -> String {
     let d = dims.len();
-    let cell = 110.0;
-    let (left, top) = (60.0, 50.0);
+    let g = Corner { dims, cell: 110.0, left: 60.0, top: 50.0, bins: 24 };
+    let (cell, left, top) = (g.cell, g.left, g.top);
     let mut c = Canvas::new(left + cell * d as f64 + 20.0, top + cell * d as f64 + 70.0);
     c.text(20.0, 28.0, 16.0, "start", title);
-    let bins = 24;
-    let unit = |k: usize, v: f64| -> f64 {
-        let t = |v: f64| if dims[k].log { v.log10() } else { v };
-        ((t(v) - t(dims[k].low)) / (t(dims[k].high) - t(dims[k].low))).clamp(0.0, 1.0 - 1e-12)
-    };
     for i in 0..d {
         for j in 0..=i {
             let (x0, y0) = (left + cell * j as f64, top + cell * i as f64);
             c.frame(x0 + 2.0, y0 + 2.0, cell - 4.0, cell - 4.0);
             if i == j {
-                let mut h = vec![0usize; bins];
-                for s in samples {
-                    h[(unit(i, s[i]) * bins as f64) as usize] += 1;
-                }
-                let top_count = *h.iter().max().unwrap_or(&1) as f64;
-                for (b, &cnt) in h.iter().enumerate() {
-                    let bh = (cell - 10.0) * cnt as f64 / top_count.max(1.0);
-                    let bw = (cell - 4.0) / bins as f64;
-                    c.rect(x0 + 2.0 + bw * b as f64, y0 + cell - 2.0 - bh, bw, bh, DRAW, 0.7);
-                }
-                for (v, color) in [(dims[i].truth, TRUTH), (dims[i].map, MAP)] {
-                    if let Some(v) = v {
-                        let x = x0 + 2.0 + (cell - 4.0) * unit(i, v);
-                        c.vline(x, y0 + 2.0, y0 + cell - 2.0, color);
-                    }
-                }
+                g.diagonal(&mut c, samples, i);
             } else {
-                let mut h = vec![0usize; bins * bins];
-                for s in samples {
-                    let (a, b) = ((unit(j, s[j]) * bins as f64) as usize, (unit(i, s[i]) * bins as f64) as usize);
-                    h[b * bins + a] += 1;
-                }
-                let top_count = *h.iter().max().unwrap_or(&1) as f64;
-                let bw = (cell - 4.0) / bins as f64;
-                for (k, &cnt) in h.iter().enumerate().filter(|(_, c)| **c > 0) {
-                    let (a, b) = (k % bins, k / bins);
-                    let op = (cnt as f64 / top_count).sqrt();
-                    c.rect(x0 + 2.0 + bw * a as f64, y0 + cell - 2.0 - bw * (b + 1) as f64, bw, bw, DRAW, op);
-                }
-                for (vx, vy, color) in [(dims[j].truth, dims[i].truth, TRUTH), (dims[j].map, dims[i].map, MAP)] {
-                    if let (Some(vx), Some(vy)) = (vx, vy) {
-                        c.dot(
-                            x0 + 2.0 + (cell - 4.0) * unit(j, vx),
-                            y0 + cell - 2.0 - (cell - 4.0) * unit(i, vy),
-                            3.5,
-                            color,
-                        );
-                    }
-                }
+                g.pair(&mut c, samples, i, j);
             }
         }
-        // Tick values in the parameter's unit: under the bottom row, left of the first column.
-        let bottom = top + cell * d as f64;
+        g.axis(&mut c, i);
+    }
+    c.text(left, top + cell * d as f64 + 56.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
+    c.finish()
+}
+
+/// A corner plot's layout: square cells of `cell` px from (`left`, `top`), histograms
+/// of `bins` bins per axis.
+struct Corner<'a> {
+    dims: &'a [Dim<'a>],
+    cell: f64,
+    left: f64,
+    top: f64,
+    bins: usize,
+}
+
+impl Corner<'_> {
+    /// Where `v` lies on parameter `k`'s axis, 0–1. Clamped below 1 so that the upper
+    /// edge falls in the last bin, not past it.
+    fn unit(&self, k: usize, v: f64) -> f64 {
+        let dim = &self.dims[k];
+        let t = |v: f64| if dim.log { v.log10() } else { v };
+        ((t(v) - t(dim.low)) / (t(dim.high) - t(dim.low))).clamp(0.0, 1.0 - 1e-12)
+    }
+
+    /// Cell (i, i): parameter i's histogram and its true and MAP values.
+    fn diagonal(&self, c: &mut Canvas, samples: &[Vec<f64>], i: usize) {
+        let (cell, bins) = (self.cell, self.bins);
+        let (x0, y0) = (self.left + cell * i as f64, self.top + cell * i as f64);
+        let mut h = vec![0usize; bins];
+        for s in samples {
+            h[(self.unit(i, s[i]) * bins as f64) as usize] += 1;
+        }
+        let top_count = *h.iter().max().unwrap_or(&1) as f64;
+        for (b, &cnt) in h.iter().enumerate() {
+            let bh = (cell - 10.0) * cnt as f64 / top_count.max(1.0);
+            let bw = (cell - 4.0) / bins as f64;
+            c.rect(x0 + 2.0 + bw * b as f64, y0 + cell - 2.0 - bh, bw, bh, DRAW, 0.7);
+        }
+        for (v, color) in [(self.dims[i].truth, TRUTH), (self.dims[i].map, MAP)] {
+            if let Some(v) = v {
+                let x = x0 + 2.0 + (cell - 4.0) * self.unit(i, v);
+                c.vline(x, y0 + 2.0, y0 + cell - 2.0, color);
+            }
+        }
+    }
+
+    /// Cell (i, j), j < i: the joint histogram of parameters j (x) and i (y), shaded by
+    /// the square root of the count so that the tails stay visible.
+    fn pair(&self, c: &mut Canvas, samples: &[Vec<f64>], i: usize, j: usize) {
+        let (cell, bins, dims) = (self.cell, self.bins, self.dims);
+        let (x0, y0) = (self.left + cell * j as f64, self.top + cell * i as f64);
+        let mut h = vec![0usize; bins * bins];
+        for s in samples {
+            let (a, b) = ((self.unit(j, s[j]) * bins as f64) as usize, (self.unit(i, s[i]) * bins as f64) as usize);
+            h[b * bins + a] += 1;
+        }
+        let top_count = *h.iter().max().unwrap_or(&1) as f64;
+        let bw = (cell - 4.0) / bins as f64;
+        for (k, &cnt) in h.iter().enumerate().filter(|(_, c)| **c > 0) {
+            let (a, b) = (k % bins, k / bins);
+            let op = (cnt as f64 / top_count).sqrt();
+            c.rect(x0 + 2.0 + bw * a as f64, y0 + cell - 2.0 - bw * (b + 1) as f64, bw, bw, DRAW, op);
+        }
+        for (vx, vy, color) in [(dims[j].truth, dims[i].truth, TRUTH), (dims[j].map, dims[i].map, MAP)] {
+            if let (Some(vx), Some(vy)) = (vx, vy) {
+                c.dot(
+                    x0 + 2.0 + (cell - 4.0) * self.unit(j, vx),
+                    y0 + cell - 2.0 - (cell - 4.0) * self.unit(i, vy),
+                    3.5,
+                    color,
+                );
+            }
+        }
+    }
+
+    /// Parameter i's tick values in its unit (under the bottom row, left of the first
+    /// column) and its name.
+    fn axis(&self, c: &mut Canvas, i: usize) {
+        let (cell, left, top, dim) = (self.cell, self.left, self.top, &self.dims[i]);
+        let bottom = top + cell * self.dims.len() as f64;
         // Ticks at the very edges would run into the neighbouring cell's labels.
-        for (v, lab) in dim_ticks(&dims[i]).into_iter().filter(|(v, _)| (0.04..0.96).contains(&unit(i, *v))) {
-            let x = left + cell * i as f64 + 2.0 + (cell - 4.0) * unit(i, v);
+        for (v, lab) in dim_ticks(dim).into_iter().filter(|(v, _)| (0.04..0.96).contains(&self.unit(i, *v))) {
+            let x = left + cell * i as f64 + 2.0 + (cell - 4.0) * self.unit(i, v);
             c.vline(x, bottom - 2.0, bottom + 2.0, "#444");
             c.text(x, bottom + 11.0, 8.0, "middle", &lab);
             if i > 0 {
-                let y = top + cell * (i as f64 + 1.0) - 2.0 - (cell - 4.0) * unit(i, v);
+                let y = top + cell * (i as f64 + 1.0) - 2.0 - (cell - 4.0) * self.unit(i, v);
                 c.text(left - 3.0, y + 3.0, 8.0, "end", &lab);
             }
         }
         let x = left + cell * (i as f64 + 0.5);
-        c.text(x, bottom + 26.0, 10.0, "middle", dims[i].name);
-        c.text(
-            x,
-            bottom + 38.0,
-            9.0,
-            "middle",
-            &format!("{}{}", if dims[i].log { "log axis, " } else { "" }, dims[i].unit),
-        );
+        c.text(x, bottom + 26.0, 10.0, "middle", dim.name);
+        c.text(x, bottom + 38.0, 9.0, "middle", &format!("{}{}", if dim.log { "log axis, " } else { "" }, dim.unit));
     }
-    c.text(left, top + cell * d as f64 + 56.0, 11.0, "start", "green: true value · red: MAP · axes span the prior box");
-    c.finish()
 }
 
 /// Colours for runs compared side by side (noise levels, training sizes).
