@@ -125,36 +125,8 @@ fn rho_rows(before: &Check, after: Option<&Check>) -> Vec<Vec<String>> {
 /// The diagnosis page; figures are linked by the names [`figures`] gives them.
 pub fn html(this: &Report) -> String {
     let mut p = Page::new("otofit diagnosis");
-    let verdict = match this.verdict {
-        Verdict::NoDiscrepancy => {
-            "no discrepancy: the base model explains the observation within its noise".to_string()
-        }
-        Verdict::EffectNamed => format!("effect named: {}", this.named.unwrap_or("?")),
-        Verdict::Unexplained => {
-            "unexplained: model and observation disagree, and no candidate effect explains it".to_string()
-        }
-    };
-    p.heading("Verdict").text(&verdict);
-    let t = &this.thresholds;
-    p.heading("Statistics").table(
-        &["statistic", "value", "threshold (97.5 % quantile of effect-free data)"],
-        vec![
-            vec![
-                "reduced χ², base posterior-predictive".into(),
-                format!("{:.2}", this.before.reduced_chi2),
-                format!("{:.2}", t.base_reduced_chi2),
-            ],
-            vec![
-                "best candidate's χ² drop".into(),
-                this.candidates.first().map_or("—".into(), |c| format!("{:.1} ({})", c.chi2_drop(), c.effect)),
-                format!("{:.1}", t.best_drop),
-            ],
-            vec!["reduced χ² that counts as explained".into(), "".into(), format!("≤ {:.2}", t.explained)],
-        ],
-    );
-    if let (Some(a), Some(e)) = (&this.after, &this.effect_posterior) {
-        p.text(&format!("After adding {} and retraining: reduced χ² {:.2} → {:.2}; {} median {:.3e} {} (90 % interval {:.3e} … {:.3e}).", e.effect, this.before.reduced_chi2, a.reduced_chi2, e.effect, e.median, e.unit, e.q05, e.q95));
-    }
+    p.heading("Verdict").text(&verdict(this));
+    statistics(&mut p, this);
     p.heading("Where the misfit lies");
     if this.before.bands.is_empty() {
         p.text("No band of three or more neighbouring frequencies with |z| > 2.5.");
@@ -178,20 +150,66 @@ pub fn html(this: &Report) -> String {
     );
     p.heading("Spearman ρ, MAP re-simulation vs observation")
         .table(&["measure", "before", "after"], rho_rows(&this.before, this.after.as_ref()));
-    p.heading("MAP parameters").table(
-        &["parameter", "before", "after"],
-        PARAMS
-            .iter()
-            .enumerate()
-            .map(|(k, ps)| {
-                vec![
-                    format!("{} ({})", ps.name, ps.unit),
-                    format!("{:.3e}", this.map_before[k]),
-                    this.map_after.as_ref().map_or("—".into(), |m| format!("{:.3e}", m[k])),
-                ]
-            })
-            .collect(),
+    p.heading("MAP parameters").table(&["parameter", "before", "after"], map_rows(this));
+    figure_list(&mut p, this);
+    p.text(&format!("Run time {:.1} s.", this.seconds));
+    p.render()
+}
+
+fn verdict(this: &Report) -> String {
+    match this.verdict {
+        Verdict::NoDiscrepancy => {
+            "no discrepancy: the base model explains the observation within its noise".to_string()
+        }
+        Verdict::EffectNamed => format!("effect named: {}", this.named.unwrap_or("?")),
+        Verdict::Unexplained => {
+            "unexplained: model and observation disagree, and no candidate effect explains it".to_string()
+        }
+    }
+}
+
+/// The two alarm statistics beside their thresholds, so that a reader sees by how much
+/// the verdict was reached; then the extended model's outcome, when there is one.
+fn statistics(p: &mut Page, this: &Report) {
+    let t = &this.thresholds;
+    p.heading("Statistics").table(
+        &["statistic", "value", "threshold (97.5 % quantile of effect-free data)"],
+        vec![
+            vec![
+                "reduced χ², base posterior-predictive".into(),
+                format!("{:.2}", this.before.reduced_chi2),
+                format!("{:.2}", t.base_reduced_chi2),
+            ],
+            vec![
+                "best candidate's χ² drop".into(),
+                this.candidates.first().map_or("—".into(), |c| format!("{:.1} ({})", c.chi2_drop(), c.effect)),
+                format!("{:.1}", t.best_drop),
+            ],
+            vec!["reduced χ² that counts as explained".into(), "".into(), format!("≤ {:.2}", t.explained)],
+        ],
     );
+    if let (Some(a), Some(e)) = (&this.after, &this.effect_posterior) {
+        p.text(&format!("After adding {} and retraining: reduced χ² {:.2} → {:.2}; {} median {:.3e} {} (90 % interval {:.3e} … {:.3e}).", e.effect, this.before.reduced_chi2, a.reduced_chi2, e.effect, e.median, e.unit, e.q05, e.q95));
+    }
+}
+
+/// The MAP of each base parameter before and after the extension (the effect's own
+/// value is in the extended model's posterior, not here).
+fn map_rows(this: &Report) -> Vec<Vec<String>> {
+    PARAMS
+        .iter()
+        .enumerate()
+        .map(|(k, ps)| {
+            vec![
+                format!("{} ({})", ps.name, ps.unit),
+                format!("{:.3e}", this.map_before[k]),
+                this.map_after.as_ref().map_or("—".into(), |m| format!("{:.3e}", m[k])),
+            ]
+        })
+        .collect()
+}
+
+fn figure_list(p: &mut Page, this: &Report) {
     p.heading("Figures");
     for name in figure_names(this) {
         let what = if name.starts_with("spectra") {
@@ -202,6 +220,4 @@ pub fn html(this: &Report) -> String {
         let when = if name.contains("after") { "after adding the effect" } else { "base model" };
         p.figure(&name, &format!("{what} ({when})"));
     }
-    p.text(&format!("Run time {:.1} s.", this.seconds));
-    p.render()
 }
