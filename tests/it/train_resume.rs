@@ -84,13 +84,22 @@ fn a_stopped_training_resumes_from_its_checkpoint_to_the_same_model() {
 
 const ROWS: usize = 400;
 
-fn spawn_worker(data: &Path) -> std::process::Child {
-    Command::new(env!("CARGO_BIN_EXE_otofit"))
-        .args(["worker", "--data-dir", data.to_str().unwrap(), "--lease-seconds", "2", "--threads", "1"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap()
+fn spawn_worker(db: &Database, data: &Path) -> std::process::Child {
+    let mut c = Command::new(env!("CARGO_BIN_EXE_otofit"));
+    c.args(["worker", "--data-dir", data.to_str().unwrap(), "--lease-seconds", "2", "--threads", "1"]);
+    if let Database::Postgres(url) = db {
+        c.args(["--database", url]);
+    }
+    c.stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap()
+}
+
+/// The job table of a data directory on `backend`: SQLite in the directory (as `otofit
+/// worker` opens it) or a fresh PostgreSQL database.
+async fn database(backend: &str, data: &Path) -> Database {
+    match backend {
+        "postgres" => Database::Postgres(crate::pg::fresh_database().await.unwrap()),
+        _ => Database::Sqlite(data.join("otofit.db")),
+    }
 }
 
 /// A simulated dataset of `ROWS` rows (`otofit simulate`), in a folder of its own.
@@ -106,58 +115,64 @@ fn simulated() -> std::path::PathBuf {
 }
 
 /// A data directory with the dataset `ds` (simulated once, copied) and train job `t`.
-async fn train_job(data: &Path, dataset: &Path, max_epochs: usize) -> Store {
+async fn train_job(db: &Database, data: &Path, dataset: &Path, max_epochs: usize) -> Store {
     let ds = data.join("datasets/ds");
     std::fs::create_dir_all(&ds).unwrap();
     for f in ["theta.csv", "x.csv", "meta.json"] {
         std::fs::copy(dataset.join(f), ds.join(f)).unwrap();
     }
-    let store = Store::connect(&Database::Sqlite(data.join("otofit.db"))).await.unwrap();
+    let store = Store::connect(db).await.unwrap();
     let spec = JobSpec::parse("train", &json!({"dataset": "ds", "seed": 3, "max_epochs": max_epochs})).unwrap();
     assert!(store.insert_job_within("t", "train", &spec.params(), 3, 8).await.unwrap());
     store
 }
 
 /// A train job's worker process is stopped (SIGSTOP) once the job has a checkpoint and
-/// killed (SIGKILL: no re-queue, no clean-up); a new worker takes the job up and resumes
-/// from the checkpoint. Its model is the same, bit for bit, as that of the same job run
-/// uninterrupted by another worker beside it, and the checkpoint is gone at the end.
+/// killed (SIGKILL: no re-queue, no clean-up); a new worker takes the job up (SQLite: at
+/// its start; PostgreSQL: after the dead worker's lease) and resumes from the checkpoint.
+/// Its model is the same (numbers and draws) as that of the same job run uninterrupted by
+/// another worker beside it, and the checkpoint is gone at the end.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_killed_train_job_resumes_from_its_checkpoint_to_the_same_model() {
     let dataset = simulated();
-    let (data, reference) = (temp_dir("train-resume"), temp_dir("train-resume-ref"));
-    let (store, ref_store) = (train_job(&data, &dataset, 60).await, train_job(&reference, &dataset, 60).await);
-    let mut procs = Procs(vec![spawn_worker(&data), spawn_worker(&reference)]);
-    let ckpt = data.join("checkpoints/t.ckpt");
-    wait_checkpoint(&ckpt, 3).await;
-    // SAFETY: a signal to our own child.
-    unsafe { libc::kill(procs.0[0].id() as i32, libc::SIGSTOP) };
-    let at_kill = npe::checkpoint_epochs(&ckpt).expect("a checkpoint before the kill");
-    procs.0[0].kill().unwrap();
-    procs.0[0].wait().unwrap();
-    let j = store.job("t").await.unwrap().unwrap();
-    assert_eq!(j.state, "running", "the job ended before the kill: {:?}", j.result);
-    procs.0.push(spawn_worker(&data));
-    let (j, r) = (
-        wait_state(&store, "t", &["succeeded", "failed", "cancelled"], 120).await,
-        wait_state(&ref_store, "t", &["succeeded", "failed", "cancelled"], 120).await,
-    );
-    drop(procs);
-    assert_eq!((j.state.as_str(), j.attempts), ("succeeded", 2), "{:?}", j.error);
-    assert_eq!((r.state.as_str(), r.attempts), ("succeeded", 1), "{:?}", r.error);
-    let (got, want) = (j.result.unwrap(), r.result.unwrap());
-    eprintln!("resumed: {got}\nuninterrupted: {want}");
-    let resumed = got["resumed_from_epoch"].as_u64().unwrap() as usize;
-    assert!(resumed >= at_kill && resumed > 0, "resumed from epoch {resumed}, {at_kill} were checkpointed");
-    assert_eq!(want["resumed_from_epoch"], 0);
-    assert_eq!(got["epochs"], want["epochs"], "epochs in all");
-    assert!(resumed < got["epochs"].as_u64().unwrap() as usize, "the kill came after the last epoch");
-    assert_eq!(got["best_val_loss"], want["best_val_loss"]);
     let x = Dataset::load(&dataset).unwrap().x.swap_remove(0);
-    let model = |d: &Path| fingerprint(&npe::Npe::load(&d.join("models/t.otofit")).unwrap(), &x);
-    assert!(model(&data) == model(&reference), "the model differs from the uninterrupted run's");
-    let left: Vec<_> = std::fs::read_dir(data.join("checkpoints")).unwrap().flatten().map(|e| e.file_name()).collect();
-    assert!(left.is_empty(), "left behind: {left:?}");
+    for (name, _) in crate::pg::backends().await {
+        let (data, reference) = (temp_dir("train-resume"), temp_dir("train-resume-ref"));
+        let (db, ref_db) = (database(&name, &data).await, database(&name, &reference).await);
+        let store = train_job(&db, &data, &dataset, 60).await;
+        let ref_store = train_job(&ref_db, &reference, &dataset, 60).await;
+        let mut procs = Procs(vec![spawn_worker(&db, &data), spawn_worker(&ref_db, &reference)]);
+        let ckpt = data.join("checkpoints/t.ckpt");
+        wait_checkpoint(&ckpt, 3).await;
+        // SAFETY: a signal to our own child.
+        unsafe { libc::kill(procs.0[0].id() as i32, libc::SIGSTOP) };
+        let at_kill = npe::checkpoint_epochs(&ckpt).expect("a checkpoint before the kill");
+        procs.0[0].kill().unwrap();
+        procs.0[0].wait().unwrap();
+        let j = store.job("t").await.unwrap().unwrap();
+        assert_eq!(j.state, "running", "{name}: the job ended before the kill: {:?}", j.result);
+        procs.0.push(spawn_worker(&db, &data));
+        let (j, r) = (
+            wait_state(&store, "t", &["succeeded", "failed", "cancelled"], 120).await,
+            wait_state(&ref_store, "t", &["succeeded", "failed", "cancelled"], 120).await,
+        );
+        drop(procs);
+        assert_eq!((j.state.as_str(), j.attempts), ("succeeded", 2), "{name}: {:?}", j.error);
+        assert_eq!((r.state.as_str(), r.attempts), ("succeeded", 1), "{name}: {:?}", r.error);
+        let (got, want) = (j.result.unwrap(), r.result.unwrap());
+        eprintln!("{name}: resumed: {got}\nuninterrupted: {want}");
+        let resumed = got["resumed_from_epoch"].as_u64().unwrap() as usize;
+        assert!(resumed >= at_kill && resumed > 0, "{name}: resumed from epoch {resumed}, {at_kill} were checkpointed");
+        assert_eq!(want["resumed_from_epoch"], 0);
+        assert_eq!(got["epochs"], want["epochs"], "{name}: epochs in all");
+        assert!(resumed < got["epochs"].as_u64().unwrap() as usize, "{name}: the kill came after the last epoch");
+        assert_eq!(got["best_val_loss"], want["best_val_loss"], "{name}");
+        let model = |d: &Path| fingerprint(&npe::Npe::load(&d.join("models/t.otofit")).unwrap(), &x);
+        assert!(model(&data) == model(&reference), "{name}: the model differs from the uninterrupted run's");
+        let left: Vec<_> =
+            std::fs::read_dir(data.join("checkpoints")).unwrap().flatten().map(|e| e.file_name()).collect();
+        assert!(left.is_empty(), "{name}: left behind: {left:?}");
+    }
 }
 
 /// `otofit train --checkpoint FILE` resumes from a checkpoint of the same training (here
@@ -200,7 +215,7 @@ async fn wait_checkpoint(path: &Path, epochs: usize) {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_shut_down_train_job_keeps_its_checkpoint_and_a_cancelled_one_removes_it() {
     let (dataset, data) = (simulated(), temp_dir("train-stop"));
-    let store = train_job(&data, &dataset, 1000).await;
+    let store = train_job(&database("sqlite", &data).await, &data, &dataset, 1000).await;
     let ckpt = data.join("checkpoints/t.ckpt");
     let first = crate::pg::ctx_on(store.clone(), &data, "w1", Duration::from_secs(30));
     tokio::spawn(otofit::jobs::dispatcher(first.clone()));
