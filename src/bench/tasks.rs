@@ -224,10 +224,10 @@ fn slcp_log_lik(theta: &[f64], x: &[f64]) -> f64 {
 }
 
 /// SLCP reference: the likelihood is unchanged by the signs of θ2 and θ3, so chains start
-/// with both non-negative and each draw gets random signs (an exact move of the target). 100 random-walk Metropolis
-/// chains start from a likelihood-weighted resample of 200,000 prior draws, with a
-/// proposal covariance from that resample; 1,000 steps of burn-in, then one draw every
-/// 10 steps.
+/// with both non-negative and each draw gets random signs (an exact move of the target).
+/// 100 random-walk Metropolis chains start from a likelihood-weighted resample of
+/// 200,000 prior draws, with a proposal covariance from that resample; 1,000 steps of
+/// burn-in, then one draw every 10 steps.
 fn slcp_reference(x: &[f64], n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
     let fold = |mut t: Vec<f64>| {
         t[2] = t[2].abs();
@@ -249,17 +249,30 @@ fn slcp_reference(x: &[f64], n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
         }
         w.len() - 1
     };
+    let l = slcp_proposal(&pool, &w, total);
+    let chains = 100;
+    let per_chain = n.div_ceil(chains);
+    let mut out = Vec::with_capacity(chains * per_chain);
+    for _ in 0..chains {
+        let start = pool[pick(rng)].clone();
+        slcp_chain(start, x, &l, per_chain, rng, &mut out);
+    }
+    out.truncate(n);
+    out
+}
+
+/// The random walk's proposal: the Cholesky factor of the pool's weighted covariance
+/// scaled by 2.38²/d, then halved (the resample is wider than the posterior's modes).
+fn slcp_proposal(pool: &[Vec<f64>], w: &[f64], total: f64) -> [[f64; 5]; 5] {
     let d = 5;
-    // Weighted covariance of the pool, its Cholesky factor scaled by 2.38²/d (then
-    // halved: the resample is wider than the posterior's modes).
     let mut mean = [0.0; 5];
-    for (t, wi) in pool.iter().zip(&w) {
+    for (t, wi) in pool.iter().zip(w) {
         for k in 0..d {
             mean[k] += wi * t[k] / total;
         }
     }
     let mut cov = [[0.0; 5]; 5];
-    for (t, wi) in pool.iter().zip(&w) {
+    for (t, wi) in pool.iter().zip(w) {
         for i in 0..d {
             for j in 0..d {
                 cov[i][j] += wi * (t[i] - mean[i]) * (t[j] - mean[j]) / total;
@@ -278,36 +291,42 @@ fn slcp_reference(x: &[f64], n: usize, rng: &mut ChaCha8Rng) -> Vec<Vec<f64>> {
             }
         }
     }
-    let chains = 100;
-    let per_chain = n.div_ceil(chains);
-    let mut out = Vec::with_capacity(chains * per_chain);
-    for _ in 0..chains {
-        let mut cur = pool[pick(rng)].clone();
-        let mut cur_ll = slcp_log_lik(&cur, x);
-        let steps = 1000 + 10 * per_chain;
-        for step in 1..=steps {
-            let e: Vec<f64> = (0..d).map(|_| normal(rng)).collect();
-            let prop: Vec<f64> = (0..d).map(|i| cur[i] + (0..=i).map(|k| l[i][k] * e[k]).sum::<f64>()).collect();
-            if Task::Slcp.in_prior(&prop) {
-                let pl = slcp_log_lik(&prop, x);
-                if (pl - cur_ll).is_finite() && rng.random::<f64>().ln() < pl - cur_ll {
-                    cur = prop;
-                    cur_ll = pl;
-                }
-            }
-            if step > 1000 && (step - 1000) % 10 == 0 {
-                let mut t = cur.clone();
-                for k in [2, 3] {
-                    if rng.random::<bool>() {
-                        t[k] = -t[k];
-                    }
-                }
-                out.push(t);
+    l
+}
+
+/// One Metropolis chain from `start` with proposal factor `l`: 1,000 steps of burn-in,
+/// then `per_chain` draws one every 10 steps, each with random signs of θ2 and θ3.
+fn slcp_chain(
+    mut cur: Vec<f64>,
+    x: &[f64],
+    l: &[[f64; 5]; 5],
+    per_chain: usize,
+    rng: &mut ChaCha8Rng,
+    out: &mut Vec<Vec<f64>>,
+) {
+    let d = 5;
+    let mut cur_ll = slcp_log_lik(&cur, x);
+    let steps = 1000 + 10 * per_chain;
+    for step in 1..=steps {
+        let e: Vec<f64> = (0..d).map(|_| normal(rng)).collect();
+        let prop: Vec<f64> = (0..d).map(|i| cur[i] + (0..=i).map(|k| l[i][k] * e[k]).sum::<f64>()).collect();
+        if Task::Slcp.in_prior(&prop) {
+            let pl = slcp_log_lik(&prop, x);
+            if (pl - cur_ll).is_finite() && rng.random::<f64>().ln() < pl - cur_ll {
+                cur = prop;
+                cur_ll = pl;
             }
         }
+        if step > 1000 && (step - 1000) % 10 == 0 {
+            let mut t = cur.clone();
+            for k in [2, 3] {
+                if rng.random::<bool>() {
+                    t[k] = -t[k];
+                }
+            }
+            out.push(t);
+        }
     }
-    out.truncate(n);
-    out
 }
 
 #[cfg(test)]
