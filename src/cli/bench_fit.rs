@@ -121,7 +121,7 @@ fn hidden_effects(npe: &Npe, rows: &[Vec<f64>], present: &[bool], seed: u64) -> 
     let mut detect = Vec::new();
     for (name, value) in STRONG {
         let mut fixed = Effects::default();
-        fixed.set(name, value).map_err(anyhow::Error::msg)?;
+        fixed.set(name, value)?;
         let design = Design { fixed, varied: vec![] };
         let out = infer_all(npe, &simulate(npe, &design, rows, seed ^ 0xEF)?, present, seed)?;
         let flagged = rate(&out, |o| o.ok == Some(false));

@@ -230,6 +230,35 @@ pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
     },
 ];
 
+/// Why an effect could not be set: each variant names the effect.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum EffectError {
+    /// No effect has this name.
+    #[error("unknown effect '{name}' (known: {known})")]
+    Unknown {
+        /// The name given.
+        name: String,
+        /// The effects' names, comma-separated.
+        known: String,
+    },
+    /// The value is outside the effect's range (or not a number).
+    #[error("effect '{name}' = {value} is outside its range [{low}, {high}] {unit} (off = {off})")]
+    OutOfRange {
+        /// The effect.
+        name: &'static str,
+        /// The value given.
+        value: f64,
+        /// The range's lower end.
+        low: f64,
+        /// The range's upper end.
+        high: f64,
+        /// The effect's unit.
+        unit: &'static str,
+        /// The value that switches the effect off.
+        off: f64,
+    },
+}
+
 /// Values of the optional effects, in the order of [`EFFECTS`]; all off by default.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Effects(pub [f64; N_EFFECTS]);
@@ -245,17 +274,21 @@ impl Effects {
         EFFECTS.iter().position(|e| e.name == name)
     }
     /// Sets one effect by name, checking the value against its range.
-    pub fn set(&mut self, name: &str, value: f64) -> Result<(), String> {
+    pub fn set(&mut self, name: &str, value: f64) -> Result<(), EffectError> {
         let i = Self::index(name).ok_or_else(|| {
             let known: Vec<_> = EFFECTS.iter().map(|e| e.name).collect();
-            format!("unknown effect '{name}' (known: {})", known.join(", "))
+            EffectError::Unknown { name: name.to_string(), known: known.join(", ") }
         })?;
         let spec = &EFFECTS[i];
         if !spec.accepts(value) {
-            return Err(format!(
-                "effect '{name}' = {value} is outside its range [{}, {}] {} (off = {})",
-                spec.low, spec.high, spec.unit, spec.off
-            ));
+            return Err(EffectError::OutOfRange {
+                name: spec.name,
+                value,
+                low: spec.low,
+                high: spec.high,
+                unit: spec.unit,
+                off: spec.off,
+            });
         }
         self.0[i] = value;
         Ok(())
@@ -292,9 +325,20 @@ mod tests {
         let mut e = Effects::default();
         assert!(e.set("probe_leak", 0.2e-3).is_ok());
         assert!(e.set("probe_leak", 0.0).is_ok());
-        assert!(e.set("probe_leak", 1.0).unwrap_err().contains("outside its range"));
-        assert!(e.set("cavity", 2e-6).unwrap_err().contains("unknown effect 'cavity'"));
+        assert!(e.set("probe_leak", 1.0).unwrap_err().to_string().contains("outside its range"));
+        assert!(e.set("cavity", 2e-6).unwrap_err().to_string().contains("unknown effect 'cavity'"));
         assert!(e.set("ldv_angle", f64::NAN).is_err());
-        assert!(e.set("wax", 1.0).unwrap_err().contains("unknown effect 'wax'"));
+        assert!(e.set("wax", 1.0).unwrap_err().to_string().contains("unknown effect 'wax'"));
+    }
+
+    #[test]
+    fn effect_errors_name_the_effect() {
+        let mut e = Effects::default();
+        let unknown = e.set("wax", 1.0).unwrap_err();
+        assert!(matches!(&unknown, EffectError::Unknown { name, .. } if name == "wax"), "{unknown:?}");
+        assert!(unknown.to_string().contains("'wax'") && unknown.to_string().contains("probe_leak"), "{unknown}");
+        let range = e.set("probe_leak", 1.0).unwrap_err();
+        assert!(matches!(range, EffectError::OutOfRange { name: "probe_leak", value: 1.0, .. }), "{range:?}");
+        assert!(range.to_string().contains("'probe_leak' = 1"), "{range}");
     }
 }
