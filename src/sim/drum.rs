@@ -22,6 +22,35 @@ pub struct DrumModes {
     pub bb: Vec<f64>,
 }
 
+/// Why a drum's modes could not be computed: each variant names the matrix at fault.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum DrumError {
+    /// The eigendecomposition of `matrix` ("stiffness", or "mass" for the mass matrix in
+    /// the stiffness' metric) failed.
+    #[error("{matrix} eigen: {detail}")]
+    Eigen {
+        /// Which matrix.
+        matrix: &'static str,
+        /// The solver's own message.
+        detail: String,
+    },
+    /// `matrix` is not positive definite: the drum is not clamped, or its mesh or
+    /// material is degenerate.
+    #[error("drum {matrix} matrix is not positive definite{detail}")]
+    NotPositiveDefinite {
+        /// Which matrix.
+        matrix: &'static str,
+        /// The solver's own message, after ": ", when it gave one.
+        detail: String,
+    },
+}
+
+impl DrumError {
+    pub(crate) fn eigen(matrix: &'static str, e: impl std::fmt::Debug) -> DrumError {
+        DrumError::Eigen { matrix, detail: format!("{e:?}") }
+    }
+}
+
 /// Coefficients of one solve: stiffness factor κ, mass factor s = −ω², flow factor jω,
 /// cavity stiffness ρc²/V (0 when the cavity is open).
 #[derive(Clone, Copy, Debug)]
@@ -35,15 +64,15 @@ pub struct DrumCoefficients {
 impl DrumModes {
     /// `k`, `m`: the interior blocks (n×n, symmetric, M positive definite); `k_ib`, `m_ib`:
     /// their coupling columns to the umbo; `b`: the interior swept-volume vector.
-    pub fn new(k: &Mat<f64>, m: &Mat<f64>, k_ib: &[f64], m_ib: &[f64], b: &[f64]) -> Result<DrumModes, String> {
+    pub fn new(k: &Mat<f64>, m: &Mat<f64>, k_ib: &[f64], m_ib: &[f64], b: &[f64]) -> Result<DrumModes, DrumError> {
         let n = k.nrows();
         // K^{-1/2} from K's own eigendecomposition (the clamped drum's K is SPD).
-        let ek = k.self_adjoint_eigen(Side::Lower).map_err(|e| format!("stiffness eigen: {e:?}"))?;
+        let ek = k.self_adjoint_eigen(Side::Lower).map_err(|e| DrumError::eigen("stiffness", e))?;
         let (vm, dm) = (ek.U(), ek.S().column_vector());
         let mut half = Mat::<f64>::zeros(n, n);
         for j in 0..n {
             if dm[j] <= 0.0 {
-                return Err("drum stiffness matrix is not positive definite".into());
+                return Err(DrumError::NotPositiveDefinite { matrix: "stiffness", detail: String::new() });
             }
             let w = 1.0 / dm[j].sqrt();
             for i in 0..n {
@@ -53,7 +82,7 @@ impl DrumModes {
         let k_inv_half = &half * vm.transpose();
         let c = &k_inv_half * m * &k_inv_half;
         let c = Mat::<f64>::from_fn(n, n, |i, j| 0.5 * (c[(i, j)] + c[(j, i)]));
-        let em = c.self_adjoint_eigen(Side::Lower).map_err(|e| format!("mass eigen: {e:?}"))?;
+        let em = c.self_adjoint_eigen(Side::Lower).map_err(|e| DrumError::eigen("mass", e))?;
         let phi = &k_inv_half * em.U();
         let project = |v: &[f64]| -> Vec<f64> { (0..n).map(|kk| (0..n).map(|i| phi[(i, kk)] * v[i]).sum()).collect() };
         Ok(DrumModes {
@@ -109,5 +138,28 @@ impl DrumModes {
             energy += e.conj() * e + (e.conj() * u + u.conj() * e) * kb;
         }
         (vol, energy)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_stiffness_that_is_not_positive_definite_is_named() {
+        let k = Mat::<f64>::from_fn(2, 2, |i, j| if i == j { -1.0 } else { 0.0 });
+        let m = Mat::<f64>::identity(2, 2);
+        let Err(e) = DrumModes::new(&k, &m, &[0.0; 2], &[0.0; 2], &[1.0; 2]) else { panic!("K = −I is refused") };
+        assert_eq!(e, DrumError::NotPositiveDefinite { matrix: "stiffness", detail: String::new() });
+        assert_eq!(e.to_string(), "drum stiffness matrix is not positive definite");
+    }
+
+    #[test]
+    fn a_failed_eigendecomposition_names_its_matrix() {
+        #[derive(Debug)]
+        struct NoConvergence;
+        let e = DrumError::eigen("mass", NoConvergence);
+        assert_eq!(e, DrumError::Eigen { matrix: "mass", detail: "NoConvergence".into() });
+        assert_eq!(e.to_string(), "mass eigen: NoConvergence");
     }
 }

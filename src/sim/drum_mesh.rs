@@ -41,7 +41,7 @@
 //! [`ManubriumModes::interior`], [`ManubriumModes::unit_stiffness_energy`] and
 //! [`ManubriumModes::volume`].
 
-use super::drum::DrumCoefficients;
+use super::drum::{DrumCoefficients, DrumError};
 use super::tri_shell::{DRILL_ALPHA, ShellMaterial, TriShell};
 use faer::linalg::solvers::Solve;
 use faer::sparse::{SparseColMat, Triplet};
@@ -167,14 +167,14 @@ impl DrumGeometry {
     }
 
     /// The condensable drum: modes of [`Self::fe`] (computed once per mesh).
-    pub fn modes(&self) -> Result<(ManubriumModes, ModesInfo), String> {
+    pub fn modes(&self) -> Result<(ManubriumModes, ModesInfo), DrumError> {
         ManubriumModes::new(&self.fe())
     }
 
     /// [`Self::modes`], computed once per process for each geometry: the eigensolution
     /// takes seconds at the default density and every model of a process (tests, a CLI
     /// run, the service) uses the same few drums.
-    pub fn modes_shared(&self) -> Result<Arc<ManubriumModes>, String> {
+    pub fn modes_shared(&self) -> Result<Arc<ManubriumModes>, DrumError> {
         static CACHE: Mutex<Vec<(String, Arc<ManubriumModes>)>> = Mutex::new(Vec::new());
         // Debug prints every f64 exactly (shortest round-trip form), so equal keys mean
         // equal geometries.
@@ -483,11 +483,13 @@ pub struct ModesInfo {
 }
 
 impl ManubriumModes {
-    pub fn new(fe: &DrumFe) -> Result<(ManubriumModes, ModesInfo), String> {
+    pub fn new(fe: &DrumFe) -> Result<(ManubriumModes, ModesInfo), DrumError> {
         let t0 = std::time::Instant::now();
         let n = fe.n;
         let k = fe.k_dense(1.0);
-        let llt = k.llt(Side::Lower).map_err(|e| format!("drum stiffness not positive definite: {e:?}"))?;
+        let llt = k
+            .llt(Side::Lower)
+            .map_err(|e| DrumError::NotPositiveDefinite { matrix: "stiffness", detail: format!(": {e:?}") })?;
         let l = llt.L();
         // C = L⁻¹ M L⁻ᵀ = L⁻¹ (L⁻¹ M)ᵀ since M is symmetric.
         let mut x = fe.m_dense();
@@ -503,7 +505,7 @@ impl ManubriumModes {
         });
         l.solve_lower_triangular_in_place(p.as_mut());
         let t1 = std::time::Instant::now();
-        let eig = c.self_adjoint_eigen(Side::Lower).map_err(|e| format!("mass eigen: {e:?}"))?;
+        let eig = c.self_adjoint_eigen(Side::Lower).map_err(|e| DrumError::eigen("mass", e))?;
         let t2 = std::time::Instant::now();
         let u = eig.U();
         let s = eig.S().column_vector();

@@ -19,7 +19,7 @@
 //! verification of it and the path to non-uniform canals.
 
 use super::air::{self, Air};
-use super::drum::{DrumCoefficients, DrumModes};
+use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
@@ -314,6 +314,9 @@ pub enum SimError {
     Solve(#[from] SolveError),
     #[error("model setup failed: {0}")]
     Setup(String),
+    /// The drum's modes could not be computed.
+    #[error("model setup failed: {0}")]
+    Drum(#[from] DrumError),
 }
 
 /// The residual canal as a uniform line: pressure and flow at distance `l` lateral of
@@ -516,7 +519,7 @@ fn drum(
                 material: ShellMaterial { h: g.tm_thickness, nu: g.tm_nu, rho: g.tm_rho },
                 rings,
             };
-            Some(Condensed::Manubrium(drum.modes_shared().map_err(SimError::Setup)?))
+            Some(Condensed::Manubrium(drum.modes_shared()?))
         }
     };
     if drum.is_some() {
@@ -648,8 +651,7 @@ fn axisymmetric_drum(
             &col(&kd),
             &col(&md),
             &bd[..ni],
-        )
-        .map_err(SimError::Setup)?;
+        )?;
         sb.add(blocks.tm, dofs.umbo, dofs.umbo, kd[(ni, ni)]);
         sb.add(blocks.mass, dofs.umbo, dofs.umbo, md[(ni, ni)]);
         b[dofs.umbo] = bd[ni];
