@@ -39,56 +39,81 @@ use std::f64::consts::PI;
 /// per-run parameters (`params::PARAMS`, nominal 12 mm, 44 mm², 2 mm).
 #[derive(Clone, Debug)]
 pub struct Geometry {
-    /// Eardrum radius, cone depth, thickness, m; density kg/m³; Poisson ratio.
+    /// Eardrum radius, m.
     pub tm_radius: f64,
+    /// Eardrum cone depth, m.
     pub tm_depth: f64,
     /// Lateral bulge of the generator's midpoint from the straight cone, m.
     pub tm_bulge: f64,
+    /// Eardrum thickness, m.
     pub tm_thickness: f64,
+    /// Eardrum density, kg/m³.
     pub tm_rho: f64,
+    /// Eardrum Poisson ratio.
     pub tm_nu: f64,
     /// How the eardrum dissipates (see [`DrumLoss`]).
     pub tm_loss: DrumLoss,
     /// Which eardrum FE (see [`DrumShape`]).
     pub tm_shape: DrumShape,
-    /// Axisymmetric drum only: radius of the rigid disc tied to the umbo, m, and the
-    /// number of shell elements from the disc to the rim.
+    /// Axisymmetric drum only: radius of the rigid disc tied to the umbo, m.
     pub disc_radius: f64,
+    /// Axisymmetric drum only: shell elements from the disc to the rim.
     pub tm_elements: usize,
-    /// Masses (kg) and inertias about the rotation axis (kg·m²), notes §1.3.
+    /// Malleus mass, kg (notes §1.3).
     pub m_malleus: f64,
+    /// Malleus inertia about the rotation axis, kg·m².
     pub i_malleus: f64,
+    /// Incus mass, kg.
     pub m_incus: f64,
+    /// Incus inertia about the rotation axis, kg·m².
     pub i_incus: f64,
+    /// Stapes mass, kg.
     pub m_stapes: f64,
+    /// Stapes inertia for rocking about the footplate centre, kg·m².
     pub i_stapes: f64,
-    /// Arms from the rotation axis, m: umbo, lenticular process, IMJ (negative = above
-    /// the axis, on the heads), tensor tympani insertion.
+    /// Umbo arm from the rotation axis, m.
     pub arm_umbo: f64,
+    /// Lenticular process arm from the rotation axis, m.
     pub arm_lp: f64,
+    /// IMJ arm from the rotation axis, m (negative = above the axis, on the heads).
     pub arm_imj: f64,
+    /// Tensor tympani insertion arm from the rotation axis, m.
     pub arm_ttt: f64,
-    /// Stapes head height above the footplate, m; tilt of the stapes axis to the
-    /// lenticular process' motion, rad (chosen: it couples rocking to the drive).
+    /// Stapes head height above the footplate, m.
     pub stapes_height: f64,
+    /// Tilt of the stapes axis to the lenticular process' motion, rad (chosen: it
+    /// couples rocking to the drive).
     pub stapes_tilt: f64,
     /// Height above the footplate of the LDV spot for the rocking part, m.
     pub ldv_spot: f64,
+    /// Footplate area, m².
     pub footplate_area: f64,
     /// Leak channel length, m (notes §4: ℓ = 5 mm).
     pub leak_length: f64,
-    /// Geometric factors, m (springs) or m³ (rotational springs), k = E·g.
+    /// Geometric factors, m (springs) or m³ (rotational springs), k = E·g: anterior
+    /// mallear ligament.
     pub g_aml: f64,
+    /// Anterior mallear ligament in torsion.
     pub g_aml_rot: f64,
+    /// Posterior incudal ligament.
     pub g_pil: f64,
+    /// Posterior incudal ligament in torsion.
     pub g_pil_rot: f64,
+    /// Tensor tympani tendon.
     pub g_ttt: f64,
+    /// Stapedius tendon.
     pub g_stapedius: f64,
+    /// Incudomallear joint.
     pub g_imj: f64,
+    /// Incudomallear joint in rotation.
     pub g_imj_rot: f64,
+    /// Incudostapedial joint along z.
     pub g_isj: f64,
+    /// Incudostapedial joint in shear.
     pub g_isj_shear: f64,
+    /// Stapes annular ligament, piston.
     pub g_sal: f64,
+    /// Stapes annular ligament, rocking.
     pub g_sal_rock: f64,
 }
 
@@ -194,6 +219,7 @@ pub enum Preset {
 }
 
 impl Preset {
+    /// The air at the preset's temperature.
     pub fn air(self) -> Air {
         match self {
             Preset::TemporalBone => Air::at_celsius(22.0),
@@ -210,8 +236,11 @@ pub fn log_grid(f_lo: f64, f_hi: f64, n: usize) -> Vec<f64> {
 /// Everything needed to build a model.
 #[derive(Clone, Debug)]
 pub struct ModelConfig {
+    /// Air temperature.
     pub preset: Preset,
+    /// Geometry and fixed material data.
     pub geometry: Geometry,
+    /// The frequencies simulated, Hz.
     pub frequencies: Vec<f64>,
     /// Eliminate the drum's interior exactly through its modes (`drum.rs`); `false`
     /// keeps every shell DOF in the sparse system (same answer, slower; for tests).
@@ -262,21 +291,32 @@ enum Condensed {
 pub struct Dofs {
     /// Pressure on the eardrum; its row is the flow balance the unit drive enters.
     pub p_drum: usize,
+    /// Axial displacement of the umbo (the malleus at the umbo arm), m.
     pub umbo: usize,
+    /// Malleus rotation, rad.
     pub theta_m: usize,
+    /// Incus translation, m.
     pub x_incus: usize,
+    /// Incus rotation, rad.
     pub theta_i: usize,
+    /// Stapes piston displacement along its axis, m.
     pub x_stapes: usize,
+    /// Stapes rocking about the footplate centre, rad.
     pub phi_stapes: usize,
+    /// Middle-ear cavity pressure; its row is the cavity's compliance.
     pub p_cavity: usize,
+    /// Number of unknowns.
     pub n: usize,
 }
 
 /// A built model: mesh, blocks and the shared symbolic factorisation. Build once; run
 /// any number of parameter sets on any number of threads (one [`Runner`] per thread).
 pub struct Model {
+    /// What the model was built from.
     pub config: ModelConfig,
+    /// The air in the canal and the cavity.
     pub air: Air,
+    /// Where each named unknown is.
     pub dofs: Dofs,
     system: System,
     blocks: Blocks,
@@ -288,6 +328,7 @@ pub struct Model {
 /// The complex responses at one frequency.
 #[derive(Clone, Copy, Debug)]
 pub struct Response {
+    /// Frequency, Hz.
     pub freq_hz: f64,
     /// Measured stapes velocity over canal pressure at the microphone, m/s/Pa.
     pub vst_over_p: c64,
@@ -300,6 +341,7 @@ pub struct Response {
 }
 
 impl Response {
+    /// Absorbance 1 − |R|² at the measurement plane.
     pub fn absorbance(&self) -> f64 {
         air::absorbance(self.zec, self.z0)
     }
@@ -311,8 +353,10 @@ pub enum SimError {
     #[error("parameter {name} = {value} must be finite and positive (tm_viscoelastic: ≥ 0)")]
     BadParameter { name: &'static str, value: f64 },
     #[error(transparent)]
+    /// The sparse solve failed.
     Solve(#[from] SolveError),
     #[error("model setup failed: {0}")]
+    /// The system could not be set up (symbolic factorisation, drum variant).
     Setup(String),
     /// The drum's modes could not be computed.
     #[error("model setup failed: {0}")]
@@ -357,18 +401,22 @@ impl Model {
         Ok(Model { config, air, dofs, system, blocks, b, drum })
     }
 
+    /// Non-zeros of the sparse system.
     pub fn nnz(&self) -> usize {
         self.system.nnz()
     }
 
+    /// Unknowns of the sparse system.
     pub fn n_unknowns(&self) -> usize {
         self.system.n
     }
 
+    /// The frequency grid, Hz.
     pub fn frequencies(&self) -> &[f64] {
         &self.config.frequencies
     }
 
+    /// Per-thread solver state; one per thread, any number per model.
     pub fn runner(&self) -> Runner<'_> {
         Runner { model: self, ws: self.system.workspace(), coef: vec![c64::new(0.0, 0.0); self.system.n_blocks()] }
     }
@@ -690,9 +738,13 @@ pub struct Runner<'m> {
 /// act on Z_ec after the solve and are not part of it.
 #[derive(Clone, Copy, Debug)]
 pub struct PowerBalance {
+    /// Frequency, Hz.
     pub freq_hz: f64,
+    /// Power entering at the probe.
     pub probe: f64,
+    /// Power dissipated by the canal walls.
     pub canal: f64,
+    /// Power entering the middle ear at the drum.
     pub into_drum: f64,
     /// All middle-ear dissipation: the sum of the six parts below.
     pub mechanical: f64,
@@ -700,8 +752,11 @@ pub struct PowerBalance {
     pub drum: f64,
     /// Rayleigh loss in the ossicular soft tissue, per stiffness block.
     pub ligaments: f64,
+    /// Rayleigh loss in the tendons.
     pub tendons: f64,
+    /// Rayleigh loss in the joints.
     pub joints: f64,
+    /// Rayleigh loss in the annular ligament.
     pub sal: f64,
     /// Power delivered to the cochlear load ½·Re(Z_c)·A_fp²·|v_piston|².
     pub cochlea: f64,
