@@ -9,18 +9,26 @@ use serde::{Deserialize, Serialize};
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Scale {
+    /// Uniform in the value.
     Linear,
+    /// Uniform in log10 of the value (moduli, loads: positive, over decades).
     Log10,
 }
 
 /// A named scalar with a unit, a prior box and a nominal value.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct ParamSpec {
+    /// Name, as in files, CLI arguments and the API.
     pub name: &'static str,
+    /// Unit of the value.
     pub unit: &'static str,
+    /// How the prior samples it.
     pub scale: Scale,
+    /// Lower end of the prior box.
     pub low: f64,
+    /// Upper end of the prior box.
     pub high: f64,
+    /// Value of the nominal ear.
     pub nominal: f64,
 }
 
@@ -33,6 +41,7 @@ impl ParamSpec {
         }
     }
 
+    /// Whether `v` lies in the prior box.
     pub fn contains(&self, v: f64) -> bool {
         v.is_finite() && v >= self.low && v <= self.high
     }
@@ -103,27 +112,35 @@ pub fn is_geometry(name: &str) -> bool {
 pub struct Theta(pub [f64; N_PARAMS]);
 
 impl Theta {
+    /// Every parameter at its nominal value.
     pub fn nominal() -> Theta {
         Theta(PARAMS.map(|p| p.nominal))
     }
+    /// Eardrum Young's modulus, Pa.
     pub fn e_eardrum(&self) -> f64 {
         self.0[0]
     }
+    /// Ligaments' Young's modulus, Pa.
     pub fn e_ligaments(&self) -> f64 {
         self.0[1]
     }
+    /// Tendons' Young's modulus, Pa.
     pub fn e_tendons(&self) -> f64 {
         self.0[2]
     }
+    /// Stapes annular ligament's Young's modulus, Pa.
     pub fn e_sal(&self) -> f64 {
         self.0[3]
     }
+    /// Joints' Young's modulus, Pa.
     pub fn e_joints(&self) -> f64 {
         self.0[4]
     }
+    /// Rayleigh stiffness-proportional damping β, s.
     pub fn damping_beta(&self) -> f64 {
         self.0[5]
     }
+    /// Cochlear input resistance R_c, Pa·s/m³.
     pub fn cochlear_load(&self) -> f64 {
         self.0[6]
     }
@@ -131,6 +148,7 @@ impl Theta {
     pub fn canal_length(&self) -> f64 {
         self.0[7]
     }
+    /// Canal cross-section at the impedance plane, m².
     pub fn canal_area(&self) -> f64 {
         self.0[8]
     }
@@ -157,13 +175,19 @@ impl Theta {
 /// An optional physical effect: one parameter, an "off" value, and a range.
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct EffectSpec {
+    /// Name, as in files, CLI arguments and the API.
     pub name: &'static str,
+    /// Unit of the value.
     pub unit: &'static str,
     /// The value that switches the effect off.
     pub off: f64,
+    /// Lower end of the range.
     pub low: f64,
+    /// Upper end of the range.
     pub high: f64,
+    /// How a prior that varies the effect samples it.
     pub scale: Scale,
+    /// What the effect models.
     pub description: &'static str,
 }
 
@@ -172,6 +196,7 @@ impl EffectSpec {
     pub fn accepts(&self, v: f64) -> bool {
         v == self.off || (v.is_finite() && v >= self.low && v <= self.high)
     }
+    /// The effect as a parameter whose prior box is its range (nominal: the middle).
     pub fn as_param(&self) -> ParamSpec {
         ParamSpec {
             name: self.name,
@@ -182,12 +207,14 @@ impl EffectSpec {
             nominal: self.from_unit(0.5),
         }
     }
+    /// Maps u ∈ [0, 1] onto the range, as [`ParamSpec::from_unit`].
     pub fn from_unit(&self, u: f64) -> f64 {
         ParamSpec { name: self.name, unit: self.unit, scale: self.scale, low: self.low, high: self.high, nominal: 0.0 }
             .from_unit(u)
     }
 }
 
+/// Number of optional effects.
 pub const N_EFFECTS: usize = 4;
 
 /// The effect library, in a fixed order (physics-notes §4 for forms and signatures).
@@ -270,6 +297,7 @@ impl Default for Effects {
 }
 
 impl Effects {
+    /// Index of the effect called `name` in [`EFFECTS`].
     pub fn index(name: &str) -> Option<usize> {
         EFFECTS.iter().position(|e| e.name == name)
     }
@@ -293,15 +321,19 @@ impl Effects {
         self.0[i] = value;
         Ok(())
     }
+    /// How far the impedance plane moves toward the eardrum, m.
     pub fn probe_offset(&self) -> f64 {
         self.0[0]
     }
+    /// Radius of a leak shunting the probe, m.
     pub fn leak_radius(&self) -> f64 {
         self.0[1]
     }
+    /// Angle of the LDV beam to the stapes piston axis, degrees.
     pub fn ldv_angle_deg(&self) -> f64 {
         self.0[2]
     }
+    /// Cochlear fluid mass M_c, kg/m⁴.
     pub fn cochlear_mass(&self) -> f64 {
         self.0[3]
     }
