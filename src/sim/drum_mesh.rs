@@ -52,14 +52,17 @@ use std::sync::{Arc, Mutex};
 /// Shape, material and mesh of the drum.
 #[derive(Clone, Debug)]
 pub struct DrumGeometry {
-    /// Semi-axes of the outline, m (x anterior–posterior, y toward the lateral process).
+    /// Semi-axis of the outline along x (anterior–posterior), m.
     pub radius_x: f64,
+    /// Semi-axis of the outline along y (toward the lateral process), m.
     pub radius_y: f64,
-    /// Cone depth of the umbo below the annulus, m, and lateral bulge of the generator.
+    /// Cone depth of the umbo below the annulus, m.
     pub depth: f64,
+    /// Lateral bulge of the generator's midpoint from the straight cone, m.
     pub bulge: f64,
     /// Gap between the manubrium's upper end (lateral process) and the rim along +y, m.
     pub manubrium_to_rim: f64,
+    /// Thickness, Poisson ratio and density.
     pub material: ShellMaterial,
     /// Rings from the umbo to the rim (the mesh refinement parameter): 1 + 3n(n+1) nodes,
     /// 6n² triangles.
@@ -89,11 +92,13 @@ impl Default for DrumGeometry {
 /// How a node is held.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum NodeKind {
+    /// Free to move.
     Free,
     /// Clamped annulus.
     Rim,
     /// On the manubrium, at distance `s` (m, in the drum's plane) from the umbo.
     Manubrium {
+        /// Distance from the umbo, m.
         s: f64,
     },
 }
@@ -101,8 +106,11 @@ pub enum NodeKind {
 /// Nodes (global coordinates, m) and counter-clockwise triangles (normals toward +z).
 #[derive(Clone, Debug)]
 pub struct DrumMesh {
+    /// Node coordinates, m.
     pub nodes: Vec<[f64; 3]>,
+    /// Triangles as node indices.
     pub tris: Vec<[usize; 3]>,
+    /// How each node is held.
     pub kind: Vec<NodeKind>,
 }
 
@@ -188,6 +196,7 @@ impl DrumGeometry {
         Ok(modes)
     }
 
+    /// The drum's ring mesh on its cone, each node marked free, rim or manubrium.
     pub fn mesh(&self) -> DrumMesh {
         let (polar, tris) = ring_mesh(self.rings);
         let l_man = self.radius_y - self.manubrium_to_rim;
@@ -216,6 +225,7 @@ pub enum Dof {
     Free(usize),
     /// A combination c₀·w_umbo + c₁·θ_m of the two malleus DOFs.
     Malleus([f64; 2]),
+    /// Held at zero (the rim).
     Fixed,
 }
 
@@ -226,15 +236,19 @@ pub struct DrumFe {
     pub n: usize,
     /// Interior blocks as triplets (row, col, value), duplicates summed on use.
     pub k_ii: Vec<(usize, usize, f64)>,
+    /// Interior mass block as triplets.
     pub m_ii: Vec<(usize, usize, f64)>,
     /// Interior swept volume per DOF.
     pub b_i: Vec<f64>,
     /// Couplings to (w_umbo, θ_m): n×2, column-major [w column, θ column].
     pub k_ib: [Vec<f64>; 2],
+    /// Mass couplings to (w_umbo, θ_m), as `k_ib`.
     pub m_ib: [Vec<f64>; 2],
     /// Malleus–malleus blocks and swept volumes.
     pub k_bb: [[f64; 2]; 2],
+    /// Malleus–malleus mass block.
     pub m_bb: [[f64; 2]; 2],
+    /// Swept volume per unit (w_umbo, θ_m).
     pub b_b: [f64; 2],
     /// Per node and component (6 per node), where it went.
     pub dofs: Vec<Dof>,
@@ -418,6 +432,7 @@ impl DrumFe {
         self.dense(&self.k_ii, e)
     }
 
+    /// Dense interior mass.
     pub fn m_dense(&self) -> Mat<f64> {
         self.dense(&self.m_ii, 1.0)
     }
@@ -468,7 +483,9 @@ pub struct ManubriumModes {
     pub g: Vec<[f64; 5]>,
     /// Malleus–malleus blocks and swept volumes (E = 1 Pa).
     pub k_bb: [[f64; 2]; 2],
+    /// Malleus–malleus mass block.
     pub m_bb: [[f64; 2]; 2],
+    /// Swept volume per unit (w_umbo, θ_m).
     pub b_b: [f64; 2],
     /// tail[m][p][pair] = Σ_{k ≥ m} (μ_k/μ_m)^p g_k,a g_k,b over `PAIRS`.
     tail: Vec<[[f64; 15]; SERIES]>,
@@ -477,12 +494,17 @@ pub struct ManubriumModes {
 /// Wall-clock split of [`ManubriumModes::new`], s.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct ModesInfo {
+    /// Interior unknowns.
     pub n: usize,
+    /// Cholesky factorisation and projection of the couplings, s.
     pub cholesky_and_projection_s: f64,
+    /// Symmetric eigendecomposition, s.
     pub eigen_s: f64,
 }
 
 impl ManubriumModes {
+    /// The drum's modes in the stiffness' metric and the tails of their series (the
+    /// condensed block at any E and frequency then costs a few sums), and the time taken.
     pub fn new(fe: &DrumFe) -> Result<(ManubriumModes, ModesInfo), DrumError> {
         let t0 = std::time::Instant::now();
         let n = fe.n;
