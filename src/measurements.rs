@@ -19,6 +19,7 @@ pub enum MeasurementError {
     Invalid(Vec<(String, String)>),
 }
 
+/// One ear's measurements, each on its own frequency grid; any subset may be given.
 #[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Measurements {
@@ -26,16 +27,21 @@ pub struct Measurements {
     pub stapes_velocity: Option<MagPhase>,
     /// Ear-canal impedance |Z| in Pa·s/m³ and its phase in rad.
     pub impedance: Option<MagPhase>,
+    /// Absorbance (1 − |R|², a fraction of power).
     pub absorbance: Option<Values>,
     /// |V_umbo/P_ec| in m/s/Pa (clinical LDV through the canal) and its phase in rad.
     pub umbo_velocity: Option<MagPhase>,
 }
 
+/// A complex measure as magnitude and phase over frequency.
 #[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct MagPhase {
+    /// Frequencies, Hz.
     pub frequencies_hz: Vec<f64>,
+    /// Magnitudes, in `magnitude_unit`.
     pub magnitude: Vec<f64>,
+    /// Phases, in `phase_unit`.
     pub phase: Vec<f64>,
     /// Unit of `magnitude` (default SI: m/s/Pa or Pa·s/m³); see `magnitude_scale`.
     pub magnitude_unit: Option<String>,
@@ -52,6 +58,7 @@ pub const IMPEDANCE_UNITS: [(&[&str], Option<f64>); 3] = [
     (&["MOhm", "MΩ"], Some(1e6)),
     (&["cgs", "dyn·s/cm⁵", "dyn*s/cm^5"], Some(1e5)),
 ];
+/// Phase units: (name, factor to rad).
 pub const PHASE_UNITS: [(&str, f64); 3] =
     [("rad", 1.0), ("deg", std::f64::consts::PI / 180.0), ("cycles", std::f64::consts::TAU)];
 
@@ -99,10 +106,13 @@ fn magnitude_hint(block: usize, v: f64) -> &'static str {
     }
 }
 
+/// A real measure over frequency.
 #[derive(Debug, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct Values {
+    /// Frequencies, Hz.
     pub frequencies_hz: Vec<f64>,
+    /// The values, one per frequency.
     pub values: Vec<f64>,
 }
 

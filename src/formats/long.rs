@@ -26,7 +26,9 @@ use crate::measurements::{IMPEDANCE_UNITS, MagPhase, Measurements, PHASE_UNITS, 
 /// What a column holds.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Quantity {
+    /// Frequency, Hz by default.
     Frequency,
+    /// Absorbance, a fraction by default.
     Absorbance,
     /// |Z| of the ear-canal impedance.
     Zmag,

@@ -22,10 +22,22 @@ pub enum FormatError {
     NotThisFormat(String),
     /// A column is missing, repeated, or has an unknown or undeclared unit.
     #[error("column '{column}': {message}")]
-    Column { column: String, message: String },
+    Column {
+        /// The column, as the header names it.
+        column: String,
+        /// What is wrong with it.
+        message: String,
+    },
     /// One cell does not parse or is outside what the column can hold.
     #[error("line {line}, column '{column}': {message}")]
-    Cell { line: usize, column: String, message: String },
+    Cell {
+        /// The cell's line in the file, from 1.
+        line: usize,
+        /// The cell's column, as the header names it.
+        column: String,
+        /// What is wrong with it.
+        message: String,
+    },
     /// The table as a whole (no rows left, frequencies that do not increase, ...).
     #[error("{0}")]
     Table(String),
@@ -53,6 +65,7 @@ impl FormatError {
 /// Measurements read from a file, and what was done on the way.
 #[derive(Debug)]
 pub struct Imported {
+    /// The measurements, in the units the table declared.
     pub measurements: Measurements,
     /// Conversions and choices made (rows kept, units converted, columns not used), in
     /// words, for the user to see.

@@ -28,8 +28,11 @@ use crate::measurements::{MagPhase, Measurements};
 /// m/s/Pa as (re, im).
 #[derive(Debug)]
 pub struct Frf {
+    /// The dataset's ID line (record 1).
     pub id: String,
+    /// Frequencies, Hz.
     pub frequencies_hz: Vec<f64>,
+    /// The FRF in m/s/Pa as (re, im).
     pub values: Vec<(f64, f64)>,
 }
 
@@ -237,6 +240,7 @@ fn values(id: String, lines: &[&str], start: usize, end: usize, layout: &Layout,
 /// The measure a dataset 58 holds (the file does not say which point the laser saw).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Measure {
+    /// The stapes, as an LDV on a temporal bone sees it.
     StapesVelocity,
     /// The umbo, as clinical LDV through the ear canal sees it.
     UmboVelocity,
