@@ -328,16 +328,29 @@ fn optimizer() -> ModuleOptimizer {
 }
 
 /// A new flow; with `seed`, its weights drawn from that seed. The backend's RNG is
-/// process-wide: seeding and initialising under one lock keeps a seed's weights the same
-/// when other trainings run beside this one (a flow whose weights are loaded afterwards
-/// takes the lock too, since it draws as well).
+/// process-wide: seeding and drawing under one lock keeps a seed's weights the same when
+/// other trainings run beside this one (a flow whose weights are loaded afterwards takes
+/// the lock too). burn draws a parameter lazily, at its first use, so every weight is
+/// drawn here, under the lock; otherwise the draws happened in the first training step,
+/// after another thread may have re-seeded the RNG or drawn from it.
 fn new_flow(cfg: &FlowConfig, device: &Device, seed: Option<u64>) -> Flow {
     static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
     let _one_at_a_time = INIT.lock().unwrap_or_else(|e| e.into_inner());
     if let Some(seed) = seed {
         device.seed(seed);
     }
-    Flow::new(cfg, device)
+    let flow = Flow::new(cfg, device);
+    flow.visit(&mut DrawNow);
+    flow
+}
+
+/// Initialises every lazy parameter it visits.
+struct DrawNow;
+
+impl burn::module::ModuleVisitor for DrawNow {
+    fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+        let _ = param.val();
+    }
 }
 
 /// Everything a member's training reads.
