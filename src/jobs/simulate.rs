@@ -285,6 +285,14 @@ pub(super) async fn help(ctx: Arc<Ctx>, claim: ChunkClaim) {
         Ok(Err(e)) => tracing::warn!(chunk = %c.id, error = %format!("{e:#}"), "chunk failed and given back"),
         Err(e) => tracing::error!(chunk = %c.id, error = %e, "chunk panicked"),
     }
+    // The job may have ended (cancelled, failed) while this chunk ran: its worker removed
+    // the job's files then, and what this chunk wrote afterwards must go too.
+    let ended =
+        ctx.store.job(&c.job_id).await.ok().flatten().filter(|j| !matches!(j.state.as_str(), "queued" | "running"));
+    if let Some(job) = ended {
+        let dir = ctx.dataset_dir(&job.id);
+        let _ = tokio::task::spawn_blocking(move || remove_temporary_files(&dir, true)).await;
+    }
 }
 
 /// Moves a finished simulate attempt's files from its staging folder into `dir`;
