@@ -316,13 +316,11 @@ fn spline_forward_grad(x: f64, raw: &[f64], bins: usize, bound: f64, gy: f64, g_
     let g_x = g_t / w;
     let (g_x0, g_w) = (-g_t / w, -g_t * t / w - g_delta * delta / w);
     // Knots: x0 = −B + Σ_{j<k} W_j, w = W_k (heights alike, with y0 and h).
-    let k = {
-        let (e, scale) = axis_weights::<false>(&raw[..bins], MIN_WIDTH, bins);
-        active(x, &e, scale, MIN_WIDTH, bins, bound)
-    };
+    let weights = [(0, MIN_WIDTH), (1, MIN_HEIGHT)]
+        .map(|(axis, min)| axis_weights::<false>(&raw[axis * bins..(axis + 1) * bins], min, bins));
+    let k = active(x, &weights[0].0, weights[0].1, MIN_WIDTH, bins, bound);
     for (axis, (g_lo, g_len), min) in [(0, (g_x0, g_w), MIN_WIDTH), (1, (gy, g_h), MIN_HEIGHT)] {
-        let r = &raw[axis * bins..(axis + 1) * bins];
-        let (e, _) = axis_weights::<false>(r, min, bins);
+        let e = &weights[axis].0;
         let total: f64 = e[..bins].iter().sum();
         let c = 2.0 * bound * (1.0 - bins as f64 * min);
         let sm = |i: usize| e[i] / total;
