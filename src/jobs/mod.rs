@@ -378,6 +378,9 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         // A cancelled training still returns its best weights: that is a result.
         Ok(Ok(doc)) => ("succeeded", store.finish(id, &token, "succeeded", None, Some(&doc)).await),
         Ok(Err(e)) if cancelled || e.is::<Stopped>() => {
+            if makes_dataset {
+                simulate::clear_cancelled(&ctx, id, &token).await;
+            }
             ("cancelled", store.finish(id, &token, "cancelled", None, None).await)
         }
         Ok(Err(e)) => fail(scrub(&ctx, &format!("{e:#}"))).await,

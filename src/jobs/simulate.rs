@@ -295,6 +295,28 @@ pub(super) async fn help(ctx: Arc<Ctx>, claim: ChunkClaim) {
     }
 }
 
+/// Before a cancelled simulate job shows as cancelled: waits (at most 10 s) for the
+/// idle dispatchers that run its chunks to give them back (they check every 300 ms),
+/// then removes its parts and temporary files, so that a job seen as cancelled has left
+/// nothing behind. Only while this worker still holds the job's lease: otherwise the
+/// files are another attempt's.
+pub(super) async fn clear_cancelled(ctx: &Ctx, id: &str, token: &str) {
+    let t0 = std::time::Instant::now();
+    loop {
+        // The job's lease, renewed while waiting (its renewal loop has ended).
+        if !matches!(ctx.store.heartbeat(id, token, ctx.lease).await, Ok(true)) {
+            return;
+        }
+        let held = ctx.store.chunks(id).await.is_ok_and(|cs| cs.iter().any(|c| c.state == "running"));
+        if !held || t0.elapsed() > Duration::from_secs(10) {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let dir = ctx.dataset_dir(id);
+    let _ = tokio::task::spawn_blocking(move || remove_temporary_files(&dir, true)).await;
+}
+
 /// Moves a finished simulate attempt's files from its staging folder into `dir`;
 /// meta.json goes last; if a move fails, the files moved before it are taken away again,
 /// so that a failed job leaves no half dataset.

@@ -133,6 +133,14 @@ async fn the_chunks_of_one_job_are_shared_by_all_workers() {
         let ctx = std::sync::Arc::new(std::sync::Arc::into_inner(ctx).unwrap().with_chunk_rows(250));
         tokio::spawn(jobs::dispatcher(ctx.clone()));
         ctxs.push(ctx);
+        if w == 0 {
+            // The others start once w0 has planned the chunks: idle, they look for
+            // chunks at once (and then every second, which a fast job may not wait for).
+            let t0 = Instant::now();
+            while store.chunks("shared").await.unwrap().is_empty() && t0.elapsed() < Duration::from_secs(60) {
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        }
     }
     let j = wait_state(&store, "shared", &["succeeded", "failed", "cancelled"], 120).await;
     for c in &ctxs {
