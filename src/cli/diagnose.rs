@@ -76,7 +76,9 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
         seed: args.seed,
         ..Settings::default()
     };
-    let report = diagnose(&model, &base, &x, &s, &mut |m| eprintln!("{m}"))?;
+    let stages = super::progress::Progress::stages("diagnose");
+    let report = diagnose(&model, &base, &x, &s, &mut |m| stages.message(m))?;
+    stages.finish();
     let model_path = args.out.join("extended.otofit");
     let links = Links {
         figure: &|name| name.to_string(),

@@ -36,6 +36,34 @@ impl Progress {
         Progress { bar, what: what.to_string(), unit, len, start: Instant::now(), last: None }
     }
 
+    /// Stages of unknown length (`diagnose`): a spinner with the stage and the time
+    /// spent on a terminal; otherwise each stage's message as a plain line.
+    pub fn stages(what: &str) -> Self {
+        let bar = std::io::stderr().is_terminal().then(|| {
+            let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::stderr());
+            let style = ProgressStyle::with_template("{spinner} {prefix}: {msg} ({elapsed})")
+                .unwrap_or_else(|_| ProgressStyle::default_spinner());
+            bar.set_style(style);
+            bar.set_prefix(what.to_string());
+            bar.enable_steady_tick(Duration::from_millis(200));
+            bar
+        });
+        Progress { bar, what: what.to_string(), unit: "", len: 0, start: Instant::now(), last: None }
+    }
+
+    /// Whether a bar is drawn (a terminal); callers then leave out their plain lines.
+    pub fn is_bar(&self) -> bool {
+        self.bar.is_some()
+    }
+
+    /// The bar's message (e.g. the current losses), or a plain line without a bar.
+    pub fn message(&self, m: &str) {
+        match &self.bar {
+            Some(bar) => bar.set_message(m.to_string()),
+            None => eprintln!("{m}"),
+        }
+    }
+
     /// `done` units finished.
     pub fn set(&mut self, done: u64) {
         if let Some(bar) = &self.bar {

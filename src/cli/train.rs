@@ -92,14 +92,25 @@ pub fn run(args: TrainArgs) -> Result<()> {
     };
     let checkpoint =
         args.checkpoint.as_ref().map(|path| npe::Checkpointing::new(path.clone(), &std::process::id().to_string()));
+    // On a terminal a bar over every member's epoch budget (early stopping ends a
+    // member sooner: the ETA is an upper bound); otherwise a line per epoch.
+    let budget = (args.max_epochs * args.ensemble) as u64;
+    let mut bar = super::progress::Progress::new("training", "epochs (at most)", budget);
     let trained = npe::train_checkpointed(&ds, &settings, checkpoint.as_ref(), &mut |r| {
         let m = if args.ensemble > 1 { format!("member {} ", r.member) } else { String::new() };
-        eprintln!(
+        let line = format!(
             "{m}epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)",
             r.epoch, r.train_loss, r.val_loss, r.best_val_loss, r.seconds
         );
+        if bar.is_bar() {
+            bar.message(&format!("training: {}", line.trim()));
+            bar.set((r.member * args.max_epochs + r.epoch) as u64);
+        } else {
+            eprintln!("{line}");
+        }
         true
     })?;
+    bar.finish();
     if trained.resumed_from_epoch > 0 {
         eprintln!("resumed from epoch {} (summed over members) of the checkpoint", trained.resumed_from_epoch);
     }
