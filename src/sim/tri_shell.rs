@@ -41,8 +41,9 @@ pub struct TriShell {
     /// Swept volume per DOF (= load of a unit pressure on the side the normal points
     /// away from): volume = bᵀq.
     pub b: [f64; 18],
-    /// Area, m², and unit normal (p1 − p0) × (p2 − p0) / 2A.
+    /// Area, m².
     pub area: f64,
+    /// Unit normal (p1 − p0) × (p2 − p0) / 2A.
     pub normal: [f64; 3],
 }
 
@@ -80,8 +81,40 @@ pub fn cst_membrane(xy: [(f64, f64); 3], h: f64, nu: f64) -> [[f64; 6]; 6] {
 pub fn dkt_bending(xy: [(f64, f64); 3], h: f64, nu: f64) -> [[f64; 9]; 9] {
     let (area, dl) = area_gradients(xy);
     let d = h.powi(3) / (12.0 * (1.0 - nu * nu));
-    // T: nodal (w, w,x, w,y) → (β_x, β_y) at the six quadratic nodes (corners 0..3, then
-    // mid-sides of edges (0,1), (1,2), (2,0)); rows 2·node + {0: β_x, 1: β_y}.
+    let tdof = dkt_rotations(xy);
+    let dmat = plane_stress(nu);
+    let mut k = [[0.0; 9]; 9];
+    // Mid-side points of the triangle, weight A/3 each: exact for the quadratic integrand.
+    for q in 0..3 {
+        let mut lq = [0.5; 3];
+        lq[(q + 2) % 3] = 0.0;
+        let dn = quadratic_gradients(lq, dl);
+        // κ = (β_x,x, β_y,y, β_x,y + β_y,x) = Bβ · β
+        let mut bb = [[0.0; 9]; 3];
+        for node in 0..6 {
+            for c in 0..9 {
+                let (bx, by) = (tdof[2 * node][c], tdof[2 * node + 1][c]);
+                bb[0][c] += dn[node].0 * bx;
+                bb[1][c] += dn[node].1 * by;
+                bb[2][c] += dn[node].1 * bx + dn[node].0 * by;
+            }
+        }
+        let kq = btdb(&bb, &dmat, d * area / 3.0);
+        for i in 0..9 {
+            for j in 0..9 {
+                k[i][j] += kq[i][j];
+            }
+        }
+    }
+    k
+}
+
+/// DKT's kinematics: the normal's rotations (β_x, β_y) at the six quadratic nodes
+/// (corners 0..3, then mid-sides of edges (0,1), (1,2), (2,0); rows 2·node + {0: β_x,
+/// 1: β_y}) from the element's DOFs [w, θ_x, θ_y] per corner. Kept apart from the
+/// integration because this is where the Kirchhoff constraints live.
+fn dkt_rotations(xy: [(f64, f64); 3]) -> [[f64; 9]; 12] {
+    // T: nodal (w, w,x, w,y) → (β_x, β_y) at the six nodes.
     let mut t = [[0.0; 9]; 12];
     for i in 0..3 {
         t[2 * i][3 * i + 1] = 1.0;
@@ -118,38 +151,21 @@ pub fn dkt_bending(xy: [(f64, f64); 3], h: f64, nu: f64) -> [[f64; 9]; 9] {
             tdof[r][3 * node + 2] = -t[r][3 * node + 1]; // θ_y = −w,x
         }
     }
-    let dmat = plane_stress(nu);
-    let mut k = [[0.0; 9]; 9];
-    // Mid-side points of the triangle, weight A/3 each: exact for the quadratic integrand.
-    for q in 0..3 {
-        let mut lq = [0.5; 3];
-        lq[(q + 2) % 3] = 0.0;
-        // Derivatives of the six quadratic shape functions at lq.
-        let mut dn = [(0.0, 0.0); 6];
-        for i in 0..3 {
-            let f = 4.0 * lq[i] - 1.0;
-            dn[i] = (f * dl[i].0, f * dl[i].1);
-            let (a, b) = (i, (i + 1) % 3);
-            dn[3 + i] = (4.0 * (lq[b] * dl[a].0 + lq[a] * dl[b].0), 4.0 * (lq[b] * dl[a].1 + lq[a] * dl[b].1));
-        }
-        // κ = (β_x,x, β_y,y, β_x,y + β_y,x) = Bβ · β
-        let mut bb = [[0.0; 9]; 3];
-        for node in 0..6 {
-            for c in 0..9 {
-                let (bx, by) = (tdof[2 * node][c], tdof[2 * node + 1][c]);
-                bb[0][c] += dn[node].0 * bx;
-                bb[1][c] += dn[node].1 * by;
-                bb[2][c] += dn[node].1 * bx + dn[node].0 * by;
-            }
-        }
-        let kq = btdb(&bb, &dmat, d * area / 3.0);
-        for i in 0..9 {
-            for j in 0..9 {
-                k[i][j] += kq[i][j];
-            }
-        }
+    tdof
+}
+
+/// Gradients (∂N/∂x, ∂N/∂y) of the six quadratic shape functions (corners, then mid-sides
+/// of edges (0,1), (1,2), (2,0)) at area coordinates `lq`, from the gradients `dl` of the
+/// area coordinates.
+fn quadratic_gradients(lq: [f64; 3], dl: [(f64, f64); 3]) -> [(f64, f64); 6] {
+    let mut dn = [(0.0, 0.0); 6];
+    for i in 0..3 {
+        let f = 4.0 * lq[i] - 1.0;
+        dn[i] = (f * dl[i].0, f * dl[i].1);
+        let (a, b) = (i, (i + 1) % 3);
+        dn[3 + i] = (4.0 * (lq[b] * dl[a].0 + lq[a] * dl[b].0), 4.0 * (lq[b] * dl[a].1 + lq[a] * dl[b].1));
     }
-    k
+    dn
 }
 
 /// Area and the gradients (∂L_i/∂x, ∂L_i/∂y) of the area coordinates.
