@@ -16,6 +16,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use rayon::prelude::*;
 
+/// How [`mala`] runs its chains.
 #[derive(Clone, Debug)]
 pub struct MalaParams {
     /// Independent chains (run in parallel), each started from its own point.
@@ -36,6 +37,7 @@ impl Default for MalaParams {
     }
 }
 
+/// What a [`mala`] run reports besides its draws.
 #[derive(Clone, Debug)]
 pub struct MalaInfo {
     /// Accepted share of all proposals after the burn-in, all chains.
@@ -62,53 +64,13 @@ where
     assert!(chol.len() == d && chol.iter().all(|r| r.len() == d), "mala: chol must be {d} × {d}");
     let per_chain = n.div_ceil(p.chains);
     let seeds: Vec<u64> = (0..p.chains).map(|_| rng.random()).collect();
-    let h = p.step;
-    // L ε and Lᵀ g.
-    let l_mul = |e: &[f64]| (0..d).map(|i| (0..=i).map(|k| chol[i][k] * e[k]).sum::<f64>()).collect::<Vec<_>>();
-    let lt_mul = |g: &[f64]| (0..d).map(|k| (k..d).map(|i| chol[i][k] * g[i]).sum::<f64>()).collect::<Vec<_>>();
+    let l = Preconditioner { chol };
     let runs: Vec<(Vec<Vec<f64>>, usize)> = seeds
         .par_iter()
         .enumerate()
         .map(|(c, &seed)| {
-            let mut rng = ChaCha8Rng::seed_from_u64(seed);
-            let mut cur = starts[c % starts.len()].clone();
-            let (mut lp, mut g) = target(&cur);
-            assert!(lp.is_finite(), "mala: chain {c} starts off the support");
-            let mut ltg = lt_mul(&g);
-            let (mut out, mut accepted) = (Vec::with_capacity(per_chain), 0);
-            for step in 1..=p.burn_in + p.thin * per_chain {
-                let e: Vec<f64> = (0..d).map(|_| StandardNormal.sample(&mut rng)).collect();
-                // M g = L (Lᵀ g): drift and noise both through L.
-                let w: Vec<f64> = (0..d).map(|k| 0.5 * h * h * ltg[k] + h * e[k]).collect();
-                let lw = l_mul(&w);
-                let prop: Vec<f64> = (0..d).map(|i| cur[i] + lw[i]).collect();
-                let (lp2, g2) = target(&prop);
-                let accept = lp2.is_finite() && {
-                    let log_ratio = if p.hastings {
-                        let ltg2 = lt_mul(&g2);
-                        let back: f64 =
-                            (0..d).map(|k| (h * e[k] + 0.5 * h * h * (ltg[k] + ltg2[k])).powi(2)).sum::<f64>();
-                        let fwd: f64 = e.iter().map(|v| v * v).sum::<f64>();
-                        lp2 - lp - 0.5 * back / (h * h) + 0.5 * fwd
-                    } else {
-                        0.0
-                    };
-                    rng.random::<f64>().ln() < log_ratio
-                };
-                if accept {
-                    cur = prop;
-                    lp = lp2;
-                    g = g2;
-                    ltg = lt_mul(&g);
-                    if step > p.burn_in {
-                        accepted += 1;
-                    }
-                }
-                if step > p.burn_in && (step - p.burn_in).is_multiple_of(p.thin) {
-                    out.push(cur.clone());
-                }
-            }
-            (out, accepted)
+            let rng = ChaCha8Rng::seed_from_u64(seed);
+            chain(&target, &l, &starts[c % starts.len()], per_chain, p, rng, c)
         })
         .collect();
     let steps = (p.chains * p.thin * per_chain) as f64;
@@ -116,6 +78,81 @@ where
     let mut draws: Vec<Vec<f64>> = runs.into_iter().flat_map(|r| r.0).collect();
     draws.truncate(n);
     (draws, MalaInfo { acceptance })
+}
+
+/// The preconditioner M = L Lᵀ through its lower factor L (row-major, d × d): the drift
+/// and the noise both go through L.
+struct Preconditioner<'a> {
+    chol: &'a [Vec<f64>],
+}
+
+impl Preconditioner<'_> {
+    /// L ε.
+    fn l_mul(&self, e: &[f64]) -> Vec<f64> {
+        let (chol, d) = (self.chol, self.chol.len());
+        (0..d).map(|i| (0..=i).map(|k| chol[i][k] * e[k]).sum::<f64>()).collect()
+    }
+
+    /// Lᵀ g.
+    fn lt_mul(&self, g: &[f64]) -> Vec<f64> {
+        let (chol, d) = (self.chol, self.chol.len());
+        (0..d).map(|k| (k..d).map(|i| chol[i][k] * g[i]).sum::<f64>()).collect()
+    }
+}
+
+/// Chain `c` from `start`: `per_chain` draws kept after the burn-in, one every `p.thin`
+/// steps, and how many proposals it accepted after the burn-in. Each chain has its own
+/// generator, so the chains can run in parallel and still be deterministic.
+fn chain<F>(
+    target: &F,
+    l: &Preconditioner,
+    start: &[f64],
+    per_chain: usize,
+    p: &MalaParams,
+    mut rng: ChaCha8Rng,
+    c: usize,
+) -> (Vec<Vec<f64>>, usize)
+where
+    F: Fn(&[f64]) -> (f64, Vec<f64>),
+{
+    let (d, h) = (start.len(), p.step);
+    let mut cur = start.to_vec();
+    let (mut lp, mut g) = target(&cur);
+    assert!(lp.is_finite(), "mala: chain {c} starts off the support");
+    let mut ltg = l.lt_mul(&g);
+    let (mut out, mut accepted) = (Vec::with_capacity(per_chain), 0);
+    for step in 1..=p.burn_in + p.thin * per_chain {
+        let e: Vec<f64> = (0..d).map(|_| StandardNormal.sample(&mut rng)).collect();
+        // M g = L (Lᵀ g): drift and noise both through L.
+        let w: Vec<f64> = (0..d).map(|k| 0.5 * h * h * ltg[k] + h * e[k]).collect();
+        let lw = l.l_mul(&w);
+        let prop: Vec<f64> = (0..d).map(|i| cur[i] + lw[i]).collect();
+        let (lp2, g2) = target(&prop);
+        let accept = lp2.is_finite() && {
+            let log_ratio = if p.hastings {
+                let ltg2 = l.lt_mul(&g2);
+                let back: f64 = (0..d).map(|k| (h * e[k] + 0.5 * h * h * (ltg[k] + ltg2[k])).powi(2)).sum::<f64>();
+                let fwd: f64 = e.iter().map(|v| v * v).sum::<f64>();
+                lp2 - lp - 0.5 * back / (h * h) + 0.5 * fwd
+            } else {
+                0.0
+            };
+            rng.random::<f64>().ln() < log_ratio
+        };
+        if accept {
+            cur = prop;
+            lp = lp2;
+            g = g2;
+            ltg = l.lt_mul(&g);
+            if step > p.burn_in {
+                accepted += 1;
+            }
+        }
+        if step > p.burn_in && (step - p.burn_in).is_multiple_of(p.thin) {
+            out.push(cur.clone());
+        }
+    }
+    (out, accepted)
 }
 
 /// Sample mean and covariance (divided by n) of rows.
