@@ -474,6 +474,50 @@ impl Run<'_> {
         }
         (m, end)
     }
+
+    /// Trains the members from `fin` and `current` (a checkpoint's, or none) on to the
+    /// ensemble's size, offering `saver` the state as it goes. Member 0 uses the seed and
+    /// the batch stream `rng` exactly as a single model does, so a one-member ensemble is
+    /// the single model; member k draws its batches from a stream of its own.
+    fn members(
+        &self,
+        rng: &ChaCha8Rng,
+        mut fin: Finished,
+        mut current: Option<MemberRun>,
+        mut saver: Option<&mut Saver>,
+        progress: &mut dyn FnMut(&EpochReport) -> bool,
+    ) -> Result<Finished> {
+        let s = self.s;
+        while fin.records.len() < s.ensemble.max(1) {
+            let member = fin.records.len();
+            let m = current.take().unwrap_or_else(|| {
+                let stream = match member {
+                    0 => rng.clone(),
+                    k => ChaCha8Rng::seed_from_u64(s.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(k as u64))),
+                };
+                self.fresh(member, stream)
+            });
+            let (m, end) = self.member(m, progress, &mut |m, force| {
+                if let Some(sv) = saver.as_deref_mut() {
+                    sv.offer(&fin, Some(m), force)
+                }
+            });
+            fin.epochs += m.epoch;
+            let Some(record) = m.record else { return Err(NpeError::NoFiniteLoss { member }) };
+            fin.records.push(record);
+            if member == 0 {
+                fin.best_epoch = m.best_epoch;
+            }
+            fin.best_sum += m.best_val_loss;
+            if let Some(sv) = saver.as_deref_mut().filter(|_| end.done) {
+                sv.offer(&fin, None, true);
+            }
+            if end.stopped {
+                break;
+            }
+        }
+        Ok(fin)
+    }
 }
 
 /// Where and how often a training saves the state it resumes from
@@ -588,6 +632,31 @@ struct Saver<'a> {
 }
 
 impl Saver<'_> {
+    /// A saver of the training `fingerprint` names, started at `start`, before any
+    /// checkpoint is read.
+    fn new(c: &Checkpointing, fingerprint: String, start: Instant) -> Saver<'_> {
+        Saver { c, fingerprint, wall_before: 0.0, start, last: start, cost: Duration::ZERO, members: vec![] }
+    }
+
+    /// The finished members and the member under way from this training's checkpoint
+    /// (nothing when there is none, or it cannot be used: the training starts over,
+    /// and says why in the log).
+    fn resume(&mut self, run: &Run) -> (Finished, Option<MemberRun>) {
+        match self.load(run) {
+            Ok(Some((fin, current, wall))) => {
+                self.wall_before = wall;
+                let epochs = fin.epochs + current.as_ref().map_or(0, |m| m.epoch);
+                tracing::info!(checkpoint = %self.c.path.display(), epochs, "training resumed from its checkpoint");
+                (fin, current)
+            }
+            Ok(None) => Default::default(),
+            Err(why) => {
+                tracing::warn!(checkpoint = %self.c.path.display(), %why, "checkpoint not used; training from the start");
+                Default::default()
+            }
+        }
+    }
+
     /// Writes a checkpoint of `fin` and `cur` if one is due (or `force`); a failure is
     /// logged, not fatal: the training goes on.
     fn offer(&mut self, fin: &Finished, cur: Option<&MemberRun>, force: bool) {
@@ -789,91 +858,62 @@ pub fn train_checkpointed(
 ) -> Result<Trained> {
     let start = Instant::now();
     check(ds, s)?;
-    let n = ds.theta.len();
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
-    let mut idx: Vec<usize> = (0..n).collect();
-    idx.shuffle(&mut rng);
-    let n_val = ((n as f64 * s.val_fraction).round() as usize).clamp(1, n - 1);
+    let (idx, n_val) = split(ds.theta.len(), s.val_fraction, &mut rng);
     let (val_idx, train_idx) = idx.split_at(n_val);
     let u_rows = u_rows(ds, s.theta_map);
     let header = standardise(ds, s, &u_rows, train_idx, n_val);
     // The network is built from the settings as computed (the header keeps its copy).
     let cfg = header.flow.clone();
-    // The header as a checkpoint reads it back (serde_json may move a float by one ulp),
-    // so that a saved and reloaded model draws exactly what the trained one draws.
-    let encode = |e: serde_json::Error| NpeError::Encode { what: "header", why: e.to_string() };
-    let header: Header = serde_json::from_slice(&serde_json::to_vec(&header).map_err(encode)?).map_err(encode)?;
+    let header = reread(&header)?;
     let groups = if s.mask_groups { ds.groups.clone() } else { vec![] };
     let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &groups };
-    let mut val_rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x5EED);
-    let val_batches = val_idx
+    let val_batches = validation_batches(&batcher, val_idx, s.seed);
+    let run = Run { s, cfg: &cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() };
+    let mut saver = checkpoint.map(|c| Saver::new(c, fingerprint(s, &header), start));
+    let (fin, current) = saver.as_mut().map(|sv| sv.resume(&run)).unwrap_or_default();
+    let resumed_from_epoch = fin.epochs + current.as_ref().map_or(0, |m| m.epoch);
+    let fin = run.members(&rng, fin, current, saver.as_mut(), progress)?;
+    let wall = saver.map_or(0.0, |sv| sv.wall_before) + start.elapsed().as_secs_f64();
+    Ok(Trained { model: summarise(header, fin, wall), resumed_from_epoch })
+}
+
+/// The rows shuffled by `rng` and how many of the first go to validation (at least one
+/// row on each side).
+fn split(n: usize, val_fraction: f64, rng: &mut ChaCha8Rng) -> (Vec<usize>, usize) {
+    let mut idx: Vec<usize> = (0..n).collect();
+    idx.shuffle(rng);
+    let n_val = ((n as f64 * val_fraction).round() as usize).clamp(1, n - 1);
+    (idx, n_val)
+}
+
+/// The header as a checkpoint reads it back (serde_json may move a float by one ulp), so
+/// that a saved and reloaded model draws exactly what the trained one draws.
+fn reread(header: &Header) -> Result<Header> {
+    let encode = |e: serde_json::Error| NpeError::Encode { what: "header", why: e.to_string() };
+    serde_json::from_slice(&serde_json::to_vec(header).map_err(encode)?).map_err(encode)
+}
+
+/// The validation rows in batches of 1000 with one noise draw of their own (seeded apart
+/// from the training stream), fixed for the whole training: (v, input, rows).
+fn validation_batches(batcher: &Batcher, val_idx: &[usize], seed: u64) -> Vec<(Vec<f32>, Vec<f32>, usize)> {
+    let mut val_rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5EED);
+    val_idx
         .chunks(1000)
         .map(|c| {
             let (v, i) = batcher.batch(c, &mut val_rng);
             (v, i, c.len())
         })
-        .collect();
-    let run = Run { s, cfg: &cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() };
+        .collect()
+}
 
-    let mut saver = checkpoint.map(|c| Saver {
-        c,
-        fingerprint: fingerprint(s, &header),
-        wall_before: 0.0,
-        start,
-        last: start,
-        cost: Duration::ZERO,
-        members: vec![],
-    });
-    let (mut fin, mut current) = (Finished::default(), None);
-    if let Some(sv) = &mut saver {
-        match sv.load(&run) {
-            Ok(Some((f, m, wall))) => {
-                (fin, current, sv.wall_before) = (f, m, wall);
-                tracing::info!(checkpoint = %sv.c.path.display(), epochs = fin.epochs + current.as_ref().map_or(0, |m| m.epoch), "training resumed from its checkpoint");
-            }
-            Ok(None) => {}
-            Err(why) => {
-                tracing::warn!(checkpoint = %sv.c.path.display(), %why, "checkpoint not used; training from the start")
-            }
-        }
-    }
-    let resumed_from_epoch = fin.epochs + current.as_ref().map_or(0, |m| m.epoch);
-    // Member 0 uses the seed and the batch stream exactly as a single model does, so a
-    // one-member ensemble is the single model.
-    while fin.records.len() < s.ensemble.max(1) {
-        let member = fin.records.len();
-        let m = current.take().unwrap_or_else(|| {
-            let stream = match member {
-                0 => rng.clone(),
-                k => ChaCha8Rng::seed_from_u64(s.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(k as u64))),
-            };
-            run.fresh(member, stream)
-        });
-        let (m, end) = run.member(m, progress, &mut |m, force| {
-            if let Some(sv) = &mut saver {
-                sv.offer(&fin, Some(m), force)
-            }
-        });
-        fin.epochs += m.epoch;
-        let Some(record) = m.record else { return Err(NpeError::NoFiniteLoss { member }) };
-        fin.records.push(record);
-        if member == 0 {
-            fin.best_epoch = m.best_epoch;
-        }
-        fin.best_sum += m.best_val_loss;
-        if let Some(sv) = saver.as_mut().filter(|_| end.done) {
-            sv.offer(&fin, None, true);
-        }
-        if end.stopped {
-            break;
-        }
-    }
-    // Summary: epochs summed over members; best epoch of member 0; mean best val loss.
-    let mut header = header;
+/// The model of the finished members, its header summing up the training: epochs summed
+/// over members, best epoch of member 0, mean best validation loss, `wall` seconds.
+fn summarise(mut header: Header, fin: Finished, wall: f64) -> Npe {
     header.members = fin.records.len();
     header.training.epochs = fin.epochs;
     header.training.best_epoch = fin.best_epoch;
     header.training.best_val_loss = fin.best_sum / fin.records.len() as f64;
-    header.training.wall_seconds = saver.map_or(0.0, |sv| sv.wall_before) + start.elapsed().as_secs_f64();
-    Ok(Trained { model: Npe::from_parts(header, fin.records), resumed_from_epoch })
+    header.training.wall_seconds = wall;
+    Npe::from_parts(header, fin.records)
 }
