@@ -4,7 +4,8 @@
 //! frequency, [`crate::formats::long`]) with the request's options as query parameters.
 
 use super::{AppState, Problem, json_body};
-use crate::npe::{Npe, NpeError, Obs};
+use crate::discrepancy::fitcheck::{FitCheck, FitCheckError};
+use crate::npe::{Inference, Npe, NpeError, Obs, Summary};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Query, State};
@@ -181,6 +182,8 @@ pub(super) async fn model_for(
     Ok((row, npe))
 }
 
+/// POST /infer: the posterior of one ear's measurements, with its fit check, the
+/// differential reading, and the next step when the fit fails.
 pub async fn infer(
     State(st): State<AppState>,
     axum::Extension(who): axum::Extension<super::Principal>,
@@ -200,38 +203,15 @@ pub async fn infer(
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
     let (plot, title) = (req.plot, format!("Posterior, model {}", row.id));
-    let (inf, fit, fit_ms, corner) = tokio::task::spawn_blocking(move || {
-        let inf = npe2.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
-        let t = std::time::Instant::now();
-        let fit = crate::discrepancy::fitcheck::fit_check(&npe2, &x, &present, &inf);
-        let fit_ms = t.elapsed().as_secs_f64() * 1e3;
-        let corner = (plot == Some(Plot::Corner))
-            .then(|| crate::plot::posterior_corner(npe2.params(), &inf.samples, None, &inf.map, &title));
-        Ok::<_, NpeError>((inf, fit.map(|f| (f, x)), fit_ms, corner))
-    })
-    .await
-    .map_err(Problem::internal)?
-    .map_err(npe_problem)?;
+    // Sampling, MAP and the fit check are CPU work: off the runtime threads.
+    let answer = tokio::task::spawn_blocking(move || posterior(&npe2, x, present, n, seed, plot, &title))
+        .await
+        .map_err(Problem::internal)?
+        .map_err(npe_problem)?;
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
+    let Answer { inf, fit, fit_ms, corner } = answer;
     let mut differential = crate::npe::normal::read(npe.params(), &inf.samples);
-    let mut next = serde_json::Value::Null;
-    let fit = match fit {
-        Ok((f, x)) => {
-            if f.ok == Some(false) {
-                let why = f.reason.clone().unwrap_or_default();
-                crate::npe::normal::withdraw(&mut differential, &why);
-                // Features not measured are null: the diagnose job leaves them out.
-                let mut params = json!({ "x": x });
-                if let Some(m) = &req.model {
-                    params["model"] = json!(m);
-                }
-                next = json!({ "why": "look for the physical effect the model is missing", "method": "POST", "path": "/jobs" });
-                next["body"] = json!({ "kind": "diagnose", "params": params });
-            }
-            json!(f)
-        }
-        Err(e) => json!({ "ok": null, "reason": e.to_string() }),
-    };
+    let (fit, next) = fit_and_next(fit, req.model.as_deref(), &mut differential);
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
     // they describe the probe's placement, not the ear, and have no normal range.
     let (geometry, tissue): (Vec<_>, Vec<_>) =
@@ -261,6 +241,77 @@ pub async fn infer(
     if let Some(imp) = &csv {
         doc["inputs"]["notes"] = json!(imp.notes);
     }
+    add_optional(&mut doc, &geometry, corner, req.return_samples.unwrap_or(true).then_some((&npe, &inf)));
+    Ok(Json(doc))
+}
+
+/// What the blocking part of POST /infer computes.
+struct Answer {
+    inf: Inference,
+    /// The fit check and the features it was run on, or why it could not run.
+    fit: Result<(FitCheck, Vec<f64>), FitCheckError>,
+    fit_ms: f64,
+    /// The corner plot (SVG), when asked for.
+    corner: Option<String>,
+}
+
+/// The posterior of features `x` (`present` marks those measured), its fit check (timed
+/// apart) and, with `plot`, its corner plot.
+fn posterior(
+    npe: &Npe,
+    x: Vec<f64>,
+    present: Vec<bool>,
+    n: usize,
+    seed: u64,
+    plot: Option<Plot>,
+    title: &str,
+) -> Result<Answer, NpeError> {
+    let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
+    let t = std::time::Instant::now();
+    let fit = crate::discrepancy::fitcheck::fit_check(npe, &x, &present, &inf);
+    let fit_ms = t.elapsed().as_secs_f64() * 1e3;
+    let corner = (plot == Some(Plot::Corner))
+        .then(|| crate::plot::posterior_corner(npe.params(), &inf.samples, None, &inf.map, title));
+    Ok(Answer { inf, fit: fit.map(|f| (f, x)), fit_ms, corner })
+}
+
+/// The response's `fit` and, when the fit check fails, its `next` step (a diagnose job
+/// on these features, for the model the request named); a failed fit withdraws every
+/// reading of the differential.
+fn fit_and_next(
+    fit: Result<(FitCheck, Vec<f64>), FitCheckError>,
+    model: Option<&str>,
+    differential: &mut [crate::npe::normal::Differential],
+) -> (serde_json::Value, serde_json::Value) {
+    let mut next = serde_json::Value::Null;
+    let fit = match fit {
+        Ok((f, x)) => {
+            if f.ok == Some(false) {
+                let why = f.reason.clone().unwrap_or_default();
+                crate::npe::normal::withdraw(differential, &why);
+                // Features not measured are null: the diagnose job leaves them out.
+                let mut params = json!({ "x": x });
+                if let Some(m) = model {
+                    params["model"] = json!(m);
+                }
+                next = json!({ "why": "look for the physical effect the model is missing", "method": "POST", "path": "/jobs" });
+                next["body"] = json!({ "kind": "diagnose", "params": params });
+            }
+            json!(f)
+        }
+        Err(e) => json!({ "ok": null, "reason": e.to_string() }),
+    };
+    (fit, next)
+}
+
+/// The response's parts that are there only sometimes: the measurement geometry, the
+/// corner plot, and the samples (with `samples`: the model and its inference).
+fn add_optional(
+    doc: &mut serde_json::Value,
+    geometry: &[&Summary],
+    corner: Option<String>,
+    samples: Option<(&Npe, &Inference)>,
+) {
     if !geometry.is_empty() {
         doc["geometry"] = json!(geometry);
         doc["geometry_note"] = json!(
@@ -271,11 +322,10 @@ pub async fn infer(
     if let Some(svg) = corner {
         doc["figures"] = json!({ "corner": { "media_type": "image/svg+xml", "svg": svg } });
     }
-    if req.return_samples.unwrap_or(true) {
+    if let Some((npe, inf)) = samples {
         doc["samples"] = json!(inf.samples);
         doc["sample_columns"] = json!(npe.params().iter().map(|p| &p.name).collect::<Vec<_>>());
     }
-    Ok(Json(doc))
 }
 
 #[cfg(test)]
