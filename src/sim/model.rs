@@ -187,7 +187,10 @@ pub enum DrumLoss {
     /// A frequency-independent loss factor set by damping_beta: η = 2π·f_ref·β, the
     /// Rayleigh loss at f_ref (one damping parameter for the whole ear, as in the study,
     /// without a loss that grows with frequency in the drum).
-    Hysteretic { f_ref_hz: f64 },
+    Hysteretic {
+        /// The frequency whose Rayleigh loss sets η, Hz.
+        f_ref_hz: f64,
+    },
 }
 
 /// The eardrum's finite elements.
@@ -199,7 +202,12 @@ pub enum DrumShape {
     /// v2: flat-shell triangles over the same cone with the manubrium attached along its
     /// length from the umbo to `manubrium_to_rim` (m) from the rim, `rings` rings from the
     /// umbo to the rim (`drum_mesh.rs`). Always condensed onto the malleus through its modes.
-    Manubrium { rings: usize, manubrium_to_rim: f64 },
+    Manubrium {
+        /// Rings of triangles from the umbo to the rim (the mesh density).
+        rings: usize,
+        /// Gap between the manubrium's lateral end and the rim, m.
+        manubrium_to_rim: f64,
+    },
 }
 
 impl DrumShape {
@@ -350,14 +358,35 @@ impl Response {
 /// Why one parameter set could not be simulated.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
+    /// A parameter (or effect) the model cannot use: not finite, or not positive.
     #[error("parameter {name} = {value} must be finite and positive (tm_viscoelastic: ≥ 0)")]
-    BadParameter { name: &'static str, value: f64 },
+    BadParameter {
+        /// The parameter's name.
+        name: &'static str,
+        /// The value given.
+        value: f64,
+    },
     #[error(transparent)]
     /// The sparse solve failed.
     Solve(#[from] SolveError),
-    #[error("model setup failed: {0}")]
-    /// The system could not be set up (symbolic factorisation, drum variant).
-    Setup(String),
+    /// The sparse pattern of the system could not be analysed (faer's symbolic LU: its
+    /// indices overflow or memory ran out).
+    #[error("model setup failed: symbolic LU of the {unknowns}-unknown system: {source:?}")]
+    SymbolicLu {
+        /// Unknowns of the system.
+        unknowns: usize,
+        /// faer's reason.
+        source: faer::sparse::FaerError,
+    },
+    /// `ModelConfig::reduce_drum` is false for a drum that exists only condensed.
+    #[error(
+        "model setup failed: reduce_drum = false with tm_shape = {shape}: that drum is always condensed \
+         (reduce_drum = false needs DrumShape::Axisymmetric)"
+    )]
+    DrumNotCondensed {
+        /// The drum shape asked for.
+        shape: &'static str,
+    },
     /// The drum's modes could not be computed.
     #[error("model setup failed: {0}")]
     Drum(#[from] DrumError),
@@ -397,7 +426,8 @@ impl Model {
         let drum = drum(&config, &nodes, &dofs, &blocks, &mut sb, &mut b)?;
         ossicles(g, &dofs, &blocks, &mut sb);
         couple_pressures(&b, &dofs, &blocks, &mut sb);
-        let system = sb.build().map_err(|e| SimError::Setup(format!("symbolic LU: {e:?}")))?;
+        let unknowns = dofs.n;
+        let system = sb.build().map_err(|source| SimError::SymbolicLu { unknowns, source })?;
         Ok(Model { config, air, dofs, system, blocks, b, drum })
     }
 
@@ -534,9 +564,7 @@ fn drum_nodes(config: &ModelConfig) -> Result<Vec<(f64, f64)>, SimError> {
     let g = &config.geometry;
     match g.tm_shape {
         DrumShape::Axisymmetric => Ok(cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements)),
-        DrumShape::Manubrium { .. } if !config.reduce_drum => Err(SimError::Setup(
-            "the manubrium drum is always condensed (reduce_drum = false needs DrumShape::Axisymmetric)".into(),
-        )),
+        DrumShape::Manubrium { .. } if !config.reduce_drum => Err(SimError::DrumNotCondensed { shape: "Manubrium" }),
         DrumShape::Manubrium { .. } => Ok(Vec::new()),
     }
 }
@@ -912,5 +940,27 @@ impl Runner<'_> {
                 Ok(self.power_balance(theta, f))
             })
             .collect()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_uncondensed_manubrium_drum_is_refused_naming_the_setting() {
+        let mut config = ModelConfig { reduce_drum: false, ..ModelConfig::default() };
+        config.geometry.tm_shape = DrumShape::MANUBRIUM;
+        let Err(e) = Model::new(config) else { panic!("reduce_drum = false with the manubrium drum is refused") };
+        assert!(matches!(e, SimError::DrumNotCondensed { shape: "Manubrium" }), "{e:?}");
+        let msg = e.to_string();
+        assert!(msg.contains("reduce_drum = false") && msg.contains("Manubrium"), "{msg}");
+    }
+
+    #[test]
+    fn a_failed_symbolic_factorisation_names_the_system_and_faer_reason() {
+        let e = SimError::SymbolicLu { unknowns: 42, source: faer::sparse::FaerError::OutOfMemory };
+        assert_eq!(e.to_string(), "model setup failed: symbolic LU of the 42-unknown system: OutOfMemory");
+        assert!(std::error::Error::source(&e).is_some(), "faer's error is the source");
     }
 }
