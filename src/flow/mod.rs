@@ -20,9 +20,13 @@ pub struct FlowConfig {
     pub inputs: usize,
     /// Embedding hidden widths; empty = no embedding (the input is the context).
     pub embedding: Vec<usize>,
+    /// Coupling transforms, each with its own conditioner and permutation.
     pub transforms: usize,
+    /// Hidden width of each conditioner (and of its residual blocks).
     pub hidden: usize,
+    /// Spline bins per transformed coordinate: more bins bend the marginals more finely.
     pub bins: usize,
+    /// Splines act on [−bound, bound] (standardised units) and are the identity outside.
     pub bound: f64,
     /// Conditioner: 0 = an MLP with two hidden layers of `hidden` units; n > 0 = a
     /// residual net of n blocks (as nflows' ResidualNet in sbi's NSF: each block two
@@ -143,6 +147,7 @@ pub struct Mlp {
 }
 
 impl Mlp {
+    /// Layers `sizes[0] → sizes[1] → …`, weights drawn by burn's default initialiser.
     pub fn new(sizes: &[usize], device: &Device) -> Mlp {
         Mlp { layers: sizes.windows(2).map(|w| LinearConfig::new(w[0], w[1]).init(device)).collect() }
     }
@@ -168,6 +173,10 @@ impl Mlp {
             .collect()
     }
 
+    /// The layers applied to a batch.
+    ///
+    /// # Shapes
+    /// x: [batch, sizes[0]] → [batch, sizes[last]].
     pub fn forward(&self, mut x: Tensor<2>) -> Tensor<2> {
         let n = self.layers.len();
         for (i, l) in self.layers.iter().enumerate() {
@@ -180,6 +189,8 @@ impl Mlp {
     }
 }
 
+/// The trainable flow: the embedding net and one conditioner per coupling transform (the
+/// architecture itself is in the [`FlowConfig`] passed to each call).
 #[derive(Module, Debug)]
 pub struct Flow {
     embedding: Mlp,
@@ -187,6 +198,8 @@ pub struct Flow {
 }
 
 impl Flow {
+    /// A flow of architecture `cfg` with freshly drawn weights (residual conditioners
+    /// start their blocks' second layers near zero, so each block starts near identity).
     pub fn new(cfg: &FlowConfig, device: &Device) -> Flow {
         let mut emb = vec![cfg.inputs];
         emb.extend(&cfg.embedding);
@@ -220,6 +233,11 @@ impl Flow {
         }
     }
 
+    /// The context the conditioners see: the embedding of the (standardised) inputs, or
+    /// the inputs themselves without an embedding.
+    ///
+    /// # Shapes
+    /// x: [batch, inputs] → [batch, context].
     pub fn embed(&self, x: Tensor<2>) -> Tensor<2> {
         self.embedding.forward(x)
     }

@@ -15,7 +15,9 @@ const MIN_DERIVATIVE: f64 = 1e-3;
 /// One linear layer: y = x W + b, W [in × out].
 #[derive(Clone, Debug)]
 pub struct Dense {
+    /// Weights, [in × out] (burn's layout).
     pub w: Mat<f64>,
+    /// Bias, one per output.
     pub b: Vec<f64>,
 }
 
@@ -83,8 +85,11 @@ fn zeroupper() {
 /// The flow's weights and architecture.
 #[derive(Clone, Debug)]
 pub struct PlainFlow {
+    /// The architecture the weights belong to.
     pub cfg: FlowConfig,
+    /// The embedding net's layers (empty: no embedding).
     pub embedding: Vec<Dense>,
+    /// Each coupling transform's conditioner, layer by layer.
     pub conditioners: Vec<Vec<Dense>>,
 }
 
