@@ -14,7 +14,9 @@ use std::f64::consts::{PI, TAU};
 /// One observation with its per-feature noise standard deviation.
 #[derive(Clone, Debug)]
 pub struct Observation {
+    /// Features in the model's order; a non-finite one was not measured.
     pub x: Vec<f64>,
+    /// Noise standard deviation per feature: the residuals' unit.
     pub sigma: Vec<f64>,
 }
 
@@ -46,19 +48,24 @@ pub fn residuals(runner: &mut Runner<'_>, design: &Design, row: &[f64], obs: &Ob
     Some(on.map(|i| feature_residual(i, nf, x[i], obs.x[i]) / obs.sigma[i]).collect())
 }
 
+/// A converged (or stopped) least-squares fit of one observation.
 #[derive(Clone, Debug)]
 pub struct Fit {
     /// The best row (natural units, design column order).
     pub row: Vec<f64>,
     /// Σ r² at the best row.
     pub chi2: f64,
+    /// Observed features in the fit (the χ²'s terms).
     pub n_features: usize,
+    /// Levenberg–Marquardt steps taken.
     pub iterations: usize,
     /// Laplace standard deviation of each column in unbounded coordinates (from JᵀJ).
     pub u_std: Vec<f64>,
 }
 
 impl Fit {
+    /// χ² per degree of freedom (features minus fitted columns): ≈ 1 for a model that
+    /// explains the data to its noise.
     pub fn reduced_chi2(&self) -> f64 {
         self.chi2 / (self.n_features - self.row.len()) as f64
     }

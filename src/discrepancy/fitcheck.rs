@@ -35,6 +35,7 @@ pub struct FitCheck {
     pub ok: Option<bool>,
     /// The worst measure's own reduced χ² (name, value) and its null quantile.
     pub worst_measure: Option<(String, f64)>,
+    /// The null quantile `worst_measure` is held to (`None`: uncalibrated model).
     pub measure_threshold: Option<f64>,
     /// Where the observation leaves the 90 % posterior-predictive band (|z| > 2.5 over at
     /// least 3 neighbouring frequencies), measure × band × sign.
@@ -44,9 +45,11 @@ pub struct FitCheck {
     /// Mean squared standardised input feature (≈ 1 for training-like inputs), and its
     /// null quantile.
     pub input_score: f64,
+    /// `input_score`'s null quantile (`None`: uncalibrated model).
     pub input_threshold: Option<f64>,
     /// Features compared and posterior draws re-simulated.
     pub features: usize,
+    /// Posterior draws re-simulated for the predictive band.
     pub draws: usize,
     /// Why `ok` is false, in words.
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -59,8 +62,11 @@ pub enum FitCheckError {
     /// The model was trained on another simulator's features: nothing to re-simulate.
     #[error("the model's features or parameters are not otofit's simulator's; no fit check")]
     NotOtofit,
+    /// The default simulator could not be built (the message is kept as text because the
+    /// failure is cached for the process and shared by every request).
     #[error("the simulator could not be built: {0}")]
     Simulator(String),
+    /// The posterior or its null cases could not be computed.
     #[error("{0}")]
     Inference(String),
 }

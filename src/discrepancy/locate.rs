@@ -4,18 +4,27 @@
 use crate::sim::output::MEASURES;
 use serde::Serialize;
 
+/// One run of misfit: a measure's frequency band where the observation leaves the model
+/// on one side.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct Band {
+    /// The measure's name (as in `sim::output::MEASURES`).
     pub measure: &'static str,
+    /// Lowest frequency of the run, Hz.
     pub f_lo_hz: f64,
+    /// Highest frequency of the run, Hz.
     pub f_hi_hz: f64,
     /// +1: the measurement lies above the model; −1: below.
     pub sign: i8,
+    /// Mean standardised residual over the run: how far out it lies, in noise units.
     pub mean_z: f64,
+    /// Neighbouring features in the run.
     pub n_features: usize,
 }
 
 impl Band {
+    /// The band in one sentence for reports ("zec_mag above the model from 800 to 2000
+    /// Hz (mean z +3.1)").
     pub fn describe(&self) -> String {
         format!(
             "{} {} the model from {:.0} to {:.0} Hz (mean z {:+.1})",

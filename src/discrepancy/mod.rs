@@ -24,15 +24,22 @@ pub(crate) fn null_quantile(v: Vec<f64>, q: f64) -> f64 {
 /// One candidate effect's extended fit.
 #[derive(Clone, Debug, Serialize)]
 pub struct Candidate {
+    /// The effect's name (as in `sim::params::EFFECTS`).
     pub effect: &'static str,
+    /// The unit of `value` and `interval90`.
     pub unit: &'static str,
-    /// Fitted effect value and its approximate 90 % interval (Laplace, unbounded coords).
+    /// Fitted effect value.
     pub value: f64,
+    /// Its approximate 90 % interval (Laplace, in unbounded coordinates, mapped back).
     pub interval90: [f64; 2],
+    /// Σ r² of the extended fit.
     pub chi2: f64,
+    /// χ² per degree of freedom of the extended fit (compared with `Thresholds::explained`).
     pub reduced_chi2: f64,
     /// χ² drop against the base fit minus the BIC penalty ln(n) for one parameter.
     pub score: f64,
+    /// The extended fit itself (not reported: its row seeds the refits, its feature count
+    /// the penalty).
     #[serde(skip)]
     pub fit: Fit,
 }
@@ -128,8 +135,11 @@ pub fn fit_and_rank(
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Verdict {
+    /// The base model fits within its null: nothing to explain.
     NoDiscrepancy,
+    /// One candidate effect explains the misfit (the first ranked).
     EffectNamed,
+    /// The base model misfits and no candidate explains it: something not modelled.
     Unexplained,
 }
 
