@@ -15,6 +15,7 @@ use rayon::prelude::*;
 /// `fixed` sets the effects that are the same for every row.
 #[derive(Clone, Debug, Default)]
 pub struct Design {
+    /// Effects held at one value for every row (the rest are off unless varied).
     pub fixed: Effects,
     /// Indices into [`EFFECTS`] of the effects drawn per row (their ranges join the prior).
     pub varied: Vec<usize>,
@@ -26,6 +27,7 @@ impl Design {
         PARAMS.iter().copied().chain(self.varied.iter().map(|&i| EFFECTS[i].as_param())).collect()
     }
 
+    /// Columns per row: the parameters, then the varied effects.
     pub fn width(&self) -> usize {
         N_PARAMS + self.varied.len()
     }
@@ -55,8 +57,12 @@ impl Design {
 /// Gaussian measurement noise added to simulated features: `std` per feature × `scale`.
 #[derive(Clone, Debug)]
 pub struct Noise {
+    /// The 1× noise model: test–retest standard deviation per feature.
     pub std: Vec<f64>,
+    /// Multiplies `std` (0: noise-free features).
     pub scale: f64,
+    /// Seeds every row's own noise stream, so a row's noise does not depend on the thread
+    /// or chunk that simulated it.
     pub seed: u64,
 }
 

@@ -16,10 +16,16 @@ pub enum Area {
     /// Constant area, m².
     Uniform(f64),
     /// Radius varying linearly from `r0` at x = 0 to `r1` at x = L (a truncated cone).
-    Cone { r0: f64, r1: f64 },
+    Cone {
+        /// Radius at the probe end (x = 0), m.
+        r0: f64,
+        /// Radius at the eardrum end (x = L), m.
+        r1: f64,
+    },
 }
 
 impl Area {
+    /// Cross-section at `x` along a canal of `length`, m².
     pub fn at(&self, x: f64, length: f64) -> f64 {
         match *self {
             Area::Uniform(s) => s,
@@ -34,6 +40,7 @@ impl Area {
 /// A 1D canal mesh with its unit element matrices.
 #[derive(Clone, Debug)]
 pub struct CanalMesh {
+    /// Canal length from the probe to the eardrum, m.
     pub length: f64,
     /// Node positions from the probe (0) to the eardrum (`length`).
     pub x: Vec<f64>,
@@ -87,6 +94,7 @@ impl CanalMesh {
         mesh
     }
 
+    /// Nodes of the mesh (one pressure unknown each).
     pub fn n_nodes(&self) -> usize {
         self.x.len()
     }
@@ -138,9 +146,11 @@ impl CanalMesh {
 /// Termination of a stand-alone canal (for verification against closed forms).
 #[derive(Clone, Copy, Debug)]
 pub enum Load {
+    /// No flow through the end (a closed tube).
     Rigid,
     /// p = 0 at the end.
     Open,
+    /// p = Z·U at the end, Z in Pa·s/m³.
     Impedance(c64),
 }
 

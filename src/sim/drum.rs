@@ -16,9 +16,11 @@ use faer::{Mat, Side, c64};
 pub struct DrumModes {
     /// Modal masses μ_k = φ_kᵀ M φ_k (modal stiffnesses are 1 at E = 1 Pa).
     pub mu: Vec<f64>,
-    /// φ_kᵀ K_ib, φ_kᵀ M_ib (coupling of mode k to the umbo), φ_kᵀ b_i (swept volume).
+    /// φ_kᵀ K_ib: stiffness coupling of mode k to the umbo.
     pub kb: Vec<f64>,
+    /// φ_kᵀ M_ib: mass coupling of mode k to the umbo.
     pub mb: Vec<f64>,
+    /// φ_kᵀ b_i: volume mode k sweeps (its coupling to the pressures).
     pub bb: Vec<f64>,
 }
 
@@ -55,9 +57,13 @@ impl DrumError {
 /// cavity stiffness ρc²/V (0 when the cavity is open).
 #[derive(Clone, Copy, Debug)]
 pub struct DrumCoefficients {
+    /// Stiffness factor κ: E with its loss (complex for a lossy drum).
     pub kappa: c64,
+    /// Mass factor s = −ω².
     pub s: f64,
+    /// Flow factor jω (volume velocity from swept volume).
     pub jw: c64,
+    /// Cavity stiffness ρc²/V, Pa/m³ (0 when the cavity is open).
     pub cavity: f64,
 }
 

@@ -9,7 +9,9 @@ use std::f64::consts::PI;
 /// One measure (a block of the feature vector).
 #[derive(Clone, Copy, Debug, Serialize)]
 pub struct Measure {
+    /// Feature-name prefix (`<name>_<frequency index>`), as in datasets and requests.
     pub name: &'static str,
+    /// The unit of the features (magnitudes as log10 of the physical unit).
     pub unit: &'static str,
     /// Test–retest standard deviation at ≤ 2 kHz (simulator.md noise model).
     pub noise_std: f64,
@@ -26,6 +28,7 @@ pub struct Measure {
 /// The number of measures in a feature vector (five before umbo velocity joined).
 pub const N_MEASURES: usize = 7;
 
+/// The measures in feature-vector order, each a block of one value per frequency.
 pub const MEASURES: [Measure; N_MEASURES] = [
     Measure { name: "vst_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-11.0, -2.0) },
     Measure { name: "vst_phase", unit: "rad", noise_std: 0.10, envelope: (-6.0 * PI, 2.0 * PI) },

@@ -19,6 +19,7 @@ pub struct SystemBuilder {
 }
 
 impl SystemBuilder {
+    /// An empty pattern for `n` unknowns.
     pub fn new(n: usize) -> Self {
         SystemBuilder { n, blocks: Vec::new() }
     }
@@ -29,6 +30,8 @@ impl SystemBuilder {
         self.blocks.len() - 1
     }
 
+    /// Adds `value` at (`row`, `col`) to `block`: each block is later scaled by one
+    /// coefficient per parameter set and frequency.
     pub fn add(&mut self, block: usize, row: usize, col: usize, value: f64) {
         assert!(row < self.n && col < self.n, "entry ({row}, {col}) outside a {0}×{0} system", self.n);
         self.blocks[block].push((row, col, value));
@@ -75,6 +78,7 @@ fn abs_max(z: c64) -> f64 {
 
 /// A frozen pattern with its blocks (entries as value-array slots) and symbolic LU.
 pub struct System {
+    /// Unknowns.
     pub n: usize,
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
@@ -85,10 +89,18 @@ pub struct System {
 /// Why a solve failed.
 #[derive(Debug, thiserror::Error)]
 pub enum SolveError {
+    /// The numeric LU met a zero pivot.
     #[error("singular system at {freq_hz:.1} Hz")]
-    Singular { freq_hz: f64 },
+    Singular {
+        /// The frequency solved, Hz.
+        freq_hz: f64,
+    },
+    /// The solution has a NaN or infinite entry.
     #[error("non-finite solution at {freq_hz:.1} Hz")]
-    NonFinite { freq_hz: f64 },
+    NonFinite {
+        /// The frequency solved, Hz.
+        freq_hz: f64,
+    },
 }
 
 /// Per-thread buffers: matrix values, scalings, LU values, workspace.
@@ -98,18 +110,23 @@ pub struct Workspace {
     col_scale: Vec<f64>,
     numeric: NumericLu<usize, c64>,
     mem: MemBuffer,
+    /// The last solve's solution.
     pub x: Vec<c64>,
 }
 
 impl System {
+    /// Blocks, i.e. how many coefficients a solve takes.
     pub fn n_blocks(&self) -> usize {
         self.blocks.len()
     }
 
+    /// Stored entries of the pattern.
     pub fn nnz(&self) -> usize {
         self.row_idx.len()
     }
 
+    /// Buffers for one thread's solves, sized for this pattern (allocated once, reused
+    /// for every frequency).
     pub fn workspace(&self) -> Workspace {
         let req = StackReq::any_of(&[
             self.symbolic.factorize_numeric_lu_scratch::<c64>(Par::Seq, Default::default()),
