@@ -223,6 +223,7 @@ fn checkpoints_round_trip_and_bad_files_are_refused() {
     assert!(e.to_string().contains("expects 3"), "{e}");
     let e = model.log_prob(&obs, &[vec![0.0; 3]]).unwrap_err();
     assert!(e.to_string().contains("2 parameters"), "{e}");
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
