@@ -45,6 +45,15 @@ pub enum DrumError {
         /// The solver's own message, after ": ", when it gave one.
         detail: String,
     },
+    /// The sparse `matrix` could not be built from its entries (an index overflow or no
+    /// memory: the mesh is too large).
+    #[error("drum {matrix} matrix could not be assembled: {detail}")]
+    Assembly {
+        /// Which matrix.
+        matrix: &'static str,
+        /// faer's own message.
+        detail: String,
+    },
 }
 
 impl DrumError {
@@ -167,5 +176,11 @@ mod tests {
         let e = DrumError::eigen("mass", NoConvergence);
         assert_eq!(e, DrumError::Eigen { matrix: "mass", detail: "NoConvergence".into() });
         assert_eq!(e.to_string(), "mass eigen: NoConvergence");
+    }
+
+    #[test]
+    fn a_failed_assembly_names_its_matrix() {
+        let e = DrumError::Assembly { matrix: "stiffness", detail: "IndexOverflow".into() };
+        assert_eq!(e.to_string(), "drum stiffness matrix could not be assembled: IndexOverflow");
     }
 }

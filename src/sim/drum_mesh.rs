@@ -438,12 +438,14 @@ impl DrumFe {
     }
 
     /// Static interior solve K_ii(E = e) x = rhs (sparse Cholesky), for checks.
-    pub fn solve_static(&self, e: f64, rhs: &[f64]) -> Result<Vec<f64>, String> {
+    pub fn solve_static(&self, e: f64, rhs: &[f64]) -> Result<Vec<f64>, DrumError> {
         let trip: Vec<Triplet<usize, usize, f64>> =
             self.k_ii.iter().filter(|t| t.0 >= t.1).map(|&(i, j, v)| Triplet::new(i, j, e * v)).collect();
-        let k =
-            SparseColMat::<usize, f64>::try_new_from_triplets(self.n, self.n, &trip).map_err(|e| format!("{e:?}"))?;
-        let llt = k.sp_cholesky(Side::Lower).map_err(|e| format!("stiffness not positive definite: {e:?}"))?;
+        let k = SparseColMat::<usize, f64>::try_new_from_triplets(self.n, self.n, &trip)
+            .map_err(|e| DrumError::Assembly { matrix: "stiffness", detail: format!("{e:?}") })?;
+        let llt = k
+            .sp_cholesky(Side::Lower)
+            .map_err(|e| DrumError::NotPositiveDefinite { matrix: "stiffness", detail: format!(": {e:?}") })?;
         let x = llt.solve(Mat::from_fn(self.n, 1, |i, _| rhs[i]));
         Ok((0..self.n).map(|i| x[(i, 0)]).collect())
     }
@@ -731,6 +733,14 @@ mod tests {
             Dof::Free(i) => i,
             d => panic!("node {node} component {c} is {d:?}"),
         }
+    }
+
+    #[test]
+    fn a_static_solve_with_a_negative_modulus_names_the_stiffness() {
+        let (fe, _) = plate(2, 4.4e-3, &material(0.3));
+        let Err(e) = fe.solve_static(-1.0, &fe.b_i) else { panic!("E < 0 gives a negative definite K") };
+        assert!(matches!(e, DrumError::NotPositiveDefinite { matrix: "stiffness", .. }), "{e:?}");
+        assert!(e.to_string().starts_with("drum stiffness matrix is not positive definite: "), "{e}");
     }
 
     #[test]
