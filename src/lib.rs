@@ -4,6 +4,7 @@
 //! The numerical core (`sim`, `flow`, `npe`) is synchronous, takes plain data plus a
 //! config, and knows nothing of HTTP or SQL. `cli` holds the command-line glue.
 
+pub mod artifacts;
 pub mod bench;
 pub mod cli;
 pub mod dataset;
