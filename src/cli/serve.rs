@@ -155,7 +155,7 @@ pub async fn open_with(
 ) -> Result<Arc<Ctx>> {
     let db = Database::Sqlite(data_dir.join("otofit.db"));
     let queue = QueueBounds { queue: max_queue, per_tenant: max_queue };
-    open_db(&db, data_dir, default_model, queue, infer, jobs::JobSettings::default()).await
+    open_db(&db, data_dir, default_model, queue, infer, jobs::JobSettings::default(), None).await
 }
 
 /// Most dispatchers one process runs.
@@ -188,6 +188,14 @@ pub struct JobFlags {
     /// The longest wait between two attempts of a failing job.
     #[arg(long, default_value_t = 600.0)]
     pub retry_backoff_max_seconds: f64,
+    /// Where datasets, models and reports are kept: `s3://BUCKET/PREFIX` for
+    /// S3-compatible object storage (credentials, region, endpoint from the AWS_*
+    /// variables; AWS_ENDPOINT=http://HOST:PORT with AWS_ALLOW_HTTP=true for a local
+    /// server); a worker stores a job's files there when it succeeds and every process
+    /// fetches them into its data directory on first use. Default: the data directory
+    /// itself (shared by every process, e.g. a shared volume).
+    #[arg(long, env = "OTOFIT_ARTIFACTS")]
+    pub artifacts: Option<String>,
 }
 
 impl JobFlags {
@@ -238,8 +246,14 @@ pub fn queue_bounds(max_queue: i64, per_tenant: Option<i64>) -> Result<QueueBoun
 /// in the queue and removes their temporary files. With PostgreSQL the data directory is
 /// shared with other processes: no lock, and jobs of workers that died come back when
 /// their lease expires (`Store::reap_expired`).
-pub async fn open_state(db: &Database, data_dir: &Path, settings: jobs::JobSettings) -> Result<Ctx> {
+pub async fn open_state(
+    db: &Database,
+    data_dir: &Path,
+    settings: jobs::JobSettings,
+    artifacts: Option<&str>,
+) -> Result<Ctx> {
     std::fs::create_dir_all(data_dir).with_context(|| format!("cannot create {}", data_dir.display()))?;
+    let artifacts = crate::artifacts::Artifacts::open(artifacts, data_dir)?;
     let lock = match db {
         Database::Sqlite(_) => Some(lock_data_dir(data_dir)?),
         Database::Postgres(_) => None,
@@ -263,7 +277,7 @@ pub async fn open_state(db: &Database, data_dir: &Path, settings: jobs::JobSetti
             tracing::info!(files = stale, "removed temporary files of interrupted simulate jobs");
         }
     }
-    let ctx = Ctx::new(store, data_dir.to_path_buf(), 0).with_settings(settings);
+    let ctx = Ctx::new(store, data_dir.to_path_buf(), 0).with_settings(settings).with_artifacts(artifacts);
     Ok(match lock {
         Some(l) => ctx.with_lock(l),
         None => ctx,
@@ -278,8 +292,9 @@ pub async fn open_db(
     queue: QueueBounds,
     infer: http::InferLimits,
     settings: jobs::JobSettings,
+    artifacts: Option<&str>,
 ) -> Result<Arc<Ctx>> {
-    let mut ctx = open_state(db, data_dir, settings).await?;
+    let mut ctx = open_state(db, data_dir, settings, artifacts).await?;
     (ctx.max_queue, ctx.max_queue_per_tenant) = (queue.queue, queue.per_tenant);
     let store = &ctx.store;
     if default_model.exists() {
@@ -346,7 +361,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
         let default_model = resolve_default_model(&args.default_model);
-        let ctx = open_db(&database, &args.data_dir, &default_model, queue, limits, settings).await?;
+        let artifacts = args.jobs.artifacts.as_deref();
+        let ctx = open_db(&database, &args.data_dir, &default_model, queue, limits, settings, artifacts).await?;
         if !args.addr.ip().is_loopback() && keys.is_empty() && !ctx.store.has_keys().await? {
             tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
         }
@@ -356,7 +372,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
             .await
             .with_context(|| format!("cannot listen on {}", args.addr))?;
         let listener = http::conn::IdleTimeoutListener { inner, idle };
-        tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), database = %database.redacted(), workers = args.workers, ?limits, "otofit serving");
+        tracing::info!(addr = %args.addr, data_dir = %args.data_dir.display(), database = %database.redacted(), artifacts = %ctx.artifacts.describe(), workers = args.workers, ?limits, "otofit serving");
         let c2 = ctx.clone();
         let stopping = Arc::new(tokio::sync::Notify::new());
         let s2 = stopping.clone();

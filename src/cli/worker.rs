@@ -16,7 +16,8 @@ pub struct WorkerArgs {
     /// other workers) or `sqlite://PATH` (default: DATA_DIR/otofit.db).
     #[arg(long, env = "OTOFIT_DATABASE")]
     pub database: Option<String>,
-    /// Datasets, models and reports: the same directory (a shared volume) as the servers'.
+    /// Datasets, models and reports: the same directory (a shared volume) as the servers',
+    /// or this worker's scratch space with `--artifacts s3://…`.
     #[arg(long, default_value = "data")]
     pub data_dir: PathBuf,
     /// Jobs this process runs at once.
@@ -52,11 +53,12 @@ pub fn run(args: WorkerArgs) -> Result<()> {
     }
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
-        let ctx = Arc::new(open_state(&database, &args.data_dir, settings).await?);
+        let ctx = Arc::new(open_state(&database, &args.data_dir, settings, args.jobs.artifacts.as_deref()).await?);
         tracing::info!(
             worker = %ctx.worker,
             database = %database.redacted(),
             data_dir = %args.data_dir.display(),
+            artifacts = %ctx.artifacts.describe(),
             concurrency = args.concurrency,
             lease_seconds = settings.lease.as_secs_f64(),
             chunk_rows = settings.chunk_rows,

@@ -351,7 +351,7 @@ pub async fn get_dataset(
     Path(id): Path<String>,
 ) -> Result<Json<serde_json::Value>, Problem> {
     dataset_job(&st, &who, &id).await?;
-    let meta = tokio::fs::read(st.ctx.dataset_dir(&id).join("meta.json")).await.map_err(Problem::internal)?;
+    let meta = st.ctx.artifacts.read(&format!("datasets/{id}/meta.json")).await.map_err(Problem::internal)?;
     let meta: serde_json::Value = serde_json::from_slice(&meta).map_err(Problem::internal)?;
     Ok(Json(json!({
         "id": id,
@@ -374,7 +374,7 @@ pub async fn get_dataset_file(
         }
     };
     dataset_job(&st, &who, &id).await?;
-    let bytes = tokio::fs::read(st.ctx.dataset_dir(&id).join(&file)).await.map_err(Problem::internal)?;
+    let bytes = st.ctx.artifacts.read(&format!("datasets/{id}/{file}")).await.map_err(Problem::internal)?;
     let mut r = bytes.into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
     Ok(r)
@@ -398,8 +398,10 @@ pub async fn get_job_file(
     if visible_job(&st, &who, &id).await?.is_none() {
         return Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'")));
     }
-    let path = st.ctx.data_dir.join("reports").join(&id).join(&name);
-    let bytes = tokio::fs::read(&path)
+    let bytes = st
+        .ctx
+        .artifacts
+        .read(&format!("reports/{id}/{name}"))
         .await
         .map_err(|_| Problem::new(StatusCode::NOT_FOUND, format!("job '{id}' has no file '{name}'")))?;
     let mut r = bytes.into_response();

@@ -30,7 +30,7 @@ pub use train::TrainParams;
 
 use crate::npe::Npe;
 use crate::store::{JobRow, Store};
-use anyhow::{Result, anyhow, bail};
+use anyhow::{Context, Result, anyhow, bail};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -62,6 +62,9 @@ pub struct Ctx {
     pub chunk_rows: usize,
     /// Backoff of a failed attempt's retry.
     pub retry: Backoff,
+    /// Where datasets, models and reports are kept: the data directory (default) or an
+    /// object store (`--artifacts`), to which a job's files go when it succeeds.
+    pub artifacts: crate::artifacts::Artifacts,
 }
 
 /// How a `serve` or `worker` process runs jobs (its flags).
@@ -112,6 +115,7 @@ impl Ctx {
     pub fn new(store: Store, data_dir: PathBuf, max_queue: i64) -> Ctx {
         Ctx {
             store,
+            artifacts: crate::artifacts::Artifacts::local(&data_dir),
             data_dir,
             notify: Notify::new(),
             shutdown: AtomicBool::new(false),
@@ -152,18 +156,26 @@ impl Ctx {
         self
     }
 
+    /// Keeps artifacts in `artifacts` instead of the data directory alone.
+    pub fn with_artifacts(mut self, artifacts: crate::artifacts::Artifacts) -> Ctx {
+        self.artifacts = artifacts;
+        self
+    }
+
     /// Keeps `lock` (the data directory's lock file, locked) for the life of the context.
     pub fn with_lock(mut self, lock: std::fs::File) -> Ctx {
         self.data_lock = Some(lock);
         self
     }
 
-    /// A registered model, loaded once and shared.
+    /// A registered model, loaded once and shared. `path` is its row's: a file, or a URL
+    /// in the artifact store, fetched into the data directory on first use.
     pub fn loaded(&self, id: &str, path: &Path) -> Result<Arc<Npe>> {
         if let Some(m) = self.models.read().map_err(|_| anyhow!("model cache poisoned"))?.get(id) {
             return Ok(m.clone());
         }
-        let m = Arc::new(Npe::load(path)?);
+        let file = self.artifacts.model_file(&path.to_string_lossy())?;
+        let m = Arc::new(Npe::load(&file)?);
         self.models.write().map_err(|_| anyhow!("model cache poisoned"))?.insert(id.to_string(), m.clone());
         Ok(m)
     }
@@ -285,6 +297,14 @@ pub async fn dispatcher(ctx: Arc<Ctx>) {
                 ctx.metrics.claimed();
                 run(ctx.clone(), job).await
             }
+            // Chunks of other workers' jobs only where part files are shared: with an
+            // object store, workers need not share a data directory (parts are local).
+            Ok(None) if ctx.artifacts.is_remote() => {
+                tokio::select! {
+                    _ = ctx.notify.notified() => {}
+                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                }
+            }
             Ok(None) => match ctx.store.claim_chunk(None, &ctx.worker, ctx.lease).await {
                 Ok(Some(chunk)) => simulate::help(ctx.clone(), chunk).await,
                 Ok(None) => {
@@ -320,6 +340,16 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     let (c2, id2) = (ctx.clone(), job.id.clone());
     let mut handle = tokio::task::spawn_blocking(move || {
         let spec = spec.map_err(|e| anyhow!("the job's stored params do not read: {e}"))?;
+        // A dataset another worker made may be in the object store only.
+        if let JobSpec::Train(p) = &spec
+            && c2.artifacts.is_remote()
+        {
+            for f in crate::dataset::FILES {
+                c2.artifacts
+                    .fetch_blocking(&format!("datasets/{}/{f}", p.dataset))
+                    .with_context(|| format!("fetching dataset '{}' from the artifact store", p.dataset))?;
+            }
+        }
         spec.execute(&c2, &id2, &reporter)
     });
     // Intervals, not sleeps inside select!: progress messages must not starve the checks.
@@ -375,8 +405,13 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         Err(e) => fail(format!("worker panicked: {e}")).await,
         // Interrupted by shutdown: back to the queue, the attempt not counted.
         Ok(_) if cancelled && shutting_down => ("requeued", store.requeue(id, &token).await),
-        // A cancelled training still returns its best weights: that is a result.
-        Ok(Ok(doc)) => ("succeeded", store.finish(id, &token, "succeeded", None, Some(&doc)).await),
+        // A cancelled training still returns its best weights: that is a result. Its files
+        // go to the object store (if one is configured) before it shows as succeeded.
+        Ok(Ok(doc)) => match put_outputs(&ctx, id, &token, &mut renew).await {
+            Ok(()) => ("succeeded", store.finish(id, &token, "succeeded", None, Some(&doc)).await),
+            Err(e) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
+            Err(e) => fail(scrub(&ctx, &format!("{e:#}"))).await,
+        },
         Ok(Err(e)) if cancelled || e.is::<Stopped>() => {
             if makes_dataset {
                 simulate::clear_cancelled(&ctx, id, &token).await;
@@ -419,16 +454,41 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
         remove_temporary_files(&ctx.dataset_dir(&job.id), !matches!(label, "requeued" | "retried"));
     }
     if makes_model && let Ok(Some(j)) = ctx.store.job(&job.id).await {
-        let path = ctx.data_dir.join("models").join(format!("{}.otofit", job.id));
-        // Absolute: every process sharing the store (and the data directory, mounted at
-        // the same path) loads the model by this path, whatever its working directory.
+        let file = ctx.artifacts.local_path(&crate::artifacts::model_key(&job.id));
+        // An absolute path (every process sharing the data directory, mounted at the same
+        // path, loads the model there whatever its working directory) or the model's URL
+        // in the object store (every process fetches it from there).
         if j.state == "succeeded"
-            && let Ok(path) = std::fs::canonicalize(&path)
+            && file.exists()
+            && let Ok(path) = ctx.artifacts.model_ref(&job.id)
         {
-            let _ = ctx.store.add_model(&job.id, &path.display().to_string(), false, Some(&job.id)).await;
+            let _ = ctx.store.add_model(&job.id, &path, false, Some(&job.id)).await;
         }
     }
     tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
+}
+
+/// Stores a succeeded job's files in the object store (nothing to do for local
+/// artifacts), renewing the job's lease meanwhile: `Err(LeaseLost)` if it is lost.
+async fn put_outputs(ctx: &Ctx, id: &str, token: &str, renew: &mut tokio::time::Interval) -> Result<()> {
+    if !ctx.artifacts.is_remote() {
+        return Ok(());
+    }
+    let up = ctx.artifacts.put_job(id);
+    tokio::pin!(up);
+    loop {
+        tokio::select! {
+            res = &mut up => {
+                let keys = res.context("storing the job's files")?;
+                tracing::info!(job = %id, files = keys.len(), store = %ctx.artifacts.describe(), "job's files stored");
+                return Ok(());
+            }
+            _ = renew.tick() => if let Ok(false) = ctx.store.heartbeat(id, token, ctx.lease).await {
+                ctx.metrics.lease_lost();
+                bail!(LeaseLost);
+            },
+        }
+    }
 }
 
 /// A new job id: time-ordered, unguessable enough for a local service.

@@ -9,6 +9,7 @@ mod pg;
 mod physics;
 mod resume;
 mod retry;
+mod s3;
 mod sim;
 mod tenants;
 mod train_resume;
