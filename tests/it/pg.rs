@@ -153,7 +153,18 @@ pub(crate) async fn fresh_database() -> Option<String> {
     static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
     let name = format!("t{}_{}", std::process::id(), N.fetch_add(1, std::sync::atomic::Ordering::SeqCst));
     let admin = format!("postgres://postgres@127.0.0.1:{}/postgres", c.port);
-    let mut conn = sqlx::PgConnection::connect(&admin).await.expect("connect to the test cluster");
+    // A server that listens may still be starting up ("the database system is starting
+    // up"): connections are retried for a while before that counts as a failure.
+    let t0 = Instant::now();
+    let mut conn = loop {
+        match sqlx::PgConnection::connect(&admin).await {
+            Ok(conn) => break conn,
+            Err(_) if t0.elapsed() < Duration::from_secs(30) => {
+                tokio::time::sleep(Duration::from_millis(100)).await;
+            }
+            Err(e) => panic!("connect to the test cluster: {e}"),
+        }
+    };
     sqlx::query(sqlx::AssertSqlSafe(format!("CREATE DATABASE {name}"))).execute(&mut conn).await.unwrap();
     Some(format!("postgres://postgres@127.0.0.1:{}/{name}", c.port))
 }
