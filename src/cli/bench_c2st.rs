@@ -50,6 +50,9 @@ pub struct C2stArgs {
     /// Residual blocks per conditioner (0: plain MLP).
     #[arg(long)]
     pub blocks: Option<usize>,
+    /// An LU linear layer after each coupling (as sbi's NSF): true or false.
+    #[arg(long)]
+    pub lu: Option<bool>,
     /// Training batch size.
     #[arg(long)]
     pub batch: Option<usize>,
@@ -109,6 +112,7 @@ pub fn run(a: C2stArgs) -> Result<()> {
         },
         tail_bound: a.tail_bound.unwrap_or(d.tail_bound),
         blocks: a.blocks.unwrap_or(d.blocks),
+        lu: a.lu.unwrap_or(d.lu),
         batch: a.batch.unwrap_or(d.batch),
         lr: a.lr.unwrap_or(d.lr),
         lr_plateau: a.lr_plateau.unwrap_or(d.lr_plateau),

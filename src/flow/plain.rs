@@ -82,6 +82,93 @@ fn zeroupper() {
     std::arch::x86_64::_mm256_zeroupper();
 }
 
+/// An invertible affine map on each row: y = W u + b (a trained LU layer), with W⁻¹ and
+/// log |det W| computed once.
+#[derive(Clone, Debug)]
+pub struct Affine {
+    w: Mat<f64>,
+    inv: Mat<f64>,
+    b: Vec<f64>,
+    logdet: f64,
+}
+
+impl Affine {
+    /// The map of weight `w` (square, invertible), bias `b` and log |det w|.
+    pub fn new(w: Mat<f64>, b: Vec<f64>, logdet: f64) -> Affine {
+        let inv = invert(&w);
+        Affine { w, inv, b, logdet }
+    }
+
+    /// W⁻¹ row by row (for burn's sampling path in tests).
+    pub fn inverse_row_major(&self) -> Vec<f64> {
+        let d = self.b.len();
+        (0..d * d).map(|k| self.inv[(k / d, k % d)]).collect()
+    }
+
+    /// Every row u of `rows` (d wide) to W u + b, or back to W⁻¹ (u − b).
+    fn apply(&self, rows: &mut [f64], inverse: bool) {
+        let d = self.b.len();
+        let mut tmp = vec![0.0; d];
+        for row in rows.chunks_exact_mut(d) {
+            if inverse {
+                row.iter_mut().zip(&self.b).for_each(|(v, b)| *v -= b);
+            }
+            let m = if inverse { &self.inv } else { &self.w };
+            for (i, t) in tmp.iter_mut().enumerate() {
+                *t = (0..d).map(|j| m[(i, j)] * row[j]).sum::<f64>();
+            }
+            if !inverse {
+                tmp.iter_mut().zip(&self.b).for_each(|(v, b)| *v += b);
+            }
+            row.copy_from_slice(&tmp);
+        }
+    }
+
+    /// A gradient with respect to y back to u: g ← Wᵀ g, row by row.
+    fn back(&self, g: &mut [f64]) {
+        let d = self.b.len();
+        let mut tmp = vec![0.0; d];
+        for row in g.chunks_exact_mut(d) {
+            for (j, t) in tmp.iter_mut().enumerate() {
+                *t = (0..d).map(|i| self.w[(i, j)] * row[i]).sum::<f64>();
+            }
+            row.copy_from_slice(&tmp);
+        }
+    }
+}
+
+/// The inverse of a small invertible matrix by Gauss–Jordan elimination with partial
+/// pivoting (an LU layer's W = L U is well conditioned: its U diagonal is ≥ 1e-3).
+fn invert(w: &Mat<f64>) -> Mat<f64> {
+    let d = w.nrows();
+    let mut a = w.clone();
+    let mut inv = Mat::<f64>::identity(d, d);
+    for c in 0..d {
+        let p = (c..d).max_by(|&i, &j| a[(i, c)].abs().total_cmp(&a[(j, c)].abs())).unwrap_or(c);
+        for k in 0..d {
+            let (x, y) = (a[(c, k)], a[(p, k)]);
+            (a[(c, k)], a[(p, k)]) = (y, x);
+            let (x, y) = (inv[(c, k)], inv[(p, k)]);
+            (inv[(c, k)], inv[(p, k)]) = (y, x);
+        }
+        let pivot = a[(c, c)];
+        for k in 0..d {
+            a[(c, k)] /= pivot;
+            inv[(c, k)] /= pivot;
+        }
+        for r in (0..d).filter(|&r| r != c) {
+            let f = a[(r, c)];
+            if f != 0.0 {
+                for k in 0..d {
+                    a[(r, k)] -= f * a[(c, k)];
+                    inv[(r, k)] -= f * inv[(c, k)];
+                }
+            }
+        }
+    }
+    inv
+}
+
 /// The flow's weights and architecture.
 #[derive(Clone, Debug)]
 pub struct PlainFlow {
@@ -91,6 +178,8 @@ pub struct PlainFlow {
     pub embedding: Vec<Dense>,
     /// Each coupling transform's conditioner, layer by layer.
     pub conditioners: Vec<Vec<Dense>>,
+    /// The LU layer after each coupling transform (empty: none).
+    pub lu: Vec<Affine>,
 }
 
 /// The flow bound to one observation: the embedding and each conditioner's context
@@ -531,6 +620,10 @@ impl Bound<'_> {
         let tz: Vec<f64> = z.iter().map(|v| v * self.temperature).collect();
         let mut u = tz.clone();
         for t in (0..cfg.transforms).rev() {
+            if let Some(a) = self.flow.lu.get(t) {
+                a.apply(&mut u, true);
+                logdet.iter_mut().for_each(|l| *l += a.logdet);
+            }
             self.couple(t, &mut u, n, true, &mut logdet);
             permute(&mut u, &cfg.permutations[t], true);
         }
@@ -548,6 +641,10 @@ impl Bound<'_> {
         for t in 0..cfg.transforms {
             permute(&mut u, &cfg.permutations[t], false);
             self.couple(t, &mut u, n, false, &mut logdet);
+            if let Some(a) = self.flow.lu.get(t) {
+                a.apply(&mut u, false);
+                logdet.iter_mut().for_each(|l| *l += a.logdet);
+            }
         }
         u.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c, self.temperature) + ld).collect()
     }
@@ -574,6 +671,10 @@ impl Bound<'_> {
             let raw = self.raw_keeping(t, &a, n, Some(&mut acts));
             let before = u.clone();
             splines(&Splines { d, dc, bins: cfg.bins, bound: cfg.bound, inverse: false }, &mut u, &raw, &mut logdet);
+            if let Some(a) = self.flow.lu.get(t) {
+                a.apply(&mut u, false);
+                logdet.iter_mut().for_each(|l| *l += a.logdet);
+            }
             tape.push((before, acts, raw));
         }
         let t2 = self.temperature * self.temperature;
@@ -583,6 +684,9 @@ impl Bound<'_> {
         let mut g_raw = vec![0.0; dt * np * n];
         for t in (0..cfg.transforms).rev() {
             let (before, acts, raw) = &tape[t];
+            if let Some(a) = self.flow.lu.get(t) {
+                a.back(&mut g);
+            }
             for (((gc, bc), rc), grc) in g
                 .chunks_exact_mut(d)
                 .zip(before.chunks_exact(d))
@@ -615,11 +719,33 @@ mod tests {
     fn plain_path_matches_burn() {
         plain_path_matches_burn_for(FlowConfig::new(7, 12, true));
         plain_path_matches_burn_for(FlowConfig { blocks: 2, ..FlowConfig::new(7, 12, true) });
+        plain_path_matches_burn_for(FlowConfig { lu: true, ..FlowConfig::new(7, 12, true) });
+    }
+
+    /// A flow whose LU layers are far from their identity start (as after training).
+    fn with_random_lu(mut flow: Flow, d: usize, scale: f32) -> Flow {
+        use burn::module::Param;
+        let dev = Device::flex();
+        let r = |n: usize, s: usize, size: f32| -> Vec<f32> {
+            (0..n).map(|i| (((i + 13 * s) * 7919 % 101) as f32 / 101.0 - 0.5) * size * scale).collect()
+        };
+        for (k, lu) in flow.lu.iter_mut().enumerate() {
+            let t2 = |v: Vec<f32>| Param::from_tensor(Tensor::<2>::from_data(TensorData::new(v, [d, d]), &dev));
+            let t1 = |v: Vec<f32>| Param::from_tensor(Tensor::<1>::from_data(TensorData::new(v, [d]), &dev));
+            lu.lower = t2(r(d * d, k, 0.8));
+            lu.upper = t2(r(d * d, k + 1, 0.8));
+            // Around softplus⁻¹(1 − min), the identity's diagonal: each layer scales by
+            // 0.8–1.2, so that five of them keep the density on the tests' grids.
+            let s0 = ((1.0 - crate::flow::LU_MIN_DIAG).exp() - 1.0).ln() as f32;
+            lu.diag = t1(r(d, k + 2, 0.8).into_iter().map(|v| v + s0).collect());
+            lu.bias = t1(r(d, k + 3, 1.0));
+        }
+        flow
     }
 
     fn plain_path_matches_burn_for(cfg: FlowConfig) {
         let dev = Device::flex();
-        let flow = Flow::new(&cfg, &dev);
+        let flow = with_random_lu(Flow::new(&cfg, &dev), cfg.dim, 1.0);
         let plain = flow.plain(&cfg);
         let input: Vec<f32> = (0..12).map(|i| (i as f32 * 0.37).sin()).collect();
         let n = 64;
@@ -650,9 +776,13 @@ mod tests {
     /// splines' bound.
     #[test]
     fn log_prob_grad_matches_finite_differences() {
-        for cfg in [FlowConfig::new(5, 4, true), FlowConfig { blocks: 2, ..FlowConfig::new(4, 4, true) }] {
+        for cfg in [
+            FlowConfig::new(5, 4, true),
+            FlowConfig { blocks: 2, ..FlowConfig::new(4, 4, true) },
+            FlowConfig { lu: true, ..FlowConfig::new(5, 4, true) },
+        ] {
             let dev = Device::flex();
-            let plain = Flow::new(&cfg, &dev).plain(&cfg);
+            let plain = with_random_lu(Flow::new(&cfg, &dev), cfg.dim, 1.0).plain(&cfg);
             let bound = plain.bind(&[0.3, -0.2, 0.5, 1.1]).with_temperature(1.3);
             let d = cfg.dim;
             let v: Vec<f64> = (0..8 * d).map(|i| ((i * 7919 % 113) as f64 / 113.0 - 0.5) * 2.5 * cfg.bound).collect();
@@ -708,8 +838,8 @@ mod tests {
     #[test]
     fn tempered_flow_is_a_normalised_density_consistent_in_both_directions() {
         let dev = Device::flex();
-        let cfg = FlowConfig::new(2, 3, true);
-        let plain = Flow::new(&cfg, &dev).plain(&cfg);
+        let cfg = FlowConfig { lu: true, ..FlowConfig::new(2, 3, true) };
+        let plain = with_random_lu(Flow::new(&cfg, &dev), 2, 0.3).plain(&cfg);
         let bound = plain.bind(&[0.3, -0.2, 0.5]).with_temperature(1.7);
         let z: Vec<f64> = (0..64 * 2).map(|i| ((i * 7919 % 113) as f64 / 113.0 - 0.5) * 4.0).collect();
         let (v, lp) = bound.sample(&z);
@@ -717,7 +847,7 @@ mod tests {
             assert!((a - b).abs() < 1e-9, "one-pass log q {a} vs forward {b}");
         }
         // ∫ q_T dv = 1 on a grid wide enough for T = 1.7 (midpoint rule, 2-D).
-        let (h, half) = (0.05, 12.0);
+        let (h, half) = (0.05, 16.0);
         let m = (2.0 * half / h) as usize;
         let pts: Vec<f64> =
             (0..m * m).flat_map(|k| [-half + h * (0.5 + (k / m) as f64), -half + h * (0.5 + (k % m) as f64)]).collect();

@@ -52,6 +52,8 @@ pub struct TrainSettings {
     pub tail_bound: f64,
     /// Residual blocks per conditioner (0: a plain two-hidden-layer MLP).
     pub blocks: usize,
+    /// An LU linear layer after each coupling (`FlowConfig::lu`).
+    pub lu: bool,
     /// Learning rate halved after this many epochs without a better validation loss
     /// (counted again from each halving); 0: constant.
     pub lr_plateau: usize,
@@ -79,6 +81,7 @@ impl Default for TrainSettings {
             theta_map: ThetaMap::Scale,
             tail_bound: 3.0,
             blocks: 0,
+            lu: false,
             lr_plateau: 8,
             lr_drops: 0,
             ensemble: 1,
@@ -185,7 +188,8 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2)).sqrt().max(1e-9));
     }
     let flags = if s.mask_groups { ds.groups.len() } else { 0 } + if s.mask_bands { f } else { 0 };
-    let cfg = FlowConfig { bound: s.tail_bound, blocks: s.blocks, ..FlowConfig::new(d, f + flags, s.embedding) };
+    let cfg =
+        FlowConfig { bound: s.tail_bound, blocks: s.blocks, lu: s.lu, ..FlowConfig::new(d, f + flags, s.embedding) };
     Header {
         format_version: FORMAT_VERSION,
         otofit_version: env!("CARGO_PKG_VERSION").into(),
