@@ -10,17 +10,19 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// moto_server: `OTOFIT_MOTO_SERVER`, on PATH, or in the venv `.ci/run` makes.
+/// moto_server: `OTOFIT_MOTO_SERVER`, else in the venv `.ci/run` makes, else on PATH.
 fn moto_bin() -> Option<PathBuf> {
     if let Some(p) = std::env::var_os("OTOFIT_MOTO_SERVER") {
         return Some(PathBuf::from(p)).filter(|p| p.is_file());
     }
-    let on_path = std::env::var_os("PATH")
-        .and_then(|p| std::env::split_paths(&p).map(|d| d.join("moto_server")).find(|f| f.is_file()));
     let cache = std::env::var_os("XDG_CACHE_HOME")
         .map(PathBuf::from)
         .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")));
-    on_path.or_else(|| cache.map(|c| c.join("otofit/venv/bin/moto_server")).filter(|p| p.is_file()))
+    let venv = cache.map(|c| c.join("otofit/venv/bin/moto_server")).filter(|p| p.is_file());
+    venv.or_else(|| {
+        std::env::var_os("PATH")
+            .and_then(|p| std::env::split_paths(&p).map(|d| d.join("moto_server")).find(|f| f.is_file()))
+    })
 }
 
 fn free_port() -> u16 {
@@ -151,10 +153,11 @@ fn files_under(dir: &Path) -> Vec<String> {
     out
 }
 
-/// Issue 14.3: a worker with data directory A stores a simulate job's dataset, a train
-/// job's model and a resimulate job's report in S3 (moto); a `serve` with another data
-/// directory B (same PostgreSQL job table, no shared files) serves the dataset and the
-/// report from the store and answers /infer with the trained model, fetched into B.
+/// Issue 14.3: a worker with data directory A stores a simulate job's dataset in S3
+/// (moto); a worker with data directory C fetches it to train a model and stores the
+/// model and a resimulate job's report; a `serve` with data directory B (the same
+/// PostgreSQL job table, no shared files) serves the dataset and the report from the
+/// store and answers /infer with the trained model, fetched into B.
 #[test]
 fn a_server_with_another_data_directory_serves_what_a_worker_stored_in_s3() {
     let Some(moto) = start_moto() else { return };
@@ -172,7 +175,7 @@ fn a_server_with_another_data_directory_serves_what_a_worker_stored_in_s3() {
     let worker = otofit(&moto, &["worker", "--database", &url, "--data-dir", a.to_str().unwrap(), "--threads", "1"])
         .spawn()
         .unwrap();
-    let _procs = Procs(vec![serve, worker]);
+    let mut procs = Procs(vec![serve, worker]);
     let t0 = Instant::now();
     while raw(port, "GET", "/health", b"").is_none() {
         assert!(t0.elapsed() < Duration::from_secs(30), "serve did not start");
@@ -199,7 +202,15 @@ fn a_server_with_another_data_directory_serves_what_a_worker_stored_in_s3() {
     assert_eq!((status, ds["rows"].as_u64()), (200, Some(120)), "{ds}");
     assert!(!b.join("datasets").exists(), "the server has no dataset files of its own");
 
-    // A model trained by the worker, loaded by the server from the store.
+    // Worker A stops; worker C (its own data directory) trains on A's dataset, fetched
+    // from the store.
+    procs.0[1].kill().unwrap();
+    procs.0[1].wait().unwrap();
+    let c = temp_dir("s3c");
+    let other = ["worker", "--database", &url, "--data-dir", c.to_str().unwrap(), "--threads", "1"];
+    procs.0.push(otofit(&moto, &other).spawn().unwrap());
+
+    // A model trained by a worker, loaded by the server from the store.
     let train =
         json!({"kind": "train", "params": {"dataset": sim, "max_epochs": 2, "ensemble": 1, "mask_groups": true}});
     let (status, j) = json_of(port, "POST", "/jobs", Some(&train));
@@ -218,8 +229,13 @@ fn a_server_with_another_data_directory_serves_what_a_worker_stored_in_s3() {
     assert!(bucket_listing(&moto).contains(&format!("<Key>lab/models/{tid}.otofit</Key>")));
     assert_eq!(
         std::fs::read(&cached).unwrap(),
-        std::fs::read(a.join(format!("models/{tid}.otofit"))).unwrap(),
+        std::fs::read(c.join(format!("models/{tid}.otofit"))).unwrap(),
         "the server's cached copy is the worker's model"
+    );
+    assert_eq!(
+        std::fs::read(c.join(format!("datasets/{sim}/x.csv"))).unwrap(),
+        x,
+        "worker C trained on A's dataset, fetched from the store"
     );
 
     // A report (resimulate with an observation), served from the store.
@@ -243,5 +259,6 @@ fn a_server_with_another_data_directory_serves_what_a_worker_stored_in_s3() {
     let mut own = files_under(&b);
     own.retain(|f| !f.starts_with("otofit."));
     assert_eq!(own, [format!("models/{tid}.otofit")], "{own:?}");
-    let _ = (std::fs::remove_dir_all(&a), std::fs::remove_dir_all(&b));
+    drop(procs);
+    let _ = (std::fs::remove_dir_all(&a), std::fs::remove_dir_all(&b), std::fs::remove_dir_all(&c));
 }
