@@ -196,6 +196,15 @@ impl Mlp {
     }
 }
 
+/// Initialises every lazy parameter it visits.
+struct DrawNow;
+
+impl burn::module::ModuleVisitor for DrawNow {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let _ = param.val();
+    }
+}
+
 /// Smallest diagonal entry of an LU layer's U: keeps W invertible.
 pub const LU_MIN_DIAG: f64 = 1e-3;
 
@@ -298,6 +307,21 @@ impl Flow {
             conditioners: (0..cfg.transforms).map(|_| conditioner()).collect(),
             lu,
         }
+    }
+
+    /// [`Flow::new`] with every weight drawn now, from `seed` when given, under a lock
+    /// that other seeded constructions (trainings, tests) share: burn draws a parameter
+    /// lazily, at its first use, from one RNG per device, so a draw left for later, or
+    /// made while another thread re-seeds, would not follow the seed.
+    pub fn seeded(cfg: &FlowConfig, device: &Device, seed: Option<u64>) -> Flow {
+        static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
+        let _one_at_a_time = INIT.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(seed) = seed {
+            device.seed(seed);
+        }
+        let flow = Flow::new(cfg, device);
+        flow.visit(&mut DrawNow);
+        flow
     }
 
     /// A plain-Rust copy for inference.
@@ -425,8 +449,8 @@ mod tests {
     fn gradient_reaches_every_layer() {
         let dev = Device::flex().autodiff();
         let cfg = FlowConfig::new(7, 12, true);
-        dev.seed(7); // unseeded, a draw with many dead ReLUs failed the count now and then
-        let flow = Flow::new(&cfg, &dev);
+        // Seeded: a draw with many dead ReLUs failed the count now and then.
+        let flow = Flow::seeded(&cfg, &dev, Some(7));
         let before = flow.plain(&cfg);
         let n = 32;
         let u: Vec<f32> = (0..n * 7).map(|i| ((i * 7919 % 97) as f32 / 97.0 - 0.5) * 4.0).collect();

@@ -745,7 +745,7 @@ mod tests {
 
     fn plain_path_matches_burn_for(cfg: FlowConfig) {
         let dev = Device::flex();
-        let flow = with_random_lu(Flow::new(&cfg, &dev), cfg.dim, 1.0);
+        let flow = with_random_lu(Flow::seeded(&cfg, &dev, Some(1)), cfg.dim, 1.0);
         let plain = flow.plain(&cfg);
         let input: Vec<f32> = (0..12).map(|i| (i as f32 * 0.37).sin()).collect();
         let n = 64;
@@ -782,7 +782,7 @@ mod tests {
             FlowConfig { lu: true, ..FlowConfig::new(5, 4, true) },
         ] {
             let dev = Device::flex();
-            let plain = with_random_lu(Flow::new(&cfg, &dev), cfg.dim, 1.0).plain(&cfg);
+            let plain = with_random_lu(Flow::seeded(&cfg, &dev, Some(2)), cfg.dim, 1.0).plain(&cfg);
             let bound = plain.bind(&[0.3, -0.2, 0.5, 1.1]).with_temperature(1.3);
             let d = cfg.dim;
             let v: Vec<f64> = (0..8 * d).map(|i| ((i * 7919 % 113) as f64 / 113.0 - 0.5) * 2.5 * cfg.bound).collect();
@@ -839,7 +839,7 @@ mod tests {
     fn tempered_flow_is_a_normalised_density_consistent_in_both_directions() {
         let dev = Device::flex();
         let cfg = FlowConfig { lu: true, ..FlowConfig::new(2, 3, true) };
-        let plain = with_random_lu(Flow::new(&cfg, &dev), 2, 0.3).plain(&cfg);
+        let plain = with_random_lu(Flow::seeded(&cfg, &dev, Some(3)), 2, 0.3).plain(&cfg);
         let bound = plain.bind(&[0.3, -0.2, 0.5]).with_temperature(1.7);
         let z: Vec<f64> = (0..64 * 2).map(|i| ((i * 7919 % 113) as f64 / 113.0 - 0.5) * 4.0).collect();
         let (v, lp) = bound.sample(&z);

@@ -338,23 +338,7 @@ fn optimizer() -> ModuleOptimizer {
 /// drawn here, under the lock; otherwise the draws happened in the first training step,
 /// after another thread may have re-seeded the RNG or drawn from it.
 fn new_flow(cfg: &FlowConfig, device: &Device, seed: Option<u64>) -> Flow {
-    static INIT: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    let _one_at_a_time = INIT.lock().unwrap_or_else(|e| e.into_inner());
-    if let Some(seed) = seed {
-        device.seed(seed);
-    }
-    let flow = Flow::new(cfg, device);
-    flow.visit(&mut DrawNow);
-    flow
-}
-
-/// Initialises every lazy parameter it visits.
-struct DrawNow;
-
-impl burn::module::ModuleVisitor for DrawNow {
-    fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
-        let _ = param.val();
-    }
+    Flow::seeded(cfg, device, seed)
 }
 
 /// Everything a member's training reads.
