@@ -331,36 +331,95 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
     let token = job.lease_token.clone().unwrap_or_default();
     tracing::info!(job = %job.id, kind = %job.kind, attempt = job.attempts, worker = %ctx.worker, "job started");
     let cancel = Arc::new(AtomicBool::new(false));
-    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let (tx, rx) = tokio::sync::mpsc::unbounded_channel();
     let reporter = Reporter { tx, cancel: cancel.clone(), claim: (job.id.clone(), token.clone()) };
     let spec = JobSpec::of(&job);
     // What the job leaves behind: a dataset folder (simulate), a model (train, diagnose).
-    let makes_dataset = matches!(spec, Ok(JobSpec::Simulate(_)));
-    let makes_model = matches!(spec, Ok(JobSpec::Train(_) | JobSpec::Diagnose(_)));
-    let (c2, id2) = (ctx.clone(), job.id.clone());
-    let mut handle = tokio::task::spawn_blocking(move || {
+    let leaves = Leaves {
+        dataset: matches!(spec, Ok(JobSpec::Simulate(_))),
+        model: matches!(spec, Ok(JobSpec::Train(_) | JobSpec::Diagnose(_))),
+    };
+    let handle = start(ctx.clone(), job.id.clone(), spec, reporter);
+    let mut renew = tokio::time::interval(ctx.lease / 3);
+    renew.reset();
+    let (result, lost) = supervise(&ctx, &job, &token, &cancel, rx, handle, &mut renew).await;
+    let stop =
+        Stop { lost, cancelled: cancel.load(Ordering::Relaxed), shutting_down: ctx.shutdown.load(Ordering::Relaxed) };
+    let (label, outcome) = settle(&ctx, &job, &token, result, stop, leaves, &mut renew).await;
+    let label = match outcome {
+        Ok(true) => label,
+        Ok(false) => "lease_lost",
+        Err(_) => "not_saved",
+    };
+    ctx.metrics.job_ended(&job.kind, label, t0.elapsed().as_secs_f64());
+    let owned = match outcome {
+        Ok(owned) => owned,
+        Err(e) => {
+            tracing::error!(job = %job.id, error = %e, "job state not saved");
+            false
+        }
+    };
+    clean_up(&ctx, &job, &token, label, owned, leaves).await;
+    tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
+}
+
+/// What a job of some kind leaves behind.
+#[derive(Clone, Copy)]
+struct Leaves {
+    dataset: bool,
+    model: bool,
+}
+
+/// Why a job's run ended early, if it did.
+#[derive(Clone, Copy)]
+struct Stop {
+    lost: bool,
+    cancelled: bool,
+    shutting_down: bool,
+}
+
+/// The job's work on a blocking thread: its spec read, a train job's dataset fetched from
+/// the object store when another worker made it, then executed.
+fn start(
+    ctx: Arc<Ctx>,
+    id: String,
+    spec: Result<JobSpec, serde_json::Error>,
+    reporter: Reporter,
+) -> tokio::task::JoinHandle<Result<serde_json::Value>> {
+    tokio::task::spawn_blocking(move || {
         let spec = spec.map_err(|e| anyhow!("the job's stored params do not read: {e}"))?;
-        // A dataset another worker made may be in the object store only.
         if let JobSpec::Train(p) = &spec
-            && c2.artifacts.is_remote()
+            && ctx.artifacts.is_remote()
         {
             for f in crate::dataset::FILES {
-                c2.artifacts
+                ctx.artifacts
                     .fetch_blocking(&format!("datasets/{}/{f}", p.dataset))
                     .with_context(|| format!("fetching dataset '{}' from the artifact store", p.dataset))?;
             }
         }
-        spec.execute(&c2, &id2, &reporter)
-    });
+        spec.execute(&ctx, &id, &reporter)
+    })
+}
+
+/// Waits for the job's work while saving its progress, raising `cancel` on a cancel
+/// request or shutdown, and renewing its lease; returns the work's result and whether the
+/// lease was lost.
+async fn supervise(
+    ctx: &Ctx,
+    job: &JobRow,
+    token: &str,
+    cancel: &AtomicBool,
+    mut rx: tokio::sync::mpsc::UnboundedReceiver<(f64, String)>,
+    mut handle: tokio::task::JoinHandle<Result<serde_json::Value>>,
+    renew: &mut tokio::time::Interval,
+) -> (std::result::Result<Result<serde_json::Value>, tokio::task::JoinError>, bool) {
     // Intervals, not sleeps inside select!: progress messages must not starve the checks.
     let mut check = tokio::time::interval(Duration::from_millis(300));
-    let mut renew = tokio::time::interval(ctx.lease / 3);
-    renew.reset();
     let mut lost = false;
     let result = loop {
         tokio::select! {
             Some((p, m)) = rx.recv() => {
-                if let Err(e) = ctx.store.progress(&job.id, &token, p, &m).await {
+                if let Err(e) = ctx.store.progress(&job.id, token, p, &m).await {
                     tracing::warn!(job = %job.id, error = %e, "progress not saved");
                 }
             }
@@ -369,7 +428,7 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
                     cancel.store(true, Ordering::Relaxed);
                 }
             }
-            _ = renew.tick() => match ctx.store.heartbeat(&job.id, &token, ctx.lease).await {
+            _ = renew.tick() => match ctx.store.heartbeat(&job.id, token, ctx.lease).await {
                 Ok(true) => {}
                 Ok(false) => {
                     ctx.metrics.lease_lost();
@@ -383,77 +442,81 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
             res = &mut handle => break res,
         }
     };
-    let shutting_down = ctx.shutdown.load(Ordering::Relaxed);
-    let cancelled = cancel.load(Ordering::Relaxed);
+    (result, lost)
+}
+
+/// Records how the job ended (every end fenced by this worker's lease token, see
+/// `Store::finish`): (label, Ok(whether the job was still this worker's)).
+async fn settle(
+    ctx: &Ctx,
+    job: &JobRow,
+    token: &str,
+    result: std::result::Result<Result<serde_json::Value>, tokio::task::JoinError>,
+    stop: Stop,
+    leaves: Leaves,
+    renew: &mut tokio::time::Interval,
+) -> (&'static str, std::result::Result<bool, sqlx::Error>) {
     let store = &ctx.store;
-    // Every end is fenced by the lease token this worker claimed (see `Store::finish`).
     let id = job.id.as_str();
     // A failed attempt with attempts left goes back to the queue after a backoff.
     let backoff = ctx.retry.after(job.attempts);
-    let claim = token.as_str();
     let fail = |msg: String| async move {
-        match store.fail_or_retry(id, claim, &msg, backoff).await {
-            Ok(Some(state)) if state == "queued" => ("retried", Ok(true)),
+        match store.fail_or_retry(id, token, &msg, backoff).await {
+            Ok(Some(state)) if state == "queued" => {
+                tracing::warn!(job = %id, attempt = job.attempts, retry_in_s = backoff.as_secs_f64(), "job failed; retried after a backoff");
+                ("retried", Ok(true))
+            }
             Ok(Some(_)) => ("failed", Ok(true)),
             Ok(None) => ("failed", Ok(false)),
             Err(e) => ("failed", Err(e)),
         }
     };
-    let (label, outcome) = match result {
-        _ if lost => ("lease_lost", Ok(false)),
+    match result {
+        _ if stop.lost => ("lease_lost", Ok(false)),
         Ok(Err(e)) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
         Err(e) => fail(format!("worker panicked: {e}")).await,
         // Interrupted by shutdown: back to the queue, the attempt not counted.
-        Ok(_) if cancelled && shutting_down => ("requeued", store.requeue(id, &token).await),
+        Ok(_) if stop.cancelled && stop.shutting_down => ("requeued", store.requeue(id, token).await),
         // A cancelled training still returns its best weights: that is a result. Its files
         // go to the object store (if one is configured) before it shows as succeeded.
-        Ok(Ok(doc)) => match put_outputs(&ctx, id, &token, &mut renew).await {
-            Ok(()) => ("succeeded", store.finish(id, &token, "succeeded", None, Some(&doc)).await),
+        Ok(Ok(doc)) => match put_outputs(ctx, id, token, renew).await {
+            Ok(()) => ("succeeded", store.finish(id, token, "succeeded", None, Some(&doc)).await),
             Err(e) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
-            Err(e) => fail(scrub(&ctx, &format!("{e:#}"))).await,
+            Err(e) => fail(scrub(ctx, &format!("{e:#}"))).await,
         },
-        Ok(Err(e)) if cancelled || e.is::<Stopped>() => {
-            if makes_dataset {
-                simulate::clear_cancelled(&ctx, id, &token).await;
+        Ok(Err(e)) if stop.cancelled || e.is::<Stopped>() => {
+            if leaves.dataset {
+                simulate::clear_cancelled(ctx, id, token).await;
             }
-            ("cancelled", store.finish(id, &token, "cancelled", None, None).await)
+            ("cancelled", store.finish(id, token, "cancelled", None, None).await)
         }
-        Ok(Err(e)) => fail(scrub(&ctx, &format!("{e:#}"))).await,
-    };
-    if label == "retried" {
-        tracing::warn!(job = %job.id, attempt = job.attempts, retry_in_s = backoff.as_secs_f64(), "job failed; retried after a backoff");
+        Ok(Err(e)) => fail(scrub(ctx, &format!("{e:#}"))).await,
     }
-    let label = match outcome {
-        Ok(true) => label,
-        Ok(false) => "lease_lost",
-        Err(_) => "not_saved",
-    };
-    ctx.metrics.job_ended(&job.kind, label, t0.elapsed().as_secs_f64());
-    if makes_dataset {
+}
+
+/// After the job's end is recorded: this attempt's staging folder goes; if the job was
+/// still this worker's, a simulate job's leftovers go and a succeeded model is registered.
+async fn clean_up(ctx: &Ctx, job: &JobRow, token: &str, label: &str, owned: bool, leaves: Leaves) {
+    if leaves.dataset {
         // This attempt's staging folder: moved into place on success, else left over.
-        let staging = simulate::staging_dir(&ctx.dataset_dir(&job.id), &token);
+        let staging = simulate::staging_dir(&ctx.dataset_dir(&job.id), token);
         if staging.exists() {
             let _ = std::fs::remove_dir_all(&staging);
         }
     }
-    let owned = match outcome {
-        Ok(owned) => owned,
-        Err(e) => {
-            tracing::error!(job = %job.id, error = %e, "job state not saved");
-            false
-        }
-    };
     if !owned {
         // Another worker holds the job now: its files and its model are its own.
         tracing::warn!(job = %job.id, attempt = job.attempts, "the job is no longer this worker's; its outcome is dropped");
         return;
     }
-    if makes_dataset {
+    if leaves.dataset {
         // Ended: its parts and the leftovers of earlier attempts are garbage now. Re-queued
         // (shutdown, a retry): the finished parts stay, the next attempt resumes from them.
         remove_temporary_files(&ctx.dataset_dir(&job.id), !matches!(label, "requeued" | "retried"));
     }
-    if makes_model && let Ok(Some(j)) = ctx.store.job(&job.id).await {
+    if leaves.model
+        && let Ok(Some(j)) = ctx.store.job(&job.id).await
+    {
         let file = ctx.artifacts.local_path(&crate::artifacts::model_key(&job.id));
         // An absolute path (every process sharing the data directory, mounted at the same
         // path, loads the model there whatever its working directory) or the model's URL
@@ -465,7 +528,6 @@ async fn run(ctx: Arc<Ctx>, job: JobRow) {
             let _ = ctx.store.add_model(&job.id, &path, false, Some(&job.id)).await;
         }
     }
-    tracing::info!(job = %job.id, seconds = t0.elapsed().as_secs_f64(), "job ended");
 }
 
 /// Stores a succeeded job's files in the object store (nothing to do for local
