@@ -77,7 +77,10 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
         ..Settings::default()
     };
     let stages = super::progress::Progress::stages("diagnose");
-    let report = diagnose(&model, &base, &x, &s, &mut |m| stages.message(m))?;
+    let n = crate::discrepancy::workflow::STAGES.len();
+    let report = diagnose(&model, &base, &x, &s, &mut |m| {
+        stages.message(&format!("stage {} of {n}: {m}", crate::discrepancy::workflow::stage_of(m) + 1))
+    })?;
     stages.finish();
     let model_path = args.out.join("extended.otofit");
     let links = Links {

@@ -349,6 +349,15 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, given: &[bool],
     Ok(Thresholds { base_reduced_chi2: quantile(chi), best_drop: quantile(drops), explained: 1.5 })
 }
 
+/// The workflow's stages, in order, as its progress messages start.
+pub const STAGES: [&str; 6] = ["fit", "check", "null", "name", "add", "training"];
+
+/// The stage (index into [`STAGES`]) a progress message of [`diagnose`] belongs to (by
+/// its first word: "name: fitting …" is the naming stage, not the fit).
+pub fn stage_of(message: &str) -> usize {
+    STAGES.iter().position(|s| message.starts_with(s)).unwrap_or(0)
+}
+
 /// Runs the workflow for one observation (features in otofit's order) with a base model.
 pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &mut dyn FnMut(&str)) -> Result<Report> {
     let t0 = std::time::Instant::now();
@@ -488,4 +497,18 @@ fn decide(
     };
     let named = (v == Verdict::EffectNamed).then_some(candidate).flatten();
     (v, named)
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn each_progress_message_names_its_stage() {
+        let stage = |m: &str| super::STAGES[super::stage_of(m)];
+        assert_eq!(stage("fit: base posterior"), "fit");
+        assert_eq!(stage("check: posterior predictive"), "check");
+        assert_eq!(stage("name: fitting candidate effects"), "name");
+        assert_eq!(stage("null distribution of the statistics"), "null");
+        assert_eq!(stage("add: simulating 10000 rows with cavity in the prior"), "add");
+        assert_eq!(stage("training the extended model: epoch 3 val 1.2"), "training");
+    }
 }

@@ -99,11 +99,10 @@ pub(super) fn execute(ctx: &Ctx, job_id: &str, p: &DiagnoseParams, r: &Reporter)
         ..Settings::default()
     };
     let model = Model::new(ModelConfig::default())?;
-    let steps = ["fit", "check", "null", "name", "add", "training"];
     let x: Vec<f64> = p.x.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
     let report = diagnose(&model, &base, &x, &s, &mut |m| {
-        let k = steps.iter().position(|s| m.contains(s)).unwrap_or(0);
-        let _ = r.report(k as f64 / steps.len() as f64, m.to_string());
+        let k = crate::discrepancy::workflow::stage_of(m);
+        let _ = r.report(k as f64 / crate::discrepancy::workflow::STAGES.len() as f64, m.to_string());
     })
     .map_err(|e| match e {
         crate::discrepancy::DiagnoseError::Cancelled => Stopped.into(),
