@@ -11,7 +11,7 @@
 //!
 //! `OTOFIT_FUZZ_SEED` and `OTOFIT_FUZZ_EXAMPLES` change the seed and the count.
 
-use crate::pg::{backends, ctx_on, temp_dir};
+use crate::pg::{TempDir, backends, ctx_on, temp_dir};
 use axum::Router;
 use axum::body::Body;
 use axum::http::{HeaderValue, Request, StatusCode, header};
@@ -110,7 +110,10 @@ struct World {
 
 /// A keyed server on `db`: tenants alpha and beta, an admin key and an `--api-key-hash`
 /// key; alpha owns a succeeded simulate job (its dataset and report) and a model.
-async fn keyed_app(name: &str, db: &otofit::store::Database) -> (Router, Arc<Ctx>, Vec<Option<String>>, String) {
+async fn keyed_app(
+    name: &str,
+    db: &otofit::store::Database,
+) -> (Router, Arc<Ctx>, Vec<Option<String>>, String, TempDir) {
     let store = otofit::store::Store::connect(db).await.unwrap();
     let data = temp_dir(&format!("fuzz-{name}"));
     let path = std::fs::canonicalize(crate::http::default_model()).unwrap();
@@ -126,14 +129,14 @@ async fn keyed_app(name: &str, db: &otofit::store::Database) -> (Router, Arc<Ctx
     std::fs::write(ctx.dataset_dir(&ja).join("theta.csv"), "1\n").unwrap();
     ctx.store.add_model("ma", &path.display().to_string(), false, Some(&ja)).await.unwrap();
     let keys = [alpha.clone(), alpha, beta, admin, "cli-key".into()].map(Some);
-    (app, ctx, keys.into(), ja)
+    (app, ctx, keys.into(), ja, data)
 }
 
-/// A keyless server (the Host guard instead of keys) on SQLite.
-async fn keyless_app() -> Router {
+/// A keyless server (the Host guard instead of keys) on SQLite, and its data dir's guard.
+async fn keyless_app() -> (Router, TempDir) {
     let data = temp_dir("fuzz-keyless");
     let ctx = otofit::cli::serve::open(&data, &crate::http::default_model(), 1_000_000).await.unwrap();
-    router(AppState::new(ctx, vec![]))
+    (router(AppState::new(ctx, vec![])), data)
 }
 
 /// One generated request, kept to be shown when its answer breaks the contract.
@@ -560,10 +563,13 @@ async fn contract_fuzzing_finds_no_5xx_and_only_problem_errors() {
     );
     let mut failures = vec![];
     for (backend, db) in backends().await {
-        let (app, ctx, keys, ja) = keyed_app(&backend, &db).await;
+        let (app, _ctx, keys, ja, _data) = keyed_app(&backend, &db).await;
         let mut apps = vec![(backend.clone(), app, keys)];
+        let mut _keyless_data = None;
         if backend == "sqlite" {
-            apps.push(("sqlite keyless".into(), keyless_app().await, vec![None]));
+            let (keyless, data) = keyless_app().await;
+            apps.push(("sqlite keyless".into(), keyless, vec![None]));
+            _keyless_data = Some(data);
         }
         let theta: Vec<f64> = otofit::sim::params::PARAMS.iter().map(|p| p.nominal).collect();
         let mut w =
@@ -602,7 +608,6 @@ async fn contract_fuzzing_finds_no_5xx_and_only_problem_errors() {
                 t.elapsed().as_secs_f64()
             );
         }
-        let _ = std::fs::remove_dir_all(&ctx.data_dir);
     }
     eprintln!("fuzz: {:.1} s in all", t0.elapsed().as_secs_f64());
     for f in failures.iter().take(20) {

@@ -1,5 +1,6 @@
 //! The service through its router (no sockets): contract, validation, jobs, auth.
 
+use crate::pg::{TempDir, temp_dir};
 use axum::Router;
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
@@ -16,19 +17,15 @@ pub(crate) fn default_model() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")
 }
 
-async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Arc<Ctx>) {
-    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-    let dir = std::env::temp_dir().join(format!(
-        "otofit-http-{}-{}",
-        std::process::id(),
-        N.fetch_add(1, std::sync::atomic::Ordering::SeqCst)
-    ));
-    let _ = std::fs::remove_dir_all(&dir);
+/// A router on a fresh data dir, removed when the returned guard is dropped (keep it for the
+/// whole test).
+async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Arc<Ctx>, TempDir) {
+    let dir = temp_dir("http");
     let ctx = otofit::cli::serve::open(&dir, &default_model(), max_queue).await.unwrap();
     if dispatch {
         tokio::spawn(jobs::dispatcher(ctx.clone()));
     }
-    (router(AppState::new(ctx.clone(), keys)), ctx)
+    (router(AppState::new(ctx.clone(), keys)), ctx, dir)
 }
 
 async fn call(
@@ -109,7 +106,7 @@ fn openapi_lists_exactly_the_served_routes() {
 
 #[tokio::test]
 async fn spec_examples_are_answered_as_documented() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let examples = spec_examples();
     let infer = &examples.iter().find(|(p, _)| p == "/infer").unwrap().1;
     let (status, _, body) = call(&app, "POST", "/infer", Some(infer.clone())).await;
@@ -151,7 +148,7 @@ async fn spec_examples_are_answered_as_documented() {
 
 #[tokio::test]
 async fn bad_requests_get_problems_that_name_the_field() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let f = [200.0, 1000.0, 900.0, 8000.0];
     let body = json!({"measurements": {"absorbance": {"frequencies_hz": f, "values": [0.1, 0.5, 0.6, 0.3]}}});
     let (status, headers, p) = call(&app, "POST", "/infer", Some(body)).await;
@@ -221,7 +218,7 @@ async fn wait(app: &Router, id: &str) -> Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn simulate_train_and_infer_through_jobs() {
-    let (app, _) = app(vec![], 8, true).await;
+    let (app, _, _dir) = app(vec![], 8, true).await;
     let (_, _, j) =
         call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 120, "seed": 3}}))).await;
     let id = j["id"].as_str().unwrap().to_string();
@@ -298,7 +295,7 @@ async fn text(app: &Router, uri: &str) -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn cancel_recover_and_queue_limits() {
-    let (app, ctx) = app(vec![], 2, true).await;
+    let (app, ctx, _dir) = app(vec![], 2, true).await;
     let (_, _, j) =
         call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 100000, "seed": 1}}))).await;
     let id = j["id"].as_str().unwrap().to_string();
@@ -310,7 +307,7 @@ async fn cancel_recover_and_queue_limits() {
     assert!(!ctx.dataset_dir(&id).join("x.csv").exists() && !ctx.dataset_dir(&id).join("x.csv.tmp").exists());
     assert_eq!(call(&app, "POST", &format!("/jobs/{id}/cancel"), None).await.0, StatusCode::CONFLICT);
     // Queue bound: two queued jobs fill a queue of 2 (no dispatcher claims them here).
-    let (app2, ctx2) = self::app(vec![], 2, false).await;
+    let (app2, ctx2, _dir2) = self::app(vec![], 2, false).await;
     for _ in 0..2 {
         assert_eq!(
             call(&app2, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 10}}))).await.0,
@@ -342,7 +339,7 @@ async fn cancel_recover_and_queue_limits() {
 async fn api_keys_guard_every_route_but_health() {
     use sha2::Digest;
     let hash: [u8; 32] = sha2::Sha256::digest(b"s3cret").into();
-    let (app, _) = app(vec![hash], 8, false).await;
+    let (app, _, _dir) = app(vec![hash], 8, false).await;
     assert_eq!(call(&app, "GET", "/health", None).await.0, StatusCode::OK);
     assert_eq!(call(&app, "GET", "/models", None).await.0, StatusCode::UNAUTHORIZED);
     let with = |key: &str| {
@@ -356,7 +353,7 @@ async fn api_keys_guard_every_route_but_health() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn diagnose_job_writes_a_report_with_figures() {
-    let (app, _) = app(vec![], 8, true).await;
+    let (app, _, _dir) = app(vec![], 8, true).await;
     let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
     let mut fx = otofit::sim::Effects::default();
     fx.set("probe_leak", 3e-4).unwrap();
@@ -430,8 +427,7 @@ fn start(port: u16, dir: &std::path::Path) -> std::process::Child {
 #[test]
 fn a_job_killed_with_sigkill_is_requeued_and_completes_after_restart() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let dir = std::env::temp_dir().join(format!("otofit-kill-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("kill");
     let mut server = start(port, &dir);
     let (status, job) =
         http(port, "POST", "/jobs", Some(r#"{"kind":"simulate","params":{"n":40000,"seed":2}}"#)).unwrap();
@@ -465,7 +461,7 @@ fn a_job_killed_with_sigkill_is_requeued_and_completes_after_restart() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn poison_pill_theta_is_refused_and_extreme_allowed_rows_finish() {
-    let (app, _ctx) = app(vec![], 8, true).await;
+    let (app, _ctx, _dir) = app(vec![], 8, true).await;
     // Issue 13: these values once looped the figure code forever, allocating without bound.
     let pill = json!({"kind": "resimulate", "params": {"theta": [vec![1e-308; 7]]}});
     let (status, _, body) = call(&app, "POST", "/jobs", Some(pill)).await;
@@ -507,7 +503,7 @@ fn scaled(mut req: Value, measure: &str, key: &str, k: f64) -> Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wrong_units_are_rejected_with_the_field_or_converted_when_declared() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let deg = 180.0 / std::f64::consts::PI;
     // Degrees sent as radians: rejected, the field named, the unit suggested.
     for measure in ["impedance", "stapes_velocity"] {
@@ -569,7 +565,7 @@ async fn wrong_units_are_rejected_with_the_field_or_converted_when_declared() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_inference_carries_a_fit_check_and_withdraws_readings_when_the_model_does_not_fit() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     // The nominal ear: the model fits it, and no parameter is read as abnormal.
     let (status, _, body) = call(&app, "POST", "/infer", Some(nominal_request())).await;
     assert_eq!(status, StatusCode::OK, "{body}");
@@ -608,7 +604,7 @@ async fn every_inference_carries_a_fit_check_and_withdraws_readings_when_the_mod
 /// are one statement).
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn concurrent_job_posts_never_exceed_the_queue_limit() {
-    let (app, ctx) = app(vec![], 8, false).await;
+    let (app, ctx, _dir) = app(vec![], 8, false).await;
     let job = json!({"kind": "simulate", "params": {"n": 10}});
     for _ in 0..7 {
         assert_eq!(call(&app, "POST", "/jobs", Some(job.clone())).await.0, StatusCode::ACCEPTED);
@@ -640,7 +636,7 @@ async fn concurrent_job_posts_never_exceed_the_queue_limit() {
 /// `default` is the registered default model; errors name the id, not server paths.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn diagnose_models_are_registered_ids_never_paths() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let diag =
         |model: Value, x: Value| json!({"kind": "diagnose", "params": {"model": model, "x": x, "extend": false}});
     for bad in ["../../../../etc/model", "/etc/passwd", "a/b", "", &"m".repeat(65)] {
@@ -659,7 +655,7 @@ async fn diagnose_models_are_registered_ids_never_paths() {
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.x")));
     assert!(p["errors"][0]["message"].as_str().unwrap().contains("model 'default' takes 350"), "{p}");
     // Jobs queued without that check (an older server) fail naming the id, no path.
-    let (_, ctx2) = self::app(vec![], 8, false).await;
+    let (_, ctx2, _dir2) = self::app(vec![], 8, false).await;
     let dir = ctx2.data_dir.display().to_string();
     let cases = [
         ("t1", "../../../../etc/model", "model '../../../../etc/model' is not registered"),
@@ -704,7 +700,7 @@ fn a_cancelled_diagnose_stops_within_30_s_and_writes_nothing() {
 }
 
 async fn cancel_diagnoses() {
-    let (app, ctx) = app(vec![], 8, true).await;
+    let (app, ctx, _dir) = app(vec![], 8, true).await;
     let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
     let mut fx = otofit::sim::Effects::default();
     fx.set("probe_leak", 3e-4).unwrap();
@@ -790,8 +786,7 @@ fn exit_within(child: &mut std::process::Child, secs: u64) -> Option<std::proces
 #[test]
 fn a_second_server_on_the_same_data_dir_refuses_to_start() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let dir = std::env::temp_dir().join(format!("otofit-lock-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("lock");
     let mut first = Reap(start(port, &dir));
     assert_eq!(http(port, "GET", "/health", None).unwrap().0, 200);
     let port2 = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
@@ -842,7 +837,7 @@ fn wbt_request(f0: f64, f1: f64) -> Value {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wideband_tympanometry_alone_on_a_sub_band_gets_a_posterior() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let (status, _, body) = call(&app, "POST", "/infer", Some(wbt_request(226.0, 8000.0))).await;
     assert_eq!(status, StatusCode::OK, "{body}");
     assert_eq!(body["inputs"]["used"], json!(["impedance", "absorbance"]));
@@ -883,7 +878,7 @@ fn clinic_request() -> Value {
 /// posterior of the tissue parameters on average, and its fields are checked by name.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wideband_tympanometry_with_umbo_ldv_gets_a_narrower_posterior() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let (status, _, wbt) = call(&app, "POST", "/infer", Some(wbt_request(226.0, 8000.0))).await;
     assert_eq!(status, StatusCode::OK, "{wbt}");
     let (status, _, both) = call(&app, "POST", "/infer", Some(clinic_request())).await;
@@ -911,13 +906,10 @@ async fn wideband_tympanometry_with_umbo_ldv_gets_a_narrower_posterior() {
 }
 
 /// A router whose /infer has the given limits (its own data dir).
-async fn limited_app(limits: otofit::http::InferLimits) -> Router {
-    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-    let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-    let dir = std::env::temp_dir().join(format!("otofit-limits-{}-{n}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+async fn limited_app(limits: otofit::http::InferLimits) -> (Router, TempDir) {
+    let dir = temp_dir("limits");
     let ctx = otofit::cli::serve::open_with(&dir, &default_model(), 8, limits).await.unwrap();
-    router(AppState::new(ctx, vec![]))
+    (router(AppState::new(ctx, vec![])), dir)
 }
 
 /// Issue 13.3: /infer runs at most `concurrency` at once with a short queue, answers 503 +
@@ -929,7 +921,7 @@ async fn infer_is_bounded_in_concurrency_and_time() {
     let mut req = nominal_request();
     req["samples"] = json!(20000);
     req["return_samples"] = json!(false);
-    let app = limited_app(InferLimits { concurrency: 1, queue: 1, deadline: secs(60) }).await;
+    let (app, _dir) = limited_app(InferLimits { concurrency: 1, queue: 1, deadline: secs(60) }).await;
     let calls: Vec<_> = (0..8)
         .map(|_| {
             let (app, req) = (app.clone(), req.clone());
@@ -952,7 +944,7 @@ async fn infer_is_bounded_in_concurrency_and_time() {
     }
     assert!(ok >= 2 && busy >= 1 && ok + busy == 8, "{ok} answered, {busy} turned away");
     // Past the deadline: 503 with Retry-After, not a connection held open.
-    let app =
+    let (app, _dir2) =
         limited_app(InferLimits { concurrency: 1, queue: 1, deadline: std::time::Duration::from_millis(5) }).await;
     let (status, headers, body) = call(&app, "POST", "/infer", Some(req)).await;
     assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{body}");
@@ -966,8 +958,7 @@ async fn infer_is_bounded_in_concurrency_and_time() {
 fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
     use std::io::{Read, Write};
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let dir = std::env::temp_dir().join(format!("otofit-idle-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("idle");
     let mut server = Reap(
         std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
             .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap()])
@@ -1024,7 +1015,7 @@ fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
 #[tokio::test]
 async fn contract_gaps_are_closed() {
     use sha2::Digest;
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let problem = |h: &axum::http::HeaderMap| h[header::CONTENT_TYPE] == "application/problem+json";
     let (status, headers, p) = call(&app, "DELETE", "/jobs", None).await;
     assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED);
@@ -1060,7 +1051,7 @@ async fn contract_gaps_are_closed() {
     let (status, _, p) = call(&app, "POST", "/jobs", Some(null)).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.model")));
     let hash: [u8; 32] = sha2::Sha256::digest(b"s3cret").into();
-    let (keyed, _) = self::app(vec![hash], 8, false).await;
+    let (keyed, _, _dir2) = self::app(vec![hash], 8, false).await;
     for scheme in ["Bearer", "bearer", "BEARER"] {
         let req = Request::get("/models").header(header::AUTHORIZATION, format!("{scheme} s3cret"));
         assert_eq!(raw(&keyed, req.body(Body::empty()).unwrap()).await.0, StatusCode::OK, "{scheme}");
@@ -1074,7 +1065,7 @@ async fn contract_gaps_are_closed() {
 /// (431) get problems, not hyper's empty bodies (which remain past hyper's own bounds).
 #[tokio::test]
 async fn long_targets_and_large_heads_get_problems() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let problem = |h: &axum::http::HeaderMap| h[header::CONTENT_TYPE] == "application/problem+json";
     let max = otofit::http::MAX_URI;
     let uri = |n: usize| format!("/jobs?state={}", "q".repeat(n - "/jobs?state=".len()));
@@ -1100,7 +1091,7 @@ async fn long_targets_and_large_heads_get_problems() {
 /// those of runs that were killed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
-    let (_, ctx) = app(vec![], 8, false).await;
+    let (_, ctx, _dir) = app(vec![], 8, false).await;
     // x.csv taken by a directory: the final rename fails after the rows were written.
     let dir = ctx.dataset_dir("blocked");
     std::fs::create_dir_all(dir.join("x.csv").join("in-the-way")).unwrap();
@@ -1119,8 +1110,7 @@ async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
     let left: Vec<_> = std::fs::read_dir(&dir).unwrap().flatten().map(|e| e.file_name()).collect();
     assert!(!left.iter().any(|n| n.to_string_lossy().ends_with(".tmp")), "{left:?} after {:?}", job.error);
     // Leftovers of a killed run go at the next start.
-    let data = std::env::temp_dir().join(format!("otofit-tmp-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&data);
+    let data = temp_dir("tmp");
     std::fs::create_dir_all(data.join("datasets").join("killed")).unwrap();
     std::fs::write(data.join("datasets").join("killed").join("x.csv.tmp"), "1,2\n").unwrap();
     let staging = data.join("datasets").join("killed").join(".attempt-0123456789abcdef");
@@ -1136,8 +1126,7 @@ async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
 #[test]
 fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let dir = std::env::temp_dir().join(format!("otofit-term-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
+    let dir = temp_dir("term");
     let mut server = Reap(start(port, &dir));
     let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
     let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &Default::default()).unwrap();
@@ -1170,7 +1159,7 @@ fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
 /// in the server log.
 #[tokio::test]
 async fn unloadable_models_do_not_show_server_paths() {
-    let (app, ctx) = app(vec![], 8, false).await;
+    let (app, ctx, _dir) = app(vec![], 8, false).await;
     let path = ctx.data_dir.join("models").join("broken.otofit");
     std::fs::create_dir_all(path.parent().unwrap()).unwrap();
     std::fs::write(&path, b"not a checkpoint").unwrap();
@@ -1195,7 +1184,7 @@ async fn every_operation_documents_its_errors_as_problems() {
     let defaults = SPEC.lines().filter(|l| *l == "        default: { $ref: \"#/components/responses/Error\" }").count();
     assert_eq!(defaults, ops, "one default (error) response per operation");
     use sha2::Digest;
-    let (app, _) = app(vec![sha2::Sha256::digest(b"k").into()], 8, false).await;
+    let (app, _, _dir) = app(vec![sha2::Sha256::digest(b"k").into()], 8, false).await;
     for (method, path) in ROUTES {
         let uri = path.replace("{id}", "x").replace("{name}", "report.html").replace("{file}", "x.csv");
         let (status, headers, p) = call(&app, &method.to_uppercase(), &uri, None).await;
@@ -1214,7 +1203,7 @@ async fn every_operation_documents_its_errors_as_problems() {
 /// can no longer end it; only the current claim's worker can.
 #[tokio::test]
 async fn only_the_current_attempt_can_end_a_job() {
-    let (_, ctx) = app(vec![], 8, false).await;
+    let (_, ctx, _dir) = app(vec![], 8, false).await;
     let store = &ctx.store;
     assert!(store.insert_job_within("j", "simulate", &json!({"n": 5}), 3, 8).await.unwrap());
     let first = store.claim("a", jobs::DEFAULT_LEASE).await.unwrap().unwrap();
@@ -1237,7 +1226,7 @@ async fn only_the_current_attempt_can_end_a_job() {
 /// JSON path, not as `params`.
 #[tokio::test]
 async fn job_param_errors_carry_the_full_path() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let theta = json!([[2e7, 5e6, 2e6, 2e5, 6e6, 7.5e-5, 2.1e10], [2e7, "soft", 2e6, 2e5, 6e6, 7.5e-5, 2.1e10]]);
     for (kind, params, field) in [
         ("resimulate", json!({"theta": theta}), "params.theta[1][1]"),
@@ -1260,7 +1249,7 @@ async fn job_param_errors_carry_the_full_path() {
 /// value.
 #[tokio::test]
 async fn body_type_errors_carry_the_full_path() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let mut bad = nominal_request();
     bad["measurements"]["absorbance"]["values"][3] = json!("high");
     let mut negative = nominal_request();
@@ -1279,7 +1268,7 @@ async fn body_type_errors_carry_the_full_path() {
 async fn keyless_server_answers_only_loopback_names_ip_literals_and_allowed_hosts() {
     // DNS rebinding: a page on evil.example resolves its own name to 127.0.0.1 and
     // drives a keyless local server; its requests carry Host: evil.example.
-    let (app, ctx) = app(vec![], 8, false).await;
+    let (app, ctx, _dir) = app(vec![], 8, false).await;
     let get = |app: Router, host: &'static str| async move {
         let req = Request::builder().uri("/models").header(header::HOST, host).body(Body::empty()).unwrap();
         let r = app.oneshot(req).await.unwrap();
@@ -1306,7 +1295,7 @@ async fn keyless_server_answers_only_loopback_names_ip_literals_and_allowed_host
 /// query; errors name the column.
 #[tokio::test]
 async fn a_long_layout_csv_body_is_inferred_and_its_errors_name_the_column() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let csv = |uri: &str, body: String| {
         Request::builder()
             .method("POST")
@@ -1359,7 +1348,7 @@ async fn a_long_layout_csv_body_is_inferred_and_its_errors_name_the_column() {
 /// this process's claims, simulated rows, job durations and /infer latencies.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn metrics_count_jobs_rows_and_inferences() {
-    let (app, _) = app(vec![], 8, true).await;
+    let (app, _, _dir) = app(vec![], 8, true).await;
     let (_, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "simulate", "params": {"n": 20}}))).await;
     let id = j["id"].as_str().unwrap().to_string();
     assert_eq!(wait(&app, &id).await["state"], "succeeded");
@@ -1391,7 +1380,7 @@ async fn metrics_count_jobs_rows_and_inferences() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn log_prob_ranks_the_truth_and_names_bad_rows() {
     use otofit::sim::params::PARAMS;
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let nominal: Vec<f64> = PARAMS.iter().map(|p| p.nominal).collect();
     let mut soft = nominal.clone();
     soft[0] /= 10.0;
@@ -1418,7 +1407,7 @@ async fn log_prob_ranks_the_truth_and_names_bad_rows() {
 /// not know.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn infer_draws_a_corner_plot_on_request() {
-    let (app, _) = app(vec![], 8, false).await;
+    let (app, _, _dir) = app(vec![], 8, false).await;
     let mut req = nominal_request();
     req["return_samples"] = json!(false);
     let (status, _, r) = call(&app, "POST", "/infer", Some(req.clone())).await;

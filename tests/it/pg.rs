@@ -169,22 +169,48 @@ pub(crate) async fn fresh_database() -> Option<String> {
     Some(format!("postgres://postgres@127.0.0.1:{}/{name}", c.port))
 }
 
-pub(crate) fn temp_dir(tag: &str) -> PathBuf {
-    static N: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
-    let n = N.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
-    let d = std::env::temp_dir().join(format!("otofit-{tag}-{}-{n}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+/// A fresh folder `otofit-<tag>-…` under the system temp dir, removed with everything in it
+/// when the guard is dropped (use it as a `&Path` through `Deref`).
+pub(crate) struct TempDir(tempfile::TempDir);
+
+impl std::ops::Deref for TempDir {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+impl AsRef<Path> for TempDir {
+    fn as_ref(&self) -> &Path {
+        self.0.path()
+    }
+}
+
+pub(crate) fn temp_dir(tag: &str) -> TempDir {
+    TempDir(tempfile::Builder::new().prefix(&format!("otofit-{tag}-")).tempdir().unwrap())
+}
+
+/// The stores of [`backends`], iterated while the SQLite file's folder is kept.
+pub(crate) struct Backends {
+    list: std::vec::IntoIter<(String, Database)>,
+    _dir: TempDir,
+}
+
+impl Iterator for Backends {
+    type Item = (String, Database);
+    fn next(&mut self) -> Option<Self::Item> {
+        self.list.next()
+    }
 }
 
 /// A store on each backend: SQLite in a temporary file and, when available, PostgreSQL.
-pub(crate) async fn backends() -> Vec<(String, Database)> {
-    let mut v = vec![("sqlite".to_string(), Database::Sqlite(temp_dir("sq").join("otofit.db")))];
+pub(crate) async fn backends() -> Backends {
+    let dir = temp_dir("sq");
+    let mut v = vec![("sqlite".to_string(), Database::Sqlite(dir.join("otofit.db")))];
     if let Some(url) = fresh_database().await {
         v.push(("postgres".into(), Database::Postgres(url)));
     }
-    v
+    Backends { list: v.into_iter(), _dir: dir }
 }
 
 const LEASE: Duration = Duration::from_secs(30);

@@ -103,7 +103,7 @@ async fn database(backend: &str, data: &Path) -> Database {
 }
 
 /// A simulated dataset of `ROWS` rows (`otofit simulate`), in a folder of its own.
-fn simulated() -> std::path::PathBuf {
+fn simulated() -> crate::pg::TempDir {
     let dataset = temp_dir("train-resume-ds");
     let out = Command::new(env!("CARGO_BIN_EXE_otofit"))
         .args(["simulate", "--n", &ROWS.to_string(), "--seed", "2", "--noise-scale", "1"])
