@@ -35,10 +35,23 @@ pub enum ArtifactError {
     /// A model row names a store other than this process's (`--artifacts` differs).
     #[error("'{0}' is not in this process's artifact store ({1})")]
     ForeignUrl(String, String),
+    /// The object store failed on `key`.
     #[error("{key}: {source}")]
-    Store { key: String, source: object_store::Error },
+    Store {
+        /// The artifact's key.
+        key: String,
+        /// The store's error.
+        source: object_store::Error,
+    },
+    /// Reading or writing the local copy at `path` failed.
     #[error("{path}: {source}")]
-    Io { path: PathBuf, source: std::io::Error },
+    Io {
+        /// The local file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The object store's own runtime is gone (the process is shutting down).
     #[error("the artifact store's runtime stopped")]
     Runtime,
 }

@@ -76,49 +76,75 @@ fn io(action: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> Datas
     move |source| DatasetError::Io(on(source))
 }
 
+/// A dataset's meta.json: how it was made, so a training run or a reader can check what x.csv and theta.csv hold.
 #[derive(Serialize)]
 pub struct Meta {
+    /// The otofit version that wrote it.
     pub otofit_version: &'static str,
+    /// The seed of the prior draws; `None` for rows given by the caller.
     pub seed: Option<u64>,
+    /// Rows written (failed rows excluded).
     pub n_rows: usize,
+    /// The model preset the rows were simulated with.
     pub preset: crate::sim::Preset,
+    /// The columns of theta.csv: each parameter's name, unit, range and scale.
     pub parameters: Vec<ParamSpec>,
+    /// The frequencies every measure is simulated at.
     pub frequencies_hz: Vec<f64>,
+    /// The columns of x.csv, in order.
     pub features: Vec<Feature>,
+    /// Which features belong to which measure group (for embeddings and diagnostics).
     pub groups: Vec<Group>,
+    /// The noise model that was added to x.csv.
     pub noise: NoiseMeta,
+    /// The modelling effects and how each was set.
     pub effects: Vec<EffectMeta>,
+    /// Rows whose simulation failed, and why.
     pub failed: Vec<Failed>,
+    /// Time taken to simulate the dataset.
     pub wall_seconds: f64,
 }
 
+/// One column of x.csv: a measure at one frequency.
 #[derive(Serialize)]
 pub struct Feature {
+    /// The column header.
     pub name: String,
+    /// The measure the column belongs to.
     pub measure: &'static str,
+    /// The frequency of this column.
     pub frequency_hz: f64,
+    /// The column's unit.
     pub unit: &'static str,
 }
 
+/// A measure group: the measures whose features are read together.
 #[derive(Serialize)]
 pub struct Group {
+    /// The group's name.
     pub name: &'static str,
+    /// The measures in the group.
     pub measures: Vec<&'static str>,
 }
 
 /// `std` is the 1× noise model (for training); `scale` is what was added to x.csv.
 #[derive(Serialize)]
 pub struct NoiseMeta {
+    /// Noise standard deviation of each feature at 1×.
     pub std: Vec<f64>,
+    /// The multiple of `std` actually added to x.csv.
     pub scale: f64,
 }
 
+/// A modelling effect as set for this dataset.
 #[derive(Serialize)]
 pub struct EffectMeta {
+    /// The effect's name and range.
     #[serde(flatten)]
     pub spec: EffectSpec,
     /// "fixed", "varied" (a column of theta.csv) or "off".
     pub mode: &'static str,
+    /// Its fixed value when `mode` is "fixed" ("inf" in JSON when infinite).
     #[serde(serialize_with = "finite_or_str")]
     pub value: f64,
 }
@@ -127,13 +153,17 @@ fn finite_or_str<S: serde::Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error>
     if v.is_finite() { s.serialize_f64(*v) } else { s.serialize_str("inf") }
 }
 
+/// A row whose simulation failed (the dataset goes on without it).
 #[derive(Serialize, serde::Deserialize, Clone, Debug)]
 pub struct Failed {
+    /// The row's index in the design.
     pub row: usize,
+    /// Why it failed.
     pub reason: String,
 }
 
 impl Meta {
+    /// The meta of a dataset drawn from `design` with `preset` at `freqs`, before any row is written.
     pub fn new(design: &Design, preset: crate::sim::Preset, freqs: &[f64], noise: &Noise, seed: Option<u64>) -> Meta {
         let features = feature_names(freqs)
             .into_iter()
@@ -179,6 +209,7 @@ pub struct Writer {
     dir: PathBuf,
     theta: BufWriter<File>,
     x: BufWriter<File>,
+    /// Rows written so far.
     pub rows: usize,
 }
 
@@ -190,6 +221,7 @@ fn tmp(dir: &Path, name: &str) -> PathBuf {
 }
 
 impl Writer {
+    /// Opens the temporary table files in `dir` (created if needed) and writes their headers.
     pub fn create(dir: &Path, meta: &Meta) -> Result<Writer> {
         std::fs::create_dir_all(dir).map_err(io("create", dir))?;
         let open = |name: &str| -> Result<BufWriter<File>> {
@@ -251,7 +283,14 @@ fn write_row(w: &mut impl Write, v: &[f64]) -> std::io::Result<()> {
 
 /// Where a dataset's rows come from.
 pub enum Rows {
-    Prior { n: usize, seed: u64 },
+    /// `n` rows drawn from the design's prior with `seed`.
+    Prior {
+        /// How many rows.
+        n: usize,
+        /// The seed of the draws.
+        seed: u64,
+    },
+    /// These rows of θ (in the design's parameter order).
     Given(Vec<Vec<f64>>),
 }
 
@@ -259,7 +298,9 @@ pub enum Rows {
 #[derive(Debug, thiserror::Error)]
 #[error("cancelled after {done} of {total} rows")]
 pub struct Cancelled {
+    /// Rows finished before the cancel.
     pub done: usize,
+    /// Rows the run was to write.
     pub total: usize,
 }
 
@@ -386,11 +427,15 @@ pub const PARTS: &str = "parts";
 /// last: a part is finished when its JSON is in place).
 #[derive(Serialize, serde::Deserialize, Clone, Debug)]
 pub struct Part {
+    /// The part's first row in the dataset.
     pub first: usize,
+    /// Rows the part covers (written and failed).
     pub len: usize,
     /// Rows written (`len` less the failed ones).
     pub rows: usize,
+    /// The part's failed rows.
     pub failed: Vec<Failed>,
+    /// Time taken to simulate the part.
     pub wall_seconds: f64,
 }
 
@@ -408,9 +453,13 @@ pub fn read_part(parts: &Path, idx: usize) -> Option<Part> {
 
 /// The parts of a dataset run: the rows to simulate and how.
 pub struct PartRun<'a> {
+    /// The simulator.
     pub model: &'a crate::sim::Model,
+    /// The parameters and their prior.
     pub design: &'a Design,
+    /// Where the rows come from.
     pub rows: &'a Rows,
+    /// The noise added to x.
     pub noise: &'a Noise,
     /// The parts folder (`DIR/parts`); it must exist (a job that ended removed it, and a
     /// late worker must not bring it back).
@@ -505,7 +554,9 @@ pub fn merge_parts(parts: &Path, n_parts: usize, dir: &Path, meta: &mut Meta) ->
 
 /// A numeric CSV table with a header row.
 pub struct Table {
+    /// The column names.
     pub header: Vec<String>,
+    /// The rows, each as long as the header.
     pub rows: Vec<Vec<f64>>,
 }
 

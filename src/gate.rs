@@ -11,8 +11,11 @@ use std::time::Duration;
 /// `deadline` (waiting included) or gets a 503.
 #[derive(Clone, Copy, Debug)]
 pub struct InferLimits {
+    /// Most inferences running at once.
     pub concurrency: usize,
+    /// Most requests waiting for a slot.
     pub queue: usize,
+    /// Longest a request may take, waiting included.
     pub deadline: Duration,
 }
 
@@ -28,12 +31,14 @@ impl Default for InferLimits {
 
 /// The running state of [`InferLimits`]: slots and the count of requests waiting for one.
 pub struct InferGate {
+    /// The bounds it enforces.
     pub limits: InferLimits,
     pub(crate) slots: Arc<tokio::sync::Semaphore>,
     pub(crate) waiting: AtomicUsize,
 }
 
 impl InferGate {
+    /// A gate with all `limits.concurrency` slots free.
     pub fn new(limits: InferLimits) -> InferGate {
         InferGate {
             limits,

@@ -106,14 +106,17 @@ impl Metrics {
         self.infer_seconds.observe(&[("code", &status.to_string())], seconds);
     }
 
+    /// A job was claimed by this process.
     pub fn claimed(&self) {
         self.claims.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// A running job's lease was lost (another worker may have taken it).
     pub fn lease_lost(&self) {
         self.leases_lost.fetch_add(1, Ordering::Relaxed);
     }
 
+    /// `jobs` jobs whose lease expired were taken back.
     pub fn reaped(&self, jobs: u64) {
         self.reaped.fetch_add(jobs, Ordering::Relaxed);
     }

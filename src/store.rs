@@ -71,14 +71,19 @@ impl Database {
     }
 }
 
+/// The connection pool of one backend (one enum so that every query is written once for both).
 #[derive(Clone, Debug)]
 pub enum Pool {
+    /// SQLite, for a single host (the default under the data dir).
     Sqlite(SqlitePool),
+    /// PostgreSQL, shared by workers on several hosts.
     Postgres(PgPool),
 }
 
+/// The job queue, model registry, API keys and chunks of one deployment, on either backend.
 #[derive(Clone)]
 pub struct Store {
+    /// The backend's pool (`on_pool!` runs a query on whichever it is).
     pub pool: Pool,
 }
 
@@ -98,34 +103,55 @@ mod keys;
 pub use chunks::{ChunkClaim, ChunkRow, chunk_id};
 pub use keys::{ApiKey, KeyOwner, NewKey, key_hash};
 
+/// A registered model: a checkpoint file the service can load by id.
 #[derive(Clone, Debug, Serialize)]
 pub struct ModelRow {
+    /// The model's id, as clients name it.
     pub id: String,
+    /// Where its checkpoint is: a file path, or its URL in the object store.
     pub path: String,
+    /// Whether /infer uses it when a request names no model.
     pub is_default: bool,
+    /// When it was registered (RFC 3339).
     pub created_at: String,
+    /// The train job that made it; `None` for models registered by hand.
     pub source_job: Option<String>,
     /// The tenant the model belongs to (its source job's); `None`: shared by all.
     pub tenant: Option<String>,
 }
 
+/// A job as stored: its spec, where it is in its life and how it ended.
 #[derive(Clone, Debug, Serialize)]
 pub struct JobRow {
+    /// The job's id (`jobs::new_id`: time-ordered hex).
     pub id: String,
     /// The tenant that made the job (and owns its dataset, report and model).
     pub tenant: String,
+    /// `simulate`, `train`, `diagnose` or another kind of `JobSpec`.
     pub kind: String,
+    /// `queued`, `running`, `succeeded`, `failed` or `cancelled`.
     pub state: String,
+    /// The job's parameters as JSON (the `JobSpec` without its kind).
     pub params: serde_json::Value,
+    /// Fraction done, 0 to 1, as last reported by the worker.
     pub progress: f64,
+    /// The worker's last progress message.
     pub message: String,
+    /// Attempts started so far (a retry or re-queue after a crash adds one).
     pub attempts: i64,
+    /// Attempts allowed before the job fails for good.
     pub max_attempts: i64,
+    /// Whether a client asked to cancel it (the worker checks between steps).
     pub cancel_requested: bool,
+    /// Why the last attempt failed, if it did.
     pub error: Option<String>,
+    /// What the job produced (paths, summary numbers), once it succeeded.
     pub result: Option<serde_json::Value>,
+    /// When the job was queued (RFC 3339).
     pub created_at: String,
+    /// When its current or last attempt started.
     pub started_at: Option<String>,
+    /// When it ended (succeeded, failed or cancelled).
     pub finished_at: Option<String>,
     /// A failed attempt's job waits in the queue until then (RFC 3339; `error` says why
     /// the attempt failed); `None`: claimable at once, or not queued.
@@ -233,21 +259,27 @@ fn model_from(row: &impl Cols) -> ModelRow {
 /// Active jobs of one kind in one state, for /metrics.
 #[derive(Clone, Debug, PartialEq)]
 pub struct QueueCount {
+    /// The job kind.
     pub kind: String,
+    /// The job state.
     pub state: String,
+    /// How many jobs of that kind are in that state.
     pub count: i64,
 }
 
 /// Most active (queued + running) jobs: in all, and of one tenant.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct QueueBounds {
+    /// Most active jobs in all (the queue's length).
     pub queue: i64,
+    /// Most active jobs of any one tenant.
     pub per_tenant: i64,
 }
 
 /// Whether a job was queued, or which bound refused it.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Admission {
+    /// The job is in the queue.
     Queued,
     /// The queue holds its limit of active (queued + running) jobs.
     QueueFull,
@@ -307,6 +339,7 @@ impl Store {
         }
     }
 
+    /// Whether the backend is PostgreSQL (some behaviour, such as lease recovery timing, differs).
     pub fn is_postgres(&self) -> bool {
         matches!(self.pool, Pool::Postgres(_))
     }
@@ -329,6 +362,7 @@ impl Store {
         AssertSqlSafe(sql.replace("NOW_MS", now_ms))
     }
 
+    /// Whether the database answers a trivial query (for /ready).
     pub async fn ping(&self) -> bool {
         on_pool!(self, p => sqlx::query("SELECT 1").fetch_one(p).await.is_ok())
     }
@@ -365,11 +399,13 @@ impl Store {
         Ok(on_pool!(self, p => sqlx::query(SQL).bind(tenant).fetch_all(p).await?.iter().map(model_from).collect()))
     }
 
+    /// The registered model `id`, if any.
     pub async fn model(&self, id: &str) -> Result<Option<ModelRow>, sqlx::Error> {
         const SQL: &str = "SELECT * FROM models WHERE id = $1";
         Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(model_from)))
     }
 
+    /// The model marked as default, if any.
     pub async fn default_model(&self) -> Result<Option<ModelRow>, sqlx::Error> {
         const SQL: &str = "SELECT * FROM models WHERE is_default = 1 LIMIT 1";
         Ok(on_pool!(self, p => sqlx::query(SQL).fetch_optional(p).await?.as_ref().map(model_from)))
@@ -447,6 +483,7 @@ impl Store {
         Ok(if mine >= tenant_limit { Admission::TenantFull } else { Admission::QueueFull })
     }
 
+    /// The job `id`, if any.
     pub async fn job(&self, id: &str) -> Result<Option<JobRow>, sqlx::Error> {
         const SQL: &str = "SELECT * FROM jobs WHERE id = $1";
         Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(job_from)))
@@ -607,6 +644,7 @@ impl Store {
         self.job(id).await
     }
 
+    /// Whether a cancel was asked for job `id` (false if the job is gone or the query fails).
     pub async fn cancel_requested(&self, id: &str) -> bool {
         const SQL: &str = "SELECT cancel_requested FROM jobs WHERE id = $1";
         let v: Option<i64> =

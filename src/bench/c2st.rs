@@ -20,10 +20,14 @@ use rand::seq::SliceRandom;
 use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 
+/// How the classifier two-sample test is run.
 #[derive(Clone, Debug)]
 pub struct C2stParams {
+    /// Cross-validation folds (at least 2).
     pub folds: usize,
+    /// Most classifier epochs per fold.
     pub max_epochs: usize,
+    /// Seed of the fold split and the classifier's weights.
     pub seed: u64,
     /// Stop as the benchmark does (training loss stalled) instead of on held-out accuracy.
     pub train_loss_stop: bool,

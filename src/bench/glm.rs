@@ -34,6 +34,7 @@ pub const BINS: usize = 100;
 /// The prior box's half-width, in prior standard deviations.
 pub const BOX_SDS: f64 = 6.0;
 
+/// The Bernoulli GLM task: its fixed design, prior and box (built once, see `glm()`).
 pub struct Glm {
     /// X, [BINS][DIM].
     design: Vec<[f64; DIM]>,
@@ -100,11 +101,13 @@ impl Glm {
         Glm { design, precision, prior_chol, half_width }
     }
 
+    /// The prior's covariance (the inverse of its precision).
     pub fn prior_covariance(&self) -> Vec<Vec<f64>> {
         let l = &self.prior_chol;
         (0..DIM).map(|i| (0..DIM).map(|j| (0..DIM).map(|k| l[i][k] * l[j][k]).sum()).collect()).collect()
     }
 
+    /// Whether θ is inside the prior box.
     pub fn in_box(&self, theta: &[f64]) -> bool {
         theta.iter().zip(&self.half_width).all(|(v, b)| v.abs() <= *b)
     }
@@ -205,6 +208,7 @@ impl Glm {
         self.reference_with(x, n, &MalaParams::default(), rng).0
     }
 
+    /// [`Self::reference`] with given MALA settings, also returning the chains' diagnostics.
     pub fn reference_with(
         &self,
         x: &[f64],

@@ -17,6 +17,7 @@ use std::io::Write;
 use std::path::Path;
 pub use tasks::Task;
 
+/// How big a benchmark run is: simulations, observations and draws per task.
 #[derive(Clone, Debug)]
 pub struct BenchParams {
     /// Training simulations per task.
@@ -25,21 +26,30 @@ pub struct BenchParams {
     pub observations: usize,
     /// Posterior and reference draws per observation.
     pub samples: usize,
+    /// Seed of the training table's simulations.
     pub seed: u64,
+    /// How the classifier two-sample test is run.
     pub c2st: c2st::C2stParams,
     /// Per-observation marginal means and spreads (reference and flow) on stderr.
     pub verbose: bool,
 }
 
+/// One task's outcome: C2ST accuracy and the training it took.
 #[derive(Clone, Debug, Serialize)]
 pub struct TaskResult {
+    /// The task's name.
     pub task: String,
+    /// Training simulations used.
     pub sims: usize,
     /// One C2ST accuracy per observation, and their mean.
     pub c2st: Vec<f64>,
+    /// Mean of `c2st` (the task's score).
     pub c2st_mean: f64,
+    /// Time spent training the flow.
     pub train_seconds: f64,
+    /// Epochs run, summed over ensemble members.
     pub epochs: usize,
+    /// The epoch of member 0's lowest validation loss (the weights kept).
     pub best_epoch: usize,
     /// Reference draws and classifier tests, all observations.
     pub c2st_seconds: f64,

@@ -14,6 +14,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, StandardNormal};
 use std::f64::consts::{FRAC_1_SQRT_2, PI};
 
+/// A benchmark task of the SBI benchmark suite (Lueckmann et al. 2021).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Task {
     /// 2-D, crescent-shaped bimodal posterior.
@@ -30,6 +31,7 @@ pub enum Task {
     BernoulliGlm,
 }
 
+/// Every task, in the order they are reported.
 pub const ALL: [Task; 5] =
     [Task::TwoMoons, Task::GaussianLinearUniform, Task::Slcp, Task::GaussianMixture, Task::BernoulliGlm];
 
@@ -38,6 +40,7 @@ pub(super) fn normal(rng: &mut ChaCha8Rng) -> f64 {
 }
 
 impl Task {
+    /// The task's name, as the benchmark and `--task` spell it.
     pub fn name(self) -> &'static str {
         match self {
             Task::TwoMoons => "two_moons",
@@ -48,10 +51,12 @@ impl Task {
         }
     }
 
+    /// The task named `s`, if any.
     pub fn from_name(s: &str) -> Option<Task> {
         ALL.into_iter().find(|t| t.name() == s)
     }
 
+    /// Dimension of θ.
     pub fn dim(self) -> usize {
         match self {
             Task::TwoMoons | Task::GaussianMixture => 2,
@@ -71,6 +76,7 @@ impl Task {
         }
     }
 
+    /// θ's parameters: `theta0`, `theta1`, … on the prior box, linear scale.
     pub fn params(self) -> Vec<Param> {
         (0..self.dim())
             .map(|k| {
@@ -80,6 +86,7 @@ impl Task {
             .collect()
     }
 
+    /// Dimension of x.
     pub fn features(self) -> usize {
         match self {
             Task::TwoMoons | Task::GaussianMixture => 2,
@@ -105,6 +112,7 @@ impl Task {
         theta.iter().enumerate().all(|(k, v)| v.abs() <= self.half_width(k))
     }
 
+    /// A draw of x given θ.
     pub fn simulate(self, theta: &[f64], rng: &mut ChaCha8Rng) -> Vec<f64> {
         match self {
             Task::TwoMoons => {

@@ -8,6 +8,7 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use std::path::PathBuf;
 
+/// Arguments of `otofit calibrate`.
 #[derive(Args, Debug)]
 pub struct CalibrateArgs {
     /// Model file (.otofit).
@@ -45,6 +46,7 @@ pub struct CalibrateArgs {
     pub json: bool,
 }
 
+/// Runs `otofit calibrate`.
 pub fn run(args: CalibrateArgs) -> Result<()> {
     if !(10..=100_000).contains(&args.samples) {
         bail!("--samples must be 10..=100000 (got {})", args.samples);

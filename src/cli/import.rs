@@ -7,18 +7,22 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::{Path, PathBuf};
 
+/// Arguments of `otofit import`.
 #[derive(Args, Debug)]
 pub struct ImportArgs {
+    /// The export format to read.
     #[command(subcommand)]
     pub what: ImportWhat,
 }
 
+/// The export formats `otofit import` reads.
 #[derive(Subcommand, Debug)]
 pub enum ImportWhat {
     /// The WAI database's long layout: Frequency, Absorbance, Zmag (Pa·s/m³ unless its
     /// header or --zmag-unit says otherwise), Zang (cycles unless declared), one row per
     /// frequency; other columns (Subject, Ear, ...) serve --select.
     Wai {
+        /// The input and output files and how to read the table.
         #[command(flatten)]
         table: TableArgs,
         /// Unit of Zmag: "Pa*s/m^3" (SI acoustic ohm; the default), "MOhm" or "cgs".
@@ -35,6 +39,7 @@ pub enum ImportWhat {
     /// [cgs]`, `Zang [deg]`, `Ymag [mmho]`, `AreaCanal [mm2]`) or from --unit. Reflectance with its phase and the canal area
     /// becomes the impedance Z = Z0 (1 + R)/(1 − R), Z0 = ρc/S (air at 37 °C).
     Csv {
+        /// The input and output files and how to read the table.
         #[command(flatten)]
         table: TableArgs,
     },
@@ -67,6 +72,7 @@ pub struct TableArgs {
     /// The observation to write (JSON, the POST /infer request format).
     #[arg(long)]
     pub out: PathBuf,
+    /// How to read the table.
     #[command(flatten)]
     pub long: LongArgs,
 }
@@ -85,6 +91,7 @@ pub struct LongArgs {
 }
 
 impl LongArgs {
+    /// Whether no --unit or --select was given.
     pub fn is_empty(&self) -> bool {
         self.unit.is_empty() && self.select.is_empty()
     }
@@ -134,6 +141,7 @@ fn write(out: &Path, imp: &crate::formats::Imported) -> Result<()> {
     Ok(())
 }
 
+/// Runs `otofit import`.
 pub fn run(args: ImportArgs) -> Result<()> {
     let (table, opts) = match args.what {
         ImportWhat::Wai { mut table, zmag_unit, zang_unit } => {

@@ -8,6 +8,7 @@ use clap::Args;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+/// Arguments of `otofit infer`.
 #[derive(Args, Debug)]
 pub struct InferArgs {
     /// Model file (.otofit), e.g. models/default.otofit.
@@ -20,6 +21,7 @@ pub struct InferArgs {
     /// `otofit import csv --help`).
     #[arg(long)]
     pub obs: PathBuf,
+    /// How to read a long-layout --obs table.
     #[command(flatten)]
     pub long: super::import::LongArgs,
     /// Long-layout tables: the units of an export family for columns that declare
@@ -194,6 +196,7 @@ fn log_probs(model: &Npe, rows: &[(Vec<f64>, Vec<bool>)], path: &Path) -> Result
     Ok(())
 }
 
+/// Runs `otofit infer`.
 pub fn run(args: InferArgs) -> Result<()> {
     if args.samples == 0 || args.samples > 1_000_000 {
         bail!("--samples must be between 1 and 1000000");

@@ -8,8 +8,10 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
 
+/// Arguments of `otofit keys`.
 #[derive(Args, Debug)]
 pub struct KeysArgs {
+    /// What to do with the keys.
     #[command(subcommand)]
     pub command: KeysCommand,
     /// The server's database: `sqlite://PATH` (default: DATA_DIR/otofit.db) or
@@ -21,6 +23,7 @@ pub struct KeysArgs {
     pub data_dir: PathBuf,
 }
 
+/// The `otofit keys` subcommands.
 #[derive(Subcommand, Debug)]
 pub enum KeysCommand {
     /// Make a key for a tenant and print it (once: only its hash is stored).
@@ -46,6 +49,7 @@ pub enum KeysCommand {
     },
 }
 
+/// Runs `otofit keys` on the server's database.
 pub fn run(args: KeysArgs) -> Result<()> {
     let database = database_arg(args.database.as_deref(), &args.data_dir)?;
     if let crate::store::Database::Sqlite(_) = database {

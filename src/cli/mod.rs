@@ -19,13 +19,16 @@ pub mod study;
 pub mod train;
 pub mod worker;
 
+/// The command line: one subcommand.
 #[derive(Parser, Debug)]
 #[command(name = "otofit", version, about = "Middle-ear FE models tuned by neural posterior estimation")]
 pub struct Cli {
+    /// The subcommand to run.
     #[command(subcommand)]
     pub command: Command,
 }
 
+/// The subcommands of `otofit`.
 #[derive(Subcommand, Debug)]
 pub enum Command {
     /// Simulate parameter sets (prior draws or given rows) into a dataset folder.
@@ -54,6 +57,7 @@ pub enum Command {
     Import(import::ImportArgs),
 }
 
+/// Runs the subcommand.
 pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Simulate(args) => simulate::run(args),

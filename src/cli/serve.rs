@@ -10,6 +10,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
+/// Arguments of `otofit serve`.
 #[derive(Args, Debug)]
 pub struct ServeArgs {
     /// Listen address (loopback by default).
@@ -27,6 +28,7 @@ pub struct ServeArgs {
     /// Job dispatchers this process runs (0: HTTP only, jobs run by `otofit worker`s).
     #[arg(long, default_value_t = 1)]
     pub workers: usize,
+    /// How this process runs jobs: leases, chunks, retries, the artifact store.
     #[command(flatten)]
     pub jobs: JobFlags,
     /// Checkpoint registered as the default model on first start.
@@ -142,6 +144,8 @@ fn resolve_default_model(given: &Path) -> PathBuf {
     found
 }
 
+/// The service context on `data_dir` (SQLite there) with the default /infer limits: the
+/// store opened, `default_model` registered, leftovers of killed runs removed.
 pub async fn open(data_dir: &Path, default_model: &Path, max_queue: i64) -> Result<Arc<Ctx>> {
     open_with(data_dir, default_model, max_queue, http::InferLimits::default()).await
 }
@@ -319,6 +323,7 @@ pub async fn stop_dispatchers(ctx: &Ctx, dispatchers: Vec<tokio::task::JoinHandl
     tokio::time::timeout(std::time::Duration::from_secs(60), all).await.is_ok()
 }
 
+/// The `--api-key-hash` values as SHA-256 digests (empty ones skipped); an error names a bad one.
 pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
     hex_hashes
         .iter()
@@ -339,6 +344,7 @@ pub fn init_logs(json: bool) {
     if json { sub.json().init() } else { sub.init() }
 }
 
+/// Runs `otofit serve` until SIGTERM or Ctrl-C.
 pub fn run(args: ServeArgs) -> Result<()> {
     init_logs(args.log_json);
     let keys = parse_key_hashes(&args.api_key_hashes)?;
@@ -401,6 +407,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
     res
 }
 
+/// Resolves at the first SIGTERM or Ctrl-C.
 pub async fn shutdown_signal() {
     let ctrl_c = async {
         let _ = tokio::signal::ctrl_c().await;

@@ -8,6 +8,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 
+/// Arguments of `otofit simulate`.
 #[derive(Args, Debug)]
 pub struct SimulateArgs {
     /// Number of prior draws (uniform or log-uniform box of each parameter).
@@ -53,6 +54,7 @@ pub struct SimulateArgs {
     pub drum: super::drum::DrumOpts,
 }
 
+/// Air in the canal (--preset).
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum PresetArg {
     TemporalBone,
@@ -125,6 +127,7 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
         .collect())
 }
 
+/// Runs `otofit simulate`.
 pub fn run(args: SimulateArgs) -> Result<()> {
     if !(args.noise_scale.is_finite() && args.noise_scale >= 0.0) {
         bail!("--noise-scale must be a finite number ≥ 0, got {}", args.noise_scale);

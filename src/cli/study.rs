@@ -18,6 +18,7 @@ fn rho(a: &[f64], b: &[f64]) -> Vec<f64> {
     stats::spearman_per_block(a, b, MEASURES.len())
 }
 
+/// The seed study's analyses.
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum StudyName {
     Validate,
@@ -26,6 +27,7 @@ pub enum StudyName {
     Reference,
 }
 
+/// Arguments of `otofit study`.
 #[derive(Args, Debug)]
 pub struct StudyArgs {
     /// validate (coverage and recovery on unseen simulations), noise (training noise
@@ -115,6 +117,7 @@ fn infer_one(
     Ok((inf, map_x, r))
 }
 
+/// Runs `otofit study`.
 pub fn run(a: StudyArgs) -> Result<()> {
     check_args(&a)?;
     let mut config = ModelConfig::default();

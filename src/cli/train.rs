@@ -5,6 +5,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 
+/// Arguments of `otofit train`.
 #[derive(Args, Debug)]
 pub struct TrainArgs {
     /// Folder with theta.csv, x.csv and meta.json (or prior.json).
@@ -51,12 +52,14 @@ pub struct TrainArgs {
     pub checkpoint: Option<PathBuf>,
 }
 
+/// The summary network in front of the flow (--embedding).
 #[derive(Clone, Copy, Debug, ValueEnum)]
 pub enum Embedding {
     Mlp,
     None,
 }
 
+/// Runs `otofit train`.
 pub fn run(args: TrainArgs) -> Result<()> {
     if !(args.noise_scale.is_finite() && args.noise_scale >= 0.0) {
         bail!("--noise-scale must be a finite number ≥ 0, got {}", args.noise_scale);

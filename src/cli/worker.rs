@@ -10,6 +10,7 @@ use clap::Args;
 use std::path::PathBuf;
 use std::sync::Arc;
 
+/// Arguments of `otofit worker`.
 #[derive(Args, Debug)]
 pub struct WorkerArgs {
     /// The job table: `postgres://USER:PASSWORD@HOST:PORT/DB` (shared with `serve` and
@@ -26,6 +27,7 @@ pub struct WorkerArgs {
     /// Threads for the simulations and training of this process (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// How this process runs jobs: leases, chunks, retries, the artifact store.
     #[command(flatten)]
     pub jobs: super::serve::JobFlags,
     /// Serve GET /metrics (Prometheus text: this worker's claims, simulated rows, job
@@ -38,6 +40,7 @@ pub struct WorkerArgs {
     pub log_json: bool,
 }
 
+/// Runs `otofit worker` until SIGTERM or Ctrl-C.
 pub fn run(args: WorkerArgs) -> Result<()> {
     super::serve::init_logs(args.log_json);
     let database = database_arg(args.database.as_deref(), &args.data_dir)?;

@@ -21,7 +21,9 @@ use subtle::ConstantTimeEq;
 /// The tenant a request speaks for, and whether it may see every tenant's work.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Principal {
+    /// The tenant whose jobs, datasets and models the request sees.
     pub tenant: String,
+    /// Whether the request may see and act on every tenant's work.
     pub admin: bool,
 }
 

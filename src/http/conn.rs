@@ -13,7 +13,9 @@ use tokio::time::{Instant, Sleep};
 
 /// `TcpListener` with an idle timeout on every connection it accepts.
 pub struct IdleTimeoutListener {
+    /// The listener accepting the connections.
     pub inner: TcpListener,
+    /// How long a connection may sit without reading or writing before it is closed.
     pub idle: Duration,
 }
 

@@ -42,6 +42,7 @@ pub const ROUTES: [(&str, &str); 15] = [
     ("get", "/metrics"),
 ];
 
+/// Largest request body accepted (2 MiB); a larger one gets a 413 problem.
 pub const MAX_BODY: usize = 2 * 1024 * 1024;
 
 /// Counts a waiting request for as long as it waits (also when its client goes away).
@@ -109,8 +110,10 @@ async fn infer_slot(State(st): State<AppState>, req: Request, next: Next) -> Res
     }
 }
 
+/// What every handler gets: the job context and the server's authentication settings.
 #[derive(Clone)]
 pub struct AppState {
+    /// The store, data dir, models and queue shared with the job runner.
     pub ctx: Arc<Ctx>,
     /// SHA-256 hashes of accepted API keys; empty = no authentication.
     pub key_hashes: Arc<Vec<[u8; 32]>>,
@@ -122,6 +125,7 @@ pub struct AppState {
 }
 
 impl AppState {
+    /// The state of a server that accepts the keys with these SHA-256 hashes (none: no authentication).
     pub fn new(ctx: Arc<Ctx>, key_hashes: Vec<[u8; 32]>) -> AppState {
         AppState {
             ctx,
@@ -131,6 +135,7 @@ impl AppState {
         }
     }
 
+    /// Also answers these host names when keyless (DNS-rebinding guard).
     pub fn with_allowed_hosts(mut self, hosts: Vec<String>) -> AppState {
         self.allowed_hosts = Arc::new(hosts.into_iter().map(|h| h.to_ascii_lowercase()).collect());
         self
@@ -140,22 +145,31 @@ impl AppState {
 /// An RFC 9457 problem.
 #[derive(Debug, Serialize)]
 pub struct Problem {
+    /// A URI naming the kind of problem.
     #[serde(rename = "type")]
     pub kind: String,
+    /// The HTTP status's reason phrase.
     pub title: String,
+    /// The HTTP status code.
     pub status: u16,
+    /// What went wrong, for a person.
     pub detail: String,
+    /// The request fields that were invalid, and why (422 only).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub errors: Vec<FieldProblem>,
 }
 
+/// One invalid field of a request.
 #[derive(Debug, Serialize)]
 pub struct FieldProblem {
+    /// The field's path in the request body (e.g. `measurements.umbo_velocity.phase`).
     pub field: String,
+    /// What is wrong with it.
     pub message: String,
 }
 
 impl Problem {
+    /// A problem with `status`, its reason as title and `detail`.
     pub fn new(status: StatusCode, detail: impl Into<String>) -> Problem {
         let title = status.canonical_reason().unwrap_or("Error").to_string();
         let slug = title.to_lowercase().replace(' ', "-");
@@ -168,12 +182,14 @@ impl Problem {
         }
     }
 
+    /// A 422 naming each invalid field and why.
     pub fn invalid(errors: Vec<(String, String)>) -> Problem {
         let mut p = Problem::new(StatusCode::UNPROCESSABLE_ENTITY, "the request has invalid fields");
         p.errors = errors.into_iter().map(|(field, message)| FieldProblem { field, message }).collect();
         p
     }
 
+    /// A 500 that logs the error and tells the client no more than that it was logged.
     pub fn internal(e: impl std::fmt::Display) -> Problem {
         tracing::error!(error = %e, "internal error");
         Problem::new(StatusCode::INTERNAL_SERVER_ERROR, "internal error (logged)")
@@ -289,6 +305,7 @@ pub fn metrics_router(ctx: Arc<Ctx>) -> Router {
     Router::new().route("/metrics", get(resources::metrics)).with_state(AppState::new(ctx, vec![]))
 }
 
+/// The service's routes, authentication and body limit on `state`.
 pub fn router(state: AppState) -> Router {
     use resources::*;
     Router::new()

@@ -40,11 +40,16 @@ use tokio::sync::Notify;
 
 /// Shared service state.
 pub struct Ctx {
+    /// The job queue and model registry.
     pub store: Store,
+    /// Where datasets, reports, checkpoints and models are written.
     pub data_dir: PathBuf,
+    /// Wakes the dispatcher when a job is queued.
     pub notify: Notify,
+    /// Set when the process is shutting down: dispatchers stop claiming, running jobs stop.
     pub shutdown: AtomicBool,
     models: RwLock<HashMap<String, Arc<Npe>>>,
+    /// Most active (queued + running) jobs in all (`--max-queue`).
     pub max_queue: i64,
     /// Most active jobs of one tenant (`--max-queue-per-tenant`; default half the queue).
     pub max_queue_per_tenant: i64,
@@ -88,7 +93,9 @@ impl Default for JobSettings {
 /// `first × 2^(k−1)`, at most `max` (`--retry-backoff-seconds`, `--retry-backoff-max-seconds`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Backoff {
+    /// The wait after the first failed attempt.
     pub first: Duration,
+    /// The longest wait.
     pub max: Duration,
 }
 
@@ -112,6 +119,7 @@ impl Backoff {
 pub const DEFAULT_LEASE: Duration = Duration::from_secs(30);
 
 impl Ctx {
+    /// The context of a service on `store` writing under `data_dir`, with default limits and lease.
     pub fn new(store: Store, data_dir: PathBuf, max_queue: i64) -> Ctx {
         Ctx {
             store,
@@ -180,6 +188,7 @@ impl Ctx {
         Ok(m)
     }
 
+    /// The folder of dataset `id` under the data dir.
     pub fn dataset_dir(&self, id: &str) -> PathBuf {
         self.data_dir.join("datasets").join(id)
     }

@@ -12,12 +12,14 @@ use anyhow::Result;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
+/// The params of a resimulate job: spectra of given parameter rows, drawn over an observation.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ResimulateParams {
     /// Rows of the 10 parameters or the 7 tissue ones (natural units), e.g. a MAP and
     /// posterior draws.
     pub theta: Vec<Vec<f64>>,
+    /// Modelling effects set to a fixed value, by name.
     #[serde(default)]
     pub effects: BTreeMap<String, f64>,
     /// The observation the rows were inferred from (the model's features): drawn in the figure

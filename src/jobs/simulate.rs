@@ -19,22 +19,27 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
+/// The params of a simulate job: a dataset of simulated rows.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct SimulateParams {
     /// Prior draws (or `theta`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub n: Option<usize>,
+    /// Seed of the prior draws and the noise.
     #[serde(default)]
     pub seed: u64,
     /// Rows in the order of the 10 parameters (or the 7 tissue ones), then the `vary`
     /// effects.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub theta: Option<Vec<Vec<f64>>>,
+    /// Modelling effects set to a fixed value, by name.
     #[serde(default)]
     pub effects: BTreeMap<String, f64>,
+    /// Effects drawn from their range per row (extra columns of theta).
     #[serde(default)]
     pub vary: Vec<String>,
+    /// Multiple of the 1× noise model added to x (default 0: noiseless).
     #[serde(default)]
     pub noise_scale: f64,
 }

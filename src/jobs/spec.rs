@@ -18,9 +18,13 @@ pub const KINDS: [&str; 4] = ["simulate", "train", "resimulate", "diagnose"];
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(tag = "kind", content = "params", rename_all = "lowercase")]
 pub enum JobSpec {
+    /// Simulate a dataset from the prior or given rows.
     Simulate(SimulateParams),
+    /// Train a model on a simulated dataset.
     Train(TrainParams),
+    /// Re-simulate given parameter rows (e.g. a posterior's) and draw them.
     Resimulate(ResimulateParams),
+    /// Check an observation against a model, name the missing effect and retrain with it.
     Diagnose(DiagnoseParams),
 }
 
@@ -61,6 +65,7 @@ impl JobSpec {
         serde_json::from_value(serde_json::json!({ "kind": job.kind, "params": job.params }))
     }
 
+    /// The job's kind, as `kind` spells it.
     pub fn kind(&self) -> &'static str {
         match self {
             JobSpec::Simulate(_) => "simulate",

@@ -14,17 +14,22 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
 
+/// The params of a train job: fit a model to a simulated dataset.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TrainParams {
     /// Id of a succeeded simulate job.
     pub dataset: String,
+    /// Multiple of the dataset's 1× noise model added to x during training (default 1).
     #[serde(default = "one")]
     pub noise_scale: f64,
+    /// Seed of the initial weights and the batch order.
     #[serde(default)]
     pub seed: u64,
+    /// Most epochs to train (default 300; early stopping may end sooner).
     #[serde(default = "epochs")]
     pub max_epochs: usize,
+    /// Train with group masks so that the model accepts any subset of measure groups.
     #[serde(default)]
     pub mask_groups: bool,
     /// Flows in the ensemble (`limits::ENSEMBLE`).

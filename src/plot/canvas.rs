@@ -2,6 +2,7 @@
 
 use std::fmt::Write;
 
+/// An SVG document being drawn: its size and the elements so far.
 pub struct Canvas {
     w: f64,
     h: f64,
@@ -10,23 +11,33 @@ pub struct Canvas {
 
 /// A plotting area in canvas pixels with its data ranges (x optionally logarithmic).
 pub struct Axes {
+    /// Left edge of the plotting area.
     pub x: f64,
+    /// Top edge.
     pub y: f64,
+    /// Width.
     pub w: f64,
+    /// Height.
     pub h: f64,
+    /// Data range shown along x.
     pub xr: (f64, f64),
+    /// Data range shown along y.
     pub yr: (f64, f64),
+    /// Whether x is on a log scale (frequency axes).
     pub log_x: bool,
 }
 
 impl Axes {
+    /// A plotting area at (`x`, `y`) of size `w`×`h` showing `xr`×`yr`.
     pub fn new(x: f64, y: f64, w: f64, h: f64, xr: (f64, f64), yr: (f64, f64), log_x: bool) -> Axes {
         Axes { x, y, w, h, xr, yr, log_x }
     }
+    /// The pixel column of data value `v`.
     pub fn px(&self, v: f64) -> f64 {
         let t = |v: f64| if self.log_x { v.ln() } else { v };
         self.x + self.w * (t(v) - t(self.xr.0)) / (t(self.xr.1) - t(self.xr.0))
     }
+    /// The pixel row of data value `v`.
     pub fn py(&self, v: f64) -> f64 {
         self.y + self.h * (1.0 - (v - self.yr.0) / (self.yr.1 - self.yr.0))
     }
@@ -76,10 +87,12 @@ fn log_ticks(lo: f64, hi: f64) -> Vec<f64> {
 }
 
 impl Canvas {
+    /// An empty `w`×`h` canvas.
     pub fn new(w: f64, h: f64) -> Canvas {
         Canvas { w, h, body: String::new() }
     }
 
+    /// A filled rectangle, in pixels.
     pub fn rect(&mut self, x: f64, y: f64, w: f64, h: f64, fill: &str, opacity: f64) {
         let _ = writeln!(
             self.body,
@@ -87,6 +100,7 @@ impl Canvas {
         );
     }
 
+    /// An unfilled grey rectangle (a panel's border), in pixels.
     pub fn frame(&mut self, x: f64, y: f64, w: f64, h: f64) {
         let _ = writeln!(
             self.body,
@@ -94,6 +108,7 @@ impl Canvas {
         );
     }
 
+    /// A vertical line from `y0` to `y1` at column `x`, in pixels.
     pub fn vline(&mut self, x: f64, y0: f64, y1: f64, color: &str) {
         let _ = writeln!(
             self.body,
@@ -101,10 +116,12 @@ impl Canvas {
         );
     }
 
+    /// A filled circle of radius `r`, in pixels.
     pub fn dot(&mut self, x: f64, y: f64, r: f64, color: &str) {
         let _ = writeln!(self.body, r#"<circle cx="{x:.1}" cy="{y:.1}" r="{r:.1}" fill="{color}"/>"#);
     }
 
+    /// Text at (`x`, `y`) in pixels; `anchor` is SVG's text-anchor (start, middle, end).
     pub fn text(&mut self, x: f64, y: f64, size: f64, anchor: &str, s: &str) {
         let _ = writeln!(
             self.body,
@@ -113,6 +130,7 @@ impl Canvas {
         );
     }
 
+    /// A polyline through the data points (`xs`, `ys`) on `ax`, skipping non-finite values.
     pub fn line(&mut self, ax: &Axes, xs: &[f64], ys: &[f64], color: &str, width: f64, opacity: f64) {
         let pts: Vec<String> = xs
             .iter()
@@ -127,6 +145,7 @@ impl Canvas {
         );
     }
 
+    /// A filled region between `lo` and `hi` over `xs` on `ax`.
     pub fn band(&mut self, ax: &Axes, xs: &[f64], lo: &[f64], hi: &[f64], color: &str, opacity: f64) {
         let mut pts: Vec<String> =
             xs.iter().zip(hi).map(|(&x, &y)| format!("{:.1},{:.1}", ax.px(x), ax.py(y))).collect();
@@ -169,6 +188,7 @@ impl Canvas {
         );
     }
 
+    /// The SVG document, with a white background.
     pub fn finish(self) -> String {
         format!(
             "<svg xmlns=\"http://www.w3.org/2000/svg\" width=\"{:.0}\" height=\"{:.0}\" viewBox=\"0 0 {:.0} {:.0}\">\n<rect width=\"100%\" height=\"100%\" fill=\"white\"/>\n{}</svg>\n",

@@ -17,22 +17,27 @@ pub struct Page {
     blocks: Vec<Block>,
 }
 
+/// `s` with the HTML special characters escaped, for text and attribute values.
 pub fn escape(s: &str) -> String {
     s.replace('&', "&amp;").replace('<', "&lt;").replace('>', "&gt;").replace('"', "&quot;")
 }
 
 impl Page {
+    /// An empty page titled `title`.
     pub fn new(title: &str) -> Page {
         Page { title: title.into(), blocks: Vec::new() }
     }
+    /// Appends a section heading.
     pub fn heading(&mut self, s: &str) -> &mut Self {
         self.blocks.push(Block::Heading(s.into()));
         self
     }
+    /// Appends a paragraph.
     pub fn text(&mut self, s: &str) -> &mut Self {
         self.blocks.push(Block::Text(s.into()));
         self
     }
+    /// Appends a table with a header row.
     pub fn table(&mut self, header: &[&str], rows: Vec<Vec<String>>) -> &mut Self {
         self.blocks.push(Block::Table(header.iter().map(|h| h.to_string()).collect(), rows));
         self
@@ -43,6 +48,7 @@ impl Page {
         self
     }
 
+    /// The whole page as an HTML document.
     pub fn render(&self) -> String {
         let mut h = String::new();
         let _ = write!(

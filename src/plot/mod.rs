@@ -14,9 +14,13 @@ use crate::sim::output::MEASURES;
 
 /// Colours: observation, MAP, draws, predictive band, truth.
 pub const OBS: &str = "#222222";
+/// Colour of the MAP estimate.
 pub const MAP: &str = "#d62728";
+/// Colour of posterior draws.
 pub const DRAW: &str = "#1f77b4";
+/// Colour of the predictive band.
 pub const BAND: &str = "#1f77b4";
+/// Colour of the true value (simulated cases).
 pub const TRUTH: &str = "#2ca02c";
 /// The observation's noise band.
 pub const NOISE: &str = "#777777";
@@ -50,18 +54,27 @@ fn label(measure: usize) -> &'static str {
 
 /// One spectrum to draw, as features (measure-major on `freqs`, `MEASURES` order).
 pub struct Series<'a> {
+    /// The features to draw.
     pub x: &'a [f64],
+    /// Stroke colour.
     pub color: &'a str,
+    /// Stroke width in pixels.
     pub width: f64,
+    /// Stroke opacity, 0 to 1.
     pub opacity: f64,
+    /// Legend entry; `None` for no entry (e.g. one of many draws).
     pub label: Option<&'a str>,
 }
 
 /// A shaded band between two spectra (e.g. a 90 % predictive band).
 pub struct Band<'a> {
+    /// The lower spectrum, as features.
     pub lo: &'a [f64],
+    /// The upper spectrum, as features.
     pub hi: &'a [f64],
+    /// Fill colour.
     pub color: &'a str,
+    /// Legend entry.
     pub label: &'a str,
 }
 
@@ -157,12 +170,19 @@ fn diverging(t: f64) -> String {
 
 /// One parameter of a corner plot.
 pub struct Dim<'a> {
+    /// The parameter's name, as the axis label.
     pub name: &'a str,
+    /// Its unit, shown after the name.
     pub unit: &'a str,
+    /// Lower end of the axis (the prior's bound).
     pub low: f64,
+    /// Upper end of the axis.
     pub high: f64,
+    /// Whether the axis is logarithmic.
     pub log: bool,
+    /// The true value to mark, for simulated cases.
     pub truth: Option<f64>,
+    /// The MAP estimate to mark.
     pub map: Option<f64>,
 }
 

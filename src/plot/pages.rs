@@ -8,8 +8,11 @@ use crate::stats::spearman_per_block;
 
 /// A re-simulation's figure and page, and ρ per row and measure against the observation.
 pub struct Resimulation {
+    /// The figure: spectra of the re-simulated rows over the observation.
     pub svg: String,
+    /// The page showing the figure.
     pub html: String,
+    /// Spearman ρ per row and measure against the observation; `None` without an observation.
     pub rho: Option<Vec<Vec<f64>>>,
 }
 

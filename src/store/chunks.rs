@@ -12,9 +12,13 @@ use std::time::Duration;
 pub struct ChunkRow {
     /// `<job id>:<idx, 5 digits>`.
     pub id: String,
+    /// The simulate job the chunk belongs to.
     pub job_id: String,
+    /// The chunk's position in the job, from 0.
     pub idx: usize,
+    /// The first dataset row the chunk simulates.
     pub first_row: usize,
+    /// How many rows it simulates.
     pub n_rows: usize,
     /// `queued`, `running` or `done`.
     pub state: String,
@@ -27,7 +31,9 @@ pub struct ChunkRow {
 /// A claimed chunk: its row and the fencing token of this claim.
 #[derive(Clone, Debug)]
 pub struct ChunkClaim {
+    /// The chunk as claimed.
     pub chunk: ChunkRow,
+    /// The claim's fencing token: writes for the chunk are refused once another claim has it.
     pub token: String,
 }
 

@@ -10,23 +10,31 @@ use serde::Serialize;
 pub struct ApiKey {
     /// The key's public id, also the start of the key (`otofit_<id>_…`).
     pub id: String,
+    /// The tenant the key speaks for.
     pub tenant: String,
+    /// Whether the key may manage other tenants' jobs and models.
     pub admin: bool,
+    /// When the key was made (RFC 3339).
     pub created_at: String,
+    /// When the key was revoked; `None` while it is valid.
     pub revoked_at: Option<String>,
 }
 
 /// Who a valid key speaks for.
 #[derive(Clone, Debug, PartialEq)]
 pub struct KeyOwner {
+    /// The tenant whose jobs and models the request may see.
     pub tenant: String,
+    /// Whether the request may act for every tenant.
     pub admin: bool,
 }
 
 /// A key just made: `key` is shown to the operator once and stored nowhere.
 #[derive(Debug)]
 pub struct NewKey {
+    /// The key's public id (the start of the key).
     pub id: String,
+    /// The whole secret key, `otofit_<id>_<secret>`.
     pub key: String,
 }
 
