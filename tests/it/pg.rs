@@ -56,6 +56,19 @@ fn command(bin: &Path, ids: Option<(u32, u32)>) -> Command {
     c
 }
 
+/// Removes the cluster folders (`otofit-pg-<pid>`) of earlier test binaries that have
+/// ended: a cluster lives as long as its binary, so its folder cannot go with a guard.
+fn remove_dead_clusters() {
+    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else { return };
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name.strip_prefix("otofit-pg-").and_then(|p| p.parse::<u32>().ok()) else { continue };
+        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
+        }
+    }
+}
+
 fn start_cluster() -> Result<Cluster, String> {
     let (initdb, postgres) = match (pg_bin("initdb"), pg_bin("postgres")) {
         (Some(i), Some(p)) => (i, p),
@@ -65,6 +78,7 @@ fn start_cluster() -> Result<Cluster, String> {
     if unsafe { libc::geteuid() } == 0 && ids.is_none() {
         return Err("running as root and there is no `postgres` user to run PostgreSQL as".into());
     }
+    remove_dead_clusters();
     let dir = std::env::temp_dir().join(format!("otofit-pg-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).map_err(|e| e.to_string())?;

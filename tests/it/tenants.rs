@@ -147,15 +147,12 @@ async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend
 async fn two_tenants_cannot_see_each_others_jobs_datasets_and_models() {
     for (name, db) in backends().await {
         let store = otofit::store::Store::connect(&db).await.unwrap();
-        let data = std::env::temp_dir().join(format!("otofit-tenants-{name}-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&data);
-        std::fs::create_dir_all(&data).unwrap();
+        let data = crate::pg::temp_dir(&format!("tenants-{name}"));
         let path = std::fs::canonicalize(crate::http::default_model()).unwrap();
         store.add_model("default", &path.display().to_string(), true, None).await.unwrap();
         let ctx = ctx_on(store, &data, "test", Duration::from_secs(30));
         let app = router(AppState::new(ctx.clone(), vec![]));
         two_tenants_cannot_see_each_other(&app, &ctx, &name).await;
-        std::fs::remove_dir_all(&data).unwrap();
     }
 }
 
@@ -163,13 +160,8 @@ async fn two_tenants_cannot_see_each_others_jobs_datasets_and_models() {
 /// the `default` tenant, which see every tenant's jobs.
 #[tokio::test]
 async fn command_line_keys_are_admins_of_the_default_tenant() {
-    let (db, data) = (
-        otofit::store::Database::Sqlite(std::env::temp_dir().join(format!("otofit-clikeys-{}.db", std::process::id()))),
-        std::env::temp_dir().join(format!("otofit-clikeys-{}", std::process::id())),
-    );
-    if let otofit::store::Database::Sqlite(p) = &db {
-        let _ = std::fs::remove_file(p);
-    }
+    let data = crate::pg::temp_dir("clikeys");
+    let db = otofit::store::Database::Sqlite(data.join("otofit.db"));
     let store = otofit::store::Store::connect(&db).await.unwrap();
     let ctx = ctx_on(store, &data, "test", Duration::from_secs(30));
     let app = router(AppState::new(ctx.clone(), vec![otofit::store::key_hash("legacy")]));
@@ -191,8 +183,7 @@ async fn command_line_keys_are_admins_of_the_default_tenant() {
 /// (its hash is in the database), `list` never shows it, `revoke` turns it off.
 #[tokio::test]
 async fn keys_are_added_listed_and_revoked_from_the_command_line() {
-    let data = std::env::temp_dir().join(format!("otofit-keys-cli-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&data);
+    let data = crate::pg::temp_dir("keys-cli");
     let keys = |args: &[&str]| {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
             .arg("keys")
@@ -228,7 +219,6 @@ async fn keys_are_added_listed_and_revoked_from_the_command_line() {
     assert!(!ok && err.contains("no key 'nope'"), "{err}");
     let (ok, _, err) = keys(&["add", "--tenant", "../etc"]);
     assert!(!ok && err.contains("--tenant"), "{err}");
-    std::fs::remove_dir_all(&data).unwrap();
 }
 
 /// One tenant cannot fill the whole queue: at its own limit (`--max-queue-per-tenant`)
