@@ -56,6 +56,9 @@ pub struct SimulateArgs {
 
 /// Air in the canal (--preset).
 #[derive(Clone, Copy, Debug, ValueEnum)]
+// The values are explained in the flag's help: a doc comment on a value would become clap's
+// help for it and switch --help to the long layout.
+#[allow(missing_docs)]
 pub enum PresetArg {
     TemporalBone,
     Live,

@@ -20,6 +20,9 @@ fn rho(a: &[f64], b: &[f64]) -> Vec<f64> {
 
 /// The seed study's analyses.
 #[derive(Clone, Copy, Debug, ValueEnum)]
+// The values are explained in the flag's help: a doc comment on a value would become clap's
+// help for it and switch --help to the long layout.
+#[allow(missing_docs)]
 pub enum StudyName {
     Validate,
     Noise,

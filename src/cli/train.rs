@@ -54,6 +54,9 @@ pub struct TrainArgs {
 
 /// The summary network in front of the flow (--embedding).
 #[derive(Clone, Copy, Debug, ValueEnum)]
+// The values are explained in the flag's help: a doc comment on a value would become clap's
+// help for it and switch --help to the long layout.
+#[allow(missing_docs)]
 pub enum Embedding {
     Mlp,
     None,
