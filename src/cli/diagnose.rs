@@ -10,6 +10,7 @@ use clap::Args;
 use std::path::PathBuf;
 use std::time::Instant;
 
+/// Arguments of `otofit diagnose`.
 #[derive(Args, Debug)]
 pub struct DiagnoseArgs {
     /// Base model (trained on otofit's simulator without effects).
@@ -42,6 +43,7 @@ pub struct DiagnoseArgs {
     pub seed: u64,
 }
 
+/// Runs `otofit diagnose`.
 pub fn run(args: DiagnoseArgs) -> Result<()> {
     use crate::plot::diagnosis::{Links, write_report};
     // The diagnose job's limits (jobs::limits).

@@ -10,6 +10,7 @@ use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::Ordering;
 
+/// The params of a diagnose job: find where model and observation disagree, name the effect.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct DiagnoseParams {
@@ -23,14 +24,19 @@ pub struct DiagnoseParams {
     /// Effect names; all if absent.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub candidates: Option<Vec<String>>,
+    /// Add the named effect and retrain the model with it (default true).
     #[serde(default = "yes")]
     pub extend: bool,
+    /// Size of the extended model's training set (default 10,000).
     #[serde(default = "rows")]
     pub train_rows: usize,
+    /// Epochs at most of the extended model's training (default 300).
     #[serde(default = "super::train::epochs")]
     pub max_epochs: usize,
+    /// Effect-free simulations for the null distribution of the statistics (default 40).
     #[serde(default = "nulls")]
     pub null_cases: usize,
+    /// Seed of the null simulations, the fits' starts and the extended training.
     #[serde(default)]
     pub seed: u64,
 }
