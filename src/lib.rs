@@ -3,6 +3,7 @@
 //!
 //! The numerical core (`sim`, `flow`, `npe`) is synchronous, takes plain data plus a
 //! config, and knows nothing of HTTP or SQL. `cli` holds the command-line glue.
+#![warn(missing_docs)]
 
 pub mod artifacts;
 pub mod bench;

@@ -7,12 +7,15 @@ use anyhow::Result;
 use clap::{Args, Subcommand};
 use std::time::Instant;
 
+/// `otofit bench`'s arguments: which benchmark.
 #[derive(Args, Debug)]
 pub struct BenchArgs {
+    /// The benchmark to run.
     #[command(subcommand)]
     pub what: BenchWhat,
 }
 
+/// The benchmarks: each prints medians and ratios against its targets.
 #[derive(Subcommand, Debug)]
 pub enum BenchWhat {
     /// Simulator: one 50-frequency run on one core, and a parallel batch.
@@ -84,6 +87,7 @@ pub enum BenchWhat {
     },
 }
 
+/// Runs the chosen benchmark.
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
         BenchWhat::Sim { runs } => sim(runs),
