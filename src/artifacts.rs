@@ -104,6 +104,16 @@ pub fn model_key(id: &str) -> String {
     format!("models/{id}.otofit")
 }
 
+/// The key of one file of a job's dataset.
+pub fn dataset_key(id: &str, file: &str) -> String {
+    format!("datasets/{id}/{file}")
+}
+
+/// The key of one file of a job's report.
+pub fn report_key(id: &str, file: &str) -> String {
+    format!("reports/{id}/{file}")
+}
+
 impl Artifacts {
     /// The default: artifacts are the files in `data_dir`.
     pub fn local(data_dir: &Path) -> Artifacts {

@@ -109,11 +109,11 @@ impl Affine {
     fn apply(&self, rows: &mut [f64], inverse: bool) {
         let d = self.b.len();
         let mut tmp = vec![0.0; d];
+        let m = if inverse { &self.inv } else { &self.w };
         for row in rows.chunks_exact_mut(d) {
             if inverse {
                 row.iter_mut().zip(&self.b).for_each(|(v, b)| *v -= b);
             }
-            let m = if inverse { &self.inv } else { &self.w };
             for (i, t) in tmp.iter_mut().enumerate() {
                 *t = (0..d).map(|j| m[(i, j)] * row[j]).sum::<f64>();
             }

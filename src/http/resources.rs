@@ -351,7 +351,8 @@ pub async fn get_dataset(
     Path(id): Path<String>,
 ) -> Result<Json<serde_json::Value>, Problem> {
     dataset_job(&st, &who, &id).await?;
-    let meta = st.ctx.artifacts.read(&format!("datasets/{id}/meta.json")).await.map_err(Problem::internal)?;
+    let meta =
+        st.ctx.artifacts.read(&crate::artifacts::dataset_key(&id, "meta.json")).await.map_err(Problem::internal)?;
     let meta: serde_json::Value = serde_json::from_slice(&meta).map_err(Problem::internal)?;
     Ok(Json(json!({
         "id": id,
@@ -374,7 +375,7 @@ pub async fn get_dataset_file(
         }
     };
     dataset_job(&st, &who, &id).await?;
-    let bytes = st.ctx.artifacts.read(&format!("datasets/{id}/{file}")).await.map_err(Problem::internal)?;
+    let bytes = st.ctx.artifacts.read(&crate::artifacts::dataset_key(&id, &file)).await.map_err(Problem::internal)?;
     let mut r = bytes.into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(ct));
     Ok(r)
@@ -401,7 +402,7 @@ pub async fn get_job_file(
     let bytes = st
         .ctx
         .artifacts
-        .read(&format!("reports/{id}/{name}"))
+        .read(&crate::artifacts::report_key(&id, &name))
         .await
         .map_err(|_| Problem::new(StatusCode::NOT_FOUND, format!("job '{id}' has no file '{name}'")))?;
     let mut r = bytes.into_response();

@@ -402,7 +402,7 @@ fn start(
         {
             for f in crate::dataset::FILES {
                 ctx.artifacts
-                    .fetch_blocking(&format!("datasets/{}/{f}", p.dataset))
+                    .fetch_blocking(&crate::artifacts::dataset_key(&p.dataset, f))
                     .with_context(|| format!("fetching dataset '{}' from the artifact store", p.dataset))?;
             }
         }
