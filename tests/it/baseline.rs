@@ -10,7 +10,7 @@ fn data(file: &str) -> Value {
     serde_json::from_str(&text).unwrap()
 }
 
-fn normative() -> Value {
+pub(crate) fn normative() -> Value {
     let path = format!("{}/reference/normative.json", env!("CARGO_MANIFEST_DIR"));
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }

@@ -147,13 +147,62 @@ fn share_at(model: &Model, f: f64) -> f64 {
 }
 
 #[test]
-#[ignore = "known miss: the cochlea receives 16 / 8.4 / 4.2 % of the middle-ear input at 1 / 2 / 4 kHz (tests/data/known_misses.json)"]
+#[ignore = "known miss: the cochlea receives 16 / 8.4 / 4.2 % of the middle-ear input at 1 / 2 / 4 kHz (tests/data/known_misses.json); at 2-4 kHz the target is out of reach of any ear that meets the norms (the_norms_cap_the_cochlear_share_...)"]
 fn cochlea_receives_at_least_30_percent_at_1_to_4_khz() {
     let model = Model::new(ModelConfig::default()).unwrap();
     for f in [1000.0, 1500.0, 2000.0, 3000.0, 4000.0] {
         let share = share_at(&model, f);
         assert!(share >= 0.30, "cochlear share at {f} Hz: {:.1} %", 100.0 * share);
     }
+}
+
+/// The norms themselves cap the cochlear share above 2 kHz, far below the 30 % the
+/// issue asked for. Between the impedance plane and the drum a uniform canal keeps |R|,
+/// so the drum absorbs P = A·|p_i|²/(2Z₀) of an incident wave p_i, and the pressure on it
+/// is |p_d| = |p_i||1 + R| ≤ |p_i|(1 + √(1 − A)). The cochlea takes ½Z_c·A_fp²·|V/P|²·|p_d|²,
+/// so share ≤ Z_c·A_fp²·|V/P|²·Z₀·(1 + √(1 − A))²/A. At the most favourable end of every
+/// datum — V/P 5 dB above Goode 1994 (the issue's own tolerance), Z_c at the top of its
+/// normal range (Zwislocki 35 GΩ), A at the low end of the adult 10–90 % range, Z₀ of the
+/// nominal 44 mm² canal — the bound is 15 % at 2 kHz and 3.2 % at 4 kHz (27 % and 5.7 %
+/// with the narrowest canal of the prior, 25 mm²). Canal wall losses only lower it. So
+/// no ear that meets the other targets can give the cochlea ≥ 30 % at 2–4 kHz; at 1 kHz
+/// the bound (> 100 %) does not bind. The nominal model's 8.4 % and 4.2 % sit at or below
+/// the bound (its V/P is 6–7 dB above Goode there). Fails if the norms, the Goode
+/// conversion or the footplate area change enough to make the target reachable.
+#[test]
+fn the_norms_cap_the_cochlear_share_far_below_30_percent_at_2_and_4_khz() {
+    let n = crate::baseline::normative();
+    let floats =
+        |v: &serde_json::Value| -> Vec<f64> { v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect() };
+    let goode = |f: f64| {
+        let (fs, vs) = (floats(&n["vst_goode1994"]["frequency_hz"]), floats(&n["vst_goode1994"]["value"]));
+        vs[fs.iter().position(|&x| x == f).unwrap()]
+    };
+    let a_low = |f: f64| {
+        let (fs, lo) = (floats(&n["absorbance"]["frequency_hz"]), floats(&n["absorbance"]["low"]));
+        lo[fs.iter().position(|&x| x == f).unwrap()]
+    };
+    let z_c = otofit::npe::normal::NORMAL.iter().find(|r| r.name == "cochlear_load").unwrap().high;
+    let a_fp = otofit::sim::Geometry::default().footplate_area;
+    let air = Preset::TemporalBone.air();
+    let bound = |f: f64, area: f64| {
+        let v = 10f64.powf((goode(f) + 5.0) / 20.0) * 1e-3; // m/s/Pa
+        let a = a_low(f);
+        z_c * a_fp * a_fp * v * v * (air.rho * air.c / area) * (1.0 + (1.0 - a).sqrt()).powi(2) / a
+    };
+    let model = Model::new(ModelConfig::default()).unwrap();
+    for (f, cap) in [(2000.0, 0.20), (4000.0, 0.05)] {
+        let (b44, b25) = (bound(f, 44e-6), bound(f, 25e-6));
+        let share = share_at(&model, f);
+        eprintln!(
+            "{f} Hz: cochlear share at most {:.1} % (44 mm²), {:.1} % (25 mm²); nominal model {:.1} %",
+            100.0 * b44,
+            100.0 * b25,
+            100.0 * share
+        );
+        assert!(b44 < cap && b25 < 0.30, "{f} Hz: bound {b44:.3} / {b25:.3}");
+    }
+    assert!(bound(1000.0, 44e-6) > 1.0, "1 kHz: the bound binds");
 }
 
 /// Umbo velocity is the malleus point under the umbo. Closed form: with the chain made
