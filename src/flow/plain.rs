@@ -8,6 +8,8 @@ use super::FlowConfig;
 use faer::linalg::matmul::matmul;
 use faer::{Accum, Mat, MatMut, MatRef, Par};
 
+mod lanes;
+
 const MIN_WIDTH: f64 = 1e-3;
 const MIN_HEIGHT: f64 = 1e-3;
 const MIN_DERIVATIVE: f64 = 1e-3;
@@ -42,6 +44,26 @@ fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, la
                 *v = v.max(0.0);
             }
         }
+    }
+    y
+}
+
+/// [`batch_forward`] of a last layer (no ReLU), the result transposed: [n × out]
+/// column-major, one output of every sample contiguous (the layout of [`lanes`]).
+fn batch_forward_t(w: MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize) -> Vec<f64> {
+    let (i, o) = (w.nrows(), w.ncols());
+    let mut y = vec![0.0; n * o];
+    matmul(
+        MatMut::from_column_major_slice_mut(&mut y, n, o),
+        Accum::Replace,
+        MatRef::from_column_major_slice(x, i, n).transpose(),
+        w,
+        1.0,
+        Par::Seq,
+    );
+    clear_upper();
+    for (col, b) in y.chunks_exact_mut(n.max(1)).zip(bias) {
+        col.iter_mut().for_each(|v| *v += b);
     }
     y
 }
@@ -226,6 +248,29 @@ impl PlainFlow {
     }
 }
 
+/// exp_neg's constants: 1.5·2^52 (adding it rounds to an integer), ln 2 split so that
+/// n·LN2_HI is exact (fdlibm's constants), and the Taylor coefficients 1/k!, k = 13 down
+/// to 0 (the first is the Horner start).
+const EXP_SHIFT: f64 = 6_755_399_441_055_744.0;
+const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
+const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
+const INV_FACT: [f64; 14] = [
+    1.0 / 6_227_020_800.0,
+    1.0 / 479_001_600.0,
+    1.0 / 39_916_800.0,
+    1.0 / 3_628_800.0,
+    1.0 / 362_880.0,
+    1.0 / 40_320.0,
+    1.0 / 5_040.0,
+    1.0 / 720.0,
+    1.0 / 120.0,
+    1.0 / 24.0,
+    1.0 / 6.0,
+    0.5,
+    1.0,
+    1.0,
+];
+
 /// e^x for x ≤ 0 (a softmax after its maximum, softplus's e^−|r|), inlined so that the
 /// knot loops stay free of calls: Cody–Waite reduction x = n ln 2 + r, |r| ≤ ln 2 / 2, and
 /// the degree-13 Taylor polynomial of e^r (truncation < 1e-17 relative; the test measures
@@ -233,36 +278,17 @@ impl PlainFlow {
 /// instead of a denormal: nothing beside a softmax sum ≥ 1 or 1 + e); NaN stays NaN.
 #[inline(always)]
 fn exp_neg<const FMA: bool>(x: f64) -> f64 {
-    const SHIFT: f64 = 6_755_399_441_055_744.0; // 1.5·2^52: adding it rounds to an integer
-    // ln 2 split so that n·LN2_HI is exact (fdlibm's constants).
-    const LN2_HI: f64 = f64::from_bits(0x3fe6_2e42_fee0_0000);
-    const LN2_LO: f64 = f64::from_bits(0x3dea_39ef_3579_3c76);
     let x = if x < -708.0 { -708.0 } else { x };
-    let shifted = x * std::f64::consts::LOG2_E + SHIFT;
-    let n = shifted - SHIFT;
+    let shifted = x * std::f64::consts::LOG2_E + EXP_SHIFT;
+    let n = shifted - EXP_SHIFT;
     let r = (x - n * LN2_HI) - n * LN2_LO;
     // Horner on 1/k!, k = 13 down to 0.
-    const INV_FACT: [f64; 13] = [
-        1.0 / 479_001_600.0,
-        1.0 / 39_916_800.0,
-        1.0 / 3_628_800.0,
-        1.0 / 362_880.0,
-        1.0 / 40_320.0,
-        1.0 / 5_040.0,
-        1.0 / 720.0,
-        1.0 / 120.0,
-        1.0 / 24.0,
-        1.0 / 6.0,
-        0.5,
-        1.0,
-        1.0,
-    ];
-    let mut p = 1.0 / 6_227_020_800.0;
-    for c in INV_FACT {
+    let mut p = INV_FACT[0];
+    for &c in &INV_FACT[1..] {
         p = mul_add::<FMA>(p, r, c);
     }
     // 2^n from the integer in the shifted value's low mantissa bits (n ∈ −1022..=0).
-    let k = (shifted.to_bits() as i64).wrapping_sub(SHIFT.to_bits() as i64);
+    let k = (shifted.to_bits() as i64).wrapping_sub(EXP_SHIFT.to_bits() as i64);
     p * f64::from_bits(((k + 1023) as u64) << 52)
 }
 
@@ -519,16 +545,24 @@ impl Bound<'_> {
         self
     }
 
-    /// Raw spline parameters [P × n] (P = dt·(3K−1)) of transform `t` for the untouched
-    /// parts `a` [dc × n].
-    fn raw(&self, t: usize, a: &[f64], n: usize) -> Vec<f64> {
-        self.raw_keeping(t, a, n, None)
+    /// Raw spline parameters of transform `t` for the untouched parts `a` [dc × n],
+    /// transposed: [n × P] column-major (P = dt·(3K−1)), the layout of [`lanes`].
+    fn raw_t(&self, t: usize, a: &[f64], n: usize) -> Vec<f64> {
+        self.raw_keeping(t, a, n, None, true)
     }
 
-    /// [`Self::raw`], keeping in `acts` what its gradient needs: the input of every layer
-    /// after the first (MLP), or each residual block's state h and inner activation s,
-    /// then the final h.
-    fn raw_keeping(&self, t: usize, a: &[f64], n: usize, mut acts: Option<&mut Vec<Vec<f64>>>) -> Vec<f64> {
+    /// Raw spline parameters [P × n] (P = dt·(3K−1)) of transform `t` for the untouched
+    /// parts `a` [dc × n] (`transposed`: [n × P]), keeping in `acts` what its gradient
+    /// needs: the input of every layer after the first (MLP), or each residual block's
+    /// state h and inner activation s, then the final h.
+    fn raw_keeping(
+        &self,
+        t: usize,
+        a: &[f64],
+        n: usize,
+        mut acts: Option<&mut Vec<Vec<f64>>>,
+        transposed: bool,
+    ) -> Vec<f64> {
         let layers = &self.flow.conditioners[t];
         let dc = self.flow.cfg.dim / 2;
         let mut keep = |v: &Vec<f64>| {
@@ -555,14 +589,19 @@ impl Bound<'_> {
                     }
                 }
             }
-            keep(&h);
-            return batch_forward(layers[last].w.as_ref(), &layers[last].b, &h, n, true);
+        } else {
+            for l in &layers[1..last] {
+                keep(&h);
+                h = batch_forward(l.w.as_ref(), &l.b, &h, n, false);
+            }
         }
-        for (i, l) in layers.iter().enumerate().skip(1) {
-            keep(&h);
-            h = batch_forward(l.w.as_ref(), &l.b, &h, n, i == last);
+        keep(&h);
+        let l = &layers[last];
+        if transposed {
+            batch_forward_t(l.w.as_ref(), &l.b, &h, n)
+        } else {
+            batch_forward(l.w.as_ref(), &l.b, &h, n, true)
         }
-        h
     }
 
     /// The gradient of Σ_i g_raw_i · raw_i with respect to `a`, given the activations
@@ -606,8 +645,8 @@ impl Bound<'_> {
         let d = cfg.dim;
         let dc = d / 2;
         let a: Vec<f64> = u.chunks_exact(d).flat_map(|c| c[..dc].iter().copied()).collect();
-        let raw = self.raw(t, &a, n);
-        splines(&Splines { d, dc, bins: cfg.bins, bound: cfg.bound, inverse }, u, &raw, logdet);
+        let raw = self.raw_t(t, &a, n);
+        lanes::splines(&Splines { d, dc, bins: cfg.bins, bound: cfg.bound, inverse }, u, &raw, n, logdet);
     }
 
     /// Standard-normal draws z (n rows of d, row-major) → points v (same layout) and
@@ -668,7 +707,7 @@ impl Bound<'_> {
             permute(&mut u, &cfg.permutations[t], false);
             let a: Vec<f64> = u.chunks_exact(d).flat_map(|c| c[..dc].iter().copied()).collect();
             let mut acts = Vec::new();
-            let raw = self.raw_keeping(t, &a, n, Some(&mut acts));
+            let raw = self.raw_keeping(t, &a, n, Some(&mut acts), false);
             let before = u.clone();
             splines(&Splines { d, dc, bins: cfg.bins, bound: cfg.bound, inverse: false }, &mut u, &raw, &mut logdet);
             if let Some(a) = self.flow.lu.get(t) {
