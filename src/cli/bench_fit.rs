@@ -1,7 +1,8 @@
 //! `otofit bench fit`: how the trust layer of an inference behaves — the fit check's
 //! false-alarm rate on the model's own simulated ears, its detection rate on ears with a
 //! strong hidden effect, and the differential reading of ears at the centre of every
-//! normal range. Numbers for the README, measured, not asserted.
+//! normal range, and how often normal ears with a hidden effect get a false finding while
+//! the fit looks fine. Numbers for the README, measured, not asserted.
 
 use crate::discrepancy::fitcheck::fit_check;
 use crate::npe::normal::{Differential, NORMAL, read};
@@ -72,6 +73,7 @@ pub fn run(model: &Path, cases: usize, seed: u64, measures: &str) -> Result<()> 
     let detect = hidden_effects(&npe, &rows, &present, seed)?;
     let centred_ok = centre(&npe, &present, cases, seed)?;
     let nom = nominal(&npe, &present, seed)?;
+    let findings = false_findings(&npe, &present, cases, seed)?;
     let doc = json!({
         "model": model.display().to_string(),
         "cases": cases,
@@ -81,6 +83,7 @@ pub fn run(model: &Path, cases: usize, seed: u64, measures: &str) -> Result<()> 
         "centre_benign": centred_ok,
         "nominal_fit_ok": nom.ok,
         "nominal_benign": benign(&nom),
+        "normal_ears": findings,
     });
     println!("{doc}");
     Ok(())
@@ -178,4 +181,49 @@ fn nominal(npe: &Npe, present: &[bool], seed: u64) -> Result<Outcome> {
         );
     }
     Ok(nom)
+}
+
+/// (5) Normal ears — every tissue value drawn log-uniformly inside its normal range, the
+/// nuisances from the prior — with no effect and with each strong hidden effect: how
+/// often the fit check flags them, and how often the answer names a finding (below or
+/// above) while `fit.ok` is true. Every such finding is false (the truth is within), and
+/// it is the harm the fit check exists to prevent: a confident wrong reading.
+fn false_findings(npe: &Npe, present: &[bool], cases: usize, seed: u64) -> Result<Vec<serde_json::Value>> {
+    use rand::{Rng, SeedableRng};
+    let mut rows = Design::default().draw(seed ^ 0x40F, 0, cases);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x40F);
+    for row in rows.iter_mut() {
+        for (k, p) in PARAMS.iter().enumerate() {
+            if let Some(r) = NORMAL.iter().find(|r| r.name == p.name) {
+                let u: f64 = rng.random();
+                row[k] = (r.low.ln() + u * (r.high / r.low).ln()).exp();
+            }
+        }
+    }
+    let mut out = Vec::new();
+    for (name, value) in std::iter::once(("none", 0.0)).chain(STRONG) {
+        let mut fixed = Effects::default();
+        if name != "none" {
+            fixed.set(name, value)?;
+        }
+        let design = Design { fixed, varied: vec![] };
+        let res = infer_all(npe, &simulate(npe, &design, &rows, seed ^ 0xF1)?, present, seed)?;
+        let flagged = rate(&res, |o| o.ok == Some(false));
+        let false_finding = rate(&res, |o| o.ok == Some(true) && !benign(o));
+        let mut which = std::collections::BTreeMap::<String, usize>::new();
+        for o in res.iter().filter(|o| o.ok == Some(true)) {
+            for d in o.readings.iter().filter(|d| d.reading == "below" || d.reading == "above") {
+                *which.entry(format!("{} {}", d.name, d.reading)).or_default() += 1;
+            }
+        }
+        let listed: Vec<String> = which.iter().map(|(k, v)| format!("{k} {v}")).collect();
+        println!(
+            "normal ears, effect {name}: fit.ok false {flagged:.3}, false finding with fit.ok true {false_finding:.3} of {} ({})",
+            res.len(),
+            if listed.is_empty() { "none".to_string() } else { listed.join(", ") }
+        );
+        out.push(json!({ "effect": name, "value": value, "flagged": flagged, "false_finding": false_finding,
+            "findings": which, "cases": res.len() }));
+    }
+    Ok(out)
 }
