@@ -44,7 +44,7 @@ fn portable(s: &Splines, u: &mut [f64], raw: &[f64], n: usize, logdet: &mut [f64
 
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
-    use super::super::{EXP_SHIFT, INV_FACT, LN2_HI, LN2_LO, MIN_DERIVATIVE, MIN_HEIGHT, MIN_WIDTH, Splines};
+    use super::super::{EXP_SHIFT, INV_FACT, LG, LN2_HI, LN2_LO, MIN_DERIVATIVE, MIN_HEIGHT, MIN_WIDTH, Splines};
     use std::arch::x86_64::*;
 
     type V = __m256d;
@@ -117,11 +117,28 @@ mod avx2 {
     #[target_feature(enable = "avx2,fma")]
     fn softplus(r: V) -> V {
         // −|r|: the sign bit set.
-        let e = store(exp_neg(_mm256_or_pd(r, set(-0.0))));
-        let l = e.map(f64::ln_1p);
-        // SAFETY: `l` holds four f64.
-        let l = unsafe { _mm256_loadu_pd(l.as_ptr()) };
+        let l = ln_1p_unit(exp_neg(_mm256_or_pd(r, set(-0.0))));
         _mm256_add_pd(_mm256_add_pd(_mm256_max_pd(r, _mm256_setzero_pd()), l), set(MIN_DERIVATIVE))
+    }
+
+    /// `super::super::ln_1p_unit` in lanes (the same operations).
+    #[target_feature(enable = "avx2,fma")]
+    fn ln_1p_unit(x: V) -> V {
+        let u = add(set(1.0), x);
+        let c = _mm256_div_pd(sub(x, sub(u, set(1.0))), u);
+        let big = _mm256_cmp_pd::<_CMP_GT_OQ>(u, set(std::f64::consts::SQRT_2));
+        let m = blend(u, mul(u, set(0.5)), big);
+        let k = _mm256_and_pd(big, set(1.0));
+        let f = sub(m, set(1.0));
+        let s = _mm256_div_pd(f, add(set(2.0), f));
+        let z = mul(s, s);
+        let w = mul(z, z);
+        let t1 = mul(w, add(set(LG[1]), mul(w, add(set(LG[3]), mul(w, set(LG[5]))))));
+        let t2 = mul(z, add(set(LG[0]), mul(w, add(set(LG[2]), mul(w, add(set(LG[4]), mul(w, set(LG[6]))))))));
+        let r = add(t2, t1);
+        let hfsq = mul(mul(set(0.5), f), f);
+        let inner = add(mul(s, add(hfsq, r)), add(mul(k, set(LN2_LO)), c));
+        sub(mul(k, set(LN2_HI)), sub(sub(hfsq, inner), f))
     }
 
     /// The knot at cumulative weight c: c·2·bound − bound.
