@@ -2,8 +2,8 @@
 //! stapes V/P within ±5 dB of Goode 1994, phase at 8 kHz in [−450°, −250°], group delay
 //! 60–150 µs at 2–8 kHz, absorbance inside the adult 10–90 % range, cochlear share ≥ 30 %
 //! at 1–4 kHz. The knobs (`KNOBS`) are the seven tissue values, bounded by their normal
-//! ranges (src/npe/normal.rs), the drum's loss factor, and two structural factors (ossicle
-//! masses, SAL geometry); the cost is a sum of squared hinge distances to the targets
+//! ranges (src/npe/normal.rs), the drum's loss factor and viscoelastic exponent n, and two
+//! structural factors (ossicle masses, SAL geometry); the cost is a sum of squared hinge distances to the targets
 //! (each target counts 1 per its tolerance unit), minimised by Nelder–Mead from the
 //! current nominal and from random starts. Exploration only: docs/simulator.md records
 //! what it found.
@@ -26,7 +26,7 @@ const ABS_HI: [f64; 11] = [0.30, 0.50, 0.65, 0.75, 0.85, 0.90, 0.95, 0.92, 0.85,
 
 /// Knobs: log10 of the absolute value for tissue parameters (bounded by their normal
 /// ranges, src/npe/normal.rs), log10 of a factor for structural constants.
-const KNOBS: [(&str, f64, f64); 10] = [
+const KNOBS: [(&str, f64, f64); 11] = [
     ("E_eardrum", 6.301, 8.301),
     ("drum eta", -2.0, 0.0),
     ("damping_beta", -4.125, -3.824),
@@ -37,6 +37,7 @@ const KNOBS: [(&str, f64, f64); 10] = [
     ("ossicle mass x", -0.3, 0.3),
     ("E_tendons", 5.716, 6.699),
     ("g_sal x", -1.0, 1.0),
+    ("tm_viscoelastic n", 0.0, 0.3),
 ];
 
 struct Metrics {
@@ -100,6 +101,7 @@ fn apply(x: &[f64], base_g: &Geometry, shape: DrumShape) -> (Geometry, Theta) {
     for v in [&mut g.m_malleus, &mut g.i_malleus, &mut g.m_incus, &mut g.i_incus] {
         *v *= m(7);
     }
+    t.0[11] = x[10];
     g.g_sal *= m(9);
     g.g_sal_rock *= m(9);
     g.tm_shape = shape;
@@ -229,7 +231,7 @@ fn main() {
             4 => 2e5f64.log10(),
             5 => 5e6f64.log10(),
             6 => 6e6f64.log10(),
-            7 | 9 => 0.0,
+            7 | 9 | 10 => 0.0,
             8 => 2e6f64.log10(),
             _ => 0.5 * (lo + hi),
         })
@@ -284,7 +286,11 @@ fn main() {
     }
     println!("best cost {v:.3}: thickness {:.0} um, depth {:.2} mm, {shape:?}", g.tm_thickness * 1e6, g.tm_depth * 1e3);
     for (k, (name, lo, hi)) in KNOBS.iter().enumerate() {
-        println!("  {name:16} log10 {:+.3}  ({:.4e})  [{lo}, {hi}]", x[k], 10f64.powf(x[k]));
+        if k == 10 {
+            println!("  {name:16} {:.3}  [{lo}, {hi}]", x[k]);
+        } else {
+            println!("  {name:16} log10 {:+.3}  ({:.4e})  [{lo}, {hi}]", x[k], 10f64.powf(x[k]));
+        }
     }
     let clamp: Vec<f64> = x.iter().zip(KNOBS).map(|(v, (_, lo, hi))| v.clamp(lo, hi)).collect();
     let (g2, t) = apply(&clamp, &g, shape);
