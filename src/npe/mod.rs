@@ -573,9 +573,12 @@ impl Npe {
     /// the box: an observation unlike the training set) the last rejected draws fill the
     /// rest and are clamped into the box later, so the posterior piles at a bound — which
     /// the reading and the fit check then see — instead of the request running for minutes.
-    fn draw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
+    /// A further round draws what is missing at the acceptance seen so far, × 1.2, and at
+    /// least 32: its draws are the first of that round's seed whatever their number (one
+    /// stream of base draws), so sizing a round to the need changes no accepted draw.
+    fn draw(&self, bound: &Mixture<'_>, n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
         const DRAW_BUDGET: usize = 8;
-        let (mut v, mut lp) = self.draw_raw(input, n, seed);
+        let (mut v, mut lp) = self.draw_raw(bound, n, seed);
         if self.header.theta_map == ThetaMap::Logit {
             return (v, lp);
         }
@@ -604,18 +607,17 @@ impl Npe {
             // Enough for the rest at the acceptance seen so far, within the budget.
             round += 1;
             let rate = (out_v.len() as f64 / drawn as f64).max(0.01);
-            let m = ((need as f64 / rate * 1.2) as usize).max(128).min(DRAW_BUDGET * n - drawn).max(need);
+            let m = ((need as f64 / rate * 1.2).ceil() as usize).max(32).min(DRAW_BUDGET * n - drawn).max(need);
             drawn += m;
-            (v, lp) = self.draw_raw(input, m, seed ^ round.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            (v, lp) = self.draw_raw(bound, m, seed ^ round.wrapping_mul(0x9E37_79B9_7F4A_7C15));
         }
     }
 
     /// `n` draws of the flow (standardised space) with their log-densities.
-    fn draw_raw(&self, input: &[f32], n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
+    fn draw_raw(&self, bound: &Mixture<'_>, n: usize, seed: u64) -> (Vec<Vec<f64>>, Vec<f64>) {
         let d = self.header.params.len();
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let z: Vec<f32> = (0..n * d).map(|_| StandardNormal.sample(&mut rng)).collect();
-        let bound = self.bind(input);
         // Blocks of 128 rows: buffers stay in cache (and under the allocator's mmap
         // threshold); rayon spreads them over the cores; block b comes from member b mod K.
         let z: Vec<f64> = z.into_iter().map(f64::from).collect();
@@ -639,7 +641,7 @@ impl Npe {
     /// Posterior samples in natural units.
     pub fn sample(&self, obs: &Obs<'_>, n: usize, seed: u64) -> Result<Vec<Vec<f64>>> {
         let input = self.input_row(obs)?;
-        let (v, _) = self.draw(&input, n, seed);
+        let (v, _) = self.draw(&self.bind(&input), n, seed);
         Ok(v.iter().map(|r| self.to_theta(r)).collect())
     }
 
@@ -665,10 +667,12 @@ impl Npe {
     pub fn infer(&self, obs: &Obs<'_>, n: usize, seed: u64) -> Result<Inference> {
         let t0 = std::time::Instant::now();
         let input = self.input_row(obs)?;
-        let (v, lp) = self.draw(&input, n.max(1), seed);
+        // The observation embedded once, for the draws and the MAP search.
+        let bound = self.bind(&input);
+        let (v, lp) = self.draw(&bound, n.max(1), seed);
         let samples: Vec<Vec<f64>> = v.iter().map(|r| self.to_theta(r)).collect();
         let sample_ms = t0.elapsed().as_secs_f64() * 1e3;
-        let map = self.map_from(&input, &v, &lp);
+        let map = self.map_from(&bound, &v, &lp);
         let map_ms = t0.elapsed().as_secs_f64() * 1e3 - sample_ms;
         let summaries = summarize(&self.header.params, &samples, &map);
         Ok(Inference { samples, map, summaries, sample_ms, map_ms })
@@ -677,11 +681,10 @@ impl Npe {
     /// MAP in the flow's (unbounded, standardised) space: gradient ascent with Adam from
     /// the two best draws, with analytic gradients (one forward and one backward pass of
     /// the flow per step for both starts; `flow::plain` tests them against differences).
-    fn map_from(&self, input: &[f32], v: &[Vec<f64>], lp: &[f64]) -> Vec<f64> {
+    fn map_from(&self, bound: &Mixture<'_>, v: &[Vec<f64>], lp: &[f64]) -> Vec<f64> {
         let d = self.header.params.len();
         let mut order: Vec<usize> = (0..v.len()).collect();
         order.sort_by(|&a, &b| lp[b].total_cmp(&lp[a]));
-        let bound = self.bind(input);
         let (lr, b1, b2) = (0.05, 0.9f64, 0.999f64);
         let mut best = (f64::NEG_INFINITY, vec![0f64; d]);
         let mut xs: Vec<f64> = order.iter().take(2).flat_map(|&i| v[i].iter().copied()).collect();
