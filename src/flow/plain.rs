@@ -379,17 +379,36 @@ fn active(v: f64, w: &[f64; 32], scale: f64, min: f64, bins: usize, bound: f64) 
 /// inference path's hot loop: no knot arrays, one division per axis).
 #[inline(always)]
 fn bin<const FMA: bool>(v: f64, raw: &[f64], bins: usize, bound: f64, by_y: bool) -> (f64, f64, f64, f64, [f64; 2]) {
-    let (wx, sx) = axis_weights::<FMA>(&raw[..bins], MIN_WIDTH, bins);
-    let (wy, sy) = axis_weights::<FMA>(&raw[bins..2 * bins], MIN_HEIGHT, bins);
-    let (search, scale, min) = if by_y { (&wy, sy, MIN_HEIGHT) } else { (&wx, sx, MIN_WIDTH) };
+    bin_with::<FMA>(v, raw, bins, bound, by_y, &weights::<FMA>(raw, bins))
+}
+
+/// Both axes' softmax weights and scales ([`axis_weights`]): x, then y.
+#[inline(always)]
+fn weights<const FMA: bool>(raw: &[f64], bins: usize) -> [([f64; 32], f64); 2] {
+    [axis_weights::<FMA>(&raw[..bins], MIN_WIDTH, bins), axis_weights::<FMA>(&raw[bins..2 * bins], MIN_HEIGHT, bins)]
+}
+
+/// [`bin`] with the axes' weights given.
+#[inline(always)]
+fn bin_with<const FMA: bool>(
+    v: f64,
+    raw: &[f64],
+    bins: usize,
+    bound: f64,
+    by_y: bool,
+    weights: &[([f64; 32], f64); 2],
+) -> (f64, f64, f64, f64, [f64; 2]) {
+    let [(wx, sx), (wy, sy)] = weights;
+    let (sx, sy) = (*sx, *sy);
+    let (search, scale, min) = if by_y { (wy, sy, MIN_HEIGHT) } else { (wx, sx, MIN_WIDTH) };
     let k = active(v, search, scale, min, bins, bound);
     let knot = |w: &[f64; 32], scale: f64, min: f64| {
         let lo: f64 = w[..k].iter().fold(0.0, |a, e| a + e * scale + min);
         let hi = lo + w[k] * scale + min;
         (lo * 2.0 * bound - bound, if k + 1 == bins { bound } else { hi * 2.0 * bound - bound })
     };
-    let (x0, x1) = knot(&wx, sx, MIN_WIDTH);
-    let (y0, y1) = knot(&wy, sy, MIN_HEIGHT);
+    let (x0, x1) = knot(wx, sx, MIN_WIDTH);
+    let (y0, y1) = knot(wy, sy, MIN_HEIGHT);
     (x0, y0, x1 - x0, y1 - y0, [derivative::<FMA>(raw, bins, k), derivative::<FMA>(raw, bins, k + 1)])
 }
 
@@ -441,12 +460,21 @@ fn spline_inverse<const FMA: bool>(y: f64, raw: &[f64], bins: usize, bound: f64)
 /// δ = h/w, y0, h and the end derivatives; the knots on the softmaxes of the raw widths
 /// and heights (∂W_j/∂r_i = 2B(1 − K·min) S_j (δ_ij − S_i)) and the interior derivatives
 /// on softplus (∂/∂r = σ(r)).
-fn spline_forward_grad(x: f64, raw: &[f64], bins: usize, bound: f64, gy: f64, g_raw: &mut [f64]) -> (f64, f64, f64) {
+#[inline(always)]
+fn spline_forward_grad<const FMA: bool>(
+    x: f64,
+    raw: &[f64],
+    bins: usize,
+    bound: f64,
+    gy: f64,
+    g_raw: &mut [f64],
+) -> (f64, f64, f64) {
     g_raw.iter_mut().for_each(|g| *g = 0.0);
     if x.abs() > bound {
         return (x, 0.0, gy);
     }
-    let (x0, y0, w, h, [d0, d1]) = bin::<false>(x, raw, bins, bound, false);
+    let weights = weights::<FMA>(raw, bins);
+    let (x0, y0, w, h, [d0, d1]) = bin_with::<FMA>(x, raw, bins, bound, false, &weights);
     let delta = h / w;
     let t = ((x - x0) / w).clamp(0.0, 1.0);
     let t1 = t * (1.0 - t);
@@ -469,8 +497,6 @@ fn spline_forward_grad(x: f64, raw: &[f64], bins: usize, bound: f64, gy: f64, g_
     let g_x = g_t / w;
     let (g_x0, g_w) = (-g_t / w, -g_t * t / w - g_delta * delta / w);
     // Knots: x0 = −B + Σ_{j<k} W_j, w = W_k (heights alike, with y0 and h).
-    let weights = [(0, MIN_WIDTH), (1, MIN_HEIGHT)]
-        .map(|(axis, min)| axis_weights::<false>(&raw[axis * bins..(axis + 1) * bins], min, bins));
     let k = active(x, &weights[0].0, weights[0].1, MIN_WIDTH, bins, bound);
     for (axis, (g_lo, g_len), min) in [(0, (g_x0, g_w), MIN_WIDTH), (1, (gy, g_h), MIN_HEIGHT)] {
         let e = &weights[axis].0;
@@ -545,6 +571,44 @@ fn splines_with<const FMA: bool>(s: &Splines, u: &mut [f64], raw: &[f64], logdet
             jac *= f;
         }
         *ld += jac.ln();
+    }
+}
+
+/// The gradients back through one coupling's splines (the MAP search's backward pass):
+/// for each column, g of the transformed dims from ∂/∂y to ∂/∂x at the points `before`,
+/// and ∂/∂raw into `g_raw` ([`spline_forward_grad`]); compiled for AVX2 and FMA where the
+/// CPU has them, as [`splines`].
+fn spline_grads(s: &Splines, g: &mut [f64], before: &[f64], raw: &[f64], g_raw: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features `spline_grads_avx2` is compiled for (just detected).
+        return unsafe { spline_grads_avx2(s, g, before, raw, g_raw) };
+    }
+    spline_grads_with::<false>(s, g, before, raw, g_raw);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn spline_grads_avx2(s: &Splines, g: &mut [f64], before: &[f64], raw: &[f64], g_raw: &mut [f64]) {
+    spline_grads_with::<true>(s, g, before, raw, g_raw);
+}
+
+#[inline(always)]
+fn spline_grads_with<const FMA: bool>(s: &Splines, g: &mut [f64], before: &[f64], raw: &[f64], g_raw: &mut [f64]) {
+    let (d, dc) = (s.d, s.dc);
+    let dt = d - dc;
+    let np = 3 * s.bins - 1;
+    for (((gc, bc), rc), grc) in g
+        .chunks_exact_mut(d)
+        .zip(before.chunks_exact(d))
+        .zip(raw.chunks_exact(dt * np))
+        .zip(g_raw.chunks_exact_mut(dt * np))
+    {
+        for k in 0..dt {
+            let p = &rc[k * np..(k + 1) * np];
+            let gp = &mut grc[k * np..(k + 1) * np];
+            gc[dc + k] = spline_forward_grad::<FMA>(bc[dc + k], p, s.bins, s.bound, gc[dc + k], gp).2;
+        }
     }
 }
 
@@ -759,18 +823,13 @@ impl Bound<'_> {
             if let Some(a) = self.flow.lu.get(t) {
                 a.back(&mut g);
             }
-            for (((gc, bc), rc), grc) in g
-                .chunks_exact_mut(d)
-                .zip(before.chunks_exact(d))
-                .zip(raw.chunks_exact(dt * np))
-                .zip(g_raw.chunks_exact_mut(dt * np))
-            {
-                for k in 0..dt {
-                    let p = &rc[k * np..(k + 1) * np];
-                    let gp = &mut grc[k * np..(k + 1) * np];
-                    gc[dc + k] = spline_forward_grad(bc[dc + k], p, cfg.bins, cfg.bound, gc[dc + k], gp).2;
-                }
-            }
+            spline_grads(
+                &Splines { d, dc, bins: cfg.bins, bound: cfg.bound, inverse: false },
+                &mut g,
+                before,
+                raw,
+                &mut g_raw,
+            );
             let g_a = self.raw_backward(t, acts, g_raw.clone(), n);
             for (gc, ga) in g.chunks_exact_mut(d).zip(g_a.chunks_exact(dc.max(1))) {
                 gc[..dc].iter_mut().zip(ga).for_each(|(x, y)| *x += y);

@@ -683,8 +683,15 @@ impl Npe {
     /// the flow per step for both starts; `flow::plain` tests them against differences).
     fn map_from(&self, bound: &Mixture<'_>, v: &[Vec<f64>], lp: &[f64]) -> Vec<f64> {
         let d = self.header.params.len();
-        let mut order: Vec<usize> = (0..v.len()).collect();
-        order.sort_by(|&a, &b| lp[b].total_cmp(&lp[a]));
+        // The two highest densities, ties to the earlier draw (as a stable sort would).
+        let mut order: Vec<usize> = Vec::with_capacity(2);
+        for i in 0..v.len().min(lp.len()) {
+            let at = order.iter().position(|&j| lp[i].total_cmp(&lp[j]).is_gt()).unwrap_or(order.len());
+            if at < 2 {
+                order.insert(at, i);
+                order.truncate(2);
+            }
+        }
         let (lr, b1, b2) = (0.05, 0.9f64, 0.999f64);
         let mut best = (f64::NEG_INFINITY, vec![0f64; d]);
         let mut xs: Vec<f64> = order.iter().take(2).flat_map(|&i| v[i].iter().copied()).collect();

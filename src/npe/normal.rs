@@ -150,7 +150,7 @@ pub fn read(params: &[Param], samples: &[Vec<f64>]) -> Vec<Differential> {
             let above = samples.iter().filter(|s| s[k] > r.high).count() as f64 / n;
             let within = 1.0 - below - above;
             let mut pos: Vec<f64> = samples.iter().map(|s| p.position(s[k])).collect();
-            pos.sort_by(f64::total_cmp);
+            pos.sort_unstable_by(f64::total_cmp);
             let width90 = quantile(&pos, 0.95) - quantile(&pos, 0.05);
             let normal_width = p.position(r.high) - p.position(r.low);
             let median = quantile(&pos, 0.5);
