@@ -53,6 +53,16 @@ pub struct TaskResult {
     pub best_epoch: usize,
     /// Reference draws and classifier tests, all observations.
     pub c2st_seconds: f64,
+    /// KL(p ‖ q) in nats, mean over the observations, where the task's posterior density
+    /// is known ([`Task::log_posterior`]), estimated on the reference draws; q is the
+    /// posterior as sampled: the flow's density restricted to the prior box.
+    pub kl: Option<f64>,
+    /// The flow's mass inside the prior box (the rest is rejected at sampling), mean over
+    /// the observations, where `kl` is known.
+    pub box_mass: Option<f64>,
+    /// Median over observations and dimensions of the flow's marginal standard deviation
+    /// over the reference's (1: right width; above 1: too wide).
+    pub width_ratio: f64,
 }
 
 /// Writes a task's training table (theta.csv, x.csv, prior.json) into `dir`.
@@ -89,9 +99,14 @@ pub fn observation(task: Task, k: usize) -> Vec<f64> {
 pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Path) -> Result<TaskResult> {
     write_table(task, p.sims, p.seed, dir)?;
     let ds = Dataset::load(dir)?;
-    let model = npe::train(&ds, settings, &mut |_| true)?;
+    let model = npe::train(&ds, settings, &mut |r| {
+        if p.verbose {
+            eprintln!("{} epoch {} train {:.4} val {:.4}", task.name(), r.epoch, r.train_loss, r.val_loss);
+        }
+        true
+    })?;
     let t = &model.header.training;
-    let mut scores = Vec::new();
+    let (mut scores, mut kls, mut masses, mut ratios) = (vec![], vec![], vec![], vec![]);
     let t0 = std::time::Instant::now();
     for k in 1..=p.observations {
         let x = observation(task, k);
@@ -99,18 +114,32 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         let reference = task.reference(&x, p.samples, &mut rng);
         let draws = model.sample(&Obs { x: &x, present: None }, p.samples, k as u64)?;
         scores.push(c2st::c2st(&reference, &draws, &p.c2st));
-        if p.verbose {
-            let ms = |v: &[Vec<f64>], k: usize| {
-                let n = v.len() as f64;
-                let m = v.iter().map(|r| r[k]).sum::<f64>() / n;
-                (m, (v.iter().map(|r| (r[k] - m).powi(2)).sum::<f64>() / n).sqrt())
-            };
-            for j in 0..task.dim() {
-                let ((rm, rs), (dm, ds)) = (ms(&reference, j), ms(&draws, j));
+        let lq = model.log_prob(&Obs { x: &x, present: None }, &reference)?;
+        let lp: Option<Vec<f64>> = reference.iter().map(|t| task.log_posterior(&x, t)).collect();
+        if let Some(lp) = lp {
+            // The sampled posterior is q restricted to the box, q / Z with Z = E_p[q / p]
+            // (the box is p's support): KL(p ‖ q / Z) = E_p[log p − log q] + log Z.
+            let diff: Vec<f64> = lp.iter().zip(&lq).map(|(a, b)| a - b).collect();
+            let n = diff.len() as f64;
+            let least = diff.iter().copied().fold(f64::INFINITY, f64::min);
+            let log_z = (diff.iter().map(|d| (least - d).exp()).sum::<f64>() / n).ln() - least;
+            kls.push(diff.iter().sum::<f64>() / n + log_z);
+            masses.push(log_z.exp());
+        }
+        let ms = |v: &[Vec<f64>], k: usize| {
+            let n = v.len() as f64;
+            let m = v.iter().map(|r| r[k]).sum::<f64>() / n;
+            (m, (v.iter().map(|r| (r[k] - m).powi(2)).sum::<f64>() / n).sqrt())
+        };
+        for j in 0..task.dim() {
+            let ((rm, rs), (dm, ds)) = (ms(&reference, j), ms(&draws, j));
+            ratios.push(ds / rs);
+            if p.verbose {
                 eprintln!("{} obs {k}: θ{j} reference {rm:.3} ± {rs:.3}, flow {dm:.3} ± {ds:.3}", task.name());
             }
         }
     }
+    ratios.sort_by(f64::total_cmp);
     Ok(TaskResult {
         task: task.name().into(),
         sims: p.sims,
@@ -120,5 +149,8 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         epochs: t.epochs,
         best_epoch: t.best_epoch,
         c2st_seconds: t0.elapsed().as_secs_f64(),
+        kl: (!kls.is_empty()).then(|| kls.iter().sum::<f64>() / kls.len() as f64),
+        box_mass: (!masses.is_empty()).then(|| masses.iter().sum::<f64>() / masses.len() as f64),
+        width_ratio: crate::stats::median_upper(&ratios),
     })
 }

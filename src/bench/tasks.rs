@@ -179,6 +179,35 @@ impl Task {
     }
 }
 
+impl Task {
+    /// log p(θ | x) of the tasks whose posterior density is known in closed form (the two
+    /// Gaussian tasks: products and mixtures of truncated normals, as their reference
+    /// draws); `None` for the others. With the flow's log q on reference draws it gives
+    /// KL(p ‖ q) = E_p[log p − log q], a fit error that does not need a classifier.
+    pub fn log_posterior(self, x: &[f64], theta: &[f64]) -> Option<f64> {
+        let ln_norm = |z: f64, s: f64| -0.5 * z * z - s.ln() - 0.5 * (2.0 * PI).ln();
+        match self {
+            Task::GaussianLinearUniform => {
+                let s = 0.1f64.sqrt();
+                Some(
+                    x.iter()
+                        .zip(theta)
+                        .map(|(&m, &t)| ln_norm((t - m) / s, s) - (phi((1.0 - m) / s) - phi((-1.0 - m) / s)).ln())
+                        .sum(),
+                )
+            }
+            Task::GaussianMixture => {
+                let mass = |s: f64| x.iter().map(|&m| phi((10.0 - m) / s) - phi((-10.0 - m) / s)).product::<f64>();
+                let comp = |s: f64| x.iter().zip(theta).map(|(&m, &t)| ln_norm((t - m) / s, s)).sum::<f64>();
+                let (a, b) = (comp(1.0), comp(0.1));
+                let top = a.max(b);
+                Some(top + ((a - top).exp() + (b - top).exp()).ln() - (mass(1.0) + mass(0.1)).ln())
+            }
+            _ => None,
+        }
+    }
+}
+
 /// Two moons' noise: radius N(0.1, 0.01²) at an angle uniform on (−π/2, π/2), shifted by 0.25.
 fn moon_noise(rng: &mut ChaCha8Rng) -> [f64; 2] {
     let a = rng.random_range(-PI / 2.0..PI / 2.0);
@@ -347,6 +376,31 @@ mod tests {
         for (z, p) in [(0.0, 0.5), (1.0, 0.841_344_746), (-1.96, 0.024_997_895), (3.0, 0.998_650_102)] {
             assert!((phi(z) - p).abs() < 2e-7, "Φ({z}) = {} vs {p}", phi(z));
         }
+    }
+
+    /// The closed-form posteriors integrate to 1 over the box, near a bound too (where
+    /// the truncation matters): the 10-D Gaussian's through its one-dimensional factor
+    /// (x with equal coordinates, θ along the diagonal), the mixture on a 2-D grid.
+    #[test]
+    fn closed_form_posteriors_integrate_to_one() {
+        let grid = |lo: f64, hi: f64, n: usize| (0..n).map(move |i| lo + (hi - lo) * (i as f64 + 0.5) / n as f64);
+        for m in [0.2, 0.9, 1.3] {
+            let x = [m; 10];
+            let f = |t: f64| (Task::GaussianLinearUniform.log_posterior(&x, &[t; 10]).unwrap() / 10.0).exp();
+            let total: f64 = grid(-1.0, 1.0, 4000).map(f).sum::<f64>() * 2.0 / 4000.0;
+            assert!((total - 1.0).abs() < 1e-4, "x = {m}: {total}");
+        }
+        let x = [9.5, -9.85];
+        let n = 2000;
+        let step = 20.0 / n as f64;
+        let total: f64 = grid(-10.0, 10.0, n)
+            .flat_map(|a| grid(-10.0, 10.0, n).map(move |b| [a, b]))
+            .map(|t| Task::GaussianMixture.log_posterior(&x, &t).unwrap().exp())
+            .sum::<f64>()
+            * step
+            * step;
+        assert!((total - 1.0).abs() < 1e-3, "mixture: {total}");
+        assert!(Task::Slcp.log_posterior(&[0.0; 8], &[0.0; 5]).is_none());
     }
 
     /// Two moons' reference draws reproduce the observation when pushed back through

@@ -72,7 +72,7 @@ pub enum BenchWhat {
     },
     /// Posterior accuracy on standard SBI tasks: C2ST against reference posteriors and
     /// training time (JSON too).
-    C2st(super::bench_c2st::C2stArgs),
+    C2st(Box<super::bench_c2st::C2stArgs>),
     /// Discrepancy naming on hidden-effect cases (simulator-only pipeline).
     Discrepancy {
         /// Hidden cases per effect.
@@ -96,7 +96,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Infer { clients, requests, samples, direct: false } => infer(clients, requests, samples),
         BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
         BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
-        BenchWhat::C2st(a) => super::bench_c2st::run(a),
+        BenchWhat::C2st(a) => super::bench_c2st::run(*a),
     }
 }
 

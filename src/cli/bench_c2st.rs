@@ -71,6 +71,21 @@ pub struct C2stArgs {
     /// Share of the simulations held out for validation (early stopping).
     #[arg(long)]
     pub val_fraction: Option<f64>,
+    /// Raw spline bin widths and heights divided by √hidden, as nflows does: true or false.
+    #[arg(long)]
+    pub scaled_bins: Option<bool>,
+    /// Adam's ε.
+    #[arg(long)]
+    pub adam_eps: Option<f64>,
+    /// Gradient clipping: each parameter tensor's gradient norm at most this (0: none).
+    #[arg(long)]
+    pub clip: Option<f64>,
+    /// L2 penalty on the weights (through Adam's gradient).
+    #[arg(long)]
+    pub weight_decay: Option<f64>,
+    /// Flows trained from different seeds, sampled as an equal-weight mixture.
+    #[arg(long)]
+    pub ensemble: Option<usize>,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -119,6 +134,11 @@ pub fn run(a: C2stArgs) -> Result<()> {
         lr_drops: a.lr_drops.unwrap_or(d.lr_drops),
         patience: a.patience.unwrap_or(d.patience),
         val_fraction: a.val_fraction.unwrap_or(d.val_fraction),
+        scaled_bins: a.scaled_bins.unwrap_or(d.scaled_bins),
+        adam_eps: a.adam_eps.unwrap_or(d.adam_eps),
+        clip: a.clip.unwrap_or(d.clip),
+        weight_decay: a.weight_decay.unwrap_or(d.weight_decay),
+        ensemble: a.ensemble.unwrap_or(d.ensemble),
         ..d.clone()
     };
     eprintln!("{settings:?}");
@@ -128,7 +148,7 @@ pub fn run(a: C2stArgs) -> Result<()> {
     for task in tasks {
         let r = bench::run_task(task, &p, &settings, &root.join(task.name()))?;
         println!(
-            "{:<24} {:>6} {:>7.3} {:>9.1}  {} (epochs {}, best {}; C2ST {:.0} s)",
+            "{:<24} {:>6} {:>7.3} {:>9.1}  {} (epochs {}, best {}; width ×{:.3}{}; C2ST {:.0} s)",
             r.task,
             r.sims,
             r.c2st_mean,
@@ -136,6 +156,8 @@ pub fn run(a: C2stArgs) -> Result<()> {
             r.c2st.iter().map(|c| format!("{c:.3}")).collect::<Vec<_>>().join(" "),
             r.epochs,
             r.best_epoch,
+            r.width_ratio,
+            r.kl.zip(r.box_mass).map(|(k, m)| format!(", KL {k:.4}, mass in box {m:.3}")).unwrap_or_default(),
             r.c2st_seconds
         );
         results.push(r);

@@ -9,6 +9,7 @@ use crate::flow::{Flow, FlowConfig};
 use crate::stats;
 use burn::grad_clipping::GradientClippingConfig;
 use burn::module::Module;
+use burn::optim::decay::WeightDecayConfig;
 use burn::optim::{AdamConfig, GradientsParams, ModuleOptimizer};
 use burn::prelude::*;
 use burn::store::ModuleRecord;
@@ -54,6 +55,14 @@ pub struct TrainSettings {
     pub blocks: usize,
     /// An LU linear layer after each coupling (`FlowConfig::lu`).
     pub lu: bool,
+    /// Raw bin widths and heights divided by √hidden (`FlowConfig::scaled_bins`).
+    pub scaled_bins: bool,
+    /// Adam's ε (burn's default 1e-5; PyTorch's, as in sbi, 1e-8).
+    pub adam_eps: f64,
+    /// Each parameter tensor's gradient clipped to this norm (0: no clipping).
+    pub clip: f64,
+    /// L2 penalty on the weights, through Adam's gradient (0: none).
+    pub weight_decay: f64,
     /// Learning rate halved after this many epochs without a better validation loss
     /// (counted again from each halving); 0: constant.
     pub lr_plateau: usize,
@@ -82,6 +91,10 @@ impl Default for TrainSettings {
             tail_bound: 3.0,
             blocks: 0,
             lu: false,
+            scaled_bins: false,
+            adam_eps: 1e-5,
+            clip: 5.0,
+            weight_decay: 0.0,
             lr_plateau: 8,
             lr_drops: 0,
             ensemble: 1,
@@ -188,8 +201,13 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2)).sqrt().max(1e-9));
     }
     let flags = if s.mask_groups { ds.groups.len() } else { 0 } + if s.mask_bands { f } else { 0 };
-    let cfg =
-        FlowConfig { bound: s.tail_bound, blocks: s.blocks, lu: s.lu, ..FlowConfig::new(d, f + flags, s.embedding) };
+    let cfg = FlowConfig {
+        bound: s.tail_bound,
+        blocks: s.blocks,
+        lu: s.lu,
+        scaled_bins: s.scaled_bins,
+        ..FlowConfig::new(d, f + flags, s.embedding)
+    };
     Header {
         format_version: FORMAT_VERSION,
         otofit_version: env!("CARGO_PKG_VERSION").into(),
@@ -327,8 +345,12 @@ struct Finished {
 }
 
 /// Adam with the clipping every member trains with.
-fn optimizer() -> ModuleOptimizer {
-    AdamConfig::new().with_grad_clipping(Some(GradientClippingConfig::Norm(5.0))).init()
+fn optimizer(s: &TrainSettings) -> ModuleOptimizer {
+    AdamConfig::new()
+        .with_epsilon(s.adam_eps as f32)
+        .with_grad_clipping((s.clip > 0.0).then_some(GradientClippingConfig::Norm(s.clip as f32)))
+        .with_weight_decay((s.weight_decay > 0.0).then(|| WeightDecayConfig::new(s.weight_decay as f32)))
+        .init()
 }
 
 /// A new flow; with `seed`, its weights drawn from that seed. The backend's RNG is
@@ -398,7 +420,7 @@ impl Run<'_> {
         MemberRun {
             member,
             flow,
-            opt: optimizer(),
+            opt: optimizer(self.s),
             rng,
             order: self.train_idx.to_vec(),
             epoch: 0,
@@ -766,7 +788,7 @@ impl Saver<'_> {
         let flow = new_flow(cfg, &run.device, None)
             .try_load_record(record_from(flow, cfg)?)
             .map_err(|e| format!("weights: {e:?}"))?;
-        let opt = optimizer()
+        let opt = optimizer(run.s)
             .from_bytes(burn::tensor::Bytes::from_bytes_vec(opt.to_vec()))
             .map_err(|e| format!("optimizer: {e:?}"))?;
         let seed: [u8; 32] = hex::decode(&st.rng.0).ok().and_then(|s| s.try_into().ok()).ok_or_else(bad)?;
