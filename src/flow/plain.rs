@@ -27,23 +27,22 @@ pub struct Dense {
 /// result [out × n]; `bias` added, then ReLU unless `last`.
 fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, last: bool) -> Vec<f64> {
     let (o, i) = (w.ncols(), w.nrows());
-    let mut y = vec![0.0; o * n];
+    // The bias first and the product added to it: no zeroing pass, no bias pass.
+    let mut y: Vec<f64> = Vec::with_capacity(o * n);
+    for _ in 0..n {
+        y.extend_from_slice(&bias[..o]);
+    }
     matmul(
         MatMut::from_column_major_slice_mut(&mut y, o, n),
-        Accum::Replace,
+        Accum::Add,
         w.transpose(),
         MatRef::from_column_major_slice(x, i, n),
         1.0,
         Par::Seq,
     );
     clear_upper();
-    for col in y.chunks_exact_mut(o) {
-        for (v, b) in col.iter_mut().zip(bias) {
-            *v += b;
-            if !last {
-                *v = v.max(0.0);
-            }
-        }
+    if !last {
+        y.iter_mut().for_each(|v| *v = v.max(0.0));
     }
     y
 }
@@ -52,19 +51,19 @@ fn batch_forward(w: faer::MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize, la
 /// column-major, one output of every sample contiguous (the layout of [`lanes`]).
 fn batch_forward_t(w: MatRef<'_, f64>, bias: &[f64], x: &[f64], n: usize) -> Vec<f64> {
     let (i, o) = (w.nrows(), w.ncols());
-    let mut y = vec![0.0; n * o];
+    let mut y: Vec<f64> = Vec::with_capacity(n * o);
+    for &b in &bias[..o] {
+        y.extend(std::iter::repeat_n(b, n));
+    }
     matmul(
         MatMut::from_column_major_slice_mut(&mut y, n, o),
-        Accum::Replace,
+        Accum::Add,
         MatRef::from_column_major_slice(x, i, n).transpose(),
         w,
         1.0,
         Par::Seq,
     );
     clear_upper();
-    for (col, b) in y.chunks_exact_mut(n.max(1)).zip(bias) {
-        col.iter_mut().for_each(|v| *v += b);
-    }
     y
 }
 

@@ -129,9 +129,12 @@ pub struct Differential {
     pub source: &'static str,
 }
 
-/// The nearest order statistic: a position some draw actually took.
-fn quantile(sorted: &[f64], q: f64) -> f64 {
-    crate::stats::quantile_nearest(sorted, q).unwrap_or(f64::NAN)
+/// The nearest order statistic of `v` (the value [`crate::stats::quantile_nearest`] takes
+/// from `v` sorted by `total_cmp`: a value some draw actually took), by selection; `v` is
+/// reordered. NaN when empty.
+fn nearest(v: &mut [f64], q: f64) -> f64 {
+    let Some(n) = v.len().checked_sub(1) else { return f64::NAN };
+    *v.select_nth_unstable_by((n as f64 * q).round() as usize, f64::total_cmp).1
 }
 
 /// Reads posterior samples (columns in `params` order) against the normal ranges;
@@ -149,11 +152,13 @@ pub fn read(params: &[Param], samples: &[Vec<f64>]) -> Vec<Differential> {
             let below = samples.iter().filter(|s| s[k] < r.low).count() as f64 / n;
             let above = samples.iter().filter(|s| s[k] > r.high).count() as f64 / n;
             let within = 1.0 - below - above;
-            let mut pos: Vec<f64> = samples.iter().map(|s| p.position(s[k])).collect();
-            pos.sort_unstable_by(f64::total_cmp);
-            let width90 = quantile(&pos, 0.95) - quantile(&pos, 0.05);
+            // The three order statistics of the positions that `quantile` would pick after a
+            // sort, by selection, and only they mapped to positions (the map rises).
+            let mut col: Vec<f64> = samples.iter().map(|s| s[k]).collect();
+            let mut pick = |q: f64| p.position(nearest(&mut col, q));
+            let (q05, median, q95) = (pick(0.05), pick(0.5), pick(0.95));
+            let width90 = q95 - q05;
             let normal_width = p.position(r.high) - p.position(r.low);
-            let median = quantile(&pos, 0.5);
             let at_prior_bound = if median < BOUND_FRACTION {
                 Some("low")
             } else if median > 1.0 - BOUND_FRACTION {
@@ -217,6 +222,18 @@ pub fn withdraw(readings: &mut [Differential], why: &str) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn nearest_by_selection_is_the_sorted_order_statistic() {
+        for n in [1, 2, 7, 1000] {
+            let v: Vec<f64> = (0..n).map(|i| ((i * 7919 % 1009) as f64 - 500.0) * 1e-3).collect();
+            let sorted = crate::stats::sorted(v.clone());
+            for q in [0.0, 0.05, 0.5, 0.95, 1.0] {
+                assert_eq!(nearest(&mut v.clone(), q), crate::stats::quantile_nearest(&sorted, q).unwrap());
+            }
+        }
+        assert!(nearest(&mut [], 0.5).is_nan());
+    }
 
     #[test]
     fn ranges_lie_inside_the_prior_and_readings_follow_the_mass() {
