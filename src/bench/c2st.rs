@@ -291,4 +291,22 @@ mod tests {
         let apart = c2st(&gauss(1000, 0.0, 1), &gauss(1000, 2.0, 2), &p);
         assert!((apart - 0.84).abs() < 0.04, "apart: {apart}");
     }
+
+    /// The floor at the benchmark's shape: two independent sets of exact reference draws
+    /// of the 10-D Gaussian task (observation 1) score about 0.5, and the same draws
+    /// spread 10 % wider about the observation score clearly above it.
+    #[test]
+    fn two_reference_draws_of_the_10d_gaussian_task_score_one_half() {
+        use crate::bench::{Task, observation};
+        let task = Task::GaussianLinearUniform;
+        let x = observation(task, 1);
+        let draw = |seed| task.reference(&x, 3000, &mut ChaCha8Rng::seed_from_u64(seed));
+        let wide: Vec<Vec<f64>> =
+            draw(3).into_iter().map(|t| t.iter().zip(&x).map(|(v, m)| m + 1.1 * (v - m)).collect()).collect();
+        let p = C2stParams::default();
+        let (same, wider) = (c2st(&draw(1), &draw(2), &p), c2st(&draw(1), &wide, &p));
+        eprintln!("C2ST: two reference draws {same:.3}, one 10 % wider {wider:.3}");
+        assert!((same - 0.5).abs() < 0.03, "same: {same}");
+        assert!(wider > same + 0.04, "10 % wider: {wider} against {same}");
+    }
 }
