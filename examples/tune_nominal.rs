@@ -15,36 +15,121 @@
 //! depth and manubrium-to-rim gap (m) to search over; `VISCO` the drum's viscoelastic
 //! exponent; `X0` a start point.
 
-use otofit::sim::{DrumLoss, DrumShape, Effects, Geometry, Model, ModelConfig, Theta};
+use otofit::npe::normal::NORMAL;
+use otofit::sim::{DrumLoss, DrumShape, Effects, Geometry, Model, ModelConfig, PARAMS, Theta};
+use serde_json::Value;
 use std::f64::consts::PI;
 
-const GOODE_F: [f64; 11] = [400., 600., 800., 1000., 1400., 2000., 3000., 4000., 5000., 6000., 6500.];
-const GOODE_V: [f64; 11] = [-25.0, -20.3, -18.2, -19.5, -22.2, -26.7, -31.5, -34.1, -35.1, -38.0, -38.0];
-const ABS_F: [f64; 11] = [250., 500., 750., 1000., 1500., 2000., 3000., 4000., 5000., 6000., 8000.];
-const ABS_LO: [f64; 11] = [0.03, 0.10, 0.20, 0.30, 0.40, 0.45, 0.50, 0.40, 0.25, 0.15, 0.10];
-const ABS_HI: [f64; 11] = [0.30, 0.50, 0.65, 0.75, 0.85, 0.90, 0.95, 0.92, 0.85, 0.80, 0.75];
+/// The published norms the baseline tests use.
+const NORMATIVE: &str = include_str!("../reference/normative.json");
 
-/// Knobs: log10 of the absolute value for tissue parameters (bounded by their normal
-/// ranges, src/npe/normal.rs), log10 of a factor for structural constants.
-const KNOBS: [(&str, f64, f64); 11] = [
-    ("E_eardrum", 6.301, 8.301),
-    ("drum eta", -2.0, 0.0),
-    ("damping_beta", -4.125, -3.824),
-    ("cochlear_load", 10.322, 10.544),
-    ("E_sal", 5.0, 6.041),
-    ("E_ligaments", 4.699, 7.322),
-    ("E_joints", 5.643, 6.845),
-    ("ossicle mass x", -0.3, 0.3),
-    ("E_tendons", 5.716, 6.699),
-    ("g_sal x", -1.0, 1.0),
-    ("tm_viscoelastic n", 0.0, 0.3),
-];
+/// Goode 1994's frequencies and values, and the adult absorbance range's frequencies,
+/// low and high ends, from reference/normative.json.
+struct Norms {
+    goode_f: Vec<f64>,
+    goode_v: Vec<f64>,
+    abs_f: Vec<f64>,
+    abs_lo: Vec<f64>,
+    abs_hi: Vec<f64>,
+}
+
+impl Norms {
+    fn load() -> Result<Norms, String> {
+        let n: Value = serde_json::from_str(NORMATIVE).map_err(|e| format!("reference/normative.json: {e}"))?;
+        let floats = |v: &Value| -> Vec<f64> { v.as_array().into_iter().flatten().filter_map(Value::as_f64).collect() };
+        let (g, a) = (&n["vst_goode1994"], &n["absorbance"]);
+        Ok(Norms {
+            goode_f: floats(&g["frequency_hz"]),
+            goode_v: floats(&g["value"]),
+            abs_f: floats(&a["frequency_hz"]),
+            abs_lo: floats(&a["low"]),
+            abs_hi: floats(&a["high"]),
+        })
+    }
+}
+
+/// One knob: its name, its search box and its start (today's nominal ear).
+struct Knob {
+    name: &'static str,
+    lo: f64,
+    hi: f64,
+    start: f64,
+}
+
+/// The knobs in order: log10 of the value for the tissue parameters (inside their normal
+/// ranges) and the drum's loss factor, log10 of a factor for the structural constants,
+/// the viscoelastic exponent as is. Each starts at today's nominal ear.
+fn knobs() -> Vec<Knob> {
+    let tissue = |name: &'static str| {
+        let r = NORMAL.iter().find(|r| r.name == name).expect("a tissue parameter has a normal range");
+        let p = PARAMS.iter().find(|p| p.name == name).expect("a tissue parameter");
+        Knob { name, lo: r.low.log10(), hi: r.high.log10(), start: p.nominal.log10() }
+    };
+    vec![
+        tissue("E_eardrum"),
+        Knob { name: "drum eta", lo: -2.0, hi: 0.0, start: -1.0 },
+        tissue("damping_beta"),
+        tissue("cochlear_load"),
+        tissue("E_sal"),
+        tissue("E_ligaments"),
+        tissue("E_joints"),
+        Knob { name: "ossicle mass x", lo: -0.3, hi: 0.3, start: 0.0 },
+        tissue("E_tendons"),
+        Knob { name: "g_sal x", lo: -1.0, hi: 1.0, start: 0.0 },
+        Knob { name: "tm_viscoelastic n", lo: 0.0, hi: 0.3, start: 0.0 },
+    ]
+}
+
+/// What the environment asks for, read once (module doc).
+struct Settings {
+    axisymmetric: bool,
+    fixed: Vec<usize>,
+    w_share: f64,
+    visco: Option<f64>,
+    x0: Option<Vec<f64>>,
+    thick: Vec<f64>,
+    depth: Vec<f64>,
+    gap: Vec<f64>,
+}
+
+/// A comma list of numbers from environment variable `name`, or `default`.
+fn env_list<T: std::str::FromStr>(name: &str, default: &str) -> Result<Vec<T>, String> {
+    let text = std::env::var(name).unwrap_or_else(|_| default.to_string());
+    text.split(',')
+        .filter(|s| !s.trim().is_empty())
+        .map(|s| s.trim().parse().map_err(|_| format!("{name}: '{}' is not a number", s.trim())))
+        .collect()
+}
+
+impl Settings {
+    fn from_env(n_knobs: usize) -> Result<Settings, String> {
+        let one = |name: &str| -> Result<Option<f64>, String> { Ok(env_list::<f64>(name, "")?.first().copied()) };
+        let fixed: Vec<usize> = env_list("FIX", "")?;
+        if let Some(k) = fixed.iter().find(|&&k| k >= n_knobs) {
+            return Err(format!("FIX: knob {k} does not exist (0..{n_knobs})"));
+        }
+        let x0 = std::env::var("X0").is_ok().then(|| env_list::<f64>("X0", "")).transpose()?;
+        if let Some(x) = x0.as_ref().filter(|x| x.len() != n_knobs) {
+            return Err(format!("X0: {} values, need {n_knobs}", x.len()));
+        }
+        Ok(Settings {
+            axisymmetric: std::env::var("DRUM").as_deref() == Ok("axi"),
+            fixed,
+            w_share: one("W_SHARE")?.unwrap_or(1.0),
+            visco: one("VISCO")?,
+            x0,
+            thick: env_list("THICK", "60e-6")?,
+            depth: env_list("DEPTH", "2e-3")?,
+            gap: env_list("GAP", "1e-3")?,
+        })
+    }
+}
 
 struct Metrics {
-    goode: [f64; 11],
+    goode: Vec<f64>,
     phase8: f64,
     delay: [f64; 4],
-    absorb: [f64; 11],
+    absorb: Vec<f64>,
     share: [f64; 3],
     split: Vec<[f64; 5]>,
 }
@@ -60,19 +145,18 @@ fn hinge(v: f64, lo: f64, hi: f64) -> f64 {
 }
 
 impl Metrics {
-    fn cost(&self) -> f64 {
+    fn cost(&self, norms: &Norms, w_share: f64) -> f64 {
         let mut c = 0.0;
-        for d in self.goode {
-            c += (hinge(d, -4.0, 4.0) / 1.0).powi(2) + 0.02 * d * d;
+        for d in &self.goode {
+            c += hinge(*d, -4.0, 4.0).powi(2) + 0.02 * d * d;
         }
         c += (hinge(self.phase8, -430.0, -270.0) / 20.0).powi(2);
         for d in self.delay {
             c += (hinge(d, 65.0, 140.0) / 15.0).powi(2);
         }
         for (k, a) in self.absorb.iter().enumerate() {
-            c += (hinge(*a, ABS_LO[k] + 0.02, ABS_HI[k] - 0.02) / 0.05).powi(2);
+            c += (hinge(*a, norms.abs_lo[k] + 0.02, norms.abs_hi[k] - 0.02) / 0.05).powi(2);
         }
-        let w_share: f64 = std::env::var("W_SHARE").ok().and_then(|v| v.parse().ok()).unwrap_or(1.0);
         for s in self.share {
             c += w_share * (hinge(s, 0.33, 1.0) / 0.05).powi(2);
         }
@@ -90,84 +174,99 @@ impl Metrics {
     }
 }
 
-fn apply(x: &[f64], base_g: &Geometry, shape: DrumShape) -> (Geometry, Theta) {
-    let mut g = base_g.clone();
-    let mut t = Theta::nominal();
-    let m = |i: usize| 10f64.powf(x[i]);
-    for (k, i) in [(0, 0), (2, 5), (3, 6), (4, 3), (5, 1), (6, 4), (8, 2)] {
-        t.0[i] = m(k);
-    }
-    g.tm_loss = DrumLoss::LossFactor(m(1));
-    for v in [&mut g.m_malleus, &mut g.i_malleus, &mut g.m_incus, &mut g.i_incus] {
-        *v *= m(7);
-    }
-    t.0[11] = x[10];
-    g.g_sal *= m(9);
-    g.g_sal_rock *= m(9);
-    g.tm_shape = shape;
-    if std::env::var("DRUM").as_deref() == Ok("axi") {
-        g.tm_shape = DrumShape::Axisymmetric;
-        g.tm_loss = DrumLoss::Rayleigh;
-    }
-    if let Ok(n) = std::env::var("VISCO") {
-        t.0[11] = n.parse().unwrap();
-    }
-    (g, t)
+/// Everything one evaluation needs: the norms, the knobs, the settings.
+struct Search {
+    norms: Norms,
+    knobs: Vec<Knob>,
+    settings: Settings,
 }
 
-fn metrics(g: Geometry, t: &Theta) -> Option<Metrics> {
-    let config = ModelConfig { geometry: g, ..ModelConfig::default() };
-    let model = Model::new(config).ok()?;
-    let mut r = model.runner();
-    let fx = Effects::default();
-    let mut resp = |f: f64| r.response_at(t, &fx, f).ok();
-    let mut goode = [0.0; 11];
-    for (k, f) in GOODE_F.iter().enumerate() {
-        goode[k] = 20.0 * (resp(*f)?.vst_over_p.norm().log10() + 3.0) - GOODE_V[k];
+impl Search {
+    /// The ear at knob values `x` (inside the knobs' boxes).
+    fn apply(&self, x: &[f64], base_g: &Geometry, shape: DrumShape) -> (Geometry, Theta) {
+        let mut g = base_g.clone();
+        let mut t = Theta::nominal();
+        let m = |i: usize| 10f64.powf(x[i]);
+        for (k, knob) in self.knobs.iter().enumerate() {
+            if let Some(i) = PARAMS.iter().position(|p| p.name == knob.name) {
+                t.0[i] = m(k);
+            }
+        }
+        g.tm_loss = DrumLoss::LossFactor(m(1));
+        for v in [&mut g.m_malleus, &mut g.i_malleus, &mut g.m_incus, &mut g.i_incus] {
+            *v *= m(7);
+        }
+        t.0[11] = self.settings.visco.unwrap_or(x[10]);
+        g.g_sal *= m(9);
+        g.g_sal_rock *= m(9);
+        g.tm_shape = shape;
+        if self.settings.axisymmetric {
+            g.tm_shape = DrumShape::Axisymmetric;
+            g.tm_loss = DrumLoss::Rayleigh;
+        }
+        (g, t)
     }
-    // Unwrapped phase at 8 kHz: follow the grid.
-    let mut phase = 0.0;
-    let mut prev = resp(200.0)?.vst_over_p;
-    phase += prev.arg();
-    for f in otofit::sim::model::log_grid(200.0, 8000.0, 200).into_iter().skip(1) {
-        let v = resp(f)?.vst_over_p;
-        phase += (v / prev).arg();
-        prev = v;
-    }
-    let mut delay = [0.0; 4];
-    for (k, f) in [2000.0, 3000.0, 4000.0, 8000.0].iter().enumerate() {
-        let d = (resp(1.005 * f)?.vst_over_p / resp(0.995 * f)?.vst_over_p).arg();
-        delay[k] = -d / (2.0 * PI * 0.01 * f) * 1e6;
-    }
-    let mut absorb = [0.0; 11];
-    for (k, f) in ABS_F.iter().enumerate() {
-        absorb[k] = resp(*f)?.absorbance();
-    }
-    let mut share = [0.0; 3];
-    let mut split = Vec::new();
-    for (k, f) in [1000.0, 2000.0, 4000.0].iter().enumerate() {
-        r.solve_at(t, &fx, *f).ok()?;
-        let p = r.power_balance(t, *f);
-        share[k] = p.cochlear_share();
-        let d = p.into_drum;
-        split.push([p.drum / d, (p.ligaments + p.tendons) / d, p.joints / d, p.sal / d, p.cochlea / d]);
-    }
-    Some(Metrics { goode, phase8: phase.to_degrees(), delay, absorb, share, split })
-}
 
-fn fixed() -> Vec<usize> {
-    std::env::var("FIX").map(|v| v.split(',').map(|s| s.trim().parse().unwrap()).collect()).unwrap_or_default()
-}
-
-fn cost(x: &[f64], g: &Geometry, shape: DrumShape) -> f64 {
-    let mut x = x.to_vec();
-    for k in fixed() {
-        x[k] = 0.0;
+    fn metrics(&self, g: Geometry, t: &Theta) -> Option<Metrics> {
+        let config = ModelConfig { geometry: g, ..ModelConfig::default() };
+        let model = Model::new(config).ok()?;
+        let mut r = model.runner();
+        let fx = Effects::default();
+        let mut resp = |f: f64| r.response_at(t, &fx, f).ok();
+        let n = &self.norms;
+        let mut goode = Vec::with_capacity(n.goode_f.len());
+        for (f, v) in n.goode_f.iter().zip(&n.goode_v) {
+            goode.push(20.0 * (resp(*f)?.vst_over_p.norm().log10() + 3.0) - v);
+        }
+        // Unwrapped phase at 8 kHz: follow the grid.
+        let mut prev = resp(200.0)?.vst_over_p;
+        let mut phase = prev.arg();
+        for f in otofit::sim::model::log_grid(200.0, 8000.0, 200).into_iter().skip(1) {
+            let v = resp(f)?.vst_over_p;
+            phase += (v / prev).arg();
+            prev = v;
+        }
+        let mut delay = [0.0; 4];
+        for (k, f) in [2000.0, 3000.0, 4000.0, 8000.0].iter().enumerate() {
+            let d = (resp(1.005 * f)?.vst_over_p / resp(0.995 * f)?.vst_over_p).arg();
+            delay[k] = -d / (2.0 * PI * 0.01 * f) * 1e6;
+        }
+        let mut absorb = Vec::with_capacity(n.abs_f.len());
+        for f in &n.abs_f {
+            absorb.push(resp(*f)?.absorbance());
+        }
+        let mut share = [0.0; 3];
+        let mut split = Vec::new();
+        for (k, f) in [1000.0, 2000.0, 4000.0].iter().enumerate() {
+            r.solve_at(t, &fx, *f).ok()?;
+            let p = r.power_balance(t, *f);
+            share[k] = p.cochlear_share();
+            let d = p.into_drum;
+            split.push([p.drum / d, (p.ligaments + p.tendons) / d, p.joints / d, p.sal / d, p.cochlea / d]);
+        }
+        Some(Metrics { goode, phase8: phase.to_degrees(), delay, absorb, share, split })
     }
-    let clamp: Vec<f64> = x.iter().zip(KNOBS).map(|(v, (_, lo, hi))| v.clamp(lo, hi)).collect();
-    let out: f64 = x.iter().zip(KNOBS).map(|(v, (_, lo, hi))| hinge(*v, lo, hi)).sum();
-    let (g2, t) = apply(&clamp, g, shape);
-    metrics(g2, &t).map(|m| m.cost()).unwrap_or(1e9) + 100.0 * out
+
+    /// `x` with the fixed knobs at today's value.
+    fn with_fixed(&self, x: &[f64]) -> Vec<f64> {
+        let mut x = x.to_vec();
+        for &k in &self.settings.fixed {
+            x[k] = self.knobs[k].start;
+        }
+        x
+    }
+
+    /// `x` clamped into the knobs' boxes.
+    fn clamped(&self, x: &[f64]) -> Vec<f64> {
+        x.iter().zip(&self.knobs).map(|(v, k)| v.clamp(k.lo, k.hi)).collect()
+    }
+
+    fn cost(&self, x: &[f64], g: &Geometry, shape: DrumShape) -> f64 {
+        let x = self.with_fixed(x);
+        let out: f64 = x.iter().zip(&self.knobs).map(|(v, k)| hinge(*v, k.lo, k.hi)).sum();
+        let (g2, t) = self.apply(&self.clamped(&x), g, shape);
+        self.metrics(g2, &t).map(|m| m.cost(&self.norms, self.settings.w_share)).unwrap_or(1e9) + 100.0 * out
+    }
 }
 
 fn nelder_mead(f: &dyn Fn(&[f64]) -> f64, x0: Vec<f64>, step: f64, iters: usize) -> (Vec<f64>, f64) {
@@ -211,38 +310,23 @@ fn nelder_mead(f: &dyn Fn(&[f64]) -> f64, x0: Vec<f64>, step: f64, iters: usize)
     pts.swap_remove(0)
 }
 
-fn main() {
+fn main() -> Result<(), String> {
     let args: Vec<String> = std::env::args().collect();
-    let rings: usize = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(12);
-    let starts: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(4);
-    let iters: usize = args.get(3).and_then(|s| s.parse().ok()).unwrap_or(600);
-    // Drum geometry grid: thickness (m), depth (m), manubrium gap to the rim (m).
-    let list = |name: &str, d: &str| -> Vec<f64> {
-        std::env::var(name).unwrap_or(d.into()).split(',').map(|s| s.trim().parse().unwrap()).collect()
+    let arg = |i: usize, name: &str, default: usize| -> Result<usize, String> {
+        args.get(i).map_or(Ok(default), |s| s.parse().map_err(|_| format!("{name}: '{s}' is not a count")))
     };
-    let nominal: Vec<f64> = KNOBS
-        .iter()
-        .enumerate()
-        .map(|(k, (_, lo, hi))| match k {
-            0 => 20e6f64.log10(),
-            1 => -1.0,
-            2 => 7.5e-5f64.log10(),
-            3 => 2.1e10f64.log10(),
-            4 => 2e5f64.log10(),
-            5 => 5e6f64.log10(),
-            6 => 6e6f64.log10(),
-            7 | 9 | 10 => 0.0,
-            8 => 2e6f64.log10(),
-            _ => 0.5 * (lo + hi),
-        })
-        .collect();
+    let (rings, starts, iters) = (arg(1, "rings", 12)?, arg(2, "starts", 4)?, arg(3, "iterations", 600)?);
+    let knobs = knobs();
+    let settings = Settings::from_env(knobs.len())?;
+    let search = Search { norms: Norms::load()?, knobs, settings };
+    let start: Vec<f64> = search.settings.x0.clone().unwrap_or_else(|| search.knobs.iter().map(|k| k.start).collect());
     let mut overall: Option<(f64, Vec<f64>, Geometry, DrumShape)> = None;
-    for h in list("THICK", "60e-6") {
-        for depth in list("DEPTH", "2e-3") {
-            for gap in list("GAP", "1e-3") {
+    for &h in &search.settings.thick {
+        for &depth in &search.settings.depth {
+            for &gap in &search.settings.gap {
                 let g = Geometry { tm_thickness: h, tm_depth: depth, ..Geometry::default() };
                 let shape = DrumShape::Manubrium { rings, manubrium_to_rim: gap };
-                let f = |x: &[f64]| cost(x, &g, shape);
+                let f = |x: &[f64]| search.cost(x, &g, shape);
                 let mut seed = 12345u64;
                 let mut rnd = || {
                     seed ^= seed << 13;
@@ -252,12 +336,12 @@ fn main() {
                 };
                 let mut best: Option<(Vec<f64>, f64)> = None;
                 for s in 0..starts {
-                    let start: Vec<f64> = if s == 0 {
-                        nominal.clone()
+                    let x0: Vec<f64> = if s == 0 {
+                        start.clone()
                     } else {
-                        KNOBS.iter().map(|(_, lo, hi)| lo + (hi - lo) * rnd()).collect()
+                        search.knobs.iter().map(|k| k.lo + (k.hi - k.lo) * rnd()).collect()
                     };
-                    let (mut x, mut v) = nelder_mead(&f, start, 0.3, iters);
+                    let (mut x, mut v) = nelder_mead(&f, x0, 0.3, iters);
                     let (x2, v2) = nelder_mead(&f, x.clone(), 0.1, iters);
                     if v2 < v {
                         (x, v) = (x2, v2);
@@ -266,7 +350,7 @@ fn main() {
                         best = Some((x, v));
                     }
                 }
-                let (x, v) = best.unwrap();
+                let Some((x, v)) = best else { return Err("starts: must be at least 1".into()) };
                 println!(
                     "h {:.0} um, depth {:.2} mm, gap {:.2} mm: cost {v:.2}  knobs {}",
                     h * 1e6,
@@ -280,21 +364,20 @@ fn main() {
             }
         }
     }
-    let (v, mut x, g, shape) = overall.unwrap();
-    for k in fixed() {
-        x[k] = 0.0;
-    }
+    let Some((v, x, g, shape)) = overall else { return Err("THICK, DEPTH, GAP: each needs a value".into()) };
+    let x = search.with_fixed(&x);
     println!("best cost {v:.3}: thickness {:.0} um, depth {:.2} mm, {shape:?}", g.tm_thickness * 1e6, g.tm_depth * 1e3);
-    for (k, (name, lo, hi)) in KNOBS.iter().enumerate() {
+    for (k, knob) in search.knobs.iter().enumerate() {
+        let (name, lo, hi) = (knob.name, knob.lo, knob.hi);
         if k == 10 {
-            println!("  {name:16} {:.3}  [{lo}, {hi}]", x[k]);
+            println!("  {name:16} {:.3}  [{lo:.3}, {hi:.3}]", x[k]);
         } else {
-            println!("  {name:16} log10 {:+.3}  ({:.4e})  [{lo}, {hi}]", x[k], 10f64.powf(x[k]));
+            println!("  {name:16} log10 {:+.3}  ({:.4e})  [{lo:.3}, {hi:.3}]", x[k], 10f64.powf(x[k]));
         }
     }
-    let clamp: Vec<f64> = x.iter().zip(KNOBS).map(|(v, (_, lo, hi))| v.clamp(lo, hi)).collect();
-    let (g2, t) = apply(&clamp, &g, shape);
-    if let Some(m) = metrics(g2, &t) {
+    let (g2, t) = search.apply(&search.clamped(&x), &g, shape);
+    if let Some(m) = search.metrics(g2, &t) {
         m.print();
     }
+    Ok(())
 }

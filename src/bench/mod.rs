@@ -126,11 +126,8 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
             kls.push(diff.iter().sum::<f64>() / n + log_z);
             masses.push(log_z.exp());
         }
-        let ms = |v: &[Vec<f64>], k: usize| {
-            let n = v.len() as f64;
-            let m = v.iter().map(|r| r[k]).sum::<f64>() / n;
-            (m, (v.iter().map(|r| (r[k] - m).powi(2)).sum::<f64>() / n).sqrt())
-        };
+        let ms =
+            |v: &[Vec<f64>], k: usize| crate::stats::mean_std_population(&v.iter().map(|r| r[k]).collect::<Vec<_>>());
         for j in 0..task.dim() {
             let ((rm, rs), (dm, ds)) = (ms(&reference, j), ms(&draws, j));
             ratios.push(ds / rs);
@@ -149,8 +146,8 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         epochs: t.epochs,
         best_epoch: t.best_epoch,
         c2st_seconds: t0.elapsed().as_secs_f64(),
-        kl: (!kls.is_empty()).then(|| kls.iter().sum::<f64>() / kls.len() as f64),
-        box_mass: (!masses.is_empty()).then(|| masses.iter().sum::<f64>() / masses.len() as f64),
+        kl: (!kls.is_empty()).then(|| crate::stats::mean(kls)),
+        box_mass: (!masses.is_empty()).then(|| crate::stats::mean(masses)),
         width_ratio: crate::stats::median_upper(&ratios),
     })
 }

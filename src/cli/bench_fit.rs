@@ -51,6 +51,15 @@ fn infer_all(npe: &Npe, xs: &[Vec<f64>], present: &[bool], seed: u64) -> Result<
     xs.iter().enumerate().map(|(k, x)| infer_one(npe, x, present, seed + k as u64)).collect()
 }
 
+/// The design with effect `name` fixed at `value` for every row ("none": no effect).
+fn with_effect(name: &str, value: f64) -> Result<Design> {
+    let mut fixed = Effects::default();
+    if name != "none" {
+        fixed.set(name, value)?;
+    }
+    Ok(Design { fixed, varied: vec![] })
+}
+
 /// Whether every parameter reads as within its normal range or undetermined: what a
 /// normal ear should get.
 fn benign(o: &Outcome) -> bool {
@@ -123,9 +132,7 @@ fn null(npe: &Npe, rows: &[Vec<f64>], present: &[bool], seed: u64) -> Result<f64
 fn hidden_effects(npe: &Npe, rows: &[Vec<f64>], present: &[bool], seed: u64) -> Result<Vec<serde_json::Value>> {
     let mut detect = Vec::new();
     for (name, value) in STRONG {
-        let mut fixed = Effects::default();
-        fixed.set(name, value)?;
-        let design = Design { fixed, varied: vec![] };
+        let design = with_effect(name, value)?;
         let out = infer_all(npe, &simulate(npe, &design, rows, seed ^ 0xEF)?, present, seed)?;
         let flagged = rate(&out, |o| o.ok == Some(false));
         let unit = EFFECTS.iter().find(|e| e.name == name).map_or("", |e| e.unit);
@@ -202,11 +209,7 @@ fn false_findings(npe: &Npe, present: &[bool], cases: usize, seed: u64) -> Resul
     }
     let mut out = Vec::new();
     for (name, value) in std::iter::once(("none", 0.0)).chain(STRONG) {
-        let mut fixed = Effects::default();
-        if name != "none" {
-            fixed.set(name, value)?;
-        }
-        let design = Design { fixed, varied: vec![] };
+        let design = with_effect(name, value)?;
         let res = infer_all(npe, &simulate(npe, &design, &rows, seed ^ 0xF1)?, present, seed)?;
         let flagged = rate(&res, |o| o.ok == Some(false));
         let false_finding = rate(&res, |o| o.ok == Some(true) && !benign(o));

@@ -33,7 +33,7 @@ pub(crate) fn known_miss(name: &str, measured: f64) {
     );
 }
 
-fn floats(v: &Value) -> Vec<f64> {
+pub(crate) fn floats(v: &Value) -> Vec<f64> {
     v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
 }
 
