@@ -238,7 +238,7 @@ impl Search {
         let mut share = [0.0; 3];
         let mut split = Vec::new();
         for (k, f) in [1000.0, 2000.0, 4000.0].iter().enumerate() {
-            r.solve_at(t, &fx, *f).ok()?;
+            r.solve_at(t, *f).ok()?;
             let p = r.power_balance(t, *f);
             share[k] = p.cochlear_share();
             let d = p.into_drum;

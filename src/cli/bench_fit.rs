@@ -13,10 +13,25 @@ use anyhow::{Result, bail};
 use serde_json::json;
 use std::path::Path;
 
-/// Each effect at the end of its range where it changes the spectra most (since v3 the
-/// cavity and the eardrum's viscoelasticity are parameters of every model, not hidden).
+/// Each effect at the end of its range where it changes the spectra most. The cavity and
+/// the eardrum's viscoelasticity (v3), the LDV beam angle and the cochlear fluid mass (v5)
+/// became parameters: for a model that infers one, its ears get that value as a parameter
+/// instead of a hidden effect, so the rows stay comparable across model versions.
 const STRONG: [(&str, f64); 4] =
     [("probe_offset", 3e-3), ("probe_leak", 0.5e-3), ("ldv_angle", 60.0), ("cochlear_mass", 1e6)];
+
+/// The design and rows that put `name` at `value`: an effect fixed for every row, or a
+/// parameter column set in each row.
+fn with_strong(name: &str, value: f64, rows: &[Vec<f64>]) -> Result<(Design, Vec<Vec<f64>>)> {
+    let mut fixed = Effects::default();
+    let mut rows = rows.to_vec();
+    if let Some(k) = PARAMS.iter().position(|p| p.name == name) {
+        rows.iter_mut().for_each(|r| r[k] = value);
+    } else if name != "none" {
+        fixed.set(name, value)?;
+    }
+    Ok((Design { fixed, varied: vec![] }, rows))
+}
 
 struct Outcome {
     ok: Option<bool>,
@@ -49,15 +64,6 @@ fn simulate(npe: &Npe, design: &Design, rows: &[Vec<f64>], seed: u64) -> Result<
 /// Infers each simulated ear, case `k` with seed `seed + k`.
 fn infer_all(npe: &Npe, xs: &[Vec<f64>], present: &[bool], seed: u64) -> Result<Vec<Outcome>> {
     xs.iter().enumerate().map(|(k, x)| infer_one(npe, x, present, seed + k as u64)).collect()
-}
-
-/// The design with effect `name` fixed at `value` for every row ("none": no effect).
-fn with_effect(name: &str, value: f64) -> Result<Design> {
-    let mut fixed = Effects::default();
-    if name != "none" {
-        fixed.set(name, value)?;
-    }
-    Ok(Design { fixed, varied: vec![] })
 }
 
 /// Whether every parameter reads as within its normal range or undetermined: what a
@@ -132,10 +138,11 @@ fn null(npe: &Npe, rows: &[Vec<f64>], present: &[bool], seed: u64) -> Result<f64
 fn hidden_effects(npe: &Npe, rows: &[Vec<f64>], present: &[bool], seed: u64) -> Result<Vec<serde_json::Value>> {
     let mut detect = Vec::new();
     for (name, value) in STRONG {
-        let design = with_effect(name, value)?;
-        let out = infer_all(npe, &simulate(npe, &design, rows, seed ^ 0xEF)?, present, seed)?;
+        let (design, rows) = with_strong(name, value, rows)?;
+        let out = infer_all(npe, &simulate(npe, &design, &rows, seed ^ 0xEF)?, present, seed)?;
         let flagged = rate(&out, |o| o.ok == Some(false));
-        let unit = EFFECTS.iter().find(|e| e.name == name).map_or("", |e| e.unit);
+        let unit = EFFECTS.iter().map(|e| (e.name, e.unit)).chain(PARAMS.iter().map(|p| (p.name, p.unit)));
+        let unit = unit.into_iter().find(|(n, _)| *n == name).map_or("", |(_, u)| u);
         println!(
             "fit.ok false with {name} = {value:e} {unit}: {flagged:.3} of {} (median χ²ν {:.2}, worst measure {:.2})",
             out.len(),
@@ -209,7 +216,7 @@ fn false_findings(npe: &Npe, present: &[bool], cases: usize, seed: u64) -> Resul
     }
     let mut out = Vec::new();
     for (name, value) in std::iter::once(("none", 0.0)).chain(STRONG) {
-        let design = with_effect(name, value)?;
+        let (design, rows) = with_strong(name, value, &rows)?;
         let res = infer_all(npe, &simulate(npe, &design, &rows, seed ^ 0xF1)?, present, seed)?;
         let flagged = rate(&res, |o| o.ok == Some(false));
         let false_finding = rate(&res, |o| o.ok == Some(true) && !benign(o));

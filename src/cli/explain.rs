@@ -140,7 +140,7 @@ fn umbo_velocity(ear: &mut Ear) -> Result<()> {
 fn power_budget(ear: &mut Ear) -> Result<()> {
     println!("power budget, % of the power entering the middle ear (canal: % of the probe's)");
     println!("    f Hz  canal  drum  lig+tend  joints   SAL  cochlea");
-    for p in ear.runner.power_budget(ear.theta, ear.fx)?.iter().step_by(7) {
+    for p in ear.runner.power_budget(ear.theta)?.iter().step_by(7) {
         let me = |v: f64| 100.0 * v / p.into_drum;
         println!(
             "  {:6.0} {:5.1} {:5.1} {:8.2} {:7.3} {:5.2} {:7.1}",
@@ -154,7 +154,7 @@ fn power_budget(ear: &mut Ear) -> Result<()> {
         );
     }
     for f in [1000.0, 2000.0, 4000.0] {
-        ear.runner.solve_at(ear.theta, ear.fx, f)?;
+        ear.runner.solve_at(ear.theta, f)?;
         let share = ear.runner.power_balance(ear.theta, f).cochlear_share();
         println!("  cochlear share at {f:.0} Hz: {:.1} % (target ≥ 30 %){}", 100.0 * share, mark(share >= 0.3));
     }

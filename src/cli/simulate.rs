@@ -16,7 +16,8 @@ pub struct SimulateArgs {
     pub n: Option<usize>,
     /// Simulate these rows instead: CSV whose header names the 7 tissue parameters
     /// (natural units); the other parameters' columns (canal_length, canal_area,
-    /// mic_distance, cavity, tm_viscoelastic) are each optional and nominal when absent;
+    /// mic_distance, cavity, tm_viscoelastic, ldv_angle, cochlear_mass) are each optional
+    /// and nominal when absent;
     /// extra columns named after effects set that effect per row.
     #[arg(long)]
     pub theta: Option<PathBuf>,
@@ -30,7 +31,7 @@ pub struct SimulateArgs {
     /// Seed of the prior draws, the varied effects and the noise (same seed, same dataset).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Effects switched on for every row, e.g. `probe_leak=2e-4,ldv_angle=20`.
+    /// Effects switched on for every row, e.g. `probe_leak=2e-4,probe_offset=1e-3`.
     #[arg(long, value_delimiter = ',')]
     pub effects: Vec<String>,
     /// Effects drawn from their ranges per row (they become columns of theta.csv).
@@ -100,7 +101,8 @@ fn read_rows(path: &std::path::Path, design: &mut Design) -> Result<Vec<Vec<f64>
     for p in &PARAMS[..N_TISSUE] {
         cols.push(col(p.name).with_context(|| format!("{}: missing column '{}'", path.display(), p.name))?);
     }
-    // The other parameters (geometry, cavity, drum viscoelasticity): each optional,
+    // The other parameters (geometry, cavity, drum viscoelasticity, LDV angle, cochlear
+    // mass): each optional,
     // nominal when its column is absent.
     let rest: Vec<Option<usize>> = PARAMS[N_TISSUE..].iter().map(|p| col(p.name)).collect();
     for h in &table.header {

@@ -8,7 +8,7 @@ use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
 use crate::sim::{Model, ModelConfig, N_PARAMS, PARAMS};
 use crate::stats;
-use anyhow::{Result, bail};
+use anyhow::{Context, Result, bail};
 use clap::{Args, ValueEnum};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -163,9 +163,25 @@ struct Validation {
     rms: Vec<Vec<f64>>,
 }
 
+/// The studies re-simulate the model's parameters: refuse a model trained on another
+/// simulator's parameters or features (e.g. an older version's) with a message, not a
+/// wrong answer.
+fn same_simulator(npe: &Npe, path: &Path) -> Result<()> {
+    crate::discrepancy::fitcheck::simulator_for(npe).map(|_| ()).with_context(|| {
+        let names: Vec<&str> = npe.params().iter().map(|p| p.name.as_str()).collect();
+        format!(
+            "{}: its parameters ({}) are not this simulator's ({}); retrain it on `otofit simulate` data",
+            path.display(),
+            names.join(", "),
+            crate::sim::PARAMS.iter().map(|p| p.name).collect::<Vec<_>>().join(", ")
+        )
+    })
+}
+
 /// `study validate`: unseen simulations with 1× noise, inferred and re-simulated.
 fn validate(a: &StudyArgs, model: &Model, noise: &Noise) -> Result<()> {
     let npe = Npe::load(&a.model)?;
+    same_simulator(&npe, &a.model)?;
     let held = simulated(model, a.n, a.seed ^ 0x7E57);
     let mut v = Validation {
         rhos: vec![],
@@ -463,6 +479,7 @@ struct ReferenceFit {
 /// re-simulated, ρ per measure, predictive check and the differential reading.
 fn reference(model: &Model, path: &Path, out: &Path, seed: u64) -> Result<()> {
     let npe = &Npe::load(path)?;
+    same_simulator(npe, path)?;
     let r = crate::reference::build(model.frequencies())?;
     write(out, "reference_obs.csv", &crate::reference::csv(&r.feature_names, &r.x))?;
     write(out, "reference_std.csv", &crate::reference::csv(&r.feature_names, &r.std))?;

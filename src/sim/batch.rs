@@ -100,6 +100,9 @@ pub fn run_rows(
         .map_init(
             || model.runner(),
             |runner: &mut Runner<'_>, (k, row)| {
+                if row.len() < design.width() {
+                    return Err(SimError::RowWidth { expected: design.width(), got: row.len() });
+                }
                 let (theta, fx) = design.split(row);
                 let x = super::simulate(runner, &theta, &fx)?;
                 Ok(match noise.filter(|n| n.scale > 0.0) {
@@ -133,6 +136,21 @@ mod tests {
             }
         }
         assert_ne!(d.draw(6, 0, 1), a[..1]);
+    }
+
+    #[test]
+    fn a_row_shorter_than_the_parameters_is_an_error_not_a_panic() {
+        // A model trained on an older simulator's parameter list (v4: 12) asks for
+        // rows of that width.
+        let model = Model::new(ModelConfig::default()).unwrap();
+        let d = Design::default();
+        let mut rows = d.draw(1, 0, 2);
+        rows[1].truncate(12);
+        let out = run_rows(&model, &d, &rows, 0, None);
+        assert!(out[0].is_ok());
+        let err = out[1].as_ref().unwrap_err();
+        assert!(matches!(err, SimError::RowWidth { got: 12, .. }), "{err:?}");
+        assert!(err.to_string().contains("12 columns"), "{err}");
     }
 
     #[test]

@@ -366,6 +366,17 @@ pub enum SimError {
         /// The value given.
         value: f64,
     },
+    /// A row with fewer columns than the parameters (e.g. a model trained on an older
+    /// simulator's parameter list).
+    #[error(
+        "a parameter row has {got} columns; this simulator needs {expected} (its parameters, then the varied effects)"
+    )]
+    RowWidth {
+        /// Columns the design needs.
+        expected: usize,
+        /// Columns given.
+        got: usize,
+    },
     #[error(transparent)]
     /// The sparse solve failed.
     Solve(#[from] SolveError),
@@ -451,7 +462,7 @@ impl Model {
         Runner { model: self, ws: self.system.workspace(), coef: vec![c64::new(0.0, 0.0); self.system.n_blocks()] }
     }
 
-    fn fill_coefficients(&self, theta: &Theta, fx: &Effects, w: f64, coef: &mut [c64]) {
+    fn fill_coefficients(&self, theta: &Theta, w: f64, coef: &mut [c64]) {
         let bl = &self.blocks;
         let jw = c64::new(0.0, w);
         let rayleigh = c64::new(1.0, w * theta.damping_beta());
@@ -473,7 +484,7 @@ impl Model {
         coef[bl.joints] = rayleigh * theta.e_joints();
         coef[bl.sal] = rayleigh * theta.e_sal();
         coef[bl.mass] = c64::new(-w * w, 0.0);
-        coef[bl.cochlea] = jw * c64::new(theta.cochlear_load(), w * fx.cochlear_mass());
+        coef[bl.cochlea] = jw * c64::new(theta.cochlear_load(), w * theta.cochlear_mass());
         coef[bl.drum_load] = c64::new(1.0, 0.0);
         coef[bl.drum_flow] = jw;
         coef[bl.cavity_load] = c64::new(1.0, 0.0);
@@ -800,14 +811,14 @@ impl PowerBalance {
 impl Runner<'_> {
     /// Solves one frequency for a unit volume velocity into the eardrum; the full
     /// solution is then in [`Self::solution`].
-    pub fn solve_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
+    pub fn solve_at(&mut self, theta: &Theta, freq_hz: f64) -> Result<(), SimError> {
         for (i, v) in theta.0.iter().enumerate() {
             if !super::params::PARAMS[i].physical(*v) {
                 return Err(SimError::BadParameter { name: super::params::PARAMS[i].name, value: *v });
             }
         }
         let w = 2.0 * PI * freq_hz;
-        self.model.fill_coefficients(theta, fx, w, &mut self.coef);
+        self.model.fill_coefficients(theta, w, &mut self.coef);
         self.model.system.solve(&self.coef, &[(self.model.dofs.p_drum, c64::new(1.0, 0.0))], &mut self.ws, freq_hz)?;
         Ok(())
     }
@@ -826,7 +837,7 @@ impl Runner<'_> {
 
     /// Measured responses at one frequency, effects applied.
     pub fn response_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<Response, SimError> {
-        self.solve_at(theta, fx, freq_hz)?;
+        self.solve_at(theta, freq_hz)?;
         let m = self.model;
         let g = &m.config.geometry;
         let x = &self.ws.x;
@@ -835,7 +846,7 @@ impl Runner<'_> {
         let line = self.line(theta, w);
         let (p_mic, _) = line.at(theta.mic_distance());
         // Stapes velocity as the LDV sees it: piston·cos θ + rocking at the spot·sin θ.
-        let theta_ldv = fx.ldv_angle_deg().to_radians();
+        let theta_ldv = theta.ldv_angle_deg().to_radians();
         let v_piston = jw * x[m.dofs.x_stapes];
         let v_rock = jw * x[m.dofs.phi_stapes] * g.ldv_spot;
         let v_meas = v_piston * theta_ldv.cos() + v_rock * theta_ldv.sin();
@@ -931,12 +942,12 @@ impl Runner<'_> {
     }
 
     /// The power balance at every frequency of the model's grid (one solve each).
-    pub fn power_budget(&mut self, theta: &Theta, fx: &Effects) -> Result<Vec<PowerBalance>, SimError> {
+    pub fn power_budget(&mut self, theta: &Theta) -> Result<Vec<PowerBalance>, SimError> {
         let freqs = self.model.config.frequencies.clone();
         freqs
             .iter()
             .map(|&f| {
-                self.solve_at(theta, fx, f)?;
+                self.solve_at(theta, f)?;
                 Ok(self.power_balance(theta, f))
             })
             .collect()

@@ -49,7 +49,7 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     assert_eq!(meta["n_rows"], 12);
     assert_eq!(meta["noise"]["std"].as_array().unwrap().len(), 350);
     assert_eq!(meta["parameters"][10]["name"], "cavity");
-    assert_eq!(meta["parameters"][12]["name"], "probe_leak");
+    assert_eq!(meta["parameters"][14]["name"], "probe_leak");
     assert!(!a.join("x.csv.tmp").exists());
 }
 

@@ -104,7 +104,7 @@ fn stays_quiet_without_an_effect() {
 fn says_unexplained_when_the_effect_is_not_a_candidate() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, Some(("probe_leak", 3e-4)), 5);
-    let without_leak = vec![0, 2, 3]; // probe_offset, ldv_angle, cochlear_mass
+    let without_leak = vec![0]; // probe_offset
     let r = diagnose(&model, &base(), &x, &settings(without_leak), &mut |_| {}).unwrap();
     assert_eq!(r.verdict, Verdict::Unexplained);
     assert!(

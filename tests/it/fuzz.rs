@@ -394,7 +394,7 @@ fn seeds(op: &Op, w: &World) -> Vec<(Value, &'static str)> {
             let ds = &w.job_ids[0];
             out.extend(
                 [
-                    json!({"kind": "simulate", "params": {"n": 3, "seed": 1, "effects": {"probe_leak": 1e-4}, "vary": ["ldv_angle"]}}),
+                    json!({"kind": "simulate", "params": {"n": 3, "seed": 1, "effects": {"probe_leak": 1e-4}, "vary": ["probe_offset"]}}),
                     json!({"kind": "simulate", "params": {"theta": theta, "noise_scale": 0.5}}),
                     json!({"kind": "train", "params": {"dataset": ds, "max_epochs": 2, "ensemble": 2, "mask_groups": true}}),
                     json!({"kind": "resimulate", "params": {"theta": theta, "observation": w.x}}),

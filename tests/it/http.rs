@@ -358,7 +358,7 @@ async fn diagnose_job_writes_a_report_with_figures() {
     let mut fx = otofit::sim::Effects::default();
     fx.set("probe_leak", 3e-4).unwrap();
     let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &fx).unwrap();
-    let params = json!({"x": x, "extend": false, "null_cases": 5, "candidates": ["probe_leak", "ldv_angle"]});
+    let params = json!({"x": x, "extend": false, "null_cases": 5, "candidates": ["probe_leak", "probe_offset"]});
     let (status, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "diagnose", "params": params}))).await;
     assert_eq!(status, StatusCode::ACCEPTED, "{j}");
     let done = wait(&app, j["id"].as_str().unwrap()).await;

@@ -110,7 +110,7 @@ fn power_budget_of_the_nominal_ear() {
     // and into the drum = drum + ligaments + tendons + joints + SAL + cochlea, every part
     // ≥ 0. Prints the table of docs/simulator.md ("Power budget").
     let model = Model::new(ModelConfig::default()).unwrap();
-    let budget = model.runner().power_budget(&Theta::nominal(), &Effects::default()).unwrap();
+    let budget = model.runner().power_budget(&Theta::nominal()).unwrap();
     eprintln!("     f Hz   canal%  drum-in%   drum%   lig+tend%  joints%   SAL%   cochlea%   (of probe | of drum-in)");
     for p in &budget {
         let parts = [p.drum, p.ligaments, p.tendons, p.joints, p.sal, p.cochlea];
@@ -142,7 +142,7 @@ fn power_budget_of_the_nominal_ear() {
 
 fn share_at(model: &Model, f: f64) -> f64 {
     let mut runner = model.runner();
-    runner.solve_at(&Theta::nominal(), &Effects::default(), f).unwrap();
+    runner.solve_at(&Theta::nominal(), f).unwrap();
     runner.power_balance(&Theta::nominal(), f).cochlear_share()
 }
 
