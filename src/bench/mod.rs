@@ -87,6 +87,28 @@ pub fn write_table(task: Task, n: usize, seed: u64, dir: &Path) -> Result<()> {
     Ok(())
 }
 
+/// sbi 0.27's NSF (`density_estimator="nsf"` with its defaults, read in sbi's
+/// `build_nsf` and nflows) in otofit's settings: no embedding (the z-scored x goes
+/// straight to the conditioners), conditioners of two residual blocks gated by the
+/// context, an LU layer after each coupling, raw bin widths and heights over √hidden,
+/// Adam's ε 1e-8 and a constant rate; the rest (5 couplings, 50 hidden, 10 bins, bound 3,
+/// batch 200, rate 5e-4, patience 20, a tenth for validation, gradient norm clipped at
+/// 5) is `otofit train`'s too, except that sbi clips the whole gradient's norm and burn
+/// each tensor's, and sbi alternates even/odd coupling masks where otofit rotates its
+/// permutations. On the same simulations and split it reaches sbi's own validation loss
+/// (docs/npe.md).
+pub fn sbi_nsf_settings() -> TrainSettings {
+    TrainSettings {
+        embedding: false,
+        blocks: 2,
+        lu: true,
+        scaled_bins: true,
+        adam_eps: 1e-8,
+        lr_plateau: 0,
+        ..TrainSettings::default()
+    }
+}
+
 /// The task's fixed observation `k` (1-based): x simulated at a prior draw of seed k.
 pub fn observation(task: Task, k: usize) -> Vec<f64> {
     let mut rng = ChaCha8Rng::seed_from_u64(1_000 + k as u64);
@@ -106,17 +128,61 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         true
     })?;
     let t = &model.header.training;
+    let s = score(task, p, &mut |k, x, reference| {
+        let obs = Obs { x, present: None };
+        Ok((model.sample(&obs, p.samples, k as u64)?, Some(model.log_prob(&obs, reference)?)))
+    })?;
+    Ok(s.result(task, p.sims, t.wall_seconds, t.epochs, t.best_epoch))
+}
+
+/// The reference draws of observation `k` (1-based) of `task`, as every scoring uses them.
+fn reference(task: Task, x: &[f64], k: usize, n: usize) -> Vec<Vec<f64>> {
+    task.reference(x, n, &mut ChaCha8Rng::seed_from_u64(7_000 + k as u64))
+}
+
+/// A posterior's scores at the task's observations.
+struct Scores {
+    c2st: Vec<f64>,
+    kl: Option<f64>,
+    box_mass: Option<f64>,
+    width_ratio: f64,
+    seconds: f64,
+}
+
+impl Scores {
+    fn result(self, task: Task, sims: usize, train_seconds: f64, epochs: usize, best_epoch: usize) -> TaskResult {
+        TaskResult {
+            task: task.name().into(),
+            sims,
+            c2st_mean: self.c2st.iter().sum::<f64>() / self.c2st.len().max(1) as f64,
+            c2st: self.c2st,
+            train_seconds,
+            epochs,
+            best_epoch,
+            c2st_seconds: self.seconds,
+            kl: self.kl,
+            box_mass: self.box_mass,
+            width_ratio: self.width_ratio,
+        }
+    }
+}
+
+/// What a posterior gives at observation `k` (1-based) with value `x`: its draws and,
+/// where it has a density, its log q (unnormalised in the box) at the reference draws.
+type Posterior<'a> = dyn FnMut(usize, &[f64], &[Vec<f64>]) -> Result<(Vec<Vec<f64>>, Option<Vec<f64>>)> + 'a;
+
+/// Scores a posterior at the task's first `p.observations` observations: C2ST against the
+/// reference draws, the marginal widths and, where both densities are known, KL(p ‖ q).
+fn score(task: Task, p: &BenchParams, posterior: &mut Posterior<'_>) -> Result<Scores> {
     let (mut scores, mut kls, mut masses, mut ratios) = (vec![], vec![], vec![], vec![]);
     let t0 = std::time::Instant::now();
     for k in 1..=p.observations {
         let x = observation(task, k);
-        let mut rng = ChaCha8Rng::seed_from_u64(7_000 + k as u64);
-        let reference = task.reference(&x, p.samples, &mut rng);
-        let draws = model.sample(&Obs { x: &x, present: None }, p.samples, k as u64)?;
+        let reference = reference(task, &x, k, p.samples);
+        let (draws, lq) = posterior(k, &x, &reference)?;
         scores.push(c2st::c2st(&reference, &draws, &p.c2st));
-        let lq = model.log_prob(&Obs { x: &x, present: None }, &reference)?;
         let lp: Option<Vec<f64>> = reference.iter().map(|t| task.log_posterior(&x, t)).collect();
-        if let Some(lp) = lp {
+        if let (Some(lp), Some(lq)) = (lp, lq) {
             // The sampled posterior is q restricted to the box, q / Z with Z = E_p[q / p]
             // (the box is p's support): KL(p ‖ q / Z) = E_p[log p − log q] + log Z.
             let diff: Vec<f64> = lp.iter().zip(&lq).map(|(a, b)| a - b).collect();
@@ -137,17 +203,129 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         }
     }
     ratios.sort_by(f64::total_cmp);
-    Ok(TaskResult {
-        task: task.name().into(),
-        sims: p.sims,
-        c2st_mean: scores.iter().sum::<f64>() / scores.len().max(1) as f64,
+    Ok(Scores {
         c2st: scores,
-        train_seconds: t.wall_seconds,
-        epochs: t.epochs,
-        best_epoch: t.best_epoch,
-        c2st_seconds: t0.elapsed().as_secs_f64(),
         kl: (!kls.is_empty()).then(|| crate::stats::mean(kls)),
         box_mass: (!masses.is_empty()).then(|| crate::stats::mean(masses)),
         width_ratio: crate::stats::median_upper(&ratios),
+        seconds: t0.elapsed().as_secs_f64(),
     })
+}
+
+/// Writes what another trainer needs to train on and be scored against exactly what
+/// [`run_task`] uses, into `dir`: the training table (theta.csv, x.csv, prior.json), the
+/// validation split `settings` would make (split.json: `val` and `train` row indices, and
+/// θ's training-row mean and population standard deviation, the flow's standardisation),
+/// the observations (obs.csv, one row each) and each observation's reference draws
+/// (reference_K.csv, K from 1). Score the other trainer's draws with [`score_files`].
+pub fn export_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Path) -> Result<()> {
+    write_table(task, p.sims, p.seed, dir)?;
+    let ds = Dataset::load(dir)?;
+    let (val, train) = npe::validation_split(ds.theta.len(), settings.val_fraction, settings.seed);
+    let (mean, std): (Vec<f64>, Vec<f64>) = (0..task.dim())
+        .map(|j| crate::stats::mean_std_population(&train.iter().map(|&i| ds.theta[i][j]).collect::<Vec<_>>()))
+        .unzip();
+    let split = serde_json::json!({ "val": val, "train": train, "theta_mean": mean, "theta_std": std });
+    std::fs::write(dir.join("split.json"), serde_json::to_vec(&split)?)?;
+    let header = |n: usize, name: &str| (0..n).map(|k| format!("{name}{k}")).collect::<Vec<_>>().join(",");
+    let mut obs = vec![header(task.features(), "x")];
+    for k in 1..=p.observations {
+        let x = observation(task, k);
+        obs.push(x.iter().map(|v| format!("{v:e}")).collect::<Vec<_>>().join(","));
+        let mut rows = vec![header(task.dim(), "theta")];
+        rows.extend(
+            reference(task, &x, k, p.samples)
+                .iter()
+                .map(|t| t.iter().map(|v| format!("{v:e}")).collect::<Vec<_>>().join(",")),
+        );
+        std::fs::write(dir.join(format!("reference_{k}.csv")), rows.join("\n") + "\n")?;
+    }
+    std::fs::write(dir.join("obs.csv"), obs.join("\n") + "\n")?;
+    Ok(())
+}
+
+/// Scores another trainer's posterior at the task's observations as [`run_task`] scores
+/// otofit's: its draws from `dir`/samples_K.csv (K from 1; a header row, then one θ per
+/// row) and, if present, its log q at the reference draws of [`export_task`] from
+/// `dir`/logq_K.csv (a header row, then one value per row, in the reference's order;
+/// unnormalised in the prior box: the KL corrects for the mass outside). No training:
+/// the result's time and epochs are 0.
+pub fn score_files(task: Task, p: &BenchParams, dir: &Path) -> Result<TaskResult> {
+    let s = score(task, p, &mut |k, _, reference| {
+        let draws = crate::dataset::read_csv(&dir.join(format!("samples_{k}.csv")))?.rows;
+        if let Some(r) = draws.iter().find(|r| r.len() != task.dim()) {
+            anyhow::bail!("samples_{k}.csv: a row of {} values, the task has {} parameters", r.len(), task.dim());
+        }
+        let path = dir.join(format!("logq_{k}.csv"));
+        let lq = if path.exists() {
+            let rows = crate::dataset::read_csv(&path)?.rows;
+            if rows.len() != reference.len() || rows.iter().any(|r| r.len() != 1) {
+                anyhow::bail!("logq_{k}.csv: expected {} rows of one value", reference.len());
+            }
+            Some(rows.into_iter().map(|r| r[0]).collect())
+        } else {
+            None
+        };
+        Ok((draws, lq))
+    })?;
+    Ok(s.result(task, p.sims, 0.0, 0, 0))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn write_rows(path: &Path, head: &str, rows: impl Iterator<Item = String>) {
+        let mut text = vec![head.to_string()];
+        text.extend(rows);
+        std::fs::write(path, text.join("\n") + "\n").unwrap();
+    }
+
+    /// An exported task scored from files: exact posterior draws (another seed) with the
+    /// exact log density score C2ST ≈ 0.5, KL 0 and width 1; the same draws shifted by half
+    /// a posterior σ score clearly worse; the split is otofit's training split.
+    #[test]
+    fn exported_task_scores_exact_draws_from_files_as_exact() {
+        let dir = tempfile::tempdir().unwrap();
+        let task = Task::GaussianLinearUniform;
+        let p = BenchParams {
+            sims: 200,
+            observations: 1,
+            samples: 1500,
+            seed: 3,
+            verbose: false,
+            c2st: c2st::C2stParams::default(),
+        };
+        let settings = TrainSettings { seed: 3, ..Default::default() };
+        export_task(task, &p, &settings, dir.path()).unwrap();
+        let split: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.path().join("split.json")).unwrap()).unwrap();
+        let ids = |k: &str| -> Vec<usize> { serde_json::from_value(split[k].clone()).unwrap() };
+        assert_eq!((ids("val"), ids("train")), npe::validation_split(200, settings.val_fraction, 3));
+        assert_eq!(ids("val").len(), 20);
+        let reference = crate::dataset::read_csv(&dir.path().join("reference_1.csv")).unwrap().rows;
+        let x = observation(task, 1);
+        assert_eq!(reference, super::reference(task, &x, 1, p.samples));
+        let head = (0..10).map(|k| format!("theta{k}")).collect::<Vec<_>>().join(",");
+        let exact = task.reference(&x, p.samples, &mut ChaCha8Rng::seed_from_u64(99));
+        let shifted: Vec<Vec<f64>> =
+            exact.iter().map(|t| t.iter().map(|v| v + 0.5 * 0.1f64.sqrt()).collect()).collect();
+        let mut outcome = vec![];
+        for draws in [&exact, &shifted] {
+            let join = |r: &Vec<f64>| r.iter().map(|v| format!("{v:e}")).collect::<Vec<_>>().join(",");
+            write_rows(&dir.path().join("samples_1.csv"), &head, draws.iter().map(join));
+            let lq = reference.iter().map(|t| format!("{:e}", task.log_posterior(&x, t).unwrap()));
+            write_rows(&dir.path().join("logq_1.csv"), "logq", lq);
+            outcome.push(score_files(task, &p, dir.path()).unwrap());
+        }
+        let (same, off) = (&outcome[0], &outcome[1]);
+        assert!((same.c2st_mean - 0.5).abs() < 0.04, "exact draws: C2ST {}", same.c2st_mean);
+        assert!(same.kl.unwrap().abs() < 1e-9 && (same.box_mass.unwrap() - 1.0).abs() < 1e-9);
+        assert!((same.width_ratio - 1.0).abs() < 0.05, "width {}", same.width_ratio);
+        assert!(off.c2st_mean > same.c2st_mean + 0.1, "shifted: C2ST {} against {}", off.c2st_mean, same.c2st_mean);
+        std::fs::remove_file(dir.path().join("logq_1.csv")).unwrap();
+        assert!(score_files(task, &p, dir.path()).unwrap().kl.is_none());
+        write_rows(&dir.path().join("samples_1.csv"), "theta0", ["0.1".to_string()].into_iter());
+        assert!(score_files(task, &p, dir.path()).is_err());
+    }
 }

@@ -38,6 +38,11 @@ pub struct C2stArgs {
     /// Results as JSON.
     #[arg(long, default_value = "c2st.json")]
     pub json: PathBuf,
+    /// Training settings the options below change: `sbi` (sbi 0.27's NSF: no embedding,
+    /// residual conditioners, LU layers, scaled bins, Adam ε 1e-8, constant rate) or
+    /// `otofit` (`otofit train`'s defaults).
+    #[arg(long, value_enum, default_value = "otofit")]
+    pub recipe: RecipeArg,
     /// Train without the embedding network (`otofit train --embedding none`).
     #[arg(long)]
     pub no_embedding: bool,
@@ -86,6 +91,21 @@ pub struct C2stArgs {
     /// Flows trained from different seeds, sampled as an equal-weight mixture.
     #[arg(long)]
     pub ensemble: Option<usize>,
+    /// Train nothing: write each task's training table, validation split, observations and
+    /// reference draws into DIR/<task>/ for another trainer (see `--score-samples`).
+    #[arg(long, value_name = "DIR", conflicts_with = "score_samples")]
+    pub export: Option<PathBuf>,
+    /// Train nothing: score another trainer's posterior draws DIR/<task>/samples_K.csv
+    /// (and, for the KL, its log q at the exported reference draws, logq_K.csv) with the
+    /// same C2ST, widths and KL as otofit's.
+    #[arg(long, value_name = "DIR")]
+    pub score_samples: Option<PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum RecipeArg {
+    Sbi,
+    Otofit,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -116,9 +136,12 @@ pub fn run(a: C2stArgs) -> Result<()> {
             ..Default::default()
         },
     };
-    let d = TrainSettings::default();
+    let d = match a.recipe {
+        RecipeArg::Sbi => bench::sbi_nsf_settings(),
+        RecipeArg::Otofit => TrainSettings::default(),
+    };
     let settings = TrainSettings {
-        embedding: !a.no_embedding,
+        embedding: d.embedding && !a.no_embedding,
         seed: a.seed,
         theta_map: match a.theta_map {
             Some(ThetaMapArg::Logit) => ThetaMap::Logit,
@@ -142,11 +165,22 @@ pub fn run(a: C2stArgs) -> Result<()> {
         ..d.clone()
     };
     eprintln!("{settings:?}");
+    if let Some(dir) = &a.export {
+        for task in tasks {
+            let d = dir.join(task.name());
+            bench::export_task(task, &p, &settings, &d)?;
+            println!("{}: wrote {}", task.name(), d.display());
+        }
+        return Ok(());
+    }
     let root = std::env::temp_dir().join(format!("otofit-c2st-{}", std::process::id()));
     let mut results = Vec::new();
     println!("{:<24} {:>6} {:>7} {:>9}  per observation", "task", "sims", "C2ST", "train s");
     for task in tasks {
-        let r = bench::run_task(task, &p, &settings, &root.join(task.name()))?;
+        let r = match &a.score_samples {
+            Some(dir) => bench::score_files(task, &p, &dir.join(task.name()))?,
+            None => bench::run_task(task, &p, &settings, &root.join(task.name()))?,
+        };
         println!(
             "{:<24} {:>6} {:>7.3} {:>9.1}  {} (epochs {}, best {}; width ×{:.3}{}; C2ST {:.0} s)",
             r.task,
@@ -170,6 +204,8 @@ pub fn run(a: C2stArgs) -> Result<()> {
         "c2st_epochs": a.c2st_epochs,
         "c2st_train_loss_stop": a.c2st_train_loss_stop,
         "seed": a.seed,
+        "recipe": format!("{:?}", a.recipe),
+        "scored_samples": a.score_samples,
         "settings": format!("{settings:?}"),
         "tasks": results,
     });

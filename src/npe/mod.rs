@@ -16,7 +16,7 @@ pub use error::{CheckpointError, NpeError, ObservationError};
 pub use prior::{Param, Scale};
 pub use train::{
     CHECKPOINT_COST_SHARE, Checkpointing, EpochReport, TrainSettings, Trained, checkpoint_epochs, remove_checkpoint,
-    train, train_checkpointed,
+    train, train_checkpointed, validation_split,
 };
 
 use crate::dataset::FileError;

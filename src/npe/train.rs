@@ -868,8 +868,7 @@ pub fn train_checkpointed(
 ) -> Result<Trained> {
     let start = Instant::now();
     check(ds, s)?;
-    let mut rng = ChaCha8Rng::seed_from_u64(s.seed);
-    let (idx, n_val) = split(ds.theta.len(), s.val_fraction, &mut rng);
+    let (idx, n_val, rng) = seeded_split(ds.theta.len(), s.val_fraction, s.seed);
     let (val_idx, train_idx) = idx.split_at(n_val);
     let u_rows = u_rows(ds, s.theta_map);
     let header = standardise(ds, s, &u_rows, train_idx, n_val);
@@ -886,6 +885,22 @@ pub fn train_checkpointed(
     let fin = run.members(&rng, fin, current, saver.as_mut(), progress)?;
     let wall = saver.map_or(0.0, |sv| sv.wall_before) + start.elapsed().as_secs_f64();
     Ok(Trained { model: summarise(header, fin, wall), resumed_from_epoch })
+}
+
+/// The rows shuffled by the training's seed, how many of the first go to validation, and
+/// the generator as the split left it (member 0's batch stream goes on from it).
+fn seeded_split(n: usize, val_fraction: f64, seed: u64) -> (Vec<usize>, usize, ChaCha8Rng) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let (idx, n_val) = split(n, val_fraction, &mut rng);
+    (idx, n_val, rng)
+}
+
+/// The (validation, training) row indices a training of `n` rows with this validation
+/// fraction and seed uses (for comparing other trainers on the same split).
+pub fn validation_split(n: usize, val_fraction: f64, seed: u64) -> (Vec<usize>, Vec<usize>) {
+    let (mut idx, n_val, _) = seeded_split(n, val_fraction, seed);
+    let train = idx.split_off(n_val);
+    (idx, train)
 }
 
 /// The rows shuffled by `rng` and how many of the first go to validation (at least one
