@@ -82,6 +82,17 @@ pub const NORMAL: [NormalRange; 7] = [
     },
 ];
 
+/// The typical ear: every tissue value at the geometric centre of its normal range, the
+/// other parameters nominal (the openapi.yaml example, `bench fit`'s centre ear). Not the
+/// simulator's nominal ear, which sits on the lower limits of two ranges (damping_beta,
+/// cochlear_load), where a calibrated posterior reads either side about equally often.
+pub fn centre_row() -> Vec<f64> {
+    crate::sim::PARAMS
+        .iter()
+        .map(|p| NORMAL.iter().find(|r| r.name == p.name).map_or(p.nominal, |r| (r.low * r.high).sqrt()))
+        .collect()
+}
+
 /// "within" is read when the posterior puts at least this much probability inside the
 /// normal range.
 pub const CONFIDENT: f64 = 0.8;

@@ -38,7 +38,7 @@ fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     let x = std::fs::read_to_string(a.join("x.csv")).unwrap();
     assert_eq!(
         theta.lines().next().unwrap(),
-        "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance,cavity,tm_viscoelastic,probe_leak"
+        "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance,cavity,tm_viscoelastic,ldv_angle,cochlear_mass,probe_leak"
     );
     assert_eq!(theta.lines().count(), 13);
     assert_eq!(x.lines().count(), 13);

@@ -119,13 +119,14 @@ async fn spec_examples_are_answered_as_documented() {
     }
     assert_eq!(body["samples"].as_array().unwrap().len(), 1000);
     assert_eq!(body["inputs"]["interpolated"], true);
-    // The example is the nominal ear: its posterior must cover the nominal E_sal. Not
-    // with its 90 % interval: since v3 the nominal cavity sits on its prior's upper bound,
-    // and the E_sal posterior, which trades against it, puts the truth near its 95th
-    // percentile (q95 1.998e5 against 2e5); the truth must lie in the central 98 %.
+    // The example is the typical ear (tissue at the centres of the normal ranges): its
+    // posterior must cover the true E_sal. Not with its 90 % interval: the cavity sits on
+    // its prior's upper bound and the E_sal posterior trades against it; the truth must
+    // lie in the central 98 %.
+    let true_sal = otofit::npe::normal::centre_row()[3];
     let sal: Vec<f64> = body["samples"].as_array().unwrap().iter().map(|r| r[3].as_f64().unwrap()).collect();
-    let below = sal.iter().filter(|&&v| v < 2e5).count() as f64 / sal.len() as f64;
-    assert!((0.01..=0.99).contains(&below), "P(E_sal < nominal) = {below}: {}", body["parameters"][3]);
+    let below = sal.iter().filter(|&&v| v < true_sal).count() as f64 / sal.len() as f64;
+    assert!((0.01..=0.99).contains(&below), "P(E_sal < truth) = {below}: {}", body["parameters"][3]);
     let job = &examples.iter().find(|(p, _)| p == "/jobs").unwrap().1;
     let (status, headers, body) = call(&app, "POST", "/jobs", Some(job.clone())).await;
     assert_eq!(status, StatusCode::ACCEPTED, "{body}");
@@ -489,7 +490,8 @@ async fn poison_pill_theta_is_refused_and_extreme_allowed_rows_finish() {
     assert_eq!(done["state"], "succeeded", "{done}");
 }
 
-/// The openapi.yaml /infer example (the nominal ear, noise-free, SI units and radians).
+/// The openapi.yaml /infer example (the typical ear, `npe::normal::centre_row`, noise-free,
+/// SI units and radians).
 pub(crate) fn nominal_request() -> Value {
     spec_examples().into_iter().find(|(p, _)| p == "/infer").unwrap().1
 }
@@ -566,7 +568,7 @@ async fn wrong_units_are_rejected_with_the_field_or_converted_when_declared() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn every_inference_carries_a_fit_check_and_withdraws_readings_when_the_model_does_not_fit() {
     let (app, _, _dir) = app(vec![], 8, false).await;
-    // The nominal ear: the model fits it, and no parameter is read as abnormal.
+    // The typical ear: the model fits it, and no parameter is read as abnormal.
     let (status, _, body) = call(&app, "POST", "/infer", Some(nominal_request())).await;
     assert_eq!(status, StatusCode::OK, "{body}");
     let fit = &body["fit"];
@@ -1375,13 +1377,13 @@ async fn metrics_count_jobs_rows_and_inferences() {
 }
 
 /// Issue 16.5: POST /log_prob gives log q(θ|x) of given rows for one ear's measurements:
-/// on the nominal ear the nominal θ beats an eardrum 10× softer, a row outside the prior
+/// on the typical ear its own θ beats an eardrum 10× softer, a row outside the prior
 /// box is null and listed, and a row of the wrong width is a 422 naming it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn log_prob_ranks_the_truth_and_names_bad_rows() {
     use otofit::sim::params::PARAMS;
     let (app, _, _dir) = app(vec![], 8, false).await;
-    let nominal: Vec<f64> = PARAMS.iter().map(|p| p.nominal).collect();
+    let nominal = otofit::npe::normal::centre_row();
     let mut soft = nominal.clone();
     soft[0] /= 10.0;
     let mut outside = nominal.clone();
