@@ -100,6 +100,10 @@ pub struct C2stArgs {
     /// same C2ST, widths and KL as otofit's.
     #[arg(long, value_name = "DIR")]
     pub score_samples: Option<PathBuf>,
+    /// Also write each trained flow's draws and log q at the reference draws into
+    /// DIR/<task>/ in `--score-samples`' format.
+    #[arg(long, value_name = "DIR")]
+    pub save_samples: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -129,6 +133,7 @@ pub fn run(a: C2stArgs) -> Result<()> {
         samples: a.samples,
         seed: a.seed,
         verbose: a.verbose,
+        save_samples: a.save_samples.clone(),
         c2st: C2stParams {
             seed: a.seed,
             max_epochs: a.c2st_epochs,
