@@ -10,12 +10,16 @@
 //!
 //! `cargo run --example tune_nominal -- [rings] [starts] [iterations]`, ~1 ms per
 //! evaluation. Environment: `DRUM=axi` the default (axisymmetric, Rayleigh) drum instead
-//! of the manubrium drum; `FIX=7,9` holds those knobs at today's value; `W_SHARE=0` drops
+//! of the manubrium drum; `DRUM=line` the transmission-line drum (`sim::line_drum`, session
+//! 12), whose delay, characteristic impedance, coupling area and shunt compliance are then
+//! knobs 11–14 (held at `LineDrum::NOMINAL` for the other drums; `rings` is then unused),
+//! with the loss factor η of knob 1 on its modulus; `FIX=7,9` holds those knobs at today's value; `W_SHARE=0` drops
 //! the cochlear-share target; `THICK`, `DEPTH`, `GAP` comma lists of drum thickness,
 //! depth and manubrium-to-rim gap (m) to search over; `VISCO` the drum's viscoelastic
 //! exponent; `X0` a start point.
 
 use otofit::npe::normal::NORMAL;
+use otofit::sim::line_drum::LineDrum;
 use otofit::sim::{DrumLoss, DrumShape, Effects, Geometry, Model, ModelConfig, PARAMS, Theta};
 use serde_json::Value;
 use std::f64::consts::PI;
@@ -77,12 +81,29 @@ fn knobs() -> Vec<Knob> {
         tissue("E_tendons"),
         Knob { name: "g_sal x", lo: -1.0, hi: 1.0, start: 0.0 },
         Knob { name: "tm_viscoelastic n", lo: 0.0, hi: 0.3, start: 0.0 },
+        // The line drum (DRUM=line): delay 10–200 µs (the cat's drum ~36 µs, Puria & Allen
+        // 1998; the human middle ear's whole group delay 60–150 µs), Z₀ 3e6–1e8 Pa·s/m³
+        // around |Z_TM| ≈ 2e7 near 1 kHz, area 20–60 mm² (Hudde's A₀ 38 mm² of 60 mm²),
+        // shunt compliance 3e-14–3e-11 m³/Pa (0.005–4 cm³ of air).
+        Knob { name: "line delay s", lo: -5.0, hi: (200e-6f64).log10(), start: LineDrum::NOMINAL.delay.log10() },
+        Knob { name: "line Z0", lo: (3e6f64).log10(), hi: 8.0, start: LineDrum::NOMINAL.z0.log10() },
+        Knob {
+            name: "line area m2",
+            lo: (20e-6f64).log10(),
+            hi: (60e-6f64).log10(),
+            start: LineDrum::NOMINAL.area.log10(),
+        },
+        Knob { name: "line shunt m3/Pa", lo: -13.5, hi: -10.5, start: LineDrum::NOMINAL.shunt.log10() },
     ]
 }
+
+/// The line drum's knobs (delay, Z₀, area, shunt).
+const LINE_KNOBS: [usize; 4] = [11, 12, 13, 14];
 
 /// What the environment asks for, read once (module doc).
 struct Settings {
     axisymmetric: bool,
+    line: bool,
     fixed: Vec<usize>,
     w_share: f64,
     visco: Option<f64>,
@@ -104,7 +125,11 @@ fn env_list<T: std::str::FromStr>(name: &str, default: &str) -> Result<Vec<T>, S
 impl Settings {
     fn from_env(n_knobs: usize) -> Result<Settings, String> {
         let one = |name: &str| -> Result<Option<f64>, String> { Ok(env_list::<f64>(name, "")?.first().copied()) };
-        let fixed: Vec<usize> = env_list("FIX", "")?;
+        let mut fixed: Vec<usize> = env_list("FIX", "")?;
+        let line = std::env::var("DRUM").as_deref() == Ok("line");
+        if !line {
+            fixed.extend(LINE_KNOBS);
+        }
         if let Some(k) = fixed.iter().find(|&&k| k >= n_knobs) {
             return Err(format!("FIX: knob {k} does not exist (0..{n_knobs})"));
         }
@@ -114,6 +139,7 @@ impl Settings {
         }
         Ok(Settings {
             axisymmetric: std::env::var("DRUM").as_deref() == Ok("axi"),
+            line,
             fixed,
             w_share: one("W_SHARE")?.unwrap_or(1.0),
             visco: one("VISCO")?,
@@ -129,6 +155,8 @@ struct Metrics {
     goode: Vec<f64>,
     phase8: f64,
     delay: [f64; 4],
+    /// Least and largest group delay over 25 log-spaced frequencies from 2 to 8 kHz, µs.
+    delay_band: (f64, f64),
     absorb: Vec<f64>,
     share: [f64; 3],
     split: Vec<[f64; 5]>,
@@ -166,6 +194,7 @@ impl Metrics {
         let f = |v: &[f64], p: usize| v.iter().map(|x| format!("{x:.p$}")).collect::<Vec<_>>().join(" ");
         println!("  goode diff dB: {}", f(&self.goode, 1));
         println!("  phase 8k {:.0}, delay 2/3/4/8k {} us", self.phase8, f(&self.delay, 0));
+        println!("  group delay over 2-8 kHz: {:.0} to {:.0} us", self.delay_band.0, self.delay_band.1);
         println!("  absorbance: {}", f(&self.absorb, 2));
         println!("  cochlear share 1/2/4k: {}", f(&self.share, 2));
         for s in &self.split {
@@ -200,6 +229,9 @@ impl Search {
         g.g_sal *= m(9);
         g.g_sal_rock *= m(9);
         g.tm_shape = shape;
+        if self.settings.line {
+            g.tm_shape = DrumShape::Line(LineDrum { delay: m(11), z0: m(12), area: m(13), shunt: m(14) });
+        }
         if self.settings.axisymmetric {
             g.tm_shape = DrumShape::Axisymmetric;
             g.tm_loss = DrumLoss::Rayleigh;
@@ -226,10 +258,18 @@ impl Search {
             phase += (v / prev).arg();
             prev = v;
         }
+        let mut group_delay = |f: f64| -> Option<f64> {
+            let d = (resp(1.005 * f)?.vst_over_p / resp(0.995 * f)?.vst_over_p).arg();
+            Some(-d / (2.0 * PI * 0.01 * f) * 1e6)
+        };
         let mut delay = [0.0; 4];
         for (k, f) in [2000.0, 3000.0, 4000.0, 8000.0].iter().enumerate() {
-            let d = (resp(1.005 * f)?.vst_over_p / resp(0.995 * f)?.vst_over_p).arg();
-            delay[k] = -d / (2.0 * PI * 0.01 * f) * 1e6;
+            delay[k] = group_delay(*f)?;
+        }
+        let mut delay_band = (f64::INFINITY, f64::NEG_INFINITY);
+        for f in otofit::sim::model::log_grid(2000.0, 8000.0, 25) {
+            let d = group_delay(f)?;
+            delay_band = (delay_band.0.min(d), delay_band.1.max(d));
         }
         let mut absorb = Vec::with_capacity(n.abs_f.len());
         for f in &n.abs_f {
@@ -244,7 +284,7 @@ impl Search {
             let d = p.into_drum;
             split.push([p.drum / d, (p.ligaments + p.tendons) / d, p.joints / d, p.sal / d, p.cochlea / d]);
         }
-        Some(Metrics { goode, phase8: phase.to_degrees(), delay, absorb, share, split })
+        Some(Metrics { goode, phase8: phase.to_degrees(), delay, delay_band, absorb, share, split })
     }
 
     /// `x` with the fixed knobs at today's value.
@@ -366,6 +406,7 @@ fn main() -> Result<(), String> {
     }
     let Some((v, x, g, shape)) = overall else { return Err("THICK, DEPTH, GAP: each needs a value".into()) };
     let x = search.with_fixed(&x);
+    let shape = if search.settings.line { search.apply(&search.clamped(&x), &g, shape).0.tm_shape } else { shape };
     println!("best cost {v:.3}: thickness {:.0} um, depth {:.2} mm, {shape:?}", g.tm_thickness * 1e6, g.tm_depth * 1e3);
     for (k, knob) in search.knobs.iter().enumerate() {
         let (name, lo, hi) = (knob.name, knob.lo, knob.hi);
@@ -376,8 +417,16 @@ fn main() -> Result<(), String> {
         }
     }
     let (g2, t) = search.apply(&search.clamped(&x), &g, shape);
-    if let Some(m) = search.metrics(g2, &t) {
+    if let Some(m) = search.metrics(g2.clone(), &t) {
         m.print();
     }
+    // Cost per simulation at the best point: 1000 runs of the 50-frequency grid, one core.
+    let model = Model::new(ModelConfig { geometry: g2, ..ModelConfig::default() }).map_err(|e| e.to_string())?;
+    let mut runner = model.runner();
+    let clock = std::time::Instant::now();
+    for _ in 0..1000 {
+        otofit::sim::simulate(&mut runner, &t, &Effects::default()).map_err(|e| e.to_string())?;
+    }
+    println!("  cost per 50-frequency run: {:.3} ms (1000 runs)", clock.elapsed().as_secs_f64());
     Ok(())
 }

@@ -14,6 +14,7 @@ pub mod batch;
 pub mod canal;
 pub mod drum;
 pub mod drum_mesh;
+pub mod line_drum;
 pub mod model;
 pub mod output;
 pub mod params;

@@ -21,6 +21,7 @@
 use super::air::{self, Air};
 use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
+use super::line_drum::{LineDrum, simpson};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
 use super::system::{SolveError, System, SystemBuilder, Workspace};
@@ -208,6 +209,9 @@ pub enum DrumShape {
         /// Gap between the manubrium's lateral end and the rim, m.
         manubrium_to_rim: f64,
     },
+    /// Session 12, an experiment: the drum as a lossy transmission line from the canal to
+    /// the umbo (`line_drum.rs`, Puria & Allen 1998); no FE, no modes.
+    Line(LineDrum),
 }
 
 impl DrumShape {
@@ -292,6 +296,8 @@ enum Condensed {
     Axisymmetric(DrumModes),
     /// On (umbo, θ_m, p_drum, p_cavity); holds the manubrium's own terms too.
     Manubrium(std::sync::Arc<ManubriumModes>),
+    /// On (umbo, p_drum, p_cavity): the line's two-port and its shunt.
+    Line(LineDrum),
 }
 
 /// Indices of the named unknowns.
@@ -502,6 +508,10 @@ impl Model {
                     coef[bl.drum_schur + 4 * i..bl.drum_schur + 4 * i + 4].copy_from_slice(row);
                 }
             }
+            Some(Condensed::Line(line)) => {
+                let block = line.block(coef[bl.tm], w, coef[bl.cavity_row].re);
+                coef[bl.drum_schur..bl.drum_schur + 9].copy_from_slice(&block);
+            }
             None => {}
         }
     }
@@ -535,7 +545,7 @@ impl Dofs {
     /// malleus along its length, the axisymmetric one meets it at the umbo only.
     fn condensed(&self, shape: DrumShape) -> Vec<usize> {
         match shape {
-            DrumShape::Axisymmetric => vec![self.umbo, self.p_drum, self.p_cavity],
+            DrumShape::Axisymmetric | DrumShape::Line(_) => vec![self.umbo, self.p_drum, self.p_cavity],
             DrumShape::Manubrium { .. } => vec![self.umbo, self.theta_m, self.p_drum, self.p_cavity],
         }
     }
@@ -576,7 +586,7 @@ fn drum_nodes(config: &ModelConfig) -> Result<Vec<(f64, f64)>, SimError> {
     match g.tm_shape {
         DrumShape::Axisymmetric => Ok(cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements)),
         DrumShape::Manubrium { .. } if !config.reduce_drum => Err(SimError::DrumNotCondensed { shape: "Manubrium" }),
-        DrumShape::Manubrium { .. } => Ok(Vec::new()),
+        DrumShape::Manubrium { .. } | DrumShape::Line(_) => Ok(Vec::new()),
     }
 }
 
@@ -608,6 +618,7 @@ fn drum(
             };
             Some(Condensed::Manubrium(drum.modes_shared()?))
         }
+        DrumShape::Line(line) => Some(Condensed::Line(line)),
     };
     if drum.is_some() {
         let condensed_at = dofs.condensed(g.tm_shape);
@@ -894,22 +905,10 @@ impl Runner<'_> {
         let (p0, u0) = line.at(l);
         let scale = 1.0 / u0.norm_sqr();
         let probe = 0.5 * (p0.conj() * u0).re * scale;
-        let n = 512;
-        let canal = (0..=n)
-            .map(|k| {
-                let (p, u) = line.at(l * k as f64 / n as f64);
-                let weight = if k == 0 || k == n {
-                    1.0
-                } else if k % 2 == 1 {
-                    4.0
-                } else {
-                    2.0
-                };
-                weight * (line.z.re * u.norm_sqr() + line.y.re * p.norm_sqr())
-            })
-            .sum::<f64>()
-            * l
-            / (3.0 * n as f64)
+        let canal = simpson(512, |t| {
+            let (p, u) = line.at(l * t);
+            line.z.re * u.norm_sqr() + line.y.re * p.norm_sqr()
+        }) * l
             * 0.5
             * scale;
         let mut vol: c64 = m.b.iter().zip(x).map(|(bi, xi)| *xi * *bi).sum();
@@ -929,6 +928,13 @@ impl Runner<'_> {
                 let (t, p, pc) = (x[d.theta_m], x[d.p_drum], x[d.p_cavity]);
                 let eta = modes.interior(&c, [u, t, p, pc]);
                 (modes.volume(&eta, u, t), modes.unit_stiffness_energy(&eta, u, t))
+            }
+            Some(Condensed::Line(line)) => {
+                let (kappa, jw) = (self.coef[bl.tm], c64::new(0.0, w));
+                let (p1, v) = (x[d.p_drum] - x[d.p_cavity], jw * u);
+                let ports = line.ports(kappa, w, p1, v);
+                drum += line.loss(kappa, w, p1, v) * scale;
+                ((ports.u1 + ports.u_shunt) / jw, 0.0)
             }
             None => (c64::new(0.0, 0.0), 0.0),
         };

@@ -8,7 +8,10 @@
 use crate::baseline::known_miss;
 use faer::c64;
 use otofit::sim::canal::{Area, CanalMesh};
-use otofit::sim::{Effects, Model, ModelConfig, Preset, Theta};
+use otofit::sim::line_drum::LineDrum;
+use otofit::sim::{DrumLoss, DrumShape, Effects, Model, ModelConfig, PARAMS, Preset, Theta};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
 use std::f64::consts::PI;
 
 /// Air at `celsius` and 1 atm from first principles: ideal gas (R_s = 287.05 J/kg/K,
@@ -231,4 +234,77 @@ fn umbo_over_stapes_is_the_lever_ratio_when_the_chain_is_rigid() {
     let q = ratio(&Theta::nominal());
     eprintln!("nominal: |Vu/Vst| {:.4}", q.norm());
     assert!(q.norm() > lever * 1.1, "nominal |Vu/Vst| {:.4}", q.norm());
+}
+
+/// A line drum for the tests (`sim::line_drum`), inside the knobs' ranges of
+/// examples/tune_nominal.rs.
+const LINE: LineDrum = LineDrum { delay: 60e-6, z0: 1.5e7, area: 40e-6, shunt: 7e-13 };
+
+#[test]
+fn line_drum_with_the_umbo_held_is_the_rigid_ended_line_beside_its_shunt_and_behind_the_cavity() {
+    // With the malleus 10¹⁰× heavier the umbo stands still (U₂ = 0), so the model's drum
+    // impedance (p_drum per unit flow) must be the textbook rigid-ended lossless line
+    // −jZ₀·cot ωτ, in parallel with the shunt compliance, in series with the cavity
+    // ρc²/(jωV). Checks how the two-port is wired into the system (flow row, cavity row).
+    let mut config = ModelConfig::default();
+    config.geometry.tm_shape = DrumShape::Line(LINE);
+    config.geometry.tm_loss = DrumLoss::LossFactor(0.0);
+    config.geometry.m_malleus *= 1e10;
+    config.geometry.i_malleus *= 1e10;
+    let model = Model::new(config).unwrap();
+    let mut runner = model.runner();
+    let theta = Theta::nominal();
+    for f in [250.0, 1000.0, 3000.0, 5000.0, 8000.0] {
+        runner.solve_at(&theta, f).unwrap();
+        let x = runner.solution();
+        let w = 2.0 * PI * f;
+        let z_line = c64::new(0.0, -LINE.z0 / (w * LINE.delay).tan());
+        let y_shunt = c64::new(0.0, w * LINE.shunt);
+        let z_cav = c64::new(0.0, -model.air.bulk_modulus() / (w * theta.cavity_volume()));
+        let want = 1.0 / (1.0 / z_line + y_shunt) + z_cav;
+        let got = x[model.dofs.p_drum];
+        assert!((got - want).norm() < 1e-6 * want.norm(), "{f} Hz: model {got}, closed form {want}");
+        assert!(x[model.dofs.umbo].norm() * w * LINE.area < 1e-6, "{f} Hz: the umbo moves");
+    }
+}
+
+#[test]
+fn line_drum_ear_is_passive_and_balances_its_power_at_random_draws() {
+    // Random θ over the prior, random line geometry and drum loss model: every loss ≥ 0
+    // (the drum's from its distributed losses along the line), probe = canal + into the
+    // drum, into the drum = the middle-ear losses, Re Z_ec ≥ 0, 0 ≤ A ≤ 1.
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let log_uniform = |rng: &mut ChaCha8Rng, lo: f64, hi: f64| lo * (hi / lo).powf(rng.random::<f64>());
+    let mut least_drum = f64::INFINITY;
+    for draw in 0..40 {
+        let line = LineDrum {
+            delay: log_uniform(&mut rng, 10e-6, 150e-6),
+            z0: log_uniform(&mut rng, 3e6, 1e8),
+            area: log_uniform(&mut rng, 20e-6, 60e-6),
+            shunt: if draw % 4 == 0 { 0.0 } else { log_uniform(&mut rng, 1e-13, 1e-11) },
+        };
+        let mut config = ModelConfig::default();
+        config.geometry.tm_shape = DrumShape::Line(line);
+        config.geometry.tm_loss = match draw % 3 {
+            0 => DrumLoss::Rayleigh,
+            1 => DrumLoss::LossFactor(rng.random::<f64>()),
+            _ => DrumLoss::Hysteretic { f_ref_hz: 1000.0 },
+        };
+        let model = Model::new(config).unwrap();
+        let mut runner = model.runner();
+        let theta = Theta(std::array::from_fn(|i| PARAMS[i].from_unit(rng.random())));
+        for &f in model.frequencies() {
+            let r = runner.response_at(&theta, &Effects::default(), f).unwrap();
+            let p = runner.power_balance(&theta, f);
+            let parts = [p.canal, p.drum, p.ligaments, p.tendons, p.joints, p.sal, p.cochlea];
+            assert!(p.probe > 0.0 && parts.iter().all(|&v| v >= -1e-12 * p.probe), "{p:?} {line:?} {theta:?}");
+            least_drum = least_drum.min(p.drum / p.into_drum);
+            let tol = 1e-6 * p.probe;
+            assert!((p.probe - p.canal - p.into_drum).abs() < tol, "canal balance {p:?} {line:?}");
+            assert!((p.into_drum - p.mechanical).abs() < tol, "middle-ear balance {p:?} {line:?}");
+            let a = r.absorbance();
+            assert!(r.zec.re >= 0.0 && (-1e-12..=1.0 + 1e-12).contains(&a), "Z_ec {} A {a} at {f} Hz", r.zec);
+        }
+    }
+    eprintln!("40 line drums × 50 frequencies; least drum loss / drum input {least_drum:.2e}");
 }
