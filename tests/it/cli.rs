@@ -325,7 +325,7 @@ fn studies_show_the_direction_of_noise_and_training_size() {
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(val.join("validate.json")).unwrap()).unwrap();
     assert!(v["mean_rho"].as_f64().unwrap() > 0.9, "{v}");
     // Issue 11's target, met by the MAP refined against the observation (the flow's own
-    // MAP: 0.968 on 200; docs/npe.md), and the refinement must not make the fit worse.
+    // MAP: 0.968 on 200; README), and the refinement must not make the fit worse.
     let refined = v["refined"]["mean_rho"].as_f64().unwrap();
     assert!(refined >= 0.98 && refined > v["mean_rho"].as_f64().unwrap(), "{v}");
     for bad in [&["study", "validate", "--refine", "500"][..], &["study", "reference", "--refine", "5"]] {

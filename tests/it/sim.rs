@@ -262,6 +262,22 @@ fn probe_offset_moves_impedance_phase_and_keeps_absorbance() {
     assert!(max_diff(&f, &moved, &base, 3, 2000.0, 8000.0) > 0.1, "Zec phase must move at high f");
 }
 
+/// Issue 12's "strong hidden effects flagged ≥ 90 %" cannot hold for the probe offset:
+/// a plane moved Δx toward the drum is exactly an ear whose canal is Δx shorter, a valid
+/// ear of the prior, so no fit check may flag it (bench fit: 5 %, the null's rate).
+#[test]
+fn a_probe_offset_is_exactly_a_shorter_canal() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let long = with_param("canal_length", 15e-3);
+    let moved = run(&model, &long, &with_effect("probe_offset", 3e-3));
+    let short = run(&model, &Theta::nominal(), &Effects::default()); // 12 mm
+    let worst = moved.iter().zip(&short).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+    assert!(worst < 1e-9, "largest feature difference {worst:e}");
+    // And it is a real change of the spectra, not a no-op.
+    let plain = run(&model, &long, &Effects::default());
+    assert!(moved.iter().zip(&plain).any(|(a, b)| (a - b).abs() > 0.05));
+}
+
 #[test]
 fn probe_leak_raises_low_frequency_absorbance() {
     let model = Model::new(ModelConfig::default()).unwrap();
