@@ -54,6 +54,9 @@ pub struct TaskResult {
     pub epochs: usize,
     /// The epoch of member 0's lowest validation loss (the weights kept).
     pub best_epoch: usize,
+    /// The lowest validation loss (mean −log q of θ z-scored on the training rows; mean
+    /// over ensemble members), or `None` for scored files.
+    pub best_val_loss: Option<f64>,
     /// Reference draws and classifier tests, all observations.
     pub c2st_seconds: f64,
     /// KL(p ‖ q) in nats, mean over the observations, where the task's posterior density
@@ -143,7 +146,9 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         }
         Ok((draws, Some(lq)))
     })?;
-    Ok(s.result(task, p.sims, t.wall_seconds, t.epochs, t.best_epoch))
+    let mut r = s.result(task, p.sims, t.wall_seconds, t.epochs, t.best_epoch);
+    r.best_val_loss = Some(t.best_val_loss);
+    Ok(r)
 }
 
 /// The reference draws of observation `k` (1-based) of `task`, as every scoring uses them.
@@ -170,6 +175,7 @@ impl Scores {
             train_seconds,
             epochs,
             best_epoch,
+            best_val_loss: None,
             c2st_seconds: self.seconds,
             kl: self.kl,
             box_mass: self.box_mass,

@@ -1,5 +1,6 @@
 //! `otofit bench c2st`: posterior accuracy (C2ST against reference posteriors) and
-//! training time on standard SBI benchmark tasks, with `otofit train`'s defaults.
+//! training time on standard SBI benchmark tasks, trained with sbi's NSF recipe
+//! ([`bench::sbi_nsf_settings`]) or `otofit train`'s defaults (`--recipe otofit`).
 
 use crate::bench::{self, BenchParams, Task, c2st::C2stParams};
 use crate::npe::{ThetaMap, TrainSettings};
@@ -39,9 +40,10 @@ pub struct C2stArgs {
     #[arg(long, default_value = "c2st.json")]
     pub json: PathBuf,
     /// Training settings the options below change: `sbi` (sbi 0.27's NSF: no embedding,
-    /// residual conditioners, LU layers, scaled bins, Adam ε 1e-8, constant rate) or
-    /// `otofit` (`otofit train`'s defaults).
-    #[arg(long, value_enum, default_value = "otofit")]
+    /// residual conditioners, LU layers, scaled bins, Adam ε 1e-8, constant rate; the
+    /// benchmark's default since session 12, docs/npe.md) or `otofit` (`otofit train`'s
+    /// defaults, which the middle-ear models train with).
+    #[arg(long, value_enum, default_value = "sbi")]
     pub recipe: RecipeArg,
     /// Train without the embedding network (`otofit train --embedding none`).
     #[arg(long)]
@@ -187,7 +189,7 @@ pub fn run(a: C2stArgs) -> Result<()> {
             None => bench::run_task(task, &p, &settings, &root.join(task.name()))?,
         };
         println!(
-            "{:<24} {:>6} {:>7.3} {:>9.1}  {} (epochs {}, best {}; width ×{:.3}{}; C2ST {:.0} s)",
+            "{:<24} {:>6} {:>7.3} {:>9.1}  {} (epochs {}, best {}{}; width ×{:.3}{}; C2ST {:.0} s)",
             r.task,
             r.sims,
             r.c2st_mean,
@@ -195,6 +197,7 @@ pub fn run(a: C2stArgs) -> Result<()> {
             r.c2st.iter().map(|c| format!("{c:.3}")).collect::<Vec<_>>().join(" "),
             r.epochs,
             r.best_epoch,
+            r.best_val_loss.map(|v| format!(", val loss {v:.4}")).unwrap_or_default(),
             r.width_ratio,
             r.kl.zip(r.box_mass).map(|(k, m)| format!(", KL {k:.4}, mass in box {m:.3}")).unwrap_or_default(),
             r.c2st_seconds
