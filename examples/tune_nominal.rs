@@ -14,7 +14,8 @@
 //! 12), whose delay, characteristic impedance, coupling area and shunt compliance are then
 //! knobs 11–14 (held at `LineDrum::NOMINAL` for the other drums; `rings` is then unused),
 //! with the loss factor η of knob 1 on its modulus; `FIX=7,9` holds those knobs at today's value; `W_SHARE=0` drops
-//! the cochlear-share target; `THICK`, `DEPTH`, `GAP` comma lists of drum thickness,
+//! the cochlear-share target; `SHARE_MIN=a,b,c` sets its floors at 1, 2 and 4 kHz (default
+//! 0.33 each; the norms cap the share at ~0.15 and ~0.03 at 2 and 4 kHz, docs/simulator.md); `THICK`, `DEPTH`, `GAP` comma lists of drum thickness,
 //! depth and manubrium-to-rim gap (m) to search over; `VISCO` the drum's viscoelastic
 //! exponent; `X0` a start point.
 
@@ -106,6 +107,7 @@ struct Settings {
     line: bool,
     fixed: Vec<usize>,
     w_share: f64,
+    share_min: [f64; 3],
     visco: Option<f64>,
     x0: Option<Vec<f64>>,
     thick: Vec<f64>,
@@ -142,6 +144,10 @@ impl Settings {
             line,
             fixed,
             w_share: one("W_SHARE")?.unwrap_or(1.0),
+            share_min: match env_list::<f64>("SHARE_MIN", "0.33,0.33,0.33")?[..] {
+                [a, b, c] => [a, b, c],
+                _ => return Err("SHARE_MIN: three values, at 1, 2 and 4 kHz".into()),
+            },
             visco: one("VISCO")?,
             x0,
             thick: env_list("THICK", "60e-6")?,
@@ -173,7 +179,7 @@ fn hinge(v: f64, lo: f64, hi: f64) -> f64 {
 }
 
 impl Metrics {
-    fn cost(&self, norms: &Norms, w_share: f64) -> f64 {
+    fn cost(&self, norms: &Norms, w_share: f64, share_min: [f64; 3]) -> f64 {
         let mut c = 0.0;
         for d in &self.goode {
             c += hinge(*d, -4.0, 4.0).powi(2) + 0.02 * d * d;
@@ -185,8 +191,8 @@ impl Metrics {
         for (k, a) in self.absorb.iter().enumerate() {
             c += (hinge(*a, norms.abs_lo[k] + 0.02, norms.abs_hi[k] - 0.02) / 0.05).powi(2);
         }
-        for s in self.share {
-            c += w_share * (hinge(s, 0.33, 1.0) / 0.05).powi(2);
+        for (s, lo) in self.share.iter().zip(share_min) {
+            c += w_share * (hinge(*s, lo, 1.0) / 0.05).powi(2);
         }
         c
     }
@@ -305,7 +311,8 @@ impl Search {
         let x = self.with_fixed(x);
         let out: f64 = x.iter().zip(&self.knobs).map(|(v, k)| hinge(*v, k.lo, k.hi)).sum();
         let (g2, t) = self.apply(&self.clamped(&x), g, shape);
-        self.metrics(g2, &t).map(|m| m.cost(&self.norms, self.settings.w_share)).unwrap_or(1e9) + 100.0 * out
+        self.metrics(g2, &t).map(|m| m.cost(&self.norms, self.settings.w_share, self.settings.share_min)).unwrap_or(1e9)
+            + 100.0 * out
     }
 }
 
