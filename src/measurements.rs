@@ -359,17 +359,19 @@ fn check_magnitude(fld: &str, mp: &MagPhase, velocity: bool, errs: &mut Vec<(Str
     }
 }
 
-/// The absorbance into feature block 4; whether it was used. ±0.05 outside 0–1 is
-/// allowed as calibration error.
+/// The absorbance into feature block 4; whether it was used. The envelope (0–1 with five
+/// test–retest STDs either side) is the simulator's, `sim::output::MEASURES`.
 fn absorbance(a: &Values, t: &Target, x: &mut [f64], errs: &mut Vec<(String, String)>) -> bool {
     let n = t.grid.len();
     check_values("measurements.absorbance.values", &a.values, false, errs);
-    if let Some(i) = a.values.iter().position(|v| !(-0.05..=1.05).contains(v)) {
+    let (lo, hi) = crate::sim::output::MEASURES[4].envelope;
+    if let Some(i) = a.values.iter().position(|v| !(lo..=hi).contains(v)) {
         errs.push((
             format!("measurements.absorbance.values[{i}]"),
             format!(
-                "{} is outside 0–1 (absorbance is a fraction of power; ±0.05 is allowed for calibration error)",
-                a.values[i]
+                "{} is outside 0–1 (absorbance is a fraction of power; {} either side is allowed for measurement \
+                 noise)",
+                a.values[i], -lo
             ),
         ));
     }

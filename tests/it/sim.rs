@@ -347,3 +347,21 @@ fn modal_condensation_of_the_drum_is_exact() {
         assert!(worst < 1e-5, "case {case}: reduced vs full differ by {worst:e} at feature {at}");
     }
 }
+
+/// A measurement is the ear's value plus noise, so the input check must pass the model's
+/// own 1×-noise ears: 1,000 prior draws, none outside a measure's physical envelope.
+/// (With absorbance's old ±0.05 envelope, 1.7 noise STDs, stiff ears near 0 failed.)
+#[test]
+fn the_models_own_noisy_ears_are_plausible_inputs() {
+    use otofit::sim::batch::{Design, Noise, default_noise_std, run_rows};
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed: 11 };
+    let rows = Design::default().draw(12, 0, 1000);
+    let n = model.frequencies().len();
+    let mut bad = Vec::new();
+    for (k, x) in run_rows(&model, &Design::default(), &rows, 0, Some(&noise)).into_iter().enumerate() {
+        let x = x.unwrap();
+        bad.extend(otofit::sim::output::implausible(&x, &vec![true; x.len()], n).into_iter().map(|b| (k, b)));
+    }
+    assert!(bad.is_empty(), "{} rows: {bad:?}", bad.len());
+}
