@@ -23,6 +23,9 @@ pub enum BenchWhat {
         /// Runs in the parallel batch.
         #[arg(long, default_value_t = 10_000)]
         runs: usize,
+        /// The eardrum variant to time (the default model's drum unless given).
+        #[command(flatten)]
+        drum: super::drum::DrumOpts,
     },
     /// POST /infer latency: concurrent clients against an in-process server on loopback.
     Infer {
@@ -90,7 +93,7 @@ pub enum BenchWhat {
 /// Runs the chosen benchmark.
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
-        BenchWhat::Sim { runs } => sim(runs),
+        BenchWhat::Sim { runs, drum } => sim(runs, &drum),
         BenchWhat::Npe { data, model, held } => npe_bench(data, &model, held),
         BenchWhat::Infer { requests, samples, direct: true, .. } => infer_direct(requests, samples),
         BenchWhat::Infer { clients, requests, samples, direct: false } => infer(clients, requests, samples),
@@ -105,8 +108,10 @@ fn median(v: &mut [f64]) -> f64 {
     crate::stats::median_upper(v)
 }
 
-fn sim(runs: usize) -> Result<()> {
-    let model = Model::new(ModelConfig::default())?;
+fn sim(runs: usize, drum: &super::drum::DrumOpts) -> Result<()> {
+    let mut config = ModelConfig::default();
+    drum.apply(&mut config)?;
+    let model = Model::new(config)?;
     let design = Design::default();
     let rows = design.draw(1, 0, runs.max(200));
     let mut runner = model.runner();

@@ -31,7 +31,8 @@
 //! of either paper could not be retrieved (physics-notes §6: "Not found in public code"),
 //! so [`LineDrum::NOMINAL`] is chosen inside these orders, not copied.
 
-use super::params::PARAMS;
+use super::model::{DrumLoss, DrumShape, Geometry};
+use super::params::{PARAMS, Theta};
 use faer::c64;
 
 /// The modulus at which `delay`, `z0` and `shunt` hold: the nominal E_eardrum, Pa.
@@ -139,6 +140,79 @@ impl LineDrum {
             z.re * u.norm_sqr() + y.re * p.norm_sqr()
         });
         0.5 * line + 0.5 * self.shunt_admittance(kappa, w).re * p1.norm_sqr()
+    }
+}
+
+/// Point (a) of session 12's search (docs/simulator.md, "A transmission-line drum"): the
+/// nominal ear meets Goode ±5 dB (worst 0.8 dB), the 8 kHz phase (−272°), group delay
+/// 65–87 µs over 2–8 kHz and the adult absorbance range with every tissue value inside its
+/// normal range. Found by `DRUM=line W_SHARE=0 cargo run --example tune_nominal -- 12 6
+/// 1500` (Nelder–Mead, 6 starts × 2 × 1,500 iterations; the values below are its printed
+/// best point, re-run on commit 593a883). `--drum line` (`otofit simulate --explain`,
+/// `otofit study reference`) uses the structural part ([`LineTuning::apply`]); the tissue
+/// part ([`LineTuning::theta`]) is a parameter row, given with `--theta` or used as a
+/// least-squares start.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct LineTuning {
+    /// The line's geometry at [`E_REF`].
+    pub line: LineDrum,
+    /// The drum's loss factor η (`DrumLoss::LossFactor`).
+    pub eta: f64,
+    /// Factor on the malleus' and incus' masses and inertias.
+    pub ossicle_mass: f64,
+    /// Factor on the annular ligament's geometric factors (piston and rocking).
+    pub sal_geometry: f64,
+    /// The tissue values by name (`params::PARAMS`), and the drum's viscoelastic exponent.
+    pub tissue: [(&'static str, f64); 8],
+}
+
+impl LineDrum {
+    /// The line of [`LineTuning::POINT_A`] (session 12's tuned geometry).
+    pub fn tuned() -> LineDrum {
+        LineTuning::POINT_A.line
+    }
+}
+
+impl LineTuning {
+    /// Session 12's point (a) (see the type's doc for the search and its command).
+    pub const POINT_A: LineTuning = LineTuning {
+        line: LineDrum { delay: 165.23e-6, z0: 3.0873e7, area: 25.591e-6, shunt: 7.3853e-12 },
+        eta: 0.46349,
+        ossicle_mass: 1.2129,
+        sal_geometry: 0.94811,
+        tissue: [
+            ("E_eardrum", 122.41e6),
+            ("E_ligaments", 15.058e6),
+            ("E_tendons", 0.66833e6),
+            ("E_sal", 0.35212e6),
+            ("E_joints", 0.81313e6),
+            ("damping_beta", 1.2257e-4),
+            ("cochlear_load", 2.1e10),
+            ("tm_viscoelastic", 0.172),
+        ],
+    };
+
+    /// Puts the line, its loss factor and the two structural factors into `g` (the
+    /// example's `Search::apply`, structural part).
+    pub fn apply(&self, g: &mut Geometry) {
+        g.tm_shape = DrumShape::Line(self.line);
+        g.tm_loss = DrumLoss::LossFactor(self.eta);
+        for v in [&mut g.m_malleus, &mut g.i_malleus, &mut g.m_incus, &mut g.i_incus] {
+            *v *= self.ossicle_mass;
+        }
+        g.g_sal *= self.sal_geometry;
+        g.g_sal_rock *= self.sal_geometry;
+    }
+
+    /// The tissue values and viscoelastic exponent of the tuned point, every other
+    /// parameter nominal.
+    pub fn theta(&self) -> Theta {
+        let mut t = Theta::nominal();
+        for (name, v) in self.tissue {
+            let i = PARAMS.iter().position(|p| p.name == name).expect("a parameter of PARAMS");
+            t.0[i] = v;
+        }
+        t
     }
 }
 
