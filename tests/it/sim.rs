@@ -386,3 +386,13 @@ fn the_models_own_noisy_ears_are_plausible_inputs() {
     }
     assert!(bad.is_empty(), "{} rows: {bad:?}", bad.len());
 }
+
+/// tests/data/theta.csv is the README's `--log-prob` table, which needs every parameter:
+/// it must follow the simulator's parameter list (v5 added two and this file lagged).
+#[test]
+fn the_readme_theta_table_names_every_parameter() {
+    let table = include_str!("../data/theta.csv");
+    let header: Vec<&str> = table.lines().next().unwrap().split(',').collect();
+    let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();
+    assert_eq!(header, names);
+}
