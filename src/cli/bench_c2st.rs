@@ -48,7 +48,7 @@ pub struct C2stArgs {
     /// Train without the embedding network (`otofit train --embedding none`).
     #[arg(long)]
     pub no_embedding: bool,
-    /// Training settings to compare (defaults: `otofit train`'s).
+    /// Training settings to compare (defaults: the recipe's).
     #[arg(long, value_enum)]
     pub theta_map: Option<ThetaMapArg>,
     /// Spline tail bound B (the flow is the identity outside [−B, B]).
