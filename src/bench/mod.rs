@@ -79,13 +79,12 @@ pub fn write_table(task: Task, n: usize, seed: u64, dir: &Path) -> Result<()> {
     let mut th = std::io::BufWriter::new(std::fs::File::create(dir.join("theta.csv"))?);
     let mut xs = std::io::BufWriter::new(std::fs::File::create(dir.join("x.csv"))?);
     writeln!(th, "{}", params.iter().map(|p| p.name.as_str()).collect::<Vec<_>>().join(","))?;
-    writeln!(xs, "{}", (0..task.features()).map(|k| format!("x{k}")).collect::<Vec<_>>().join(","))?;
-    let join = |v: &[f64]| v.iter().map(|a| format!("{a:e}")).collect::<Vec<_>>().join(",");
+    writeln!(xs, "{}", numbered("x", task.features()))?;
     for _ in 0..n {
         let theta = task.prior(&mut rng);
         let x = task.simulate(&theta, &mut rng);
-        writeln!(th, "{}", join(&theta))?;
-        writeln!(xs, "{}", join(&x))?;
+        writeln!(th, "{}", csv_row(&theta))?;
+        writeln!(xs, "{}", csv_row(&x))?;
     }
     th.flush()?;
     xs.flush()?;
@@ -140,8 +139,7 @@ pub fn run_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &Pat
         if let Some(out) = &p.save_samples {
             let out = out.join(task.name());
             std::fs::create_dir_all(&out)?;
-            let head = (0..task.dim()).map(|j| format!("theta{j}")).collect::<Vec<_>>().join(",");
-            write_rows(&out.join(format!("samples_{k}.csv")), &head, &draws)?;
+            write_rows(&out.join(format!("samples_{k}.csv")), &numbered("theta", task.dim()), &draws)?;
             write_rows(&out.join(format!("logq_{k}.csv")), "logq", &lq.iter().map(|&v| vec![v]).collect::<Vec<_>>())?;
         }
         Ok((draws, Some(lq)))
@@ -244,18 +242,27 @@ pub fn export_task(task: Task, p: &BenchParams, settings: &TrainSettings, dir: &
         .unzip();
     let split = serde_json::json!({ "val": val, "train": train, "theta_mean": mean, "theta_std": std });
     std::fs::write(dir.join("split.json"), serde_json::to_vec(&split)?)?;
-    let header = |n: usize, name: &str| (0..n).map(|k| format!("{name}{k}")).collect::<Vec<_>>().join(",");
     let mut obs = vec![];
     for k in 1..=p.observations {
         let x = observation(task, k);
         write_rows(
             &dir.join(format!("reference_{k}.csv")),
-            &header(task.dim(), "theta"),
+            &numbered("theta", task.dim()),
             &reference(task, &x, k, p.samples),
         )?;
         obs.push(x);
     }
-    write_rows(&dir.join("obs.csv"), &header(task.features(), "x"), &obs)
+    write_rows(&dir.join("obs.csv"), &numbered("x", task.features()), &obs)
+}
+
+/// `prefix0,prefix1,…`: the column names of an unnamed table.
+fn numbered(prefix: &str, n: usize) -> String {
+    (0..n).map(|k| format!("{prefix}{k}")).collect::<Vec<_>>().join(",")
+}
+
+/// One CSV row of exact round-trip floats.
+fn csv_row(v: &[f64]) -> String {
+    v.iter().map(|a| format!("{a:e}")).collect::<Vec<_>>().join(",")
 }
 
 /// A CSV file: the header row, then the rows (exact round-trip floats).
@@ -263,7 +270,7 @@ fn write_rows(path: &Path, header: &str, rows: &[Vec<f64>]) -> Result<()> {
     let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
     writeln!(f, "{header}")?;
     for r in rows {
-        writeln!(f, "{}", r.iter().map(|v| format!("{v:e}")).collect::<Vec<_>>().join(","))?;
+        writeln!(f, "{}", csv_row(r))?;
     }
     f.flush()?;
     Ok(())
@@ -326,7 +333,7 @@ mod tests {
         let reference = crate::dataset::read_csv(&dir.path().join("reference_1.csv")).unwrap().rows;
         let x = observation(task, 1);
         assert_eq!(reference, super::reference(task, &x, 1, p.samples));
-        let head = (0..10).map(|k| format!("theta{k}")).collect::<Vec<_>>().join(",");
+        let head = numbered("theta", 10);
         let exact = task.reference(&x, p.samples, &mut ChaCha8Rng::seed_from_u64(99));
         let shifted: Vec<Vec<f64>> =
             exact.iter().map(|t| t.iter().map(|v| v + 0.5 * 0.1f64.sqrt()).collect()).collect();
