@@ -371,7 +371,7 @@ fn main() -> Result<(), String> {
     for &h in &search.settings.thick {
         for &depth in &search.settings.depth {
             for &gap in &search.settings.gap {
-                let g = Geometry { tm_thickness: h, tm_depth: depth, ..Geometry::default() };
+                let g = Geometry { tm_thickness: h, tm_depth: depth, ..Geometry::axisymmetric() };
                 let shape = DrumShape::Manubrium { rings, manubrium_to_rim: gap };
                 let f = |x: &[f64]| search.cost(x, &g, shape);
                 let mut seed = 12345u64;

@@ -1,22 +1,21 @@
 //! `--drum` and `--drum-loss`: the eardrum variants of docs/simulator.md ("The v2
 //! eardrum", "A transmission-line drum"), for reports only (`simulate --explain`,
 //! `study reference`, `bench sim`). Datasets and
-//! models always use the default drum: a model trained on a variant would be fit-checked
-//! against the default simulator.
+//! models always use the default drum (v6: the line): a model trained on a variant would
+//! be fit-checked against the default simulator.
 
-use crate::sim::line_drum::LineTuning;
-use crate::sim::{DrumLoss, DrumShape, ModelConfig};
+use crate::sim::{DrumLoss, DrumShape, Geometry, ModelConfig, PARAMS};
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 
 #[derive(Args, Debug, Default)]
 pub struct DrumOpts {
-    /// Eardrum for the report: `axisymmetric` (the default model's), `manubrium`
-    /// (flat-shell triangles attached along the manubrium; not the default,
-    /// docs/simulator.md says why) or `line` (session 12's transmission-line drum with
-    /// the structure of its tuned point (a): line geometry, loss factor η 0.46 unless
-    /// --drum-loss is given, ossicle masses ×1.21, annular-ligament geometry ×0.95;
-    /// `sim::line_drum::LineTuning::POINT_A`).
+    /// Eardrum for the report: `line` (the default since v6: the transmission-line drum
+    /// of `sim::line_drum::LineTuning::v6`, loss factor η 0.46 unless --drum-loss is
+    /// given, ossicle masses ×1.21, annular-ligament geometry ×0.95), `axisymmetric` (the
+    /// v1–v5 ear: FE cone, Rayleigh loss, unscaled chain) or `manubrium` (v5's chain with
+    /// flat-shell triangles attached along the manubrium; docs/simulator.md says why it
+    /// was never the default).
     #[arg(long, value_enum)]
     pub drum: Option<DrumArg>,
     /// Eardrum loss for the report: `rayleigh` (E·(1 + jωβ), the default model's),
@@ -37,12 +36,12 @@ impl DrumOpts {
         self.drum.is_some() || self.drum_loss.is_some()
     }
 
-    /// Extra least-squares starts for this drum (`study reference`): the line drum's tuned
-    /// tissue values (point (a)), since the default model's posterior is drawn for the
-    /// axisymmetric drum.
+    /// Extra least-squares starts for this drum (`study reference`): the nominal row of
+    /// the v1–v5 ear for the FE drums, since the default model's posterior is drawn for
+    /// the line drum.
     pub fn starts(&self) -> Vec<Vec<f64>> {
         match self.drum {
-            Some(DrumArg::Line) => vec![LineTuning::POINT_A.theta().0.to_vec()],
+            Some(DrumArg::Axisymmetric | DrumArg::Manubrium) => vec![v5_nominal()],
             _ => Vec::new(),
         }
     }
@@ -50,11 +49,12 @@ impl DrumOpts {
     /// Puts the chosen drum and loss into `config`.
     pub fn apply(&self, config: &mut ModelConfig) -> Result<()> {
         match self.drum {
-            Some(DrumArg::Manubrium) => config.geometry.tm_shape = DrumShape::MANUBRIUM,
-            Some(DrumArg::Axisymmetric) => config.geometry.tm_shape = DrumShape::Axisymmetric,
-            // The structure and loss factor of the tuned point; --drum-loss below replaces η.
-            Some(DrumArg::Line) => LineTuning::POINT_A.apply(&mut config.geometry),
-            None => {}
+            Some(DrumArg::Manubrium) => {
+                config.geometry = Geometry { tm_shape: DrumShape::MANUBRIUM, ..Geometry::axisymmetric() }
+            }
+            Some(DrumArg::Axisymmetric) => config.geometry = Geometry::axisymmetric(),
+            // The default; --drum-loss below replaces η.
+            Some(DrumArg::Line) | None => {}
         }
         if let Some(text) = &self.drum_loss {
             config.geometry.tm_loss = match text.as_str() {
@@ -68,4 +68,18 @@ impl DrumOpts {
         }
         Ok(())
     }
+}
+
+/// The v1–v5 nominal row (tissue values of the axisymmetric ear, the rest v6's nominal).
+fn v5_nominal() -> Vec<f64> {
+    const V5: [(&str, f64); 7] = [
+        ("E_ligaments", 5e6),
+        ("E_tendons", 2e6),
+        ("E_sal", 2e5),
+        ("E_joints", 6e6),
+        ("damping_beta", 7.5e-5),
+        ("cochlear_load", 2.1e10),
+        ("tm_viscoelastic", 0.0),
+    ];
+    PARAMS.iter().map(|p| V5.iter().find(|(n, _)| *n == p.name).map_or(p.nominal, |(_, v)| *v)).collect()
 }

@@ -192,6 +192,28 @@ impl LineTuning {
         ],
     };
 
+    /// The v6 default ear (docs/simulator.md, "v6"): point (a) restated at E_eardrum =
+    /// [`E_REF`]. The line's E-scaling makes (E, τ, Z₀, C_s) degenerate: only τ·√(E_ref/E),
+    /// Z₀·√(E/E_ref) and C_s·E_ref/E reach the ear, so the search's 122 MPa drum carrying a
+    /// 165 µs line is the same ear as a 20 MPa drum carrying a 67 µs line. Restated, the
+    /// tuned ear's E_eardrum is the centre of its normal range and the nominal of the prior.
+    pub fn v6() -> LineTuning {
+        LineTuning::POINT_A.at_modulus(E_REF)
+    }
+
+    /// The same ear with E_eardrum = `e` and the line rescaled so that every output is
+    /// unchanged (the degeneracy of [`LineTuning::v6`]).
+    pub fn at_modulus(&self, e: f64) -> LineTuning {
+        let mut t = *self;
+        let slot = t.tissue.iter_mut().find(|(n, _)| *n == "E_eardrum").expect("E_eardrum is a tuned value");
+        let r = e / slot.1; // new over old modulus
+        slot.1 = e;
+        t.line.delay *= r.sqrt();
+        t.line.z0 /= r.sqrt();
+        t.line.shunt *= r;
+        t
+    }
+
     /// Puts the line, its loss factor and the two structural factors into `g` (the
     /// example's `Search::apply`, structural part).
     pub fn apply(&self, g: &mut Geometry) {
@@ -237,6 +259,23 @@ mod tests {
 
     const D: LineDrum = LineDrum { delay: 60e-6, z0: 1.5e7, area: 45e-6, shunt: 0.0 };
     const LOSSLESS: c64 = c64 { re: E_REF, im: 0.0 };
+
+    #[test]
+    fn v6_is_point_a_at_the_reference_modulus() {
+        let (a, v6) = (LineTuning::POINT_A, LineTuning::v6());
+        let e = |t: &LineTuning| t.tissue[0].1;
+        assert_eq!(e(&v6), E_REF);
+        assert_eq!(v6.theta(), Theta::nominal(), "the prior's nominal row is v6's tuned ear");
+        // The same ear: every block entry agrees at each modulus (lossy, frequency-varying).
+        for (f, eta) in [(300.0, 0.46), (2000.0, 0.1), (7500.0, 1.0)] {
+            let w = 2.0 * PI * f;
+            let k = |e: f64| c64::new(e, e * eta);
+            let (x, y) = (a.line.block(k(e(&a)), w, 1e12), v6.line.block(k(e(&v6)), w, 1e12));
+            for (p, q) in x.iter().zip(&y) {
+                assert!((p - q).norm() <= 1e-9 * p.norm().max(1e-30), "{f} Hz: {p} vs {q}");
+            }
+        }
+    }
 
     #[test]
     fn lossless_line_input_impedance_is_the_textbook_formula() {

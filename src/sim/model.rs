@@ -21,7 +21,7 @@
 use super::air::{self, Air};
 use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
-use super::line_drum::{LineDrum, simpson};
+use super::line_drum::{LineDrum, LineTuning, simpson};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
 use super::system::{SolveError, System, SystemBuilder, Workspace};
@@ -119,7 +119,20 @@ pub struct Geometry {
 }
 
 impl Default for Geometry {
+    /// The v6 ear: the axisymmetric ear's chain with the transmission-line drum of
+    /// [`LineTuning::v6`] (docs/simulator.md, "v6").
     fn default() -> Self {
+        let mut g = Geometry::axisymmetric();
+        LineTuning::v6().apply(&mut g);
+        g
+    }
+}
+
+impl Geometry {
+    /// The v1–v5 ear: the axisymmetric FE drum with Rayleigh loss and the chain's
+    /// notes-based masses and ligament geometry (`--drum axisymmetric`; the FE drum's
+    /// closed-form tests use it).
+    pub fn axisymmetric() -> Geometry {
         let nu = 0.485;
         let shear = 1.0 / (2.0 * (1.0 + nu)); // G/E
         // Ligament and tendon cross-sections and lengths: notes §1.4 mid-range values.

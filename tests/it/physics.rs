@@ -150,7 +150,7 @@ fn share_at(model: &Model, f: f64) -> f64 {
 }
 
 #[test]
-#[ignore = "known miss: the cochlea receives 16 / 8.4 / 4.2 % of the middle-ear input at 1 / 2 / 4 kHz (tests/data/known_misses.json); at 2-4 kHz the target is out of reach of any ear that meets the norms (the_norms_cap_the_cochlear_share_...)"]
+#[ignore = "known miss: the cochlea receives 9.4 / 2.5 / 0.4 % of the middle-ear input at 1 / 2 / 4 kHz (tests/data/known_misses.json); at 2-4 kHz the target is out of reach of any ear that meets the norms (the_norms_cap_the_cochlear_share_...)"]
 fn cochlea_receives_at_least_30_percent_at_1_to_4_khz() {
     let model = Model::new(ModelConfig::default()).unwrap();
     for f in [1000.0, 1500.0, 2000.0, 3000.0, 4000.0] {
@@ -207,7 +207,7 @@ fn the_norms_cap_the_cochlear_share_far_below_30_percent_at_2_and_4_khz() {
 }
 
 /// Umbo velocity is the malleus point under the umbo. Closed form: with the chain made
-/// rigid (ligaments, tendons and joints 10⁴× stiffer: malleus and incus turn as one body
+/// rigid (ligaments, tendons and joints at 50 GPa–100 TPa, ≥ 10⁴× their nominal: malleus and incus turn as one body
 /// about the fixed axis, and the incudostapedial shear spring holds the stapes head on
 /// its path) the stiffness-controlled ratio V_umbo/V_stapes at 200 Hz is the lever ratio
 /// l_umbo/l_lenticular over cos α, α the stapes tilt (the head's axial motion is
@@ -223,14 +223,17 @@ fn umbo_over_stapes_is_the_lever_ratio_when_the_chain_is_rigid() {
         let r = runner.response_at(theta, &Effects::default(), 200.0).unwrap();
         r.vu_over_p / r.vst_over_p
     };
-    let mut rigid = Theta::nominal();
-    for k in [1, 2, 4] {
-        rigid.0[k] *= 1e4; // ligaments, tendons, joints
+    // How the rigidity is shared moves the ratio by about ±1 % (the suspension sets where
+    // the axis sits): equal 100 GPa 1.3244, v1–v5's nominal ×10⁴ 1.3348, joints 10³×
+    // stiffer than the suspension 1.3499, against the closed form's 1.3362.
+    for (lig, tendons, joints) in [(1e11, 1e11, 1e11), (5e10, 2e10, 6e10), (1e11, 1e11, 1e14)] {
+        let mut rigid = Theta::nominal();
+        (rigid.0[1], rigid.0[2], rigid.0[4]) = (lig, tendons, joints);
+        let q = ratio(&rigid);
+        eprintln!("rigid chain: |Vu/Vst| {:.4} (closed form {lever:.4}), phase {:.3}°", q.norm(), q.arg().to_degrees());
+        assert!((q.norm() / lever - 1.0).abs() < 0.015, "|Vu/Vst| {:.4} vs {lever:.4}", q.norm());
+        assert!(q.arg().abs() < 1f64.to_radians(), "phase {:.2}°", q.arg().to_degrees());
     }
-    let q = ratio(&rigid);
-    eprintln!("rigid chain: |Vu/Vst| {:.4} (closed form {lever:.4}), phase {:.3}°", q.norm(), q.arg().to_degrees());
-    assert!((q.norm() / lever - 1.0).abs() < 0.01, "|Vu/Vst| {:.4} vs {lever:.4}", q.norm());
-    assert!(q.arg().abs() < 1f64.to_radians(), "phase {:.2}°", q.arg().to_degrees());
     let q = ratio(&Theta::nominal());
     eprintln!("nominal: |Vu/Vst| {:.4}", q.norm());
     assert!(q.norm() > lever * 1.1, "nominal |Vu/Vst| {:.4}", q.norm());
@@ -253,7 +256,8 @@ fn line_drum_with_the_umbo_held_is_the_rigid_ended_line_beside_its_shunt_and_beh
     config.geometry.i_malleus *= 1e10;
     let model = Model::new(config).unwrap();
     let mut runner = model.runner();
-    let theta = Theta::nominal();
+    let mut theta = Theta::nominal();
+    theta.0[11] = 0.0; // an elastic drum: the closed form is the lossless line
     for f in [250.0, 1000.0, 3000.0, 5000.0, 8000.0] {
         runner.solve_at(&theta, f).unwrap();
         let x = runner.solution();
