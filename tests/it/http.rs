@@ -1324,13 +1324,14 @@ async fn a_long_layout_csv_body_is_inferred_and_its_errors_name_the_column() {
     assert_eq!(status, StatusCode::OK, "{r}");
     assert!(r["inputs"]["notes"][0].as_str().unwrap().contains("kept 63 of 126 rows"), "{}", r["inputs"]);
     assert!(r.get("samples").is_none());
+    let first_absorbance = device.lines().nth(1).and_then(|l| l.split(';').nth(1)).unwrap().to_string();
     for (uri, body, field) in [
         ("/infer?select=Ear=Left", wai.clone(), "Zmag"),
         ("/infer?preset=wai", wai.clone(), "body"),
         ("/infer?sample=3", device.clone(), "sample"),
         ("/infer?unit=Zang", device.clone(), "unit"),
         ("/infer", device.replace("Zmag [cgs]", "Zmag [Pa*s/m^3]"), "Zmag (measurements.impedance.magnitude)"),
-        ("/infer", device.replacen("3.79", "3.7x", 1), "Absorbance[line 2]"),
+        ("/infer", device.replacen(&format!(";{first_absorbance};"), ";3.7x;", 1), "Absorbance[line 2]"),
     ] {
         let (status, _, p) = raw(&app, csv(uri, body)).await;
         assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some(field)), "{p}");
