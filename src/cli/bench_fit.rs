@@ -178,13 +178,14 @@ fn centre(npe: &Npe, present: &[bool], cases: usize, seed: u64) -> Result<f64> {
     Ok(centred_ok)
 }
 
-/// (4) The simulator's nominal ear, noise-free: on the lower limits of two normal ranges.
+/// (4) The simulator's nominal ear, noise-free: cochlear_load on its normal range's lower
+/// limit (v1–v5: damping_beta too).
 fn nominal(npe: &Npe, present: &[bool], seed: u64) -> Result<Outcome> {
     let model_sim = crate::discrepancy::fitcheck::simulator_for(npe)?;
     let nominal =
         run_rows(model_sim, &Design::default(), &[crate::sim::Theta::nominal().0.to_vec()], 0, None).remove(0)?;
     let nom = infer_one(npe, &nominal, present, seed)?;
-    println!("nominal ear (on two normal-range limits): fit.ok {:?}, benign readings {}", nom.ok, benign(&nom));
+    println!("nominal ear (cochlear_load on its normal range's lower limit): fit.ok {:?}, benign readings {}", nom.ok, benign(&nom));
     for d in &nom.readings {
         println!(
             "  nominal {:<14} {:<12} p_below {:.2} p_within {:.2} p_above {:.2}",

@@ -84,8 +84,8 @@ pub const NORMAL: [NormalRange; 7] = [
 
 /// The typical ear: every tissue value at the geometric centre of its normal range, the
 /// other parameters nominal (the openapi.yaml example, `bench fit`'s centre ear). Not the
-/// simulator's nominal ear, which sits on the lower limits of two ranges (damping_beta,
-/// cochlear_load), where a calibrated posterior reads either side about equally often.
+/// simulator's nominal ear, which sits on the lower limit of cochlear_load's range (v1–v5:
+/// damping_beta's too), where a calibrated posterior reads either side about equally often.
 pub fn centre_row() -> Vec<f64> {
     crate::sim::PARAMS
         .iter()
