@@ -185,7 +185,11 @@ fn nominal(npe: &Npe, present: &[bool], seed: u64) -> Result<Outcome> {
     let nominal =
         run_rows(model_sim, &Design::default(), &[crate::sim::Theta::nominal().0.to_vec()], 0, None).remove(0)?;
     let nom = infer_one(npe, &nominal, present, seed)?;
-    println!("nominal ear (cochlear_load on its normal range's lower limit): fit.ok {:?}, benign readings {}", nom.ok, benign(&nom));
+    println!(
+        "nominal ear (cochlear_load on its normal range's lower limit): fit.ok {:?}, benign readings {}",
+        nom.ok,
+        benign(&nom)
+    );
     for d in &nom.readings {
         println!(
             "  nominal {:<14} {:<12} p_below {:.2} p_within {:.2} p_above {:.2}",
