@@ -14,7 +14,8 @@
 //! 12), whose delay, characteristic impedance, coupling area and shunt compliance are then
 //! knobs 11–14 (held at `LineDrum::NOMINAL` for the other drums; `rings` is then unused),
 //! with the loss factor η of knob 1 on its modulus; `FIX=7,9` holds those knobs at today's value; `W_SHARE=0` drops
-//! the cochlear-share target; `SHARE_MIN=a,b,c` sets its floors at 1, 2 and 4 kHz (default
+//! the cochlear-share target; `W_ZEC=1` adds the live-adult |Z_ec| and phase ranges at
+//! 250–2000 Hz (normative.json `zec`; off by default, as in sessions 11–12); `SHARE_MIN=a,b,c` sets its floors at 1, 2 and 4 kHz (default
 //! 0.33 each; the norms cap the share at ~0.15 and ~0.03 at 2 and 4 kHz, docs/simulator.md); `THICK`, `DEPTH`, `GAP` comma lists of drum thickness,
 //! depth and manubrium-to-rim gap (m) to search over; `VISCO` the drum's viscoelastic
 //! exponent; `X0` a start point.
@@ -36,19 +37,28 @@ struct Norms {
     abs_f: Vec<f64>,
     abs_lo: Vec<f64>,
     abs_hi: Vec<f64>,
+    /// Live-adult |Z_ec| (Pa·s/m³) and phase (degrees) ranges at the measurement plane.
+    zec_f: Vec<f64>,
+    zec_mag: Vec<(f64, f64)>,
+    zec_phase: Vec<(f64, f64)>,
 }
 
 impl Norms {
     fn load() -> Result<Norms, String> {
         let n: Value = serde_json::from_str(NORMATIVE).map_err(|e| format!("reference/normative.json: {e}"))?;
         let floats = |v: &Value| -> Vec<f64> { v.as_array().into_iter().flatten().filter_map(Value::as_f64).collect() };
-        let (g, a) = (&n["vst_goode1994"], &n["absorbance"]);
+        let (g, a, z) = (&n["vst_goode1994"], &n["absorbance"], &n["zec"]);
+        let pairs =
+            |lo: &str, hi: &str| -> Vec<(f64, f64)> { floats(&z[lo]).into_iter().zip(floats(&z[hi])).collect() };
         Ok(Norms {
             goode_f: floats(&g["frequency_hz"]),
             goode_v: floats(&g["value"]),
             abs_f: floats(&a["frequency_hz"]),
             abs_lo: floats(&a["low"]),
             abs_hi: floats(&a["high"]),
+            zec_f: floats(&z["frequency_hz"]),
+            zec_mag: pairs("mag_low", "mag_high"),
+            zec_phase: pairs("phase_low_deg", "phase_high_deg"),
         })
     }
 }
@@ -107,6 +117,7 @@ struct Settings {
     line: bool,
     fixed: Vec<usize>,
     w_share: f64,
+    w_zec: f64,
     share_min: [f64; 3],
     visco: Option<f64>,
     x0: Option<Vec<f64>>,
@@ -144,6 +155,7 @@ impl Settings {
             line,
             fixed,
             w_share: one("W_SHARE")?.unwrap_or(1.0),
+            w_zec: one("W_ZEC")?.unwrap_or(0.0),
             share_min: match env_list::<f64>("SHARE_MIN", "0.33,0.33,0.33")?[..] {
                 [a, b, c] => [a, b, c],
                 _ => return Err("SHARE_MIN: three values, at 1, 2 and 4 kHz".into()),
@@ -166,6 +178,8 @@ struct Metrics {
     absorb: Vec<f64>,
     share: [f64; 3],
     split: Vec<[f64; 5]>,
+    /// |Z_ec| and its phase (degrees) at the normative impedance frequencies.
+    zec: Vec<(f64, f64)>,
 }
 
 fn hinge(v: f64, lo: f64, hi: f64) -> f64 {
@@ -179,7 +193,7 @@ fn hinge(v: f64, lo: f64, hi: f64) -> f64 {
 }
 
 impl Metrics {
-    fn cost(&self, norms: &Norms, w_share: f64, share_min: [f64; 3]) -> f64 {
+    fn cost(&self, norms: &Norms, w_share: f64, share_min: [f64; 3], w_zec: f64) -> f64 {
         let mut c = 0.0;
         for d in &self.goode {
             c += hinge(*d, -4.0, 4.0).powi(2) + 0.02 * d * d;
@@ -194,6 +208,11 @@ impl Metrics {
         for (s, lo) in self.share.iter().zip(share_min) {
             c += w_share * (hinge(*s, lo, 1.0) / 0.05).powi(2);
         }
+        // |Z_ec| in dB outside its range per dB, the phase per 5°.
+        for ((m, p), ((mlo, mhi), (plo, phi))) in self.zec.iter().zip(norms.zec_mag.iter().zip(&norms.zec_phase)) {
+            let db = |v: f64| 20.0 * v.log10();
+            c += w_zec * (hinge(db(*m), db(*mlo), db(*mhi)).powi(2) + (hinge(*p, *plo, *phi) / 5.0).powi(2));
+        }
         c
     }
     fn print(&self) {
@@ -203,6 +222,9 @@ impl Metrics {
         println!("  group delay over 2-8 kHz: {:.0} to {:.0} us", self.delay_band.0, self.delay_band.1);
         println!("  absorbance: {}", f(&self.absorb, 2));
         println!("  cochlear share 1/2/4k: {}", f(&self.share, 2));
+        for (z, hz) in self.zec.iter().zip([250, 500, 1000, 2000]) {
+            println!("  zec {hz} Hz: {:.3e} Pa·s/m³ {:.0}°", z.0, z.1);
+        }
         for s in &self.split {
             println!("  split drum/lig+tend/joints/sal/cochlea: {}", f(s, 3));
         }
@@ -281,6 +303,11 @@ impl Search {
         for f in &n.abs_f {
             absorb.push(resp(*f)?.absorbance());
         }
+        let mut zec = Vec::with_capacity(n.zec_f.len());
+        for f in &n.zec_f {
+            let z = resp(*f)?.zec;
+            zec.push((z.norm(), z.arg().to_degrees()));
+        }
         let mut share = [0.0; 3];
         let mut split = Vec::new();
         for (k, f) in [1000.0, 2000.0, 4000.0].iter().enumerate() {
@@ -290,7 +317,7 @@ impl Search {
             let d = p.into_drum;
             split.push([p.drum / d, (p.ligaments + p.tendons) / d, p.joints / d, p.sal / d, p.cochlea / d]);
         }
-        Some(Metrics { goode, phase8: phase.to_degrees(), delay, delay_band, absorb, share, split })
+        Some(Metrics { goode, phase8: phase.to_degrees(), delay, delay_band, absorb, share, split, zec })
     }
 
     /// `x` with the fixed knobs at today's value.
@@ -311,7 +338,9 @@ impl Search {
         let x = self.with_fixed(x);
         let out: f64 = x.iter().zip(&self.knobs).map(|(v, k)| hinge(*v, k.lo, k.hi)).sum();
         let (g2, t) = self.apply(&self.clamped(&x), g, shape);
-        self.metrics(g2, &t).map(|m| m.cost(&self.norms, self.settings.w_share, self.settings.share_min)).unwrap_or(1e9)
+        self.metrics(g2, &t)
+            .map(|m| m.cost(&self.norms, self.settings.w_share, self.settings.share_min, self.settings.w_zec))
+            .unwrap_or(1e9)
             + 100.0 * out
     }
 }
