@@ -11,8 +11,8 @@ use clap::{Args, ValueEnum};
 #[derive(Args, Debug, Default)]
 pub struct DrumOpts {
     /// Eardrum for the report: `line` (the default since v6: the transmission-line drum
-    /// of `sim::line_drum::LineTuning::v6`, loss factor η 0.46 unless --drum-loss is
-    /// given, ossicle masses ×1.21, annular-ligament geometry ×0.95), `axisymmetric` (the
+    /// of `sim::line_drum::LineTuning::v7`, loss factor η 0.77 unless --drum-loss is
+    /// given, ossicle masses ×1.73, annular-ligament geometry ×1), `axisymmetric` (the
     /// v1–v5 ear: FE cone, Rayleigh loss, unscaled chain) or `manubrium` (v5's chain with
     /// flat-shell triangles attached along the manubrium; docs/simulator.md says why it
     /// was never the default).

@@ -120,10 +120,10 @@ pub struct Geometry {
 
 impl Default for Geometry {
     /// The v6 ear: the axisymmetric ear's chain with the transmission-line drum of
-    /// [`LineTuning::v6`] (docs/simulator.md, "v6").
+    /// [`LineTuning::v7`] (docs/simulator.md, "v6" and "v7").
     fn default() -> Self {
         let mut g = Geometry::axisymmetric();
-        LineTuning::v6().apply(&mut g);
+        LineTuning::v7().apply(&mut g);
         g
     }
 }

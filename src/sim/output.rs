@@ -17,12 +17,12 @@ pub struct Measure {
     pub noise_std: f64,
     /// The physical envelope of the feature (its unit): values outside cannot come from a
     /// human ear measured in these units, whatever the pathology, and they hold every
-    /// simulation of the prior box (v6, 20,000 draws: velocity 1.5e-10…2.1e-3 m/s/Pa, umbo
-    /// up to 5.4e-2, phase −22.2…+2.5 rad, |Z| 1.2e5…2.5e9, Z phase ±1.56 rad). Velocity
-    /// 1e-11 to 1e-2 m/s/Pa (umbo: below); impedance 10^4.5–1e10 Pa·s/m³ (the canal's own
-    /// Z0 is ~1e7; v6's prior reaches 1.2e5); a passive impedance's phase within ±90° (+20° for probe calibration
-    /// error); unwrapped velocity phase −1440…+360° (v6's softest drums delay by up to
-    /// 300 µs); absorbance 0–1 with five test–retest STDs (0.15) either side: a
+    /// simulation of the prior box (v7, 20,000 draws: velocity 1.4e-11…1.6e-3 m/s/Pa, umbo
+    /// up to 5.0e-2, phase −23.5…+2.6 rad, |Z| 1.4e5…1.0e9, Z phase ±1.56 rad). Velocity
+    /// 1e-12 to 1e-2 m/s/Pa (umbo: below); impedance 10^4.5–1e10 Pa·s/m³ (the canal's own
+    /// Z0 is ~1e7); a passive impedance's phase within ±90° (+20° for probe calibration
+    /// error); unwrapped velocity phase −1620…+360° (the line drum's softest drums delay
+    /// by up to ~300 µs); absorbance 0–1 with five test–retest STDs (0.15) either side: a
     /// measurement is the ear's value plus noise, so the model's own 1×-noise ears must
     /// pass (at ±0.05, 1.7 STD, 60 of 1,000 noisy prior ears failed, all below 600 Hz).
     pub envelope: (f64, f64),
@@ -33,17 +33,17 @@ pub const N_MEASURES: usize = 7;
 
 /// The measures in feature-vector order, each a block of one value per frequency.
 pub const MEASURES: [Measure; N_MEASURES] = [
-    Measure { name: "vst_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-11.0, -2.0) },
-    Measure { name: "vst_phase", unit: "rad", noise_std: 0.10, envelope: (-8.0 * PI, 2.0 * PI) },
+    Measure { name: "vst_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-12.0, -2.0) },
+    Measure { name: "vst_phase", unit: "rad", noise_std: 0.10, envelope: (-9.0 * PI, 2.0 * PI) },
     Measure { name: "zec_mag", unit: "log10(Pa·s/m³)", noise_std: 0.05, envelope: (4.5, 10.0) },
     Measure { name: "zec_phase", unit: "rad", noise_std: 0.05, envelope: (-0.5 * PI - 0.35, 0.5 * PI + 0.35) },
     Measure { name: "absorbance", unit: "1", noise_std: 0.03, envelope: (-0.15, 1.15) },
     // Umbo LDV through the canal: the stapes LDV's test–retest STD (the design notes hold
     // no separate umbo figure). The umbo moves 2–10× the stapes, and the prior box's
-    // floppiest ears reach 5.4e-2 m/s/Pa (v6, 20,000 draws), so its envelope ends at
-    // 10^−1 (100 mm/s/Pa), still below a normal umbo curve sent in mm/s/Pa (peak ~0.3 → −0.5).
-    Measure { name: "vu_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-11.0, -1.0) },
-    Measure { name: "vu_phase", unit: "rad", noise_std: 0.10, envelope: (-8.0 * PI, 2.0 * PI) },
+    // floppiest ears reach 5.0e-2 m/s/Pa (v7, 20,000 draws), so its envelope ends at
+    // 10^−0.8 (160 mm/s/Pa), still below a normal umbo curve sent in mm/s/Pa (peak ~0.3 → −0.5).
+    Measure { name: "vu_mag", unit: "log10(m/s/Pa)", noise_std: 0.075, envelope: (-12.0, -0.8) },
+    Measure { name: "vu_phase", unit: "rad", noise_std: 0.10, envelope: (-9.0 * PI, 2.0 * PI) },
 ];
 
 /// The first feature of each measure outside its physical envelope, as (measure index,

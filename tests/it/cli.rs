@@ -103,9 +103,9 @@ fn simulate_errors_name_the_bad_input() {
 fn simulate_explain_reports_norms_and_the_power_budget_of_a_given_row() {
     let d = scratch("explain");
     let rows = d.join("rows.csv");
-    // A 4 mm path instead of the nominal 12 mm (the v6 nominal tissue values): the
+    // A 4 mm path instead of the nominal 12 mm (the v7 nominal tissue values): the
     // impedance plane's |Z| at 250 Hz rises.
-    std::fs::write(&rows, "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance\n2e7,15.058e6,0.66833e6,0.35212e6,0.81313e6,1.2257e-4,2.1e10,0.004,44e-6,0.002\n").unwrap();
+    std::fs::write(&rows, "E_eardrum,E_ligaments,E_tendons,E_sal,E_joints,damping_beta,cochlear_load,canal_length,canal_area,mic_distance\n2e7,3.1868e6,2.4842e6,0.29611e6,1.4704e6,8.4233e-5,2.1079e10,0.004,44e-6,0.002\n").unwrap();
     let z250 = |args: &[&str]| {
         let o = otofit(args);
         let out = String::from_utf8_lossy(&o.stdout).to_string();

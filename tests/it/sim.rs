@@ -308,7 +308,7 @@ fn probe_leak_raises_low_frequency_absorbance() {
     let leaky = run(&model, &Theta::nominal(), &with_effect("probe_leak", 0.3e-3));
     assert_eq!(&base[..100], &leaky[..100], "vst/P must not change");
     let a250 = |x: &[f64]| x[200 + f.iter().position(|&v| v >= 250.0).unwrap()];
-    assert!(a250(&leaky) > 0.3 && a250(&base) < 0.15, "A(250) {:.2} → {:.2}", a250(&base), a250(&leaky));
+    assert!(a250(&leaky) > 0.3 && a250(&leaky) - a250(&base) > 0.2, "A(250) {:.2} → {:.2}", a250(&base), a250(&leaky));
     assert!(mean_diff(&f, &leaky, &base, 3, 200.0, 500.0) > 0.2, "Zec phase rises toward 0");
     assert!(max_diff(&f, &leaky, &base, 4, 3000.0, 8000.0) < 0.02, "nothing at high f");
 }
