@@ -166,13 +166,6 @@ pub struct LineTuning {
     pub tissue: [(&'static str, f64); 8],
 }
 
-impl LineDrum {
-    /// The line of [`LineTuning::POINT_A`] (session 12's tuned geometry).
-    pub fn tuned() -> LineDrum {
-        LineTuning::POINT_A.line
-    }
-}
-
 impl LineTuning {
     /// Session 12's point (a) (see the type's doc for the search and its command).
     pub const POINT_A: LineTuning = LineTuning {
@@ -225,17 +218,9 @@ impl LineTuning {
         LineTuning::POINT_D.at_modulus(E_REF)
     }
 
-    /// The v6 default ear (docs/simulator.md, "v6"): point (a) restated at E_eardrum =
-    /// [`E_REF`]. The line's E-scaling makes (E, τ, Z₀, C_s) degenerate: only τ·√(E_ref/E),
-    /// Z₀·√(E/E_ref) and C_s·E_ref/E reach the ear, so the search's 122 MPa drum carrying a
-    /// 165 µs line is the same ear as a 20 MPa drum carrying a 67 µs line. Restated, the
-    /// tuned ear's E_eardrum is the centre of its normal range and the nominal of the prior.
-    pub fn v6() -> LineTuning {
-        LineTuning::POINT_A.at_modulus(E_REF)
-    }
-
     /// The same ear with E_eardrum = `e` and the line rescaled so that every output is
-    /// unchanged (the degeneracy of [`LineTuning::v6`]).
+    /// unchanged. The line's E-scaling makes (E, τ, Z₀, C_s) degenerate: only τ·√(E_ref/E),
+    /// Z₀·√(E/E_ref) and C_s·E_ref/E reach the ear (docs/simulator.md, "v6").
     pub fn at_modulus(&self, e: f64) -> LineTuning {
         let mut t = *self;
         let slot = t.tissue.iter_mut().find(|(n, _)| *n == "E_eardrum").expect("E_eardrum is a tuned value");
@@ -295,7 +280,7 @@ mod tests {
 
     #[test]
     fn v6_is_point_a_at_the_reference_modulus() {
-        let (a, v6) = (LineTuning::POINT_A, LineTuning::v6());
+        let (a, v6) = (LineTuning::POINT_A, LineTuning::POINT_A.at_modulus(E_REF));
         let e = |t: &LineTuning| t.tissue[0].1;
         assert_eq!(e(&v6), E_REF);
         assert_eq!(LineTuning::v7().theta(), Theta::nominal(), "the prior's nominal row is v7's tuned ear");
