@@ -5,13 +5,17 @@
 //! CGS acoustic ohms, degrees, 226–5740 Hz), as pressure reflectance with a canal area
 //! (`wai_reflectance.csv`, Z0 = ρc/S at 37 °C with the area that gives the simulator's Z0) and as admittance
 //! (`admittance_long.csv`, mmho, degrees), and its umbo velocity on the model grid as an
-//! LDV's UFF dataset 58 (`ldv_umbo.uff`, mm/s over Pa). Run it when the simulator's
-//! nominal ear changes (docs/simulator.md):
+//! LDV's UFF dataset 58 (`ldv_umbo.uff`, mm/s over Pa). From the typical ear
+//! (`npe::normal::centre_row`, every tissue value at the centre of its normal range): the
+//! stapes velocity as an LDV's dataset 58 (`ldv_stapes.uff`) and the request example of
+//! POST /infer in `openapi.yaml` (the directory's `../../openapi.yaml`; the example line is
+//! replaced). Run it when the simulator's nominal ear changes (docs/simulator.md):
 //!
 //! `cargo run --example fixtures -- tests/data`
 
 use faer::c64;
-use otofit::sim::{Effects, Model, ModelConfig, Preset, Theta};
+use otofit::npe::normal::centre_row;
+use otofit::sim::{Effects, Model, ModelConfig, N_PARAMS, Preset, Theta};
 use std::fmt::Write as _;
 use std::path::Path;
 
@@ -60,8 +64,94 @@ fn main() -> Result<(), String> {
     let grid = model.frequencies().to_vec();
     let umbo: Vec<(f64, c64)> =
         grid.iter().map(|&f| at(f).map(|r| (f, r.vu_over_p * 1e3))).collect::<Result<_, _>>()?;
-    write(dir, "ldv_umbo.uff", &uff58(&umbo))?;
+    write(
+        dir,
+        "ldv_umbo.uff",
+        &uff58(&umbo, "umbo", "umbo velocity over ear-canal pressure, LDV through the canal; the nominal ear"),
+    )?;
+
+    let typical = Theta(<[f64; N_PARAMS]>::try_from(centre_row().as_slice()).map_err(|e| e.to_string())?);
+    let on_grid: Vec<_> = grid
+        .iter()
+        .map(|&f| runner.response_at(&typical, &fx, f).map_err(|e| e.to_string()))
+        .collect::<Result<_, _>>()?;
+
+    // The request example: frequencies to 0.1 Hz, magnitudes to 5 significant digits,
+    // phases in radians (unwrapped) to 4 decimals; the LDV file holds the same numbers.
+    let sig5 = |v: f64| format!("{v:.4e}").parse::<f64>().expect("a number");
+    let dec = |v: f64, d: i32| (v * 10f64.powi(d)).round() / 10f64.powi(d);
+    let freqs: Vec<f64> = grid.iter().map(|&f| dec(f, 1)).collect();
+    let rounded = |z: Vec<c64>| -> (Vec<f64>, Vec<f64>) {
+        (z.iter().map(|v| sig5(v.norm())).collect(), unwrap(&z).into_iter().map(|p| dec(p, 4)).collect())
+    };
+    let (vst_mag, vst_phase) = rounded(on_grid.iter().map(|r| r.vst_over_p).collect());
+    let (zec_mag, zec_phase) = rounded(on_grid.iter().map(|r| r.zec).collect());
+    let absorbance: Vec<f64> = on_grid.iter().map(|r| dec(r.absorbance(), 5)).collect();
+    let stapes: Vec<(f64, c64)> =
+        (0..freqs.len()).map(|k| (freqs[k], c64::from_polar(vst_mag[k] * 1e3, vst_phase[k]))).collect();
+    write(
+        dir,
+        "ldv_stapes.uff",
+        &uff58(&stapes, "stapes", "stapes velocity over ear-canal pressure, LDV; the typical ear of openapi.yaml"),
+    )?;
+    let f = list(&freqs);
+    let example = format!(
+        "{{\"measurements\":{{\"stapes_velocity\":{{\"frequencies_hz\":{f},\"magnitude\":{},\"phase\":{}}},\
+         \"impedance\":{{\"frequencies_hz\":{f},\"magnitude\":{},\"phase\":{}}},\
+         \"absorbance\":{{\"frequencies_hz\":{f},\"values\":{}}}}},\"samples\":1000,\"seed\":7}}",
+        list(&vst_mag),
+        list(&vst_phase),
+        list(&zec_mag),
+        list(&zec_phase),
+        list(&absorbance)
+    );
+    let spec = dir.join("../../openapi.yaml");
+    let yaml = std::fs::read_to_string(&spec).map_err(|e| format!("{}: {e}", spec.display()))?;
+    let marker = "example: {\"measurements\"";
+    let mut hits = 0;
+    let lines: Vec<String> = yaml
+        .lines()
+        .map(|l| match l.find(marker) {
+            Some(at) => {
+                hits += 1;
+                format!("{}example: {example}", &l[..at])
+            }
+            None => l.to_string(),
+        })
+        .collect();
+    if hits != 1 {
+        return Err(format!("{}: {hits} request examples found, expected one", spec.display()));
+    }
+    write(dir, "../../openapi.yaml", &(lines.join("\n") + "\n"))?;
     Ok(())
+}
+
+/// A JSON array as Python writes it (the example was first written so): the shortest
+/// decimal, in exponent form below 1e-4 with a two-digit exponent.
+fn list(v: &[f64]) -> String {
+    let item = |x: f64| {
+        if x != 0.0 && x.abs() < 1e-4 {
+            let s = format!("{x:e}");
+            let (m, e) = s.split_once("e-").expect("a negative exponent");
+            format!("{m}e-{e:0>2}")
+        } else {
+            serde_json::to_string(&x).expect("a finite number")
+        }
+    };
+    format!("[{}]", v.iter().map(|&x| item(x)).collect::<Vec<_>>().join(","))
+}
+
+/// Phases along frequency without 2π jumps.
+fn unwrap(z: &[c64]) -> Vec<f64> {
+    let mut out: Vec<f64> = Vec::with_capacity(z.len());
+    for v in z {
+        let p = v.arg();
+        out.push(match out.last() {
+            Some(&prev) => p + std::f64::consts::TAU * ((prev - p) / std::f64::consts::TAU).round(),
+            None => p,
+        });
+    }
+    out
 }
 
 fn write(dir: &Path, name: &str, text: &str) -> Result<(), String> {
@@ -89,16 +179,17 @@ fn exp(v: f64, p: usize) -> String {
     format!("{m}e{}{:02}", if e < 0 { '-' } else { '+' }, e.abs())
 }
 
-/// One UFF dataset 58 of complex single values, umbo over reference microphone.
-fn uff58(points: &[(f64, c64)]) -> String {
+/// One UFF dataset 58 of complex single values, the velocity at `node` over the
+/// reference microphone.
+fn uff58(points: &[(f64, c64)], node: &str, title: &str) -> String {
     let e = |v: f64| {
         let s = exp(v, 5).to_uppercase();
         format!("{s:>13}")
     };
     let mut s = String::from("    -1\n    58\n");
-    s += "umbo velocity over ear-canal pressure, LDV through the canal; the nominal ear (otofit test fixture)\n";
+    s += &format!("{title} (otofit test fixture)\n");
     s += "NONE\n2026-11-23\npoint 1 / reference mic\nNONE\n";
-    s += "    4         1    1         0 umbo                1   3 mic                 1   0\n";
+    s += &format!("    4         1    1         0 {node:<10}          1   3 mic                 1   0\n");
     writeln!(s, "         5{:>10}         0  0.00000E+00  0.00000E+00  0.00000E+00", points.len()).unwrap();
     s += "        18    0    0    0 Frequency            Hz                  \n";
     s += "        11    1    0    0 Velocity             mm/s                \n";
