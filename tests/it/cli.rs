@@ -911,6 +911,36 @@ fn infer_log_prob_ranks_the_truth_above_a_wrong_eardrum() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
+/// `infer --refine`: from the flow's MAP, least squares through the simulator fits the
+/// openapi example (the typical ear, noise-free) to far below its noise, and recovers the
+/// ear's eardrum modulus (the centre of its normal range, 20 MPa); the step cap is checked.
+#[test]
+fn infer_refine_fits_the_typical_ear_far_closer_than_the_map() {
+    let d = scratch("refine");
+    let spec = include_str!("../../openapi.yaml");
+    let line = spec.lines().find_map(|l| l.trim().strip_prefix("example: {\"measurements\"")).unwrap();
+    let obs = d.join("ear.json");
+    std::fs::write(&obs, format!("{{\"measurements\"{line}")).unwrap();
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let out = d.join("s.csv");
+    let args = |steps: &'static str| {
+        let (o, s) = (obs.to_str().unwrap().to_string(), out.to_str().unwrap().to_string());
+        otofit(&["infer", "--model", model, "--obs", &o, "--samples", "300", "--out", &s, "--refine", steps])
+    };
+    let o = args("50");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let fit = &r["refined"];
+    let (map, best) = (fit["map_reduced_chi2"].as_f64().unwrap(), fit["reduced_chi2"].as_f64().unwrap());
+    eprintln!("χ²ν: MAP {map:.3}, refined {best:.2e} in {} steps", fit["steps"]);
+    assert!(best < 0.01 && best < map / 10.0, "{fit}");
+    let e = fit["parameters"]["E_eardrum"].as_f64().unwrap();
+    assert!((e / 2e7 - 1.0).abs() < 0.01, "refined E_eardrum {e}");
+    let o = args("201");
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--refine must be 0..=200"), "{o:?}");
+    let _ = std::fs::remove_dir_all(&d);
+}
+
 /// Issue 16: the README's commands run verbatim from a clone. Every `otofit` line of its
 /// shell blocks (continuations joined, trailing comments dropped) is parsed by the real
 /// command line, and every file or folder it reads is shipped in the repository or
