@@ -7,6 +7,13 @@ fn otofit(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_otofit")).args(args).output().unwrap()
 }
 
+/// The POST /infer request example of openapi.yaml (the typical ear), as JSON text.
+fn openapi_example() -> String {
+    let spec = include_str!("../../openapi.yaml");
+    let line = spec.lines().find_map(|l| l.trim().strip_prefix("example: {\"measurements\"")).unwrap();
+    format!("{{\"measurements\"{line}")
+}
+
 fn scratch(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("otofit-it-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&d);
@@ -839,9 +846,7 @@ fn a_uff58_ldv_export_imports_and_infers() {
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let doc: serde_json::Value = serde_json::from_slice(&std::fs::read(&obs).unwrap()).unwrap();
     let got = &doc["measurements"]["stapes_velocity"];
-    let spec = include_str!("../../openapi.yaml");
-    let line = spec.lines().find_map(|l| l.trim().strip_prefix("example: {\"measurements\"")).unwrap();
-    let example: serde_json::Value = serde_json::from_str(&format!("{{\"measurements\"{line}")).unwrap();
+    let example: serde_json::Value = serde_json::from_str(&openapi_example()).unwrap();
     let want = &example["measurements"]["stapes_velocity"];
     // The import keeps the file's principal phases (a request's phases are unwrapped on
     // the way in), so phases are compared modulo 2π.
@@ -880,10 +885,8 @@ fn a_uff58_ldv_export_imports_and_infers() {
 fn infer_log_prob_ranks_the_truth_above_a_wrong_eardrum() {
     use otofit::sim::params::PARAMS;
     let d = scratch("logprob");
-    let spec = include_str!("../../openapi.yaml");
-    let line = spec.lines().find_map(|l| l.trim().strip_prefix("example: {\"measurements\"")).unwrap();
     let obs = d.join("ear.json");
-    std::fs::write(&obs, format!("{{\"measurements\"{line}")).unwrap();
+    std::fs::write(&obs, openapi_example()).unwrap();
     let names: Vec<&str> = PARAMS.iter().map(|p| p.name).collect();
     let nominal: Vec<f64> = PARAMS.iter().map(|p| p.nominal).collect();
     let mut soft = nominal.clone();
@@ -917,10 +920,8 @@ fn infer_log_prob_ranks_the_truth_above_a_wrong_eardrum() {
 #[test]
 fn infer_refine_fits_the_typical_ear_far_closer_than_the_map() {
     let d = scratch("refine");
-    let spec = include_str!("../../openapi.yaml");
-    let line = spec.lines().find_map(|l| l.trim().strip_prefix("example: {\"measurements\"")).unwrap();
     let obs = d.join("ear.json");
-    std::fs::write(&obs, format!("{{\"measurements\"{line}")).unwrap();
+    std::fs::write(&obs, openapi_example()).unwrap();
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
     let out = d.join("s.csv");
     let args = |steps: &'static str| {
