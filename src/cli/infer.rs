@@ -55,30 +55,6 @@ pub struct InferArgs {
     pub refine: usize,
 }
 
-/// `--refine`: the least-squares fit from the MAP, with the MAP's own χ²ν for comparison.
-fn refined(model: &Npe, x: &[f64], map: &[f64], steps: usize) -> Result<serde_json::Value> {
-    use crate::discrepancy::fit::{Observation, fit, residuals};
-    let sim = crate::discrepancy::fitcheck::simulator_for(model)
-        .map_err(|e| anyhow::anyhow!("--refine needs the simulator this model was trained on: {e}"))?;
-    let t0 = std::time::Instant::now();
-    let design = crate::sim::batch::Design::default();
-    let obs = Observation { x: x.to_vec(), sigma: model.header.noise_std.clone() };
-    let dof = |n: usize| n.saturating_sub(map.len()).max(1) as f64;
-    let start =
-        residuals(&mut sim.runner(), &design, map, &obs).map(|r| r.iter().map(|v| v * v).sum::<f64>() / dof(r.len()));
-    let Some(best) = fit(sim, &design, &[map.to_vec()], &obs, steps) else {
-        bail!("--refine: the simulator failed at the MAP");
-    };
-    let names = model.params().iter().map(|p| p.name.clone());
-    Ok(serde_json::json!({
-        "parameters": names.zip(best.row.iter().map(|&v| serde_json::json!(v))).collect::<serde_json::Map<_, _>>(),
-        "reduced_chi2": best.reduced_chi2(),
-        "map_reduced_chi2": start,
-        "steps": best.iterations,
-        "ms": t0.elapsed().as_secs_f64() * 1e3,
-    }))
-}
-
 /// Lines up an observation table's columns with the model's features.
 pub fn align(model: &Npe, header: &[String], row: &[f64]) -> Result<(Vec<f64>, Vec<bool>)> {
     let names = &model.header.feature_names;
@@ -232,8 +208,9 @@ pub fn run(args: InferArgs) -> Result<()> {
     if args.samples == 0 || args.samples > 1_000_000 {
         bail!("--samples must be between 1 and 1000000");
     }
-    if args.refine > 200 {
-        bail!("--refine must be 0..=200 steps (got {})", args.refine);
+    let max_steps = crate::discrepancy::fitcheck::MAX_REFINE_STEPS;
+    if args.refine > max_steps {
+        bail!("--refine must be 0..={max_steps} steps (got {})", args.refine);
     }
     if let Some(theta) = &args.log_prob {
         let model = Npe::load(&args.model)?;
@@ -288,8 +265,9 @@ pub fn run(args: InferArgs) -> Result<()> {
         };
         let mut json = serde_json::json!({ "observation": r, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
         if args.refine > 0 {
-            json["refined"] =
-                refined(&model, x, &inf.map, args.refine).with_context(|| format!("observation {}", r + 1))?;
+            let fit = crate::discrepancy::fitcheck::refine(&model, x, present, &inf.map, args.refine)
+                .with_context(|| format!("--refine, observation {}", r + 1))?;
+            json["refined"] = serde_json::json!(fit);
         }
         summaries.push(json.to_string());
     }

@@ -4,7 +4,7 @@
 //! frequency, [`crate::formats::long`]) with the request's options as query parameters.
 
 use super::{AppState, Problem, json_body};
-use crate::discrepancy::fitcheck::{FitCheck, FitCheckError};
+use crate::discrepancy::fitcheck::{FitCheck, FitCheckError, MAX_REFINE_STEPS, Refined};
 use crate::npe::{Inference, Npe, NpeError, Obs, Summary};
 use axum::Json;
 use axum::body::Bytes;
@@ -26,6 +26,8 @@ pub struct InferRequest {
     pub return_samples: Option<bool>,
     /// A figure in the response: `corner` (the posterior's corner plot, SVG).
     pub plot: Option<Plot>,
+    /// Levenberg–Marquardt steps of a least-squares best fit from the MAP (0: none).
+    pub refine: Option<usize>,
 }
 
 /// Figures POST /infer can draw into its response.
@@ -111,7 +113,7 @@ fn request(
 
 /// A `text/csv` body: the table's measurements, the rest of the request from the query
 /// (`model`, `samples`, `seed`, `return_samples`, `unit=COLUMN=UNIT`,
-/// `select=COLUMN=VALUE`, `preset`).
+/// `select=COLUMN=VALUE`, `preset`, `plot`, `refine`).
 fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest, Option<Imported>), Problem> {
     use crate::formats::long::{self, LongOptions};
     let mut req = InferRequest {
@@ -121,6 +123,7 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
         seed: None,
         return_samples: None,
         plot: None,
+        refine: None,
     };
     let mut opts = LongOptions::default();
     let bad = |k: &str, m: String| Problem::invalid(vec![(k.to_string(), m)]);
@@ -136,10 +139,12 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
             "select" => opts.select.push(long::pair(v, "select").map_err(|m| bad(k, m))?),
             "preset" => opts.preset = Some(v.parse().map_err(|m| bad(k, m))?),
             "plot" => req.plot = Some(v.parse().map_err(|m| bad(k, m))?),
+            "refine" => req.refine = Some(v.parse().map_err(|_| bad(k, format!("'{v}' is not a count of steps")))?),
             _ => {
                 return Err(bad(
                     k,
-                    "unknown query parameter (known: model, samples, seed, return_samples, unit, select, preset, plot)"
+                    "unknown query parameter (known: model, samples, seed, return_samples, unit, select, preset, \
+                     plot, refine)"
                         .into(),
                 ));
             }
@@ -197,6 +202,10 @@ pub async fn infer(
     if n == 0 || n > MAX_SAMPLES {
         return Err(Problem::invalid(vec![("samples".into(), format!("must be 1..={MAX_SAMPLES}"))]));
     }
+    let refine = req.refine.unwrap_or(0);
+    if refine > MAX_REFINE_STEPS {
+        return Err(Problem::invalid(vec![("refine".into(), format!("must be 0..={MAX_REFINE_STEPS} steps"))]));
+    }
     let (row, npe) = model_for(&st, &who, req.model.as_deref()).await?;
     let (x, present, used) = features(&npe, &req.measurements, csv.as_ref())?;
     let band_hz = bands_used(&npe, &present);
@@ -204,12 +213,12 @@ pub async fn infer(
     let npe2 = npe.clone();
     let (plot, title) = (req.plot, format!("Posterior, model {}", row.id));
     // Sampling, MAP and the fit check are CPU work: off the runtime threads.
-    let answer = tokio::task::spawn_blocking(move || posterior(&npe2, x, present, n, seed, plot, &title))
+    let answer = tokio::task::spawn_blocking(move || posterior(&npe2, x, present, (n, seed, refine), plot, &title))
         .await
         .map_err(Problem::internal)?
         .map_err(npe_problem)?;
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
-    let Answer { inf, fit, fit_ms, corner } = answer;
+    let Answer { inf, fit, fit_ms, corner, refined } = answer;
     let mut differential = crate::npe::normal::read(npe.params(), &inf.samples);
     let (fit, next) = fit_and_next(fit, req.model.as_deref(), &mut differential);
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
@@ -241,6 +250,9 @@ pub async fn infer(
     if let Some(imp) = &csv {
         doc["inputs"]["notes"] = json!(imp.notes);
     }
+    if let Some(r) = refined {
+        doc["refined"] = r.map_or_else(|e| json!({ "reason": e.to_string() }), |r| json!(r));
+    }
     add_optional(&mut doc, &geometry, corner, req.return_samples.unwrap_or(true).then_some((&npe, &inf)));
     Ok(Json(doc))
 }
@@ -253,26 +265,29 @@ struct Answer {
     fit_ms: f64,
     /// The corner plot (SVG), when asked for.
     corner: Option<String>,
+    /// The least-squares best fit from the MAP, when asked for.
+    refined: Option<Result<Refined, FitCheckError>>,
 }
 
-/// The posterior of features `x` (`present` marks those measured), its fit check (timed
-/// apart) and, with `plot`, its corner plot.
+/// The posterior of features `x` (`present` marks those measured) from `n` samples of
+/// `seed`, its fit check (timed apart), with `refine` > 0 the best fit from its MAP and,
+/// with `plot`, its corner plot.
 fn posterior(
     npe: &Npe,
     x: Vec<f64>,
     present: Vec<bool>,
-    n: usize,
-    seed: u64,
+    (n, seed, refine): (usize, u64, usize),
     plot: Option<Plot>,
     title: &str,
 ) -> Result<Answer, NpeError> {
     let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
+    let refined = (refine > 0).then(|| crate::discrepancy::fitcheck::refine(npe, &x, &present, &inf.map, refine));
     let t = std::time::Instant::now();
     let fit = crate::discrepancy::fitcheck::fit_check(npe, &x, &present, &inf);
     let fit_ms = t.elapsed().as_secs_f64() * 1e3;
     let corner = (plot == Some(Plot::Corner))
         .then(|| crate::plot::posterior_corner(npe.params(), &inf.samples, None, &inf.map, title));
-    Ok(Answer { inf, fit: fit.map(|f| (f, x)), fit_ms, corner })
+    Ok(Answer { inf, fit: fit.map(|f| (f, x)), fit_ms, corner, refined })
 }
 
 /// The response's `fit` and, when the fit check fails, its `next` step (a diagnose job

@@ -1442,3 +1442,26 @@ async fn infer_draws_a_corner_plot_on_request() {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
     assert!(p.to_string().contains("plot"), "{p}");
 }
+
+/// POST /infer's `refine`: the least-squares best fit from the MAP fits the openapi
+/// example (the typical ear, noise-free) far closer than the MAP, and a step count past
+/// the cap is a 422 naming `refine`.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn infer_refines_the_map_on_request() {
+    let (app, _, _dir) = app(vec![], 8, false).await;
+    let mut req = nominal_request();
+    req["return_samples"] = json!(false);
+    let (status, _, r) = call(&app, "POST", "/infer", Some(req.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{r}");
+    assert!(r.get("refined").is_none(), "no fit unless asked");
+    req["refine"] = json!(50);
+    let (status, _, r) = call(&app, "POST", "/infer", Some(req.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{r}");
+    let fit = &r["refined"];
+    let (map, best) = (fit["map_reduced_chi2"].as_f64().unwrap(), fit["reduced_chi2"].as_f64().unwrap());
+    assert!(best < 0.01 && best < map / 10.0, "{fit}");
+    assert_eq!(fit["parameters"].as_object().unwrap().len(), r["map"].as_array().unwrap().len(), "{fit}");
+    req["refine"] = json!(201);
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("refine")), "{p}");
+}
