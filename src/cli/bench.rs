@@ -56,6 +56,9 @@ pub enum BenchWhat {
         /// Held-out middle-ear dataset folder.
         #[arg(long)]
         held: Option<std::path::PathBuf>,
+        /// Seed of the middle-ear training (`otofit train --seed`).
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
     },
     /// The trust layer: fit-check false alarms on the model's own ears, detection of
     /// strong hidden effects, readings of ears at the centre of the normal ranges.
@@ -94,7 +97,7 @@ pub enum BenchWhat {
 pub fn run(args: BenchArgs) -> Result<()> {
     match args.what {
         BenchWhat::Sim { runs, drum } => sim(runs, &drum),
-        BenchWhat::Npe { data, model, held } => npe_bench(data, &model, held),
+        BenchWhat::Npe { data, model, held, seed } => npe_bench(data, &model, held, seed),
         BenchWhat::Infer { requests, samples, direct: true, .. } => infer_direct(requests, samples),
         BenchWhat::Infer { clients, requests, samples, direct: false } => infer(clients, requests, samples),
         BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
@@ -371,8 +374,10 @@ fn npe_bench(
     data: Option<std::path::PathBuf>,
     model: &std::path::Path,
     held: Option<std::path::PathBuf>,
+    seed: u64,
 ) -> Result<()> {
     use crate::npe::{self, Npe, Obs, TrainSettings};
+    let held = held.map(|dir| npe::Dataset::load(&dir)).transpose()?;
     let toy = two_moons(10_000, 1);
     let t = Instant::now();
     let m =
@@ -396,7 +401,7 @@ fn npe_bench(
     if let Some(dir) = data {
         let ds = npe::Dataset::load(&dir)?;
         let t = Instant::now();
-        let m = npe::train(&ds, &TrainSettings::default(), &mut |_| true)?;
+        let m = npe::train(&ds, &TrainSettings { seed, ..TrainSettings::default() }, &mut |_| true)?;
         println!(
             "middle ear, {} simulations × {} features, 3×50 embedding: {:.1} s, {} epochs (best {}, val loss {:.3}) (sbi 0.27 here: ~290 s, 190 epochs; target ≤ 150 s)",
             ds.theta.len(),
@@ -406,6 +411,12 @@ fn npe_bench(
             m.header.training.best_epoch,
             m.header.training.best_val_loss
         );
+        if let Some(ds) = &held {
+            let (lp, n) = held_out_log_q(&m, ds);
+            println!(
+                "held-out mean log q(θ|x) of this training (seed {seed}) on {n} simulations (natural units): {lp:.2}"
+            );
+        }
     }
     let m = Npe::load(model)?;
     let x0 = crate::sim::simulate(
@@ -429,20 +440,27 @@ fn npe_bench(
         median(&mut sample),
         median(&mut map)
     );
-    if let Some(dir) = held {
-        let ds = npe::Dataset::load(&dir)?;
-        let noise = crate::sim::batch::Noise { std: m.header.noise_std.clone(), scale: m.header.noise_scale, seed: 9 };
-        let n = ds.theta.len().min(500);
-        let lp: f64 = (0..n)
-            .map(|i| {
-                let x = noise.apply(&ds.x[i], i);
-                m.log_prob(&Obs { x: &x, present: None }, std::slice::from_ref(&ds.theta[i]))
-                    .map(|v| v[0])
-                    .unwrap_or(f64::NAN)
-            })
-            .sum::<f64>()
-            / n as f64;
+    if let Some(ds) = &held {
+        let (lp, n) = held_out_log_q(&m, ds);
         println!("held-out mean log q(θ|x) of {} on {n} simulations (natural units): {lp:.2}", model.display());
     }
     Ok(())
+}
+
+/// Mean log q(θ|x) of `m` on the first (at most) 500 rows of `ds`, x with one noise draw
+/// of the model's noise model (seed 9), and the row count.
+fn held_out_log_q(m: &crate::npe::Npe, ds: &crate::npe::Dataset) -> (f64, usize) {
+    use crate::npe::Obs;
+    let noise = crate::sim::batch::Noise { std: m.header.noise_std.clone(), scale: m.header.noise_scale, seed: 9 };
+    let n = ds.theta.len().min(500);
+    let lp = (0..n)
+        .map(|i| {
+            let x = noise.apply(&ds.x[i], i);
+            m.log_prob(&Obs { x: &x, present: None }, std::slice::from_ref(&ds.theta[i]))
+                .map(|v| v[0])
+                .unwrap_or(f64::NAN)
+        })
+        .sum::<f64>()
+        / n as f64;
+    (lp, n)
 }

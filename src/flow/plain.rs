@@ -623,6 +623,173 @@ fn spline_forward_grad<const FMA: bool>(
     (y, ld, g_x)
 }
 
+/// y = f(x) and log |f′(x)| for x inside the bound, with the gradient of each with
+/// respect to the raw parameters (into `jy` and `jl`, 3K − 1 each) and to x (returned
+/// last): [`spline_forward_grad`]'s derivatives, for y and log f′ apart (the training's
+/// backward pass weighs them itself).
+#[inline(always)]
+fn spline_jacobian<const FMA: bool>(
+    x: f64,
+    raw: &[f64],
+    bins: usize,
+    bound: f64,
+    jy: &mut [f32],
+    jl: &mut [f32],
+) -> (f64, f64, f64, f64) {
+    let weights = weights::<FMA>(raw, bins);
+    let (x0, y0, w, h, [d0, d1]) = bin_with::<FMA>(x, raw, bins, bound, false, &weights);
+    let delta = h / w;
+    let t = ((x - x0) / w).clamp(0.0, 1.0);
+    let t1 = t * (1.0 - t);
+    let s = d0 + d1 - 2.0 * delta;
+    let den = delta + s * t1;
+    let a = delta * t * t + d0 * t1;
+    let y = y0 + h * a / den;
+    let n2 = d1 * t * t + 2.0 * delta * t1 + d0 * (1.0 - t) * (1.0 - t);
+    let ld = (delta * delta * n2 / (den * den)).ln();
+    let (den_t, den_delta) = (s * (1.0 - 2.0 * t), 1.0 - 2.0 * t1);
+    let a_t = 2.0 * delta * t + d0 * (1.0 - 2.0 * t);
+    let n2_t = 2.0 * d1 * t + 2.0 * delta * (1.0 - 2.0 * t) - 2.0 * d0 * (1.0 - t);
+    let den2 = den * den;
+    // ∂ over t, δ, d0, d1 and h (δ held): of y, then of log f′.
+    let (yt, ydelta) = (h * (a_t * den - a * den_t) / den2, h * (t * t * den - a * den_delta) / den2);
+    let (yd0, yd1, yh) = (h * t1 * (den - a) / den2, -h * a * t1 / den2, a / den + ydelta / w);
+    let (lt, ldelta) = (n2_t / n2 - 2.0 * den_t / den, 2.0 / delta + 2.0 * t1 / n2 - 2.0 * den_delta / den);
+    let (ld0, ld1, lh) = ((1.0 - t) * (1.0 - t) / n2 - 2.0 * t1 / den, t * t / n2 - 2.0 * t1 / den, ldelta / w);
+    // Through t = (x − x0)/w and δ = h/w: (∂x, ∂x0, ∂w).
+    let via = |gt: f64, gdelta: f64| (gt / w, -gt / w, -gt * t / w - gdelta * delta / w);
+    let ((yx, yx0, yw), (lx, lx0, lw)) = (via(yt, ydelta), via(lt, ldelta));
+    // Knots: x0 = −B + Σ_{j<k} W_j, w = W_k (heights alike, with y0 and h), W on a softmax.
+    let k = active(x, &weights[0].0, weights[0].1, MIN_WIDTH, bins, bound);
+    for (axis, min, (y_lo, y_len), (l_lo, l_len)) in
+        [(0, MIN_WIDTH, (yx0, yw), (lx0, lw)), (1, MIN_HEIGHT, (1.0, yh), (0.0, lh))]
+    {
+        let e = &weights[axis].0;
+        let total: f64 = e[..bins].iter().sum();
+        let c = 2.0 * bound * (1.0 - bins as f64 * min);
+        let below: f64 = e[..k].iter().map(|v| v / total).sum();
+        let (y_mean, l_mean) = (y_lo * below + y_len * (e[k] / total), l_lo * below + l_len * (e[k] / total));
+        for i in 0..bins {
+            let si = c * (e[i] / total);
+            let (gy, gl) = match i.cmp(&k) {
+                std::cmp::Ordering::Less => (y_lo, l_lo),
+                std::cmp::Ordering::Equal => (y_len, l_len),
+                std::cmp::Ordering::Greater => (0.0, 0.0),
+            };
+            jy[axis * bins + i] = (si * (gy - y_mean)) as f32;
+            jl[axis * bins + i] = (si * (gl - l_mean)) as f32;
+        }
+    }
+    // Interior derivatives: softplus, ∂/∂r = σ(r).
+    jy[2 * bins..].iter_mut().chain(jl[2 * bins..].iter_mut()).for_each(|v| *v = 0.0);
+    let sigmoid = |r: f64| 1.0 / (1.0 + (-r).exp());
+    for (knot, gy, gl) in [(k, yd0, ld0), (k + 1, yd1, ld1)] {
+        if knot > 0 && knot < bins {
+            let j = 2 * bins + knot - 1;
+            let sg = sigmoid(raw[j]);
+            (jy[j], jl[j]) = ((gy * sg) as f32, (gl * sg) as f32);
+        }
+    }
+    (y, ld, yx, lx)
+}
+
+/// Spline parameters per element at most (3K − 1, K ≤ 31).
+const MAX_PARAMS: usize = 92;
+
+/// Elements per task of [`spline_jacobians`]' parallel loop.
+const JACOBIAN_CHUNK: usize = 256;
+
+/// The training's spline pass (`spline::forward`), in f64 from burn's f32: for element e,
+/// y[e] = f(x[e]) and ld[e] = log |f′(x[e])| with parameters `raw[e·np..(e+1)·np]`, and
+/// with `jacobians` also ∂y and ∂ld with respect to (raw, x), np + 1 entries per element.
+/// Elements are independent: chunks of them run on rayon, each compiled for AVX2 and FMA
+/// where the CPU has them, as [`splines`].
+pub(crate) fn spline_jacobians(
+    x: &[f32],
+    raw: &[f32],
+    bins: usize,
+    bound: f64,
+    (y, ld): (&mut [f32], &mut [f32]),
+    jacobians: Option<(&mut [f32], &mut [f32])>,
+) {
+    use rayon::prelude::*;
+    let np = 3 * bins - 1;
+    assert!(np <= MAX_PARAMS, "at most 31 bins");
+    let c = JACOBIAN_CHUNK;
+    let chunks = x.par_chunks(c).zip(raw.par_chunks(c * np)).zip(y.par_chunks_mut(c)).zip(ld.par_chunks_mut(c));
+    match jacobians {
+        Some((jy, jl)) => chunks
+            .zip(jy.par_chunks_mut(c * (np + 1)))
+            .zip(jl.par_chunks_mut(c * (np + 1)))
+            .for_each(|(((((x, raw), y), ld), jy), jl)| jacobian_chunk(x, raw, bins, bound, (y, ld), Some((jy, jl)))),
+        None => chunks.for_each(|(((x, raw), y), ld)| jacobian_chunk(x, raw, bins, bound, (y, ld), None)),
+    }
+}
+
+/// [`spline_jacobians`] on one chunk.
+fn jacobian_chunk(
+    x: &[f32],
+    raw: &[f32],
+    bins: usize,
+    bound: f64,
+    out: (&mut [f32], &mut [f32]),
+    jacobians: Option<(&mut [f32], &mut [f32])>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features `jacobian_chunk_avx2` is compiled for (just detected).
+        return unsafe { jacobian_chunk_avx2(x, raw, bins, bound, out, jacobians) };
+    }
+    jacobian_chunk_with::<false>(x, raw, bins, bound, out, jacobians);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn jacobian_chunk_avx2(
+    x: &[f32],
+    raw: &[f32],
+    bins: usize,
+    bound: f64,
+    out: (&mut [f32], &mut [f32]),
+    jacobians: Option<(&mut [f32], &mut [f32])>,
+) {
+    jacobian_chunk_with::<true>(x, raw, bins, bound, out, jacobians);
+}
+
+#[inline(always)]
+fn jacobian_chunk_with<const FMA: bool>(
+    x: &[f32],
+    raw: &[f32],
+    bins: usize,
+    bound: f64,
+    (y, ld): (&mut [f32], &mut [f32]),
+    mut jacobians: Option<(&mut [f32], &mut [f32])>,
+) {
+    let np = 3 * bins - 1;
+    let mut r = [0.0; MAX_PARAMS];
+    for (e, &xe) in x.iter().enumerate() {
+        let xe = f64::from(xe);
+        for (rk, &v) in r.iter_mut().zip(&raw[e * np..(e + 1) * np]) {
+            *rk = f64::from(v);
+        }
+        let r = &r[..np];
+        let Some((jy, jl)) = jacobians.as_mut() else {
+            let (v, slope) = spline_forward::<FMA>(xe, r, bins, bound);
+            (y[e], ld[e]) = (v as f32, slope.ln() as f32);
+            continue;
+        };
+        let (jy, jl) = (&mut jy[e * (np + 1)..(e + 1) * (np + 1)], &mut jl[e * (np + 1)..(e + 1) * (np + 1)]);
+        if xe.abs() > bound {
+            // The identity tail.
+            jy.iter_mut().chain(jl.iter_mut()).for_each(|v| *v = 0.0);
+            (y[e], ld[e], jy[np]) = (xe as f32, 0.0, 1.0);
+            continue;
+        }
+        let (v, l, yx, lx) = spline_jacobian::<FMA>(xe, r, bins, bound, &mut jy[..np], &mut jl[..np]);
+        (y[e], ld[e], jy[np], jl[np]) = (v as f32, l as f32, yx as f32, lx as f32);
+    }
+}
+
 /// One coupling's splines over a block: the layout and direction.
 struct Splines {
     d: usize,
