@@ -115,9 +115,9 @@ pub fn sbi_nsf_settings() -> TrainSettings {
 }
 
 /// The benchmark's recipe for `task`: sbi's NSF ([`sbi_nsf_settings`]); on the 2-D tasks
-/// trained with a fixed epoch budget instead, big batches and a cosine-decayed rate (the
-/// time targets allow about half of sbi's epochs there, and a decayed rate makes more of
-/// them: docs/npe.md, session 14). No early stop; the best validation epoch is kept.
+/// trained with a fixed epoch budget instead, big batches and a cosine-decayed rate (at
+/// a constant rate they need more epochs than the time targets allow: docs/npe.md,
+/// session 14). No early stop; the best validation epoch is kept.
 pub fn recipe(task: Task) -> TrainSettings {
     let epochs = match task {
         Task::TwoMoons => 160,
