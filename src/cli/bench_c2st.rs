@@ -1,6 +1,7 @@
 //! `otofit bench c2st`: posterior accuracy (C2ST against reference posteriors) and
-//! training time on standard SBI benchmark tasks, trained with sbi's NSF recipe
-//! ([`bench::sbi_nsf_settings`]) or `otofit train`'s defaults (`--recipe otofit`).
+//! training time on standard SBI benchmark tasks, trained with the benchmark's recipe
+//! ([`bench::recipe`]: sbi's NSF, on the 2-D tasks with a cosine-decayed rate) or
+//! `otofit train`'s defaults (`--recipe otofit`).
 
 use crate::bench::{self, BenchParams, Task, c2st::C2stParams};
 use crate::npe::{ThetaMap, TrainSettings};
@@ -41,8 +42,9 @@ pub struct C2stArgs {
     pub json: PathBuf,
     /// Training settings the options below change: `sbi` (sbi 0.27's NSF: no embedding,
     /// residual conditioners, LU layers, scaled bins, Adam ε 1e-8, constant rate; the
-    /// benchmark's default since session 12, docs/npe.md) or `otofit` (`otofit train`'s
-    /// defaults, which the middle-ear models train with).
+    /// benchmark's default since session 12; on two moons and the mixture batch 1000, rate
+    /// 3e-3 decayed by a cosine over a fixed 160 / 90 epochs since session 14, docs/npe.md)
+    /// or `otofit` (`otofit train`'s defaults, which the middle-ear models train with).
     #[arg(long, value_enum, default_value = "sbi")]
     pub recipe: RecipeArg,
     /// Train without the embedding network (`otofit train --embedding none`).
@@ -75,6 +77,12 @@ pub struct C2stArgs {
     /// Early-stopping epochs without improvement.
     #[arg(long)]
     pub patience: Option<usize>,
+    /// Epochs at most.
+    #[arg(long)]
+    pub max_epochs: Option<usize>,
+    /// Decay the learning rate by a half cosine to 0 at the last epoch: true or false.
+    #[arg(long)]
+    pub lr_cosine: Option<bool>,
     /// Share of the simulations held out for validation (early stopping).
     #[arg(long)]
     pub val_fraction: Option<f64>,
@@ -143,47 +151,21 @@ pub fn run(a: C2stArgs) -> Result<()> {
             ..Default::default()
         },
     };
-    let d = match a.recipe {
-        RecipeArg::Sbi => bench::sbi_nsf_settings(),
-        RecipeArg::Otofit => TrainSettings::default(),
-    };
-    let settings = TrainSettings {
-        embedding: d.embedding && !a.no_embedding,
-        seed: a.seed,
-        theta_map: match a.theta_map {
-            Some(ThetaMapArg::Logit) => ThetaMap::Logit,
-            Some(ThetaMapArg::Scale) => ThetaMap::Scale,
-            None => d.theta_map,
-        },
-        tail_bound: a.tail_bound.unwrap_or(d.tail_bound),
-        blocks: a.blocks.unwrap_or(d.blocks),
-        lu: a.lu.unwrap_or(d.lu),
-        batch: a.batch.unwrap_or(d.batch),
-        lr: a.lr.unwrap_or(d.lr),
-        lr_plateau: a.lr_plateau.unwrap_or(d.lr_plateau),
-        lr_drops: a.lr_drops.unwrap_or(d.lr_drops),
-        patience: a.patience.unwrap_or(d.patience),
-        val_fraction: a.val_fraction.unwrap_or(d.val_fraction),
-        scaled_bins: a.scaled_bins.unwrap_or(d.scaled_bins),
-        adam_eps: a.adam_eps.unwrap_or(d.adam_eps),
-        clip: a.clip.unwrap_or(d.clip),
-        weight_decay: a.weight_decay.unwrap_or(d.weight_decay),
-        ensemble: a.ensemble.unwrap_or(d.ensemble),
-        ..d.clone()
-    };
-    eprintln!("{settings:?}");
-    if let Some(dir) = &a.export {
-        for task in tasks {
+    let root = std::env::temp_dir().join(format!("otofit-c2st-{}", std::process::id()));
+    let mut results = Vec::new();
+    let mut used = Vec::new();
+    if a.export.is_none() {
+        println!("{:<24} {:>6} {:>7} {:>9}  per observation", "task", "sims", "C2ST", "train s");
+    }
+    for task in tasks {
+        let settings = settings(&a, task);
+        eprintln!("{settings:?}");
+        if let Some(dir) = &a.export {
             let d = dir.join(task.name());
             bench::export_task(task, &p, &settings, &d)?;
             println!("{}: wrote {}", task.name(), d.display());
+            continue;
         }
-        return Ok(());
-    }
-    let root = std::env::temp_dir().join(format!("otofit-c2st-{}", std::process::id()));
-    let mut results = Vec::new();
-    println!("{:<24} {:>6} {:>7} {:>9}  per observation", "task", "sims", "C2ST", "train s");
-    for task in tasks {
         let r = match &a.score_samples {
             Some(dir) => bench::score_files(task, &p, &dir.join(task.name()))?,
             None => bench::run_task(task, &p, &settings, &root.join(task.name()))?,
@@ -203,6 +185,10 @@ pub fn run(a: C2stArgs) -> Result<()> {
             r.c2st_seconds
         );
         results.push(r);
+        used.push(format!("{}: {settings:?}", task.name()));
+    }
+    if a.export.is_some() {
+        return Ok(());
     }
     let _ = std::fs::remove_dir_all(&root);
     let out = serde_json::json!({
@@ -214,10 +200,44 @@ pub fn run(a: C2stArgs) -> Result<()> {
         "seed": a.seed,
         "recipe": format!("{:?}", a.recipe),
         "scored_samples": a.score_samples,
-        "settings": format!("{settings:?}"),
+        "settings": used,
         "tasks": results,
     });
     std::fs::write(&a.json, serde_json::to_vec_pretty(&out)?)?;
     println!("wrote {}", a.json.display());
     Ok(())
+}
+
+/// The task's training settings: the recipe's, changed by the options given.
+fn settings(a: &C2stArgs, task: Task) -> TrainSettings {
+    let d = match a.recipe {
+        RecipeArg::Sbi => bench::recipe(task),
+        RecipeArg::Otofit => TrainSettings::default(),
+    };
+    TrainSettings {
+        embedding: d.embedding && !a.no_embedding,
+        seed: a.seed,
+        theta_map: match a.theta_map {
+            Some(ThetaMapArg::Logit) => ThetaMap::Logit,
+            Some(ThetaMapArg::Scale) => ThetaMap::Scale,
+            None => d.theta_map,
+        },
+        tail_bound: a.tail_bound.unwrap_or(d.tail_bound),
+        blocks: a.blocks.unwrap_or(d.blocks),
+        lu: a.lu.unwrap_or(d.lu),
+        batch: a.batch.unwrap_or(d.batch),
+        lr: a.lr.unwrap_or(d.lr),
+        lr_plateau: a.lr_plateau.unwrap_or(d.lr_plateau),
+        lr_drops: a.lr_drops.unwrap_or(d.lr_drops),
+        patience: a.patience.unwrap_or(d.patience),
+        max_epochs: a.max_epochs.unwrap_or(d.max_epochs),
+        lr_cosine: a.lr_cosine.unwrap_or(d.lr_cosine),
+        val_fraction: a.val_fraction.unwrap_or(d.val_fraction),
+        scaled_bins: a.scaled_bins.unwrap_or(d.scaled_bins),
+        adam_eps: a.adam_eps.unwrap_or(d.adam_eps),
+        clip: a.clip.unwrap_or(d.clip),
+        weight_decay: a.weight_decay.unwrap_or(d.weight_decay),
+        ensemble: a.ensemble.unwrap_or(d.ensemble),
+        ..d.clone()
+    }
 }

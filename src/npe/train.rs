@@ -69,6 +69,8 @@ pub struct TrainSettings {
     /// Instead of stopping after `patience` epochs without improvement, divide the
     /// learning rate by 10 and go on, this many times.
     pub lr_drops: usize,
+    /// The rate also follows a half cosine from its value down to 0 at `max_epochs`.
+    pub lr_cosine: bool,
     /// Flows trained from different seeds and averaged as an equal-weight mixture
     /// (wider, better-calibrated joint posteriors; K× the training time).
     pub ensemble: usize,
@@ -97,6 +99,7 @@ impl Default for TrainSettings {
             weight_decay: 0.0,
             lr_plateau: 8,
             lr_drops: 0,
+            lr_cosine: false,
             ensemble: 1,
         }
     }
@@ -451,7 +454,9 @@ impl Run<'_> {
             m.epoch += 1;
             let epoch = m.epoch;
             let train_loss;
-            (m.flow, train_loss) = self.epoch(m.flow, &mut m.opt, m.lr, &mut m.order, &mut m.rng);
+            let cosine = (std::f64::consts::PI * (epoch - 1) as f64 / s.max_epochs as f64).cos();
+            let lr = if s.lr_cosine { m.lr * 0.5 * (1.0 + cosine) } else { m.lr };
+            (m.flow, train_loss) = self.epoch(m.flow, &mut m.opt, lr, &mut m.order, &mut m.rng);
             let valid = m.flow.valid();
             let val_loss = self.validate(&valid);
             if val_loss < m.best_val_loss {

@@ -297,6 +297,27 @@ fn training_is_deterministic_for_a_seed() {
     assert_eq!(a.sample(&obs, 20, 1).unwrap(), b.sample(&obs, 20, 1).unwrap());
 }
 
+/// The cosine schedule starts at the full rate (epoch 1 is the constant rate's, bit for
+/// bit) and then lowers it (epoch 2, at half the rate, is not).
+#[test]
+fn the_cosine_rate_starts_at_the_rate_and_then_falls() {
+    let ds = linear_gaussian(400, 2);
+    let losses = |lr_cosine| {
+        let s =
+            TrainSettings { embedding: false, max_epochs: 2, lr_plateau: 0, seed: 3, lr_cosine, ..Default::default() };
+        let mut v = Vec::new();
+        npe::train(&ds, &s, &mut |r| {
+            v.push(r.val_loss);
+            true
+        })
+        .unwrap();
+        v
+    };
+    let (constant, cosine) = (losses(false), losses(true));
+    assert_eq!(constant[0], cosine[0]);
+    assert_ne!(constant[1], cosine[1]);
+}
+
 /// C2ST smoke test through the benchmark's table interface: a short training on the
 /// Gaussian-mixture task scores well below the prior's own score against the reference
 /// (a broken flow or sampler scores like the prior).
