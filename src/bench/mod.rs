@@ -120,8 +120,11 @@ pub fn sbi_nsf_settings() -> TrainSettings {
 /// session 14). No early stop; the best validation epoch is kept.
 pub fn recipe(task: Task) -> TrainSettings {
     let epochs = match task {
-        Task::TwoMoons => 160,
-        Task::GaussianMixture => 90,
+        // 220 and 120, not 160 and 90: with the host spline pass (session 14) the shorter
+        // budgets gave three-seed means of 0.567 and 0.565 by the benchmark's rule, these
+        // 0.557 and 0.559 (docs/npe.md).
+        Task::TwoMoons => 220,
+        Task::GaussianMixture => 120,
         _ => return sbi_nsf_settings(),
     };
     TrainSettings { batch: 1000, lr: 3e-3, lr_cosine: true, max_epochs: epochs, patience: epochs, ..sbi_nsf_settings() }
