@@ -552,6 +552,47 @@ fn spline_inverse<const FMA: bool>(y: f64, raw: &[f64], bins: usize, bound: f64)
     (t * w + x0, slope(delta, d, t))
 }
 
+/// The spline's terms at x inside the bound that its value, log-slope and their
+/// derivatives share (y = y0 + h·a/den, f′ = δ²·n2/den², and the partials of a, den, n2).
+struct Local {
+    weights: [([f64; 32], f64); 2],
+    w: f64,
+    h: f64,
+    delta: f64,
+    t: f64,
+    t1: f64,
+    den: f64,
+    a: f64,
+    y: f64,
+    n2: f64,
+    ld: f64,
+    den_t: f64,
+    den_delta: f64,
+    a_t: f64,
+    n2_t: f64,
+    den2: f64,
+}
+
+#[inline(always)]
+fn local<const FMA: bool>(x: f64, raw: &[f64], bins: usize, bound: f64) -> Local {
+    let weights = weights::<FMA>(raw, bins);
+    let (x0, y0, w, h, [d0, d1]) = bin_with::<FMA>(x, raw, bins, bound, false, &weights);
+    let delta = h / w;
+    let t = ((x - x0) / w).clamp(0.0, 1.0);
+    let t1 = t * (1.0 - t);
+    let s = d0 + d1 - 2.0 * delta;
+    let den = delta + s * t1;
+    let a = delta * t * t + d0 * t1;
+    let y = y0 + h * a / den;
+    let n2 = d1 * t * t + 2.0 * delta * t1 + d0 * (1.0 - t) * (1.0 - t);
+    let ld = (delta * delta * n2 / (den * den)).ln();
+    let (den_t, den_delta) = (s * (1.0 - 2.0 * t), 1.0 - 2.0 * t1);
+    let a_t = 2.0 * delta * t + d0 * (1.0 - 2.0 * t);
+    let n2_t = 2.0 * d1 * t + 2.0 * delta * (1.0 - 2.0 * t) - 2.0 * d0 * (1.0 - t);
+    let den2 = den * den;
+    Local { weights, w, h, delta, t, t1, den, a, y, n2, ld, den_t, den_delta, a_t, n2_t, den2 }
+}
+
 /// y = f(x), log |f′(x)| and the gradient of gy·y + log |f′(x)| with respect to x
 /// (returned) and to the spline's raw parameters (written to `g_raw`, 3K−1 long): the
 /// MAP's analytic gradient. Within the active bin y depends on t = (x − x0)/w, the slope
@@ -571,22 +612,9 @@ fn spline_forward_grad<const FMA: bool>(
     if x.abs() > bound {
         return (x, 0.0, gy);
     }
-    let weights = weights::<FMA>(raw, bins);
-    let (x0, y0, w, h, [d0, d1]) = bin_with::<FMA>(x, raw, bins, bound, false, &weights);
-    let delta = h / w;
-    let t = ((x - x0) / w).clamp(0.0, 1.0);
-    let t1 = t * (1.0 - t);
-    let s = d0 + d1 - 2.0 * delta;
-    let den = delta + s * t1;
-    let a = delta * t * t + d0 * t1;
-    let y = y0 + h * a / den;
-    let n2 = d1 * t * t + 2.0 * delta * t1 + d0 * (1.0 - t) * (1.0 - t);
-    let ld = (delta * delta * n2 / (den * den)).ln();
+    let Local { weights, w, h, delta, t, t1, den, a, y, n2, ld, den_t, den_delta, a_t, n2_t, den2 } =
+        local::<FMA>(x, raw, bins, bound);
     // ∂ over t, δ, d0, d1 and h (δ held), each of gy·y + ld.
-    let (den_t, den_delta) = (s * (1.0 - 2.0 * t), 1.0 - 2.0 * t1);
-    let a_t = 2.0 * delta * t + d0 * (1.0 - 2.0 * t);
-    let n2_t = 2.0 * d1 * t + 2.0 * delta * (1.0 - 2.0 * t) - 2.0 * d0 * (1.0 - t);
-    let den2 = den * den;
     let g_t = gy * h * (a_t * den - a * den_t) / den2 + n2_t / n2 - 2.0 * den_t / den;
     let g_delta = gy * h * (t * t * den - a * den_delta) / den2 + 2.0 / delta + 2.0 * t1 / n2 - 2.0 * den_delta / den;
     let g_d0 = gy * h * t1 * (den - a) / den2 + (1.0 - t) * (1.0 - t) / n2 - 2.0 * t1 / den;
@@ -636,21 +664,8 @@ fn spline_jacobian<const FMA: bool>(
     jy: &mut [f32],
     jl: &mut [f32],
 ) -> (f64, f64, f64, f64) {
-    let weights = weights::<FMA>(raw, bins);
-    let (x0, y0, w, h, [d0, d1]) = bin_with::<FMA>(x, raw, bins, bound, false, &weights);
-    let delta = h / w;
-    let t = ((x - x0) / w).clamp(0.0, 1.0);
-    let t1 = t * (1.0 - t);
-    let s = d0 + d1 - 2.0 * delta;
-    let den = delta + s * t1;
-    let a = delta * t * t + d0 * t1;
-    let y = y0 + h * a / den;
-    let n2 = d1 * t * t + 2.0 * delta * t1 + d0 * (1.0 - t) * (1.0 - t);
-    let ld = (delta * delta * n2 / (den * den)).ln();
-    let (den_t, den_delta) = (s * (1.0 - 2.0 * t), 1.0 - 2.0 * t1);
-    let a_t = 2.0 * delta * t + d0 * (1.0 - 2.0 * t);
-    let n2_t = 2.0 * d1 * t + 2.0 * delta * (1.0 - 2.0 * t) - 2.0 * d0 * (1.0 - t);
-    let den2 = den * den;
+    let Local { weights, w, h, delta, t, t1, den, a, y, n2, ld, den_t, den_delta, a_t, n2_t, den2 } =
+        local::<FMA>(x, raw, bins, bound);
     // ∂ over t, δ, d0, d1 and h (δ held): of y, then of log f′.
     let (yt, ydelta) = (h * (a_t * den - a * den_t) / den2, h * (t * t * den - a * den_delta) / den2);
     let (yd0, yd1, yh) = (h * t1 * (den - a) / den2, -h * a * t1 / den2, a / den + ydelta / w);
