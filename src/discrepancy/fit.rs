@@ -85,11 +85,24 @@ pub fn fit(model: &Model, design: &Design, starts: &[Vec<f64>], obs: &Observatio
 }
 
 fn fit_one(runner: &mut Runner<'_>, design: &Design, start: &[f64], obs: &Observation, max_iter: usize) -> Option<Fit> {
-    let cols = design.columns();
+    fit_columns(&design.columns(), start, max_iter, |row| residuals(runner, design, row, obs))
+}
+
+/// Levenberg–Marquardt over columns `cols` (each inside its own box, through the
+/// unbounded map) from `start` (natural units), at most `max_iter` steps, for any
+/// standardised residual function of a row (`None`: the row failed to simulate). [`fit`]
+/// is this with the design's columns and [`residuals`]; a caller may bound the columns
+/// differently or add its own (e.g. the simulator's structural constants).
+pub fn fit_columns(
+    cols: &[ParamSpec],
+    start: &[f64],
+    max_iter: usize,
+    mut residuals: impl FnMut(&[f64]) -> Option<Vec<f64>>,
+) -> Option<Fit> {
     let d = cols.len();
     let to_row = |u: &[f64]| -> Vec<f64> { cols.iter().zip(u).map(|(p, &v)| from_unbounded(p, v)).collect() };
     let mut u: Vec<f64> = cols.iter().zip(start).map(|(p, &v)| to_unbounded(p, v)).collect();
-    let mut r = residuals(runner, design, &to_row(&u), obs)?;
+    let mut r = residuals(&to_row(&u))?;
     let mut c = chi2(&r);
     let mut lambda = 1e-2;
     let mut iterations = 0;
@@ -102,7 +115,7 @@ fn fit_one(runner: &mut Runner<'_>, design: &Design, start: &[f64], obs: &Observ
         for k in 0..d {
             let mut up = u.clone();
             up[k] += h;
-            let rk = residuals(runner, design, &to_row(&up), obs)?;
+            let rk = residuals(&to_row(&up))?;
             jac.push(rk.iter().zip(&r).map(|(a, b)| (a - b) / h).collect::<Vec<f64>>());
         }
         jtj = Mat::from_fn(d, d, |i, j| jac[i].iter().zip(&jac[j]).map(|(a, b)| a * b).sum());
@@ -113,7 +126,7 @@ fn fit_one(runner: &mut Runner<'_>, design: &Design, start: &[f64], obs: &Observ
             let rhs = Mat::from_fn(d, 1, |i, _| -jtr[i]);
             let step = a.partial_piv_lu().solve(&rhs);
             let trial: Vec<f64> = (0..d).map(|i| (u[i] + step[(i, 0)]).clamp(-20.0, 20.0)).collect();
-            match residuals(runner, design, &to_row(&trial), obs) {
+            match residuals(&to_row(&trial)) {
                 Some(rt) if chi2(&rt) < c => {
                     let gain = c - chi2(&rt);
                     u = trial;
