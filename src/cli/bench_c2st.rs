@@ -41,10 +41,10 @@ pub struct C2stArgs {
     #[arg(long, default_value = "c2st.json")]
     pub json: PathBuf,
     /// Training settings the options below change: `sbi` (sbi 0.27's NSF: no embedding,
-    /// residual conditioners, LU layers, scaled bins, Adam ε 1e-8, constant rate; the
-    /// benchmark's default since session 12; on two moons, the mixture and SLCP batch 1000,
-    /// rate 3e-3 decayed by a cosine over a fixed 220 / 120 / 100 epochs since session 14,
-    /// docs/npe.md)
+    /// residual conditioners, LU layers, scaled bins, Adam ε 1e-8; the benchmark's default;
+    /// the rate decayed by a cosine over a fixed budget: two moons, the mixture and SLCP
+    /// batch 1000, rate 3e-3, 220 / 120 / 100 epochs, the 10-D Gaussian batch 200, rate 1e-3,
+    /// 30 epochs, the GLM sbi's early stopping at a constant rate; docs/npe.md)
     /// or `otofit` (`otofit train`'s defaults, which the middle-ear models train with).
     #[arg(long, value_enum, default_value = "sbi")]
     pub recipe: RecipeArg,
