@@ -714,6 +714,11 @@ const MAX_PARAMS: usize = 92;
 /// Elements per task of [`spline_jacobians`]' parallel loop.
 const JACOBIAN_CHUNK: usize = 256;
 
+/// Up to this many elements [`spline_jacobians`] runs on the calling thread: handing a
+/// training batch's few thousand elements to rayon cost more in wake-ups (futex,
+/// sched_yield) than it saved on two cores (docs/npe.md, session 15).
+const SERIAL_ELEMENTS: usize = 16_384;
+
 /// The training's spline pass (`spline::forward`), in f64 from burn's f32: for element e,
 /// y[e] = f(x[e]) and ld[e] = log |f′(x[e])| with parameters `raw[e·np..(e+1)·np]`, and
 /// with `jacobians` also ∂y and ∂ld with respect to (raw, x), np + 1 entries per element.
@@ -731,6 +736,9 @@ pub(crate) fn spline_jacobians(
     let np = 3 * bins - 1;
     assert!(np <= MAX_PARAMS, "at most 31 bins");
     let c = JACOBIAN_CHUNK;
+    if x.len() <= SERIAL_ELEMENTS {
+        return jacobian_chunk(x, raw, bins, bound, (y, ld), jacobians);
+    }
     let chunks = x.par_chunks(c).zip(raw.par_chunks(c * np)).zip(y.par_chunks_mut(c)).zip(ld.par_chunks_mut(c));
     match jacobians {
         Some((jy, jl)) => chunks
@@ -1268,5 +1276,27 @@ mod tests {
             (0..m * m).flat_map(|k| [-half + h * (0.5 + (k / m) as f64), -half + h * (0.5 + (k % m) as f64)]).collect();
         let mass: f64 = bound.log_prob(&pts).iter().map(|l| l.exp()).sum::<f64>() * h * h;
         assert!((mass - 1.0).abs() < 2e-3, "tempered mass {mass}");
+    }
+
+    /// Above `SERIAL_ELEMENTS` the spline pass runs in rayon chunks: the same numbers as
+    /// one serial pass over all elements.
+    #[test]
+    fn parallel_spline_pass_equals_the_serial_one() {
+        let (bins, n) = (10, SERIAL_ELEMENTS + 1_000);
+        let np = 3 * bins - 1;
+        let raw: Vec<f32> = (0..n * np).map(|i| ((i * 7919 % 211) as f32 / 105.0 - 1.0) * 3.0).collect();
+        let x: Vec<f32> = (0..n).map(|i| ((i * 104_729 % 97) as f32 / 96.0 - 0.5) * 7.0).collect();
+        let run = |parallel: bool| {
+            let (mut y, mut ld) = (vec![0.0; n], vec![0.0; n]);
+            let (mut jy, mut jl) = (vec![0.0; n * (np + 1)], vec![0.0; n * (np + 1)]);
+            let jac = Some((&mut jy[..], &mut jl[..]));
+            if parallel {
+                spline_jacobians(&x, &raw, bins, 3.0, (&mut y, &mut ld), jac);
+            } else {
+                jacobian_chunk(&x, &raw, bins, 3.0, (&mut y, &mut ld), jac);
+            }
+            (y, ld, jy, jl)
+        };
+        assert!(run(true) == run(false));
     }
 }
