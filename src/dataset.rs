@@ -517,17 +517,29 @@ impl PartRun<'_> {
     }
 }
 
-/// Joins finished parts `0..n_parts` of `parts` into a dataset in `dir` (theta.csv,
-/// x.csv with their headers, meta.json; renamed into place like [`Writer::finish`]):
-/// the same bytes as [`simulate_to_dir`] with the same rows. `meta` is
-/// [`Meta::new`]'s; its counts, failures and time (the parts' compute) are filled in.
-pub fn merge_parts(parts: &Path, n_parts: usize, dir: &Path, meta: &mut Meta) -> Result<()> {
+/// Joins finished parts `0..n_parts` of `parts` into a dataset of `n_rows` rows in
+/// `dir` (theta.csv, x.csv with their headers, meta.json; renamed into place like
+/// [`Writer::finish`]): the same bytes as [`simulate_to_dir`] with the same rows. The
+/// parts must cover rows `0..n_rows` in order, once each: anything else is an error,
+/// not a short dataset. `meta` is [`Meta::new`]'s; its counts, failures and time (the
+/// parts' compute) are filled in.
+pub fn merge_parts(parts: &Path, n_parts: usize, n_rows: usize, dir: &Path, meta: &mut Meta) -> Result<()> {
     let mut writer = Writer::create(dir, meta)?;
-    let append = |idx: usize, writer: &mut Writer| -> Result<Part> {
-        let part = read_part(parts, idx).ok_or_else(|| {
-            let missing = std::io::Error::new(std::io::ErrorKind::NotFound, "part not finished");
-            DatasetError::Io(FileError { action: "read", path: part_file(parts, idx, "json"), source: missing })
-        })?;
+    let mut next = 0;
+    let mut append = |idx: usize, writer: &mut Writer| -> Result<Part> {
+        let unusable = |why: String| {
+            let e = std::io::Error::new(std::io::ErrorKind::InvalidData, why);
+            DatasetError::Io(FileError { action: "read", path: part_file(parts, idx, "json"), source: e })
+        };
+        let part = read_part(parts, idx).ok_or_else(|| unusable("part not finished".into()))?;
+        if part.first != next || part.len == 0 {
+            return Err(unusable(format!(
+                "part holds rows {}..{}, expected from row {next}",
+                part.first,
+                part.first + part.len
+            )));
+        }
+        next += part.len;
         for (f, w) in [(FILES[0], &mut writer.theta), (FILES[1], &mut writer.x)] {
             let from = part_file(parts, idx, f);
             File::open(&from).and_then(|mut r| std::io::copy(&mut r, w)).map_err(io("read", &from))?;
@@ -547,6 +559,11 @@ pub fn merge_parts(parts: &Path, n_parts: usize, dir: &Path, meta: &mut Meta) ->
                 return Err(e);
             }
         }
+    }
+    if next != n_rows {
+        writer.abandon();
+        let e = std::io::Error::new(std::io::ErrorKind::InvalidData, format!("parts cover {next} of {n_rows} rows"));
+        return Err(DatasetError::Io(FileError { action: "read", path: parts.to_path_buf(), source: e }));
     }
     meta.wall_seconds = wall;
     writer.finish(meta)

@@ -134,7 +134,12 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
     let parts = dir.join(dataset::PARTS);
     std::fs::create_dir_all(&parts).with_context(|| format!("creating {}", parts.display()))?;
     let mut chunks = rt.block_on(ctx.store.plan_chunks(id, &chunk_plan(n, ctx.chunk_rows)))?;
-    let finished = |c: &ChunkRow| dataset::read_part(&parts, c.idx).is_some();
+    if !crate::store::covers(&chunks, n) {
+        anyhow::bail!("the job's chunk plan does not cover its {n} rows");
+    }
+    // A part counts only if it holds the chunk's rows (not those of another plan's chunk).
+    let finished =
+        |c: &ChunkRow| dataset::read_part(&parts, c.idx).is_some_and(|p| p.first == c.first_row && p.len == c.n_rows);
     let resumed = chunks.iter().filter(|c| finished(c)).count();
     if resumed > 0 {
         tracing::info!(job = %id, resumed, chunks = chunks.len(), "resuming from finished chunks");
@@ -184,7 +189,7 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
         setup.rows.seed(),
     );
     let staging = staging_dir(&dir, &r.claim.1);
-    dataset::merge_parts(&parts, chunks.len(), &staging, &mut meta)?;
+    dataset::merge_parts(&parts, chunks.len(), n, &staging, &mut meta)?;
     r.still_ours(ctx)?;
     publish_dataset(&staging, &dir)?;
     // The parts are in the dataset now: gone before the job is marked done, so that no

@@ -50,6 +50,18 @@ fn chunk_from(row: &impl Cols) -> ChunkRow {
     }
 }
 
+/// Whether `chunks` (in order) cover rows `0..n` once each, in a row.
+pub fn covers(chunks: &[ChunkRow], n: usize) -> bool {
+    let mut next = 0;
+    for (i, c) in chunks.iter().enumerate() {
+        if c.idx != i || c.first_row != next || c.n_rows == 0 {
+            return false;
+        }
+        next += c.n_rows;
+    }
+    next == n
+}
+
 /// The id of chunk `idx` of `job`.
 pub fn chunk_id(job: &str, idx: usize) -> String {
     format!("{job}:{idx:05}")
@@ -57,24 +69,35 @@ pub fn chunk_id(job: &str, idx: usize) -> String {
 
 impl Store {
     /// The chunks of `job`: planned now as `plan` (first row, rows) unless the job has a
-    /// plan already (from an earlier attempt, whatever chunk size that attempt's worker
-    /// used). In chunk order.
+    /// complete plan already (from an earlier attempt, whatever chunk size that attempt's
+    /// worker used). The plan is written in one transaction: a process killed while
+    /// planning leaves no plan, not part of one. A plan that does not cover the same rows
+    /// as `plan` (left by a version that planned chunk by chunk) is replaced. In chunk order.
     pub async fn plan_chunks(&self, job: &str, plan: &[(usize, usize)]) -> Result<Vec<ChunkRow>, sqlx::Error> {
-        const SQL: &str = "INSERT INTO job_chunks (id, job_id, idx, first_row, n_rows) VALUES ($1, $2, $3, $4, $5)
+        const INSERT: &str = "INSERT INTO job_chunks (id, job_id, idx, first_row, n_rows) VALUES ($1, $2, $3, $4, $5)
              ON CONFLICT DO NOTHING";
-        if self.chunks(job).await?.is_empty() {
-            for (idx, (first, n)) in plan.iter().enumerate() {
-                let (first, n) = (*first as i64, *n as i64);
-                on_pool!(self, p => sqlx::query(SQL)
-                    .bind(chunk_id(job, idx))
-                    .bind(job)
-                    .bind(idx as i64)
-                    .bind(first)
-                    .bind(n)
-                    .execute(p)
-                    .await?
-                    .rows_affected());
+        const DELETE: &str = "DELETE FROM job_chunks WHERE job_id = $1";
+        let total: usize = plan.iter().map(|(_, n)| n).sum();
+        let existing = self.chunks(job).await?;
+        if existing.is_empty() || !covers(&existing, total) {
+            if !existing.is_empty() {
+                tracing::warn!(job, chunks = existing.len(), rows = total, "an incomplete chunk plan replaced");
             }
+            on_pool!(self, p => {
+                let mut tx = p.begin().await?;
+                sqlx::query(DELETE).bind(job).execute(&mut *tx).await?;
+                for (idx, (first, n)) in plan.iter().enumerate() {
+                    sqlx::query(INSERT)
+                        .bind(chunk_id(job, idx))
+                        .bind(job)
+                        .bind(idx as i64)
+                        .bind(*first as i64)
+                        .bind(*n as i64)
+                        .execute(&mut *tx)
+                        .await?;
+                }
+                tx.commit().await?
+            });
         }
         self.chunks(job).await
     }

@@ -183,3 +183,59 @@ async fn a_cancelled_simulate_leaves_no_parts_or_temporary_files() {
         assert!(left.is_empty(), "{name}: {left:?}");
     }
 }
+
+/// A chunk plan left incomplete (a process killed while planning, before the plan was
+/// written in one transaction) is replaced, not taken for the whole job: the dataset
+/// has every row. Session 15's CI once published 20,000 of 40,000 rows this way.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_partial_chunk_plan_is_replaced_and_the_dataset_has_every_row() {
+    for (name, db) in backends().await {
+        let data = temp_dir(&format!("partial-{name}"));
+        let store = Store::connect(&db).await.unwrap();
+        let spec = JobSpec::parse("simulate", &json!({"n": 4000, "seed": 3})).unwrap();
+        assert!(store.insert_job_within("p", "simulate", &spec.params(), 3, 8).await.unwrap());
+        // Half a plan of 1,000-row chunks, as a kill between two inserts left it.
+        let half = store.plan_chunks("p", &[(0, 1000), (1000, 1000)]).await.unwrap();
+        assert_eq!(half.len(), 2, "{name}");
+        let ctx = crate::pg::ctx_on(store.clone(), &data, "w", Duration::from_secs(30));
+        let ctx = std::sync::Arc::new(std::sync::Arc::into_inner(ctx).unwrap().with_chunk_rows(1000));
+        tokio::spawn(jobs::dispatcher(ctx.clone()));
+        let j = wait_state(&store, "p", &["succeeded", "failed", "cancelled"], 60).await;
+        ctx.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
+        assert_eq!(j.state, "succeeded", "{name}: {j:?}");
+        assert_eq!(store.chunks("p").await.unwrap().len(), 4, "{name}");
+        let x = std::fs::read_to_string(data.join("datasets/p/x.csv")).unwrap();
+        assert_eq!(x.lines().count(), 4001, "{name}: every row, once");
+    }
+}
+
+/// Parts that leave a gap, or cover fewer rows than the dataset has, are refused at the
+/// merge: the job fails rather than publish a short dataset.
+#[test]
+fn merging_parts_that_do_not_cover_every_row_is_an_error() {
+    use otofit::dataset::{self, Meta, PartRun, Rows};
+    use otofit::sim::batch::{Design, Noise};
+    use otofit::sim::{Model, ModelConfig};
+    let dir = temp_dir("merge-gap");
+    let parts = dir.join("parts");
+    std::fs::create_dir_all(&parts).unwrap();
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let design = Design::default();
+    let noise = Noise { std: vec![0.0; model.frequencies().len() * 5], scale: 0.0, seed: 1 };
+    let rows = Rows::Prior { n: 30, seed: 1 };
+    let run = PartRun { model: &model, design: &design, rows: &rows, noise: &noise, parts: &parts };
+    run.simulate(0, 0, 10, "t", &mut |_| true).unwrap();
+    run.simulate(1, 20, 10, "t", &mut |_| true).unwrap();
+    let meta = || Meta::new(&design, model.config.preset, model.frequencies(), &noise, Some(1));
+    // The error with its causes, as the job's error shows it.
+    let chain = |e: dataset::DatasetError| format!("{:#}", anyhow::Error::from(e));
+    let err = chain(dataset::merge_parts(&parts, 2, 30, &dir.join("a"), &mut meta()).unwrap_err());
+    assert!(err.contains("part-00001") && err.contains("expected from row 10"), "{err}");
+    assert!(!dir.join("a/x.csv").exists(), "nothing published");
+    let err = chain(dataset::merge_parts(&parts, 1, 30, &dir.join("b"), &mut meta()).unwrap_err());
+    assert!(err.contains("10 of 30"), "{err}");
+    run.simulate(1, 10, 10, "t", &mut |_| true).unwrap();
+    run.simulate(2, 20, 10, "t", &mut |_| true).unwrap();
+    dataset::merge_parts(&parts, 3, 30, &dir.join("c"), &mut meta()).unwrap();
+    assert_eq!(std::fs::read_to_string(dir.join("c/x.csv")).unwrap().lines().count(), 31);
+}
