@@ -9,7 +9,7 @@ pub mod spline;
 use burn::module::Param;
 use burn::nn::{Linear, LinearConfig};
 use burn::prelude::*;
-use burn::tensor::activation::{relu, sigmoid, softplus};
+use burn::tensor::activation::{relu, softplus};
 use serde::{Deserialize, Serialize};
 
 /// Architecture; stored in checkpoints.
@@ -208,6 +208,25 @@ impl Mlp {
     }
 }
 
+/// σ(x), the residual blocks' context gate, computed on the host ([`plain::sigmoids`]);
+/// in training its value and gradient come from the tangent line at x, slope·x + offset
+/// (two tensor ops, the gradient slope·grad). burn's sigmoid took a quarter of a
+/// two-moons training in libm's `expf`.
+fn gate(x: Tensor<2>) -> Tensor<2> {
+    let dims = x.dims();
+    let device = x.device();
+    let xs: Vec<f32> = x.clone().try_into_vec_as::<f32>().expect("gate input");
+    let mut s = vec![0.0f32; xs.len()];
+    let tensor = |v: Vec<f32>| Tensor::<2>::from_data(TensorData::new(v, dims), &device);
+    if !x.is_tracked() {
+        plain::sigmoids(&xs, &mut s, None);
+        return tensor(s);
+    }
+    let (mut slope, mut offset) = (vec![0.0f32; xs.len()], vec![0.0f32; xs.len()]);
+    plain::sigmoids(&xs, &mut s, Some((&mut slope, &mut offset)));
+    x * tensor(slope) + tensor(offset)
+}
+
 /// Initialises every lazy parameter it visits.
 struct DrawNow;
 
@@ -382,7 +401,7 @@ impl Flow {
             for k in 0..cfg.blocks {
                 let r = l[1 + 3 * k].forward(relu(h.clone()));
                 let r = l[2 + 3 * k].forward(relu(r));
-                h = h + r * sigmoid(l[3 + 3 * k].forward(ctx.clone()));
+                h = h + r * gate(l[3 + 3 * k].forward(ctx.clone()));
             }
             l[l.len() - 1].forward(h)
         };
@@ -531,12 +550,31 @@ mod tests {
     /// scaled bins: a wrong backward pass would train a worse flow with no other symptom.
     #[test]
     fn training_gradient_matches_finite_differences() {
-        for cfg in [FlowConfig::new(3, 2, true), FlowConfig { scaled_bins: true, ..FlowConfig::new(3, 2, true) }] {
+        let configs = [
+            FlowConfig::new(3, 2, true),
+            FlowConfig { scaled_bins: true, ..FlowConfig::new(3, 2, true) },
+            // Residual conditioners: the context reaches them through the host-side gates.
+            FlowConfig { blocks: 2, lu: true, ..FlowConfig::new(3, 2, true) },
+        ];
+        for cfg in configs {
             let dev = Device::flex().autodiff();
-            let flow = Flow::seeded(&cfg, &dev, Some(5));
+            let mut flow = Flow::seeded(&cfg, &dev, Some(5));
             let n = 24;
             let u: Vec<f32> = (0..n * 3).map(|i| ((i * 7919 % 97) as f32 / 97.0 - 0.5) * 3.0).collect();
             let x: Vec<f32> = (0..n * 2).map(|i| ((i * 104_729 % 89) as f32 / 89.0 - 0.5) * 2.0).collect();
+            let tensors = || {
+                let x = Tensor::<2>::from_data(TensorData::new(x.clone(), [n, 2]), &dev);
+                (x, Tensor::<2>::from_data(TensorData::new(u.clone(), [n, 3]), &dev))
+            };
+            // Residual blocks start with their second layers near zero, which hides the
+            // gates: a few Adam steps first give them weight.
+            let mut opt = AdamConfig::new().init();
+            for _ in 0..if cfg.blocks > 0 { 30 } else { 0 } {
+                let (xt, ut) = tensors();
+                let loss = flow.log_prob(&cfg, ut, flow.embed(xt)).mean().neg();
+                let grads = GradientsParams::from_grads(loss.backward(), &flow);
+                flow = opt.step(1e-2, flow, grads);
+            }
             let ctx = flow.embed(Tensor::<2>::from_data(TensorData::new(x.clone(), [n, 2]), &dev));
             let loss =
                 flow.log_prob(&cfg, Tensor::<2>::from_data(TensorData::new(u.clone(), [n, 3]), &dev), ctx).mean().neg();
@@ -574,12 +612,13 @@ mod tests {
             let last = cfg.embedding.len() - 1;
             check(bias_grad(&flow.embedding.layers[last]), &|p, j, e| p.embedding[last].b[j] += e);
             let np = spline::n_params(cfg.bins);
+            let out_layer = flow.conditioners[0].layers.len() - 1;
             for t in 0..cfg.transforms {
-                let out = &flow.conditioners[t].layers[2];
+                let out = &flow.conditioners[t].layers[out_layer];
                 // The plain copy holds the output layer times the bin scale.
                 let scale = |j: usize| if j % np < 2 * cfg.bins { cfg.bin_scale() } else { 1.0 };
                 let burn: Vec<f32> = bias_grad(out).into_iter().enumerate().map(|(j, g)| g / scale(j) as f32).collect();
-                check(burn, &|p, j, e| p.conditioners[t][2].b[j] += e);
+                check(burn, &|p, j, e| p.conditioners[t][out_layer].b[j] += e);
             }
             assert_eq!(checked, 50 + 5 * 2 * np);
         }

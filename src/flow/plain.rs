@@ -376,18 +376,72 @@ const INV_FACT: [f64; 14] = [
 /// instead of a denormal: nothing beside a softmax sum ≥ 1 or 1 + e); NaN stays NaN.
 #[inline(always)]
 fn exp_neg<const FMA: bool>(x: f64) -> f64 {
-    let x = if x < -708.0 { -708.0 } else { x };
+    exp_taylor::<FMA, 0>(if x < -708.0 { -708.0 } else { x })
+}
+
+/// [`exp_neg`] to f32's precision, for [`sigmoids`]: the Taylor polynomial to degree 7
+/// (truncation < 5e-9 relative, f32's ulp is 6e-8), for x ≥ −87 (clamped there).
+#[inline(always)]
+fn exp_neg_short<const FMA: bool>(x: f64) -> f64 {
+    exp_taylor::<FMA, 6>(if x < -87.0 { -87.0 } else { x })
+}
+
+/// e^x for −708 ≤ x ≤ 0: Cody–Waite reduction, then Horner on `INV_FACT[FIRST..]` (the
+/// polynomial of degree 13 − FIRST), times 2^n built from the shifted value's bits.
+#[inline(always)]
+fn exp_taylor<const FMA: bool, const FIRST: usize>(x: f64) -> f64 {
     let shifted = x * std::f64::consts::LOG2_E + EXP_SHIFT;
     let n = shifted - EXP_SHIFT;
     let r = (x - n * LN2_HI) - n * LN2_LO;
-    // Horner on 1/k!, k = 13 down to 0.
-    let mut p = INV_FACT[0];
-    for &c in &INV_FACT[1..] {
+    let mut p = INV_FACT[FIRST];
+    for &c in &INV_FACT[FIRST + 1..] {
         p = mul_add::<FMA>(p, r, c);
     }
     // 2^n from the integer in the shifted value's low mantissa bits (n ∈ −1022..=0).
     let k = (shifted.to_bits() as i64).wrapping_sub(EXP_SHIFT.to_bits() as i64);
     p * f64::from_bits(((k + 1023) as u64) << 52)
+}
+
+/// The logistic function σ(x) of each x into `s`; with `line`, also each point's tangent
+/// line σ(x) ≈ slope·x + offset at x, slope = σ(1 − σ), as (slope, offset): training
+/// builds its gate from them with two tensor ops (`flow::gate`). In f64 through
+/// [`exp_neg`] (branch-free: σ = 1/(1 + e) or e/(1 + e), e = e^−|x|), rounded to f32;
+/// compiled for AVX2 and FMA where the CPU has them. burn's own sigmoid calls libm's
+/// `expf` element by element: a quarter of a two-moons training (docs/npe.md).
+pub(crate) fn sigmoids(x: &[f32], s: &mut [f32], line: Option<(&mut [f32], &mut [f32])>) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
+        // SAFETY: the CPU has the features `sigmoids_avx2` is compiled for (just detected).
+        return unsafe { sigmoids_avx2(x, s, line) };
+    }
+    sigmoids_with::<false>(x, s, line);
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2,fma")]
+fn sigmoids_avx2(x: &[f32], s: &mut [f32], line: Option<(&mut [f32], &mut [f32])>) {
+    sigmoids_with::<true>(x, s, line);
+}
+
+#[inline(always)]
+fn sigmoids_with<const FMA: bool>(x: &[f32], s: &mut [f32], line: Option<(&mut [f32], &mut [f32])>) {
+    let sigmoid = |v: f32| -> f64 {
+        let v = f64::from(v);
+        // Past 87, e^−|v| < 1.7e-38 (a subnormal in f32): σ is taken as exactly 0 or 1.
+        let e = if v.abs() > 87.0 { 0.0 } else { exp_neg_short::<FMA>(-v.abs()) };
+        let num = if v >= 0.0 { 1.0 } else { e };
+        num / (1.0 + e)
+    };
+    match line {
+        None => s.iter_mut().zip(x).for_each(|(s, &v)| *s = sigmoid(v) as f32),
+        Some((slope, offset)) => {
+            for (((s, k), c), &v) in s.iter_mut().zip(slope.iter_mut()).zip(offset.iter_mut()).zip(x) {
+                let sv = sigmoid(v);
+                let kv = (sv * (1.0 - sv)) as f32;
+                (*s, *k, *c) = (sv as f32, kv, (sv - f64::from(kv) * f64::from(v)) as f32);
+            }
+        }
+    }
 }
 
 /// a·b + c, fused where the caller was compiled with FMA (`FMA`), else two operations
@@ -1211,6 +1265,26 @@ mod tests {
                     i % d
                 );
             }
+        }
+    }
+
+    #[test]
+    fn sigmoids_match_std_and_their_tangent_lines_touch() {
+        let xs: Vec<f32> = (-4000..=4000).map(|i| i as f32 * 0.0237).chain([-200.0, -90.0, 0.0, 90.0, 200.0]).collect();
+        let n = xs.len();
+        let (mut s, mut s2, mut k, mut c) = (vec![0.0; n], vec![0.0; n], vec![0.0; n], vec![0.0; n]);
+        sigmoids(&xs, &mut s, None);
+        sigmoids(&xs, &mut s2, Some((&mut k, &mut c)));
+        for i in 0..n {
+            let x = f64::from(xs[i]);
+            let want = 1.0 / (1.0 + (-x).exp());
+            assert_eq!(s[i], s2[i]);
+            assert!((f64::from(s[i]) - want).abs() <= 1.2e-7 * want + 1e-37, "σ({x}) = {} vs {want}", s[i]);
+            let slope = want * (1.0 - want);
+            assert!((f64::from(k[i]) - slope).abs() <= 1e-6 * slope + 1e-37, "σ'({x}) = {} vs {slope}", k[i]);
+            // The line's value at x is σ(x), as the training's forward pass takes it.
+            let at = f64::from(k[i]) * x + f64::from(c[i]);
+            assert!((at - want).abs() < 1e-6, "line at {x}: {at} vs {want}");
         }
     }
 

@@ -298,6 +298,67 @@ fn loss_of(flow: &Flow, cfg: &FlowConfig, v: Vec<f32>, inp: Vec<f32>, b: usize, 
     flow.log_prob(cfg, vt, ctx).mean().neg()
 }
 
+/// A batch's mean loss and its gradient; `None` if the loss is not finite. A batch of
+/// [`SPLIT_ROWS`] or more is split in two halves whose gradients are taken on two
+/// threads, the second through a copy of the flow with its own autodiff graph (burn
+/// locks a graph while it runs backward), and added weighted by their rows: the batch's
+/// gradient up to rounding. Whether a batch is split depends on its size only, never on
+/// the machine, so a seed trains the same weights everywhere.
+pub(crate) fn batch_gradient(
+    flow: &Flow,
+    cfg: &FlowConfig,
+    device: &Device,
+    v: Vec<f32>,
+    inp: Vec<f32>,
+    b: usize,
+) -> Option<(f64, GradientsParams)> {
+    let one = |f: &Flow, v: Vec<f32>, inp: Vec<f32>, b: usize| {
+        let loss = loss_of(f, cfg, v, inp, b, device);
+        let l = scalar(loss.clone());
+        l.is_finite().then(|| (l, GradientsParams::from_grads(loss.backward(), f)))
+    };
+    if b < SPLIT_ROWS {
+        return one(flow, v, inp, b);
+    }
+    let (h, d, k) = (b / 2, cfg.dim, cfg.inputs);
+    let (va, vb) = v.split_at(h * d);
+    let (ia, ib) = inp.split_at(h * k);
+    let twin = flow.valid().train();
+    let (a, second) = std::thread::scope(|s| {
+        let second = s.spawn(|| one(&twin, vb.to_vec(), ib.to_vec(), b - h));
+        (one(flow, va.to_vec(), ia.to_vec(), h), second.join())
+    });
+    let ((la, mut ga), (lb, mut gb)) = (a?, second.ok()??);
+    let (wa, wb) = (h as f64 / b as f64, (b - h) as f64 / b as f64);
+    let mut merge = MergeGrads { a: &mut ga, b: &mut gb, wa, wb, out: GradientsParams::new() };
+    flow.visit(&mut merge);
+    Some((wa * la + wb * lb, merge.out))
+}
+
+/// Batches of this many rows or more are split over two threads ([`batch_gradient`]).
+pub const SPLIT_ROWS: usize = 400;
+
+/// Adds two halves' gradients, weighted by their rows, parameter by parameter.
+struct MergeGrads<'a> {
+    a: &'a mut GradientsParams,
+    b: &'a mut GradientsParams,
+    wa: f64,
+    wb: f64,
+    out: GradientsParams,
+}
+
+impl burn::module::ModuleVisitor for MergeGrads<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+        let id = param.id;
+        match (self.a.remove::<D>(id), self.b.remove::<D>(id)) {
+            (Some(a), Some(b)) => self.out.register(id, a * self.wa + b * self.wb),
+            (Some(a), None) => self.out.register(id, a * self.wa),
+            (None, Some(b)) => self.out.register(id, b * self.wb),
+            (None, None) => {}
+        }
+    }
+}
+
 /// A one-element loss tensor as f64 (NaN when it cannot be read).
 fn scalar(loss: Tensor<1>) -> f64 {
     loss.try_into_vec_as::<f32>().map(|v| v[0] as f64).unwrap_or(f64::NAN)
@@ -393,14 +454,11 @@ impl Run<'_> {
         let (mut sum, mut count) = (0.0, 0);
         for rows in order.chunks(self.s.batch) {
             let (v, inp) = self.batcher.batch(rows, rng);
-            let loss = loss_of(&flow, self.cfg, v, inp, rows.len(), &self.device);
-            let l = scalar(loss.clone());
-            if !l.is_finite() {
+            let Some((l, grads)) = batch_gradient(&flow, self.cfg, &self.device, v, inp, rows.len()) else {
                 continue; // a rare bad batch: skip rather than poison the weights
-            }
+            };
             sum += l * rows.len() as f64;
             count += rows.len();
-            let grads = GradientsParams::from_grads(loss.backward(), &flow);
             flow = opt.step(lr, flow, grads);
         }
         (flow, sum / count.max(1) as f64)
@@ -946,4 +1004,51 @@ fn summarise(mut header: Header, fin: Finished, wall: f64) -> Npe {
     header.training.best_val_loss = fin.best_sum / fin.records.len() as f64;
     header.training.wall_seconds = wall;
     Npe::from_parts(header, fin.records)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Compares two gradients parameter by parameter: the largest difference relative to
+    /// the parameter's largest entry, and how many parameters were compared.
+    struct Compare<'a> {
+        a: &'a GradientsParams,
+        b: &'a GradientsParams,
+        worst: f64,
+        count: usize,
+    }
+
+    impl burn::module::ModuleVisitor for Compare<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            let get = |g: &GradientsParams| g.get::<D>(param.id).map(|t| t.try_into_vec_as::<f32>().unwrap());
+            let (Some(a), Some(b)) = (get(self.a), get(self.b)) else { return };
+            let scale = a.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+            let diff = a.iter().zip(&b).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+            self.worst = self.worst.max((diff / scale) as f64);
+            self.count += 1;
+        }
+    }
+
+    /// A batch split over two threads has the whole batch's loss and gradient (to f32
+    /// rounding), for every parameter, with the halves of unequal size.
+    #[test]
+    fn a_split_batch_has_the_whole_batchs_gradient() {
+        let device = Device::flex().autodiff();
+        let cfg = FlowConfig { blocks: 2, lu: true, scaled_bins: true, ..FlowConfig::new(3, 4, false) };
+        let flow = Flow::seeded(&cfg, &device, Some(11));
+        let b = SPLIT_ROWS + 1;
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let v: Vec<f32> = (0..b * cfg.dim).map(|_| rng.random_range(-2.0..2.0)).collect();
+        let inp: Vec<f32> = (0..b * cfg.inputs).map(|_| rng.random_range(-1.0..1.0)).collect();
+        let (split_loss, split) = batch_gradient(&flow, &cfg, &device, v.clone(), inp.clone(), b).unwrap();
+        let loss = loss_of(&flow, &cfg, v, inp, b, &device);
+        let whole_loss = scalar(loss.clone());
+        let whole = GradientsParams::from_grads(loss.backward(), &flow);
+        assert!((split_loss - whole_loss).abs() < 1e-5 * whole_loss.abs().max(1.0), "{split_loss} vs {whole_loss}");
+        let mut cmp = Compare { a: &whole, b: &split, worst: 0.0, count: 0 };
+        flow.visit(&mut cmp);
+        assert_eq!(cmp.count, whole.len(), "every parameter's gradient is there");
+        assert!(cmp.worst < 1e-4, "worst relative difference {}", cmp.worst);
+    }
 }
