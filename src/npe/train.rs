@@ -303,7 +303,7 @@ fn loss_of(flow: &Flow, cfg: &FlowConfig, v: Vec<f32>, inp: Vec<f32>, b: usize, 
 /// threads, the second through a copy of the flow with its own autodiff graph (burn
 /// locks a graph while it runs backward), and added weighted by their rows: the batch's
 /// gradient up to rounding. Whether a batch is split depends on its size only, never on
-/// the machine, so a seed trains the same weights everywhere.
+/// the machine or the thread count, so a seed trains the same weights everywhere.
 pub(crate) fn batch_gradient(
     flow: &Flow,
     cfg: &FlowConfig,
@@ -324,11 +324,18 @@ pub(crate) fn batch_gradient(
     let (va, vb) = v.split_at(h * d);
     let (ia, ib) = inp.split_at(h * k);
     let twin = flow.valid().train();
-    let (a, second) = std::thread::scope(|s| {
-        let second = s.spawn(|| one(&twin, vb.to_vec(), ib.to_vec(), b - h));
-        (one(flow, va.to_vec(), ia.to_vec(), h), second.join())
-    });
-    let ((la, mut ga), (lb, mut gb)) = (a?, second.ok()??);
+    let second = || one(&twin, vb.to_vec(), ib.to_vec(), b - h);
+    // One after the other where the process was given one thread (`--threads 1`): the
+    // same numbers, since the split does not depend on it.
+    let (a, second) = if rayon::current_num_threads() > 1 {
+        std::thread::scope(|s| {
+            let second = s.spawn(second);
+            (one(flow, va.to_vec(), ia.to_vec(), h), second.join().ok().flatten())
+        })
+    } else {
+        (one(flow, va.to_vec(), ia.to_vec(), h), second())
+    };
+    let ((la, mut ga), (lb, mut gb)) = (a?, second?);
     let (wa, wb) = (h as f64 / b as f64, (b - h) as f64 / b as f64);
     let mut merge = MergeGrads { a: &mut ga, b: &mut gb, wa, wb, out: GradientsParams::new() };
     flow.visit(&mut merge);
