@@ -100,7 +100,7 @@ macro_rules! on_pool {
 
 mod chunks;
 mod keys;
-pub use chunks::{ChunkClaim, ChunkRow, chunk_id, covers};
+pub use chunks::{ChunkClaim, ChunkRow, chunk_id};
 pub use keys::{ApiKey, KeyOwner, NewKey, key_hash};
 
 /// A registered model: a checkpoint file the service can load by id.

@@ -575,9 +575,8 @@ mod tests {
                 let grads = GradientsParams::from_grads(loss.backward(), &flow);
                 flow = opt.step(1e-2, flow, grads);
             }
-            let ctx = flow.embed(Tensor::<2>::from_data(TensorData::new(x.clone(), [n, 2]), &dev));
-            let loss =
-                flow.log_prob(&cfg, Tensor::<2>::from_data(TensorData::new(u.clone(), [n, 3]), &dev), ctx).mean().neg();
+            let (xt, ut) = tensors();
+            let loss = flow.log_prob(&cfg, ut, flow.embed(xt)).mean().neg();
             let grads = loss.backward();
             let bias_grad = |l: &Linear| -> Vec<f32> {
                 l.bias.as_ref().unwrap().val().grad(&grads).unwrap().try_into_vec_as::<f32>().unwrap()

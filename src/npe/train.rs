@@ -320,20 +320,21 @@ pub(crate) fn batch_gradient(
     if b < SPLIT_ROWS {
         return one(flow, v, inp, b);
     }
-    let (h, d, k) = (b / 2, cfg.dim, cfg.inputs);
-    let (va, vb) = v.split_at(h * d);
-    let (ia, ib) = inp.split_at(h * k);
+    let h = b / 2;
+    let (mut va, mut ia) = (v, inp);
+    let (vb, ib) = (va.split_off(h * cfg.dim), ia.split_off(h * cfg.inputs));
     let twin = flow.valid().train();
-    let second = || one(&twin, vb.to_vec(), ib.to_vec(), b - h);
+    let twin = &twin;
+    let second = move || one(twin, vb, ib, b - h);
     // One after the other where the process was given one thread (`--threads 1`): the
     // same numbers, since the split does not depend on it.
     let (a, second) = if rayon::current_num_threads() > 1 {
         std::thread::scope(|s| {
             let second = s.spawn(second);
-            (one(flow, va.to_vec(), ia.to_vec(), h), second.join().ok().flatten())
+            (one(flow, va, ia, h), second.join().ok().flatten())
         })
     } else {
-        (one(flow, va.to_vec(), ia.to_vec(), h), second())
+        (one(flow, va, ia, h), second())
     };
     let ((la, mut ga), (lb, mut gb)) = (a?, second?);
     let (wa, wb) = (h as f64 / b as f64, (b - h) as f64 / b as f64);

@@ -51,7 +51,7 @@ fn chunk_from(row: &impl Cols) -> ChunkRow {
 }
 
 /// Whether `chunks` (in order) cover rows `0..n` once each, in a row.
-pub fn covers(chunks: &[ChunkRow], n: usize) -> bool {
+fn covers(chunks: &[ChunkRow], n: usize) -> bool {
     let mut next = 0;
     for (i, c) in chunks.iter().enumerate() {
         if c.idx != i || c.first_row != next || c.n_rows == 0 {

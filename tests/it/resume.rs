@@ -39,6 +39,15 @@ async fn done_chunks(store: &Store, id: &str) -> usize {
     store.chunks(id).await.unwrap().iter().filter(|c| c.state == "done").count()
 }
 
+/// A dispatcher of worker "w" on `store`, in chunks of `chunk_rows`, running on the
+/// test's runtime.
+fn dispatching(store: &Store, data: &Path, chunk_rows: usize) -> std::sync::Arc<otofit::jobs::Ctx> {
+    let ctx = crate::pg::ctx_on(store.clone(), data, "w", Duration::from_secs(30));
+    let ctx = std::sync::Arc::new(std::sync::Arc::into_inner(ctx).unwrap().with_chunk_rows(chunk_rows));
+    tokio::spawn(jobs::dispatcher(ctx.clone()));
+    ctx
+}
+
 /// Every file under `dir`, recursively, by name.
 fn files_under(dir: &Path) -> Vec<String> {
     let mut out = vec![];
@@ -167,9 +176,7 @@ async fn a_cancelled_simulate_leaves_no_parts_or_temporary_files() {
         let store = Store::connect(&db).await.unwrap();
         let spec = JobSpec::parse("simulate", &json!({"n": 100_000, "seed": 1})).unwrap();
         assert!(store.insert_job_within("c", "simulate", &spec.params(), 3, 8).await.unwrap());
-        let ctx = crate::pg::ctx_on(store.clone(), &data, "w", Duration::from_secs(30));
-        let ctx = std::sync::Arc::new(std::sync::Arc::into_inner(ctx).unwrap().with_chunk_rows(2000));
-        tokio::spawn(jobs::dispatcher(ctx.clone()));
+        let ctx = dispatching(&store, &data, 2000);
         let t0 = Instant::now();
         while done_chunks(&store, "c").await == 0 && t0.elapsed() < Duration::from_secs(60) {
             tokio::time::sleep(Duration::from_millis(10)).await;
@@ -197,9 +204,7 @@ async fn a_partial_chunk_plan_is_replaced_and_the_dataset_has_every_row() {
         // Half a plan of 1,000-row chunks, as a kill between two inserts left it.
         let half = store.plan_chunks("p", &[(0, 1000), (1000, 1000)]).await.unwrap();
         assert_eq!(half.len(), 2, "{name}");
-        let ctx = crate::pg::ctx_on(store.clone(), &data, "w", Duration::from_secs(30));
-        let ctx = std::sync::Arc::new(std::sync::Arc::into_inner(ctx).unwrap().with_chunk_rows(1000));
-        tokio::spawn(jobs::dispatcher(ctx.clone()));
+        let ctx = dispatching(&store, &data, 1000);
         let j = wait_state(&store, "p", &["succeeded", "failed", "cancelled"], 60).await;
         ctx.shutdown.store(true, std::sync::atomic::Ordering::Relaxed);
         assert_eq!(j.state, "succeeded", "{name}: {j:?}");
