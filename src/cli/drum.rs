@@ -1,5 +1,6 @@
-//! `--drum` and `--drum-loss`: the eardrum variants of docs/simulator.md ("The v2
-//! eardrum", "A transmission-line drum"), for reports only (`simulate --explain`,
+//! `--drum`, `--drum-loss` and `--incus-lateral`: the eardrum and chain variants of
+//! docs/simulator.md ("The v2 eardrum", "A transmission-line drum", "The incus across
+//! the stapes axis"), for reports only (`simulate --explain`,
 //! `study reference`, `bench sim`). Datasets and
 //! models always use the default drum (v6: the line): a model trained on a variant would
 //! be fit-checked against the default simulator.
@@ -22,6 +23,12 @@ pub struct DrumOpts {
     /// `hysteretic` (η = 2π·1 kHz·β) or a fixed loss factor η (a number in (0, 10]).
     #[arg(long)]
     pub drum_loss: Option<String>,
+    /// The incus also moves across the stapes axis, so the incudostapedial joint shears
+    /// between two moving bodies (issue 11 item 3, an experiment: docs/simulator.md "The
+    /// incus across the stapes axis"); without it the joint's shear holds the stapes head
+    /// to the ground, as in every model so far.
+    #[arg(long)]
+    pub incus_lateral: bool,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -33,7 +40,7 @@ pub enum DrumArg {
 
 impl DrumOpts {
     pub fn is_set(&self) -> bool {
-        self.drum.is_some() || self.drum_loss.is_some()
+        self.drum.is_some() || self.drum_loss.is_some() || self.incus_lateral
     }
 
     /// Extra least-squares starts for this drum (`study reference`): the nominal row of
@@ -56,6 +63,7 @@ impl DrumOpts {
             // The default; --drum-loss below replaces η.
             Some(DrumArg::Line) | None => {}
         }
+        config.geometry.incus_lateral = self.incus_lateral;
         if let Some(text) = &self.drum_loss {
             config.geometry.tm_loss = match text.as_str() {
                 "rayleigh" => DrumLoss::Rayleigh,

@@ -112,6 +112,19 @@ pub struct Geometry {
     pub g_isj: f64,
     /// Incudostapedial joint in shear.
     pub g_isj_shear: f64,
+    /// Issue 11 item 3, an experiment (docs/simulator.md, "The incus across the stapes
+    /// axis"): the incus also translates across the stapes axis (in the rocking plane),
+    /// held by the posterior incudal ligament and the incudomallear joint, so the ISJ
+    /// shears between two moving bodies. `false` (every model so far): the ISJ's shear
+    /// spring holds the stapes head to the ground.
+    pub incus_lateral: bool,
+    /// The posterior incudal ligament across the stapes axis. The footplate's long axis,
+    /// the rocking plane's, runs antero-posteriorly like the ossicular axis the PIL lies
+    /// on, so the ligament is loaded along its length: a/l, as along z.
+    pub g_pil_lateral: f64,
+    /// The incudomallear joint across the stapes axis: its faces slide (shear). The
+    /// malleus has no lateral motion in this model, so the joint holds the incus to ground.
+    pub g_imj_lateral: f64,
     /// Stapes annular ligament, piston.
     pub g_sal: f64,
     /// Stapes annular ligament, rocking.
@@ -183,6 +196,9 @@ impl Geometry {
             g_imj_rot: a_imj * r_imj * r_imj / (4.0 * t_imj),
             g_isj: 0.6e-6 / 60e-6,
             g_isj_shear: shear * 0.6e-6 / 60e-6,
+            incus_lateral: false,
+            g_pil_lateral: a_pil / l_pil,
+            g_imj_lateral: shear * a_imj / t_imj,
             g_sal,
             g_sal_rock: g_sal * half_fp * half_fp / 3.0,
         }
@@ -330,6 +346,8 @@ pub struct Dofs {
     pub x_stapes: usize,
     /// Stapes rocking about the footplate centre, rad.
     pub phi_stapes: usize,
+    /// Incus translation across the stapes axis, m (only with `Geometry::incus_lateral`).
+    pub y_incus: Option<usize>,
     /// Middle-ear cavity pressure; its row is the cavity's compliance.
     pub p_cavity: usize,
     /// Number of unknowns.
@@ -449,7 +467,7 @@ impl Model {
         let g = &config.geometry;
         let air = config.preset.air();
         let nodes = drum_nodes(&config)?;
-        let dofs = Dofs::layout(config.reduce_drum, nodes.len());
+        let dofs = Dofs::layout(config.reduce_drum, nodes.len(), g.incus_lateral);
         let mut sb = SystemBuilder::new(dofs.n);
         let blocks = Blocks::new(&mut sb, dofs.condensed(g.tm_shape).len());
         let mut b = vec![0.0; dofs.n];
@@ -538,9 +556,10 @@ impl Model {
 impl Dofs {
     /// The unknowns in order: p_drum, the drum's interior (only when it is kept whole,
     /// so that the tests can compare it with the condensed drum), the ossicles, p_cavity.
-    fn layout(reduce_drum: bool, n_nodes: usize) -> Dofs {
+    fn layout(reduce_drum: bool, n_nodes: usize, incus_lateral: bool) -> Dofs {
         let n_interior = 3 * n_nodes.saturating_sub(2);
         let osc = 1 + if reduce_drum { 0 } else { n_interior };
+        let lat = usize::from(incus_lateral);
         Dofs {
             p_drum: 0,
             umbo: osc,
@@ -549,8 +568,9 @@ impl Dofs {
             theta_i: osc + 3,
             x_stapes: osc + 4,
             phi_stapes: osc + 5,
-            p_cavity: osc + 6,
-            n: osc + 7,
+            y_incus: incus_lateral.then_some(osc + 6),
+            p_cavity: osc + 6 + lat,
+            n: osc + 7 + lat,
         }
     }
 
@@ -682,7 +702,19 @@ fn ossicles(g: &Geometry, d: &Dofs, blocks: &Blocks, sb: &mut SystemBuilder) {
     let mut isj = incus_at(g.arm_lp);
     isj.extend(head_z.iter().map(|&(i, c)| (i, -c)));
     sb.add_outer(blocks.joints, &isj, g.g_isj);
-    sb.add_outer(blocks.joints, &head_y, g.g_isj_shear);
+    match d.y_incus {
+        // The lenticular process moves across the axis with the incus: the ISJ shears
+        // between the two bodies; the PIL and the IMJ hold the incus.
+        Some(yi) => {
+            let mut shear = vec![(yi, 1.0)];
+            shear.extend(head_y.iter().map(|&(i, c)| (i, -c)));
+            sb.add_outer(blocks.joints, &shear, g.g_isj_shear);
+            sb.add(blocks.mass, yi, yi, g.m_incus);
+            sb.add(blocks.ligaments, yi, yi, g.g_pil_lateral);
+            sb.add(blocks.joints, yi, yi, g.g_imj_lateral);
+        }
+        None => sb.add_outer(blocks.joints, &head_y, g.g_isj_shear),
+    }
     // Stapes annular ligament: piston and rocking.
     sb.add(blocks.sal, d.x_stapes, d.x_stapes, g.g_sal);
     sb.add(blocks.sal, d.phi_stapes, d.phi_stapes, g.g_sal_rock);

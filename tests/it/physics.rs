@@ -239,6 +239,65 @@ fn umbo_over_stapes_is_the_lever_ratio_when_the_chain_is_rigid() {
     assert!(q.norm() > lever * 1.1, "nominal |Vu/Vst| {:.4}", q.norm());
 }
 
+/// The stapes head's displacement across its axis (the rocking plane), from the solve.
+fn head_lateral(model: &Model, x: &[c64]) -> c64 {
+    let g = &model.config.geometry;
+    let d = &model.dofs;
+    x[d.x_stapes] * g.stapes_tilt.sin() + x[d.phi_stapes] * (g.stapes_height * g.stapes_tilt.cos())
+}
+
+#[test]
+fn the_incus_across_the_stapes_axis_obeys_its_own_equation_of_motion() {
+    // Issue 11 item 3 (`Geometry::incus_lateral`): the incus's lateral unknown couples to
+    // the rest only through the ISJ's shear spring, so its row is a closed form: the joint
+    // spring κ_j·g_isj against the incus held by the PIL (ligaments' modulus) and the IMJ
+    // (joints') and its mass, y_i = κ_j g_isj·y_head / (κ_j g_isj + κ_l g_pil + κ_j g_imj
+    // − ω² m_i), κ = E(1 + jωβ). Unequal moduli catch a spring in the wrong block.
+    let mut config = ModelConfig::default();
+    config.geometry.incus_lateral = true;
+    let model = Model::new(config).unwrap();
+    let g = &model.config.geometry;
+    let yi = model.dofs.y_incus.expect("the lateral unknown exists");
+    let mut runner = model.runner();
+    let mut theta = Theta::nominal();
+    (theta.0[1], theta.0[4]) = (2e6, 3e7); // E_ligaments, E_joints
+    for f in [200.0, 1000.0, 3000.0, 8000.0] {
+        runner.solve_at(&theta, f).unwrap();
+        let x = runner.solution();
+        let w = 2.0 * PI * f;
+        let ray = c64::new(1.0, w * theta.damping_beta());
+        let (kj, kl) = (ray * theta.e_joints(), ray * theta.e_ligaments());
+        let isj = kj * g.g_isj_shear;
+        let want =
+            isj * head_lateral(&model, x) / (isj + kl * g.g_pil_lateral + kj * g.g_imj_lateral - w * w * g.m_incus);
+        assert!((x[yi] - want).norm() < 1e-9 * want.norm(), "{f} Hz: y_incus {} vs closed form {want}", x[yi]);
+    }
+}
+
+#[test]
+fn holding_the_incus_across_the_axis_gives_the_grounded_joint() {
+    // With its lateral holds 10⁸× stiffer the incus stands still across the axis, and the
+    // model must be every earlier model (the ISJ's shear spring to the ground), feature
+    // for feature; with the holds as built the features move by much less than the noise
+    // (docs/simulator.md, "The incus across the stapes axis").
+    let grounded = Model::new(ModelConfig::default()).unwrap();
+    let mut config = ModelConfig::default();
+    config.geometry.incus_lateral = true;
+    config.geometry.g_pil_lateral *= 1e8;
+    config.geometry.g_imj_lateral *= 1e8;
+    let held = Model::new(config).unwrap();
+    assert_eq!(held.n_unknowns(), grounded.n_unknowns() + 1);
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for _ in 0..5 {
+        let mut theta = Theta(std::array::from_fn(|i| PARAMS[i].from_unit(rng.random())));
+        theta.0[12] = 45.0; // the LDV beam sees the rocking
+        let a = otofit::sim::simulate(&mut grounded.runner(), &theta, &Effects::default()).unwrap();
+        let b = otofit::sim::simulate(&mut held.runner(), &theta, &Effects::default()).unwrap();
+        let worst = a.iter().zip(&b).map(|(p, q)| (p - q).abs()).fold(0.0, f64::max);
+        assert!(worst < 1e-6, "held incus vs grounded joint: worst feature difference {worst:.2e} at {theta:?}");
+    }
+}
+
 /// A line drum for the tests (`sim::line_drum`), inside the knobs' ranges of
 /// examples/tune_nominal.rs.
 const LINE: LineDrum = LineDrum { delay: 60e-6, z0: 1.5e7, area: 40e-6, shunt: 7e-13 };
@@ -274,7 +333,8 @@ fn line_drum_with_the_umbo_held_is_the_rigid_ended_line_beside_its_shunt_and_beh
 
 #[test]
 fn line_drum_ear_is_passive_and_balances_its_power_at_random_draws() {
-    // Random θ over the prior, random line geometry and drum loss model: every loss ≥ 0
+    // Random θ over the prior, random line geometry and drum loss model, every other ear
+    // with the incus free across the stapes axis: every loss ≥ 0
     // (the drum's from its distributed losses along the line), probe = canal + into the
     // drum, into the drum = the middle-ear losses, Re Z_ec ≥ 0, 0 ≤ A ≤ 1.
     let mut rng = ChaCha8Rng::seed_from_u64(12);
@@ -294,6 +354,7 @@ fn line_drum_ear_is_passive_and_balances_its_power_at_random_draws() {
             1 => DrumLoss::LossFactor(rng.random::<f64>()),
             _ => DrumLoss::Hysteretic { f_ref_hz: 1000.0 },
         };
+        config.geometry.incus_lateral = draw % 2 == 1;
         let model = Model::new(config).unwrap();
         let mut runner = model.runner();
         let theta = Theta(std::array::from_fn(|i| PARAMS[i].from_unit(rng.random())));

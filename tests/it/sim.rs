@@ -222,6 +222,17 @@ fn explain_reports_the_drum_variants_and_refuses_bad_ones() {
         .unwrap();
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("study reference"));
     assert!(!dir.exists(), "study validate ran with --drum");
+    // The incus across the stapes axis (issue 11 item 3) is a report variant too.
+    let (ok, _, err) = explain(&["--incus-lateral"]);
+    assert!(ok, "{err}");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+        .args(["simulate", "--n", "2", "--incus-lateral", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--incus-lateral") && err.contains("--explain"), "{err}");
+    assert!(!dir.exists(), "a dataset was written with --incus-lateral");
 }
 
 /// The default drum is the line (v6), and `--drum axisymmetric` still reaches the v1–v5
