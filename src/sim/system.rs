@@ -1,7 +1,9 @@
-//! A sparse complex system A(ω) = Σ_b κ_b(ω) B_b with a fixed pattern, solved with
-//! faer's sparse LU. The symbolic factorisation is computed once per pattern (one per
-//! mesh) and shared by every frequency and every parameter set; each `Workspace` owns
-//! the numeric buffers of one thread.
+//! A sparse complex system A(ω) = Σ_b κ_b(ω) B_b with a fixed pattern. A small system
+//! (the condensed ear has 8–9 unknowns) is solved densely, by Gaussian elimination with
+//! partial pivoting: faer's sparse machinery costs more than the arithmetic at that size.
+//! A larger one (the uncondensed drum of the tests) goes through faer's sparse LU, whose
+//! symbolic factorisation is computed once per pattern and shared by every frequency and
+//! every parameter set. Each `Workspace` owns the numeric buffers of one thread.
 
 use faer::c64;
 use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
@@ -65,11 +67,19 @@ impl SystemBuilder {
         }
         let blocks =
             self.blocks.into_iter().map(|b| b.into_iter().map(|(r, c, v)| (slots[&(c, r)], v)).collect()).collect();
-        let sym = SymbolicSparseColMatRef::new_checked(self.n, self.n, &col_ptr, None, &row_idx);
-        let symbolic = factorize_symbolic_lu(sym, Default::default())?;
-        Ok(System { n: self.n, col_ptr, row_idx, blocks, symbolic: Arc::new(symbolic) })
+        let symbolic = if self.n <= DENSE_MAX {
+            None
+        } else {
+            let sym = SymbolicSparseColMatRef::new_checked(self.n, self.n, &col_ptr, None, &row_idx);
+            Some(Arc::new(factorize_symbolic_lu(sym, Default::default())?))
+        };
+        Ok(System { n: self.n, col_ptr, row_idx, blocks, symbolic })
     }
 }
+
+/// Systems up to this size are solved densely (`bench sim`: the 8-unknown ear's solve
+/// takes a fraction of faer's sparse LU time).
+const DENSE_MAX: usize = 24;
 
 /// max(|re|, |im|): a scale within √2 of |z|, without the cost of `hypot`.
 fn abs_max(z: c64) -> f64 {
@@ -83,7 +93,8 @@ pub struct System {
     col_ptr: Vec<usize>,
     row_idx: Vec<usize>,
     blocks: Vec<Vec<(usize, f64)>>,
-    symbolic: Arc<SymbolicLu<usize>>,
+    /// The sparse path's symbolic LU; `None` for a system solved densely.
+    symbolic: Option<Arc<SymbolicLu<usize>>>,
 }
 
 /// Why a solve failed.
@@ -110,6 +121,8 @@ pub struct Workspace {
     col_scale: Vec<f64>,
     numeric: NumericLu<usize, c64>,
     mem: MemBuffer,
+    /// The dense path's matrix (column-major), overwritten by its LU factors.
+    dense: Vec<c64>,
     /// The last solve's solution.
     pub x: Vec<c64>,
 }
@@ -128,16 +141,21 @@ impl System {
     /// Buffers for one thread's solves, sized for this pattern (allocated once, reused
     /// for every frequency).
     pub fn workspace(&self) -> Workspace {
-        let req = StackReq::any_of(&[
-            self.symbolic.factorize_numeric_lu_scratch::<c64>(Par::Seq, Default::default()),
-            self.symbolic.solve_in_place_scratch::<c64>(1, Par::Seq),
-        ]);
+        let req = match &self.symbolic {
+            Some(sym) => StackReq::any_of(&[
+                sym.factorize_numeric_lu_scratch::<c64>(Par::Seq, Default::default()),
+                sym.solve_in_place_scratch::<c64>(1, Par::Seq),
+            ]),
+            None => StackReq::EMPTY,
+        };
+        let dense = if self.symbolic.is_none() { self.n * self.n } else { 0 };
         Workspace {
             values: vec![c64::new(0.0, 0.0); self.nnz()],
             row_scale: vec![0.0; self.n],
             col_scale: vec![0.0; self.n],
             numeric: NumericLu::new(),
             mem: MemBuffer::new(req),
+            dense: vec![c64::new(0.0, 0.0); dense],
             x: vec![c64::new(0.0, 0.0); self.n],
         }
     }
@@ -200,18 +218,22 @@ impl System {
                 ws.values[k] *= s;
             }
         }
-        let sym = SymbolicSparseColMatRef::new_checked(self.n, self.n, &self.col_ptr, None, &self.row_idx);
-        let a = SparseColMatRef::new(sym, &ws.values);
-        let lu = self
-            .symbolic
-            .factorize_numeric_lu(&mut ws.numeric, a, Par::Seq, MemStack::new(&mut ws.mem), Default::default())
-            .map_err(|_| SolveError::Singular { freq_hz })?;
         ws.x.fill(c64::new(0.0, 0.0));
         for &(r, v) in rhs {
             ws.x[r] += v * ws.row_scale[r];
         }
-        let rhs_mat = MatMut::from_column_major_slice_mut(&mut ws.x, self.n, 1);
-        lu.solve_in_place_with_conj(Conj::No, rhs_mat, Par::Seq, MemStack::new(&mut ws.mem));
+        match &self.symbolic {
+            None => self.solve_dense(ws).ok_or(SolveError::Singular { freq_hz })?,
+            Some(symbolic) => {
+                let sym = SymbolicSparseColMatRef::new_checked(self.n, self.n, &self.col_ptr, None, &self.row_idx);
+                let a = SparseColMatRef::new(sym, &ws.values);
+                let lu = symbolic
+                    .factorize_numeric_lu(&mut ws.numeric, a, Par::Seq, MemStack::new(&mut ws.mem), Default::default())
+                    .map_err(|_| SolveError::Singular { freq_hz })?;
+                let rhs_mat = MatMut::from_column_major_slice_mut(&mut ws.x, self.n, 1);
+                lu.solve_in_place_with_conj(Conj::No, rhs_mat, Par::Seq, MemStack::new(&mut ws.mem));
+            }
+        }
         for (xi, s) in ws.x.iter_mut().zip(&ws.col_scale) {
             *xi *= *s;
         }
@@ -219,6 +241,54 @@ impl System {
             return Err(SolveError::NonFinite { freq_hz });
         }
         Ok(())
+    }
+
+    /// Solves the equilibrated system in `ws.values` for the right-hand side in `ws.x`
+    /// (in place), densely: Gaussian elimination with partial pivoting on the largest
+    /// |re| + |im| in the column. `None` on a zero pivot.
+    fn solve_dense(&self, ws: &mut Workspace) -> Option<()> {
+        let n = self.n;
+        let a = &mut ws.dense;
+        a.fill(c64::new(0.0, 0.0));
+        for c in 0..n {
+            for k in self.col_ptr[c]..self.col_ptr[c + 1] {
+                a[c * n + self.row_idx[k]] = ws.values[k];
+            }
+        }
+        let x = &mut ws.x;
+        for j in 0..n {
+            let p = (j..n).max_by(|&r, &s| abs_max(a[j * n + r]).total_cmp(&abs_max(a[j * n + s])))?;
+            if a[j * n + p] == c64::new(0.0, 0.0) {
+                return None;
+            }
+            if p != j {
+                for c in j..n {
+                    a.swap(c * n + p, c * n + j);
+                }
+                x.swap(p, j);
+            }
+            let inv = c64::new(1.0, 0.0) / a[j * n + j];
+            for r in j + 1..n {
+                let l = a[j * n + r] * inv;
+                if l == c64::new(0.0, 0.0) {
+                    continue;
+                }
+                for c in j + 1..n {
+                    let u = a[c * n + j];
+                    a[c * n + r] -= l * u;
+                }
+                let xj = x[j];
+                x[r] -= l * xj;
+            }
+        }
+        for j in (0..n).rev() {
+            let mut v = x[j];
+            for c in j + 1..n {
+                v -= a[c * n + j] * x[c];
+            }
+            x[j] = v / a[j * n + j];
+        }
+        Some(())
     }
 }
 
@@ -259,6 +329,79 @@ mod tests {
         let peak = (c64::new(0.0, wn) * smd(k, m, 0.0, beta, wn)).norm();
         let expected = 1.0 / (beta * k); // velocity/force at ω_n: 1/(ω_n β k)·ω_n
         assert!((peak / expected - 1.0).abs() < 1e-9, "{peak} vs {expected}");
+    }
+
+    /// A random sparse complex system of `n` unknowns with zeros on the diagonal of its
+    /// first rows (so elimination must pivot), as one block with coefficient 1 plus a
+    /// second block scaled by a complex coefficient.
+    fn random_system(n: usize, seed: u64) -> (System, Vec<c64>, faer::Mat<c64>) {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let mut b = SystemBuilder::new(n);
+        let (b0, b1) = (b.block(), b.block());
+        let coef = vec![c64::new(1.0, 0.0), c64::new(0.3, -2.0)];
+        let mut dense = faer::Mat::<c64>::zeros(n, n);
+        for r in 0..n {
+            for c in 0..n {
+                let zero_diagonal = r == c && r < 3;
+                if zero_diagonal || (r != c && rng.random::<f64>() < 0.6) {
+                    continue;
+                }
+                // Entries over ten decades, as in the ear (pressures against displacements).
+                let (v0, v1) = (rng.random::<f64>() - 0.5, rng.random::<f64>() - 0.5);
+                let scale = 10f64.powf(10.0 * rng.random::<f64>() - 5.0);
+                b.add(b0, r, c, v0 * scale);
+                b.add(b1, r, c, v1 * scale);
+                dense[(r, c)] = coef[0] * (v0 * scale) + coef[1] * (v1 * scale);
+            }
+            // A superdiagonal keeps the zero-diagonal rows regular.
+            let c = (r + 1) % n;
+            b.add(b0, r, c, 1.0);
+            dense[(r, c)] += c64::new(1.0, 0.0);
+        }
+        (b.build().unwrap(), coef, dense)
+    }
+
+    #[test]
+    fn the_dense_path_solves_what_faer_solves_and_pivots() {
+        use faer::prelude::Solve;
+        for (n, seed) in [(5, 1), (9, 2), (DENSE_MAX, 3)] {
+            let (sys, coef, dense) = random_system(n, seed);
+            assert!(sys.symbolic.is_none(), "{n} unknowns take the dense path");
+            let mut ws = sys.workspace();
+            sys.solve(&coef, &[(0, c64::new(1.0, 0.0)), (n - 1, c64::new(0.0, 2.0))], &mut ws, 0.0).unwrap();
+            let mut rhs = faer::Mat::<c64>::zeros(n, 1);
+            rhs[(0, 0)] = c64::new(1.0, 0.0);
+            rhs[(n - 1, 0)] += c64::new(0.0, 2.0);
+            let want = dense.partial_piv_lu().solve(&rhs);
+            let residual = &dense * faer::Mat::from_fn(n, 1, |i, _| ws.x[i]) - &rhs;
+            let worst =
+                (0..n).map(|i| (ws.x[i] - want[(i, 0)]).norm() / want[(i, 0)].norm().max(1e-300)).fold(0.0, f64::max);
+            assert!(worst < 1e-9, "{n} unknowns: worst relative difference from faer's dense LU {worst:.2e}");
+            assert!(residual.norm_l2() < 1e-9 * rhs.norm_l2(), "{n} unknowns: residual {}", residual.norm_l2());
+        }
+    }
+
+    #[test]
+    fn a_singular_system_is_an_error_naming_the_frequency_on_either_path() {
+        for n in [3, DENSE_MAX + 1] {
+            let mut b = SystemBuilder::new(n);
+            let k = b.block();
+            for i in 0..n {
+                b.add(k, i, i, 1.0);
+            }
+            let sys = b.build().unwrap();
+            assert_eq!(sys.symbolic.is_none(), n <= DENSE_MAX);
+            let mut ws = sys.workspace();
+            let got = sys.solve(&[c64::new(0.0, 0.0)], &[(0, c64::new(1.0, 0.0))], &mut ws, 250.0);
+            // faer's sparse LU does not stop on a zero pivot; its infinite answer is caught.
+            let named = match got {
+                Err(SolveError::Singular { freq_hz }) => freq_hz,
+                Err(SolveError::NonFinite { freq_hz }) if n > DENSE_MAX => freq_hz,
+                other => panic!("{n} unknowns: {other:?}"),
+            };
+            assert_eq!(named, 250.0);
+        }
     }
 
     #[test]
