@@ -61,6 +61,9 @@ pub struct Fit {
     pub iterations: usize,
     /// Laplace standard deviation of each column in unbounded coordinates (from JᵀJ).
     pub u_std: Vec<f64>,
+    /// JᵀJ at the best row (unbounded coordinates, row-major d×d): half the Hessian of
+    /// χ² in the Gauss–Newton approximation.
+    pub jtj: Vec<f64>,
 }
 
 impl Fit {
@@ -146,7 +149,8 @@ pub fn fit_columns(
     // Laplace approximation of the posterior in u (flat prior in u): cov ≈ (JᵀJ)⁻¹.
     let inv = jtj.partial_piv_lu().solve(Mat::<f64>::identity(d, d));
     let u_std = (0..d).map(|i| inv[(i, i)].abs().sqrt()).collect();
-    Some(Fit { row: to_row(&u), chi2: c, n_features: r.len(), iterations, u_std })
+    let jtj = (0..d * d).map(|k| jtj[(k / d, k % d)]).collect();
+    Some(Fit { row: to_row(&u), chi2: c, n_features: r.len(), iterations, u_std, jtj })
 }
 
 #[cfg(test)]

@@ -914,20 +914,23 @@ fn infer_log_prob_ranks_the_truth_above_a_wrong_eardrum() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
+/// `otofit infer` of the openapi example (the typical ear, noise-free) with the default
+/// model, 300 samples, written into `d`, and `flag` set to the value the closure is given.
+fn typical_ear_infer(d: &std::path::Path, flag: &'static str) -> impl Fn(&str) -> std::process::Output {
+    let obs = d.join("ear.json");
+    std::fs::write(&obs, openapi_example()).unwrap();
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let (o, s) = (obs.to_str().unwrap().to_string(), d.join("s.csv").to_str().unwrap().to_string());
+    move |value: &str| otofit(&["infer", "--model", model, "--obs", &o, "--samples", "300", "--out", &s, flag, value])
+}
+
 /// `infer --refine`: from the flow's MAP, least squares through the simulator fits the
 /// openapi example (the typical ear, noise-free) to far below its noise, and recovers the
 /// ear's eardrum modulus (the centre of its normal range, 20 MPa); the step cap is checked.
 #[test]
 fn infer_refine_fits_the_typical_ear_far_closer_than_the_map() {
     let d = scratch("refine");
-    let obs = d.join("ear.json");
-    std::fs::write(&obs, openapi_example()).unwrap();
-    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
-    let out = d.join("s.csv");
-    let args = |steps: &'static str| {
-        let (o, s) = (obs.to_str().unwrap().to_string(), out.to_str().unwrap().to_string());
-        otofit(&["infer", "--model", model, "--obs", &o, "--samples", "300", "--out", &s, "--refine", steps])
-    };
+    let args = typical_ear_infer(&d, "--refine");
     let o = args("50");
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
@@ -939,6 +942,36 @@ fn infer_refine_fits_the_typical_ear_far_closer_than_the_map() {
     assert!((e / 2e7 - 1.0).abs() < 0.01, "refined E_eardrum {e}");
     let o = args("201");
     assert!(String::from_utf8_lossy(&o.stderr).contains("--refine must be 0..=200"), "{o:?}");
+    let _ = std::fs::remove_dir_all(&d);
+}
+
+/// `infer --exact`: the likelihood's posterior of the typical ear (noise-free) comes with
+/// its own summaries and reading, is narrower than the flow's for the eardrum, holds the
+/// ear's 20 MPa inside its 90 % interval, and the step range is checked by name.
+#[test]
+fn infer_exact_samples_the_likelihoods_posterior_of_the_typical_ear() {
+    let d = scratch("exact");
+    let args = typical_ear_infer(&d, "--exact");
+    let o = args("100000");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    let ex = &r["exact"];
+    let eardrum = |v: &serde_json::Value| {
+        let s = v.as_array().unwrap().iter().find(|s| s["name"] == "E_eardrum").unwrap().clone();
+        (s["q05"].as_f64().unwrap(), s["q95"].as_f64().unwrap())
+    };
+    let (flow, exact) = (eardrum(&r["parameters"]), eardrum(&ex["summaries"]));
+    eprintln!("E_eardrum 90 %: flow {flow:?}, likelihood {exact:?}; chain {}", ex["chain"]);
+    assert_eq!(ex["summaries"].as_array().unwrap().len(), 14, "{ex}");
+    assert!(exact.1 - exact.0 < (flow.1 - flow.0) / 2.0, "flow {flow:?}, likelihood {exact:?}");
+    assert!(exact.0 < 2e7 && 2e7 < exact.1, "the ear's 20 MPa outside {exact:?}");
+    let acc = ex["chain"]["acceptance"].as_f64().unwrap();
+    assert!((0.05..0.6).contains(&acc), "acceptance {acc}");
+    assert!(ex["differential"].as_array().is_some_and(|a| a.len() == 7), "{ex}");
+    for bad in ["99999", "200001"] {
+        let o = args(bad);
+        assert!(String::from_utf8_lossy(&o.stderr).contains("--exact must be 0 (off) or 100000..=200000"), "{o:?}");
+    }
     let _ = std::fs::remove_dir_all(&d);
 }
 
