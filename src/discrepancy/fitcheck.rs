@@ -334,6 +334,7 @@ pub const EXACT_STARTS: usize = 16;
 /// then `steps` Metropolis steps from the best (every 10th kept): the posterior of the
 /// features `x` that are `present` under the model's noise, exact up to the chain's
 /// sampling error. Local to the best fit's mode; exact only for an ear the model fits.
+/// Chains shorter than [`super::exact::MIN_STEPS`] under-cover (the CLI refuses them).
 pub fn exact(
     npe: &Npe,
     x: &[f64],
