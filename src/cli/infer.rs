@@ -222,9 +222,9 @@ pub fn run(args: InferArgs) -> Result<()> {
     if args.refine > max_steps {
         bail!("--refine must be 0..={max_steps} steps (got {})", args.refine);
     }
-    let (min_exact, max_exact) = (crate::discrepancy::exact::MIN_STEPS, crate::discrepancy::exact::MAX_STEPS);
-    if args.exact != 0 && !(min_exact..=max_exact).contains(&args.exact) {
-        bail!("--exact must be 0 (off) or {min_exact}..={max_exact} steps (got {})", args.exact);
+    let range = crate::jobs::limits::EXACT_STEPS;
+    if args.exact != 0 && !range.contains(&args.exact) {
+        bail!("--exact must be 0 (off) or {}..={} steps (got {})", range.start(), range.end(), args.exact);
     }
     if let Some(theta) = &args.log_prob {
         let model = Npe::load(&args.model)?;

@@ -171,7 +171,8 @@ pub async fn create_job(
                 return Err(Problem::invalid(vec![("params.dataset".into(), message)]));
             }
         }
-        JobSpec::Diagnose(p) => diagnose_model(&st, &who, p).await?,
+        JobSpec::Diagnose(p) => model_takes(&st, &who, p.model.as_deref(), p.x.len()).await?,
+        JobSpec::Exact(p) => model_takes(&st, &who, p.model.as_deref(), p.x.len()).await?,
         JobSpec::Simulate(_) | JobSpec::Resimulate(_) => {}
     }
     let id = jobs::new_id();
@@ -214,9 +215,9 @@ pub async fn create_job(
 
 /// A diagnose job's base model (`params.model`, else the default) must be registered and
 /// take as many features as `params.x` has: both answered now, not when the job runs.
-async fn diagnose_model(st: &AppState, who: &Principal, p: &jobs::DiagnoseParams) -> Result<(), Problem> {
-    let id = p.model_id().to_string();
-    let field = if p.model.is_some() { "params.model" } else { "params" };
+async fn model_takes(st: &AppState, who: &Principal, model: Option<&str>, n: usize) -> Result<(), Problem> {
+    let id = model.unwrap_or("default").to_string();
+    let field = if model.is_some() { "params.model" } else { "params" };
     if visible_model(st, who, &id).await?.is_none() {
         return Err(Problem::invalid(vec![(field.into(), format!("model '{id}' is not registered"))]));
     }
@@ -226,7 +227,7 @@ async fn diagnose_model(st: &AppState, who: &Principal, p: &jobs::DiagnoseParams
         .await
         .map_err(Problem::internal)?
         .map_err(|e| Problem::invalid(vec![(field.into(), format!("{e:#}"))]))?;
-    let (n, want) = (p.x.len(), npe.header.feature_names.len());
+    let want = npe.header.feature_names.len();
     if n != want {
         return Err(Problem::invalid(vec![(
             "params.x".into(),

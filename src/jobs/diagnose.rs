@@ -2,7 +2,7 @@
 //! (fit, check, name the missing effect, add it and retrain), with a report page, its
 //! figures and the extended model.
 
-use super::spec::{FieldError, effect_names, in_range, plain_id};
+use super::spec::{FieldError, effect_names, in_range, model_and_observation};
 use super::{Ctx, Reporter, Stopped, limits, registered_model};
 use crate::sim::params::{EFFECTS, Effects};
 use crate::sim::{Model, ModelConfig};
@@ -55,15 +55,7 @@ impl DiagnoseParams {
     /// The checks that need no model (its existence and feature count are checked
     /// against the store when the job is posted).
     pub(super) fn validate(&self, errs: &mut Vec<FieldError>) {
-        if let Some(m) = &self.model {
-            plain_id("params.model", m, errs);
-        }
-        if let Some(i) = self.x.iter().position(|v| v.is_some_and(|v| !v.is_finite())) {
-            errs.push((format!("params.x[{i}]"), "must be a finite number or null (not measured)".into()));
-        }
-        if !self.x.is_empty() && self.x.iter().all(Option::is_none) {
-            errs.push(("params.x".into(), "holds no measured feature (every value is null)".into()));
-        }
+        model_and_observation(self.model.as_deref(), &self.x, errs);
         for (i, c) in self.candidates.iter().flatten().enumerate() {
             if Effects::index(c).is_none() {
                 errs.push((

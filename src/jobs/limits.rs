@@ -24,6 +24,11 @@ pub const TRAIN_ROWS: RangeInclusive<usize> = 100..=MAX_ROWS;
 /// 97.5 % quantile worth the name (0 once disabled every alarm).
 pub const NULL_CASES: RangeInclusive<usize> = 5..=1_000;
 
+/// Metropolis steps of an exact posterior (exact jobs, `otofit infer --exact`): from the
+/// length measured calibrated to twice it.
+pub const EXACT_STEPS: RangeInclusive<usize> =
+    crate::discrepancy::exact::MIN_STEPS..=crate::discrepancy::exact::MAX_STEPS;
+
 /// `Err("must be A..=B, got V")` when `v` is outside `range`.
 pub fn check<T: PartialOrd + Display>(range: &RangeInclusive<T>, v: T) -> Result<(), String> {
     if range.contains(&v) { Ok(()) } else { Err(format!("must be {}..={}, got {v}", range.start(), range.end())) }

@@ -15,6 +15,7 @@
 //! holds the bounds the CLI shares.
 
 mod diagnose;
+mod exact;
 pub mod limits;
 mod resimulate;
 mod simulate;
@@ -22,6 +23,7 @@ mod spec;
 mod train;
 
 pub use diagnose::DiagnoseParams;
+pub use exact::ExactParams;
 pub use limits::MAX_ROWS;
 pub use resimulate::ResimulateParams;
 pub use simulate::{CHUNK_ROWS, SimulateParams, chunk_plan, remove_temporary_files};
@@ -243,6 +245,7 @@ impl JobSpec {
             JobSpec::Train(p) => train::execute(ctx, id, p, r),
             JobSpec::Resimulate(p) => resimulate::execute(ctx, id, p, r),
             JobSpec::Diagnose(p) => diagnose::execute(ctx, id, p, r),
+            JobSpec::Exact(p) => exact::execute(ctx, p, r),
         }
     }
 }

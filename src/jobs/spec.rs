@@ -3,6 +3,7 @@
 //! executed from the typed value.
 
 use super::diagnose::DiagnoseParams;
+use super::exact::ExactParams;
 use super::resimulate::ResimulateParams;
 use super::simulate::SimulateParams;
 use super::train::TrainParams;
@@ -12,7 +13,7 @@ use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
 /// The job kinds, as `kind` spells them.
-pub const KINDS: [&str; 4] = ["simulate", "train", "resimulate", "diagnose"];
+pub const KINDS: [&str; 5] = ["simulate", "train", "resimulate", "diagnose", "exact"];
 
 /// A job: its kind and its params (`{"kind": …, "params": {…}}`, the body of POST /jobs).
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -26,6 +27,8 @@ pub enum JobSpec {
     Resimulate(ResimulateParams),
     /// Check an observation against a model, name the missing effect and retrain with it.
     Diagnose(DiagnoseParams),
+    /// Sample an observation's posterior under the model's own likelihood.
+    Exact(ExactParams),
 }
 
 /// A validation problem: the JSON path of the field and what is wrong with it.
@@ -46,6 +49,13 @@ impl JobSpec {
                 }
                 JobSpec::Diagnose(p)
             }
+            "exact" => {
+                let p: ExactParams = parse(params)?;
+                if p.model.is_none() && params.get("model").is_some() {
+                    errs.push(("params.model".into(), "must be a model id, or left out for the default model".into()));
+                }
+                JobSpec::Exact(p)
+            }
             other => {
                 let known = KINDS.join(", ");
                 return Err(vec![("kind".into(), format!("unknown job kind '{other}' (known: {known})"))]);
@@ -56,6 +66,7 @@ impl JobSpec {
             JobSpec::Train(p) => p.validate(&mut errs),
             JobSpec::Resimulate(p) => p.validate(&mut errs),
             JobSpec::Diagnose(p) => p.validate(&mut errs),
+            JobSpec::Exact(p) => p.validate(&mut errs),
         }
         if errs.is_empty() { Ok(spec) } else { Err(errs) }
     }
@@ -72,6 +83,7 @@ impl JobSpec {
             JobSpec::Train(_) => "train",
             JobSpec::Resimulate(_) => "resimulate",
             JobSpec::Diagnose(_) => "diagnose",
+            JobSpec::Exact(_) => "exact",
         }
     }
 
@@ -138,6 +150,20 @@ pub const MAX_ID: usize = 64;
 /// anything that might (`../../etc/model` is refused before it gets near the disk).
 pub fn is_plain_id(id: &str) -> bool {
     (1..=MAX_ID).contains(&id.len()) && id.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+/// The checks of a job on one observation (diagnose, exact) that need no model: the
+/// model id is plain, every feature finite or null, at least one measured.
+pub(super) fn model_and_observation(model: Option<&str>, x: &[Option<f64>], errs: &mut Vec<FieldError>) {
+    if let Some(m) = model {
+        plain_id("params.model", m, errs);
+    }
+    if let Some(i) = x.iter().position(|v| v.is_some_and(|v| !v.is_finite())) {
+        errs.push((format!("params.x[{i}]"), "must be a finite number or null (not measured)".into()));
+    }
+    if !x.is_empty() && x.iter().all(Option::is_none) {
+        errs.push(("params.x".into(), "holds no measured feature (every value is null)".into()));
+    }
 }
 
 pub(super) fn plain_id(field: &str, id: &str, errs: &mut Vec<FieldError>) {

@@ -387,6 +387,46 @@ async fn diagnose_job_writes_a_report_with_figures() {
     assert_eq!(p["errors"][0]["field"], "params.candidates[0]", "{p}");
 }
 
+/// An exact job: the likelihood's posterior of the nominal ear without its umbo LDV
+/// (`null` features), narrower than the flow's and holding the ear's eardrum modulus;
+/// its params are checked by name.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn exact_job_samples_the_likelihoods_posterior() {
+    let (app, _, _dir) = app(vec![], 8, true).await;
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let theta = otofit::sim::Theta::nominal();
+    let x = otofit::sim::simulate(&mut model.runner(), &theta, &otofit::sim::Effects::default()).unwrap();
+    let x: Vec<Option<f64>> = x.iter().enumerate().map(|(i, v)| (i < 250).then_some(*v)).collect();
+    let (status, _, j) = call(&app, "POST", "/jobs", Some(json!({"kind": "exact", "params": {"x": x}}))).await;
+    assert_eq!(status, StatusCode::ACCEPTED, "{j}");
+    let done = wait(&app, j["id"].as_str().unwrap()).await;
+    assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["params"]["steps"], 100_000, "the default is written out");
+    let r = &done["result"];
+    let eardrum = |v: &Value| {
+        let s = v.as_array().unwrap().iter().find(|s| s["name"] == "E_eardrum").unwrap().clone();
+        (s["q05"].as_f64().unwrap(), s["q95"].as_f64().unwrap())
+    };
+    let (flow, exact) = (eardrum(&r["flow"]), eardrum(&r["exact"]["summaries"]));
+    let truth = theta.e_eardrum();
+    assert!(exact.1 - exact.0 < (flow.1 - flow.0) / 2.0, "flow {flow:?}, likelihood {exact:?}");
+    assert!(exact.0 < truth && truth < exact.1, "{truth} outside {exact:?}");
+    assert_eq!(r["differential"].as_array().unwrap().len(), 7, "{r}");
+    assert_eq!(r["fit"]["ok"], true, "{r}");
+    let bad = |params: Value, field: &'static str| {
+        let app = app.clone();
+        async move {
+            let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "exact", "params": params}))).await;
+            assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+            assert_eq!(p["errors"][0]["field"], field, "{p}");
+        }
+    };
+    bad(json!({"x": x, "steps": 1000}), "params.steps").await;
+    bad(json!({"x": vec![Value::Null; 350]}), "params.x").await;
+    bad(json!({"x": [1.0, 2.0]}), "params.x").await;
+    bad(json!({"x": x, "model": "no-such-model"}), "params.model").await;
+}
+
 /// Blocking HTTP/1.1 over std (the real binary, on a socket).
 pub(crate) fn http(port: u16, method: &str, path: &str, body: Option<&str>) -> Option<(u16, Value)> {
     use std::io::{Read, Write};

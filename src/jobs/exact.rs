@@ -1,0 +1,81 @@
+//! `exact`: the posterior of one observation under the model's own likelihood
+//! (`discrepancy::exact`, `otofit infer --exact`): ten seconds or more of a core per
+//! observation, so it runs on the job queue, not in POST /infer.
+
+use super::spec::{FieldError, in_range, model_and_observation};
+use super::{Ctx, Reporter, limits, registered_model};
+use crate::npe::Obs;
+use anyhow::{Result, bail};
+use serde::{Deserialize, Serialize};
+
+/// The params of an exact job.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExactParams {
+    /// Model id; the default model if absent.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
+    /// The observation: the model's features in its order (see GET /models/{id}), `null`
+    /// for a feature not measured. A patient's measurement: shown to its tenant only.
+    pub x: Vec<Option<f64>>,
+    /// Metropolis steps, one simulation each (default 100,000, the length measured
+    /// calibrated).
+    #[serde(default = "steps")]
+    pub steps: usize,
+    /// Seed of the flow's draws (the fits' starts) and of the chain.
+    #[serde(default)]
+    pub seed: u64,
+}
+
+fn steps() -> usize {
+    crate::discrepancy::exact::MIN_STEPS
+}
+
+impl ExactParams {
+    /// The checks that need no model (its existence and feature count are checked
+    /// against the store when the job is posted).
+    pub(super) fn validate(&self, errs: &mut Vec<FieldError>) {
+        model_and_observation(self.model.as_deref(), &self.x, errs);
+        in_range("params.steps", &limits::EXACT_STEPS, self.steps, errs);
+    }
+
+    /// The model's id (`default` when absent).
+    pub fn model_id(&self) -> &str {
+        self.model.as_deref().unwrap_or("default")
+    }
+}
+
+pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_json::Value> {
+    let id = p.model_id();
+    let npe = registered_model(ctx, id)?;
+    if p.x.len() != npe.header.feature_names.len() {
+        bail!("params.x has {} values; model '{id}' has {} features", p.x.len(), npe.header.feature_names.len());
+    }
+    let x: Vec<f64> = p.x.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
+    let present: Vec<bool> = p.x.iter().map(Option::is_some).collect();
+    r.report(0.0, "the flow's posterior and the fit check".into());
+    let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, 1000, p.seed)?;
+    let fit = crate::discrepancy::fitcheck::fit_check(&npe, &x, &present, &inf);
+    r.report(0.05, format!("least-squares fits, then {} chain steps", p.steps));
+    let ex = crate::discrepancy::fitcheck::exact(&npe, &x, &present, &inf, p.steps, p.seed)?;
+    let mut reading = crate::npe::normal::read(npe.params(), &ex.chain.samples);
+    let fit = match fit {
+        Ok(f) => {
+            if f.ok == Some(false) {
+                crate::npe::normal::withdraw(&mut reading, f.reason.as_deref().unwrap_or_default());
+            }
+            serde_json::json!(f)
+        }
+        Err(e) => serde_json::json!({ "ok": null, "reason": e.to_string() }),
+    };
+    r.still_ours(ctx)?;
+    Ok(serde_json::json!({
+        "model": id,
+        "fit": fit,
+        "flow": inf.summaries,
+        "exact": ex,
+        "differential": reading,
+        "note": "the posterior under the model's own noise likelihood: exact when the model describes the ear (fit.ok), \
+                 narrower than the flow's; exact.summaries[].map is the best least-squares fit",
+    }))
+}
