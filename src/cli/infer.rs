@@ -288,16 +288,9 @@ pub fn run(args: InferArgs) -> Result<()> {
         if args.exact > 0 {
             let ex = crate::discrepancy::fitcheck::exact(&model, x, present, &inf, args.exact, args.seed)
                 .with_context(|| format!("--exact, observation {}", r + 1))?;
-            let mut reading = crate::npe::normal::read(model.params(), &ex.chain.samples);
-            if let Some(reason) = &withdrawn {
-                crate::npe::normal::withdraw(&mut reading, reason);
-            }
             let mut doc = serde_json::json!(ex);
-            doc["differential"] = serde_json::json!(reading);
-            doc["note"] = serde_json::json!(
-                "the posterior under the model's own noise likelihood: exact when the model describes the ear (fit.ok), \
-                 narrower than `parameters`; `summaries[].map` is the best least-squares fit"
-            );
+            doc["differential"] = serde_json::json!(ex.reading(&model, withdrawn.as_deref()));
+            doc["note"] = serde_json::json!(crate::discrepancy::fitcheck::EXACT_NOTE);
             json["exact"] = doc;
         }
         summaries.push(json.to_string());

@@ -42,7 +42,7 @@ pub struct Chain {
     pub steps: usize,
     /// Steps of burn-in (a quarter of the total, whose second half sets the proposal).
     pub burn_in: usize,
-    /// χ² of the start (the least-squares fit) and the median over the draws.
+    /// χ² of the start (the least-squares fit).
     pub chi2_start: f64,
     /// Median χ² over the draws: the start's plus about half the parameters the data
     /// pin down.
@@ -50,8 +50,8 @@ pub struct Chain {
 }
 
 /// Random-walk Metropolis on an unnormalised log density over ℝᵈ: `steps` steps from
-/// `start` with Gaussian proposals, every `thin`-th state after burn-in kept, and the
-/// acceptance rate after burn-in. The first quarter is burn-in in eight rounds: after
+/// `start` with Gaussian proposals; every `thin`-th state after burn-in with its log
+/// density, and the acceptance rate after burn-in. The first quarter is burn-in in eight rounds: after
 /// each, the proposal's covariance becomes the chain's own so far (its later half; `cov`,
 /// row-major d×d, until then) and its scale moves towards a 0.234 acceptance rate (the
 /// optimum for random-walk proposals, Roberts, Gelman & Gilks 1997). After burn-in the
@@ -64,7 +64,7 @@ pub fn metropolis(
     steps: usize,
     thin: usize,
     seed: u64,
-) -> Option<(Vec<Vec<f64>>, f64)> {
+) -> Option<(Vec<Vec<f64>>, Vec<f64>, f64)> {
     let d = start.len();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let base = 2.38 * 2.38 / d.max(1) as f64;
@@ -79,6 +79,7 @@ pub fn metropolis(
     let round = (burn / 8).max(1);
     let mut history: Vec<Vec<f64>> = Vec::with_capacity(burn);
     let mut kept = Vec::with_capacity((steps - burn) / thin.max(1) + 1);
+    let mut kept_density = Vec::with_capacity(kept.capacity());
     let (mut accepted, mut accepted_round) = (0usize, 0usize);
     for step in 0..steps {
         let s = (0.5 * log_scale).exp();
@@ -110,9 +111,10 @@ pub fn metropolis(
             }
         } else if (step - burn).is_multiple_of(thin.max(1)) {
             kept.push(x.clone());
+            kept_density.push(lx);
         }
     }
-    Some((kept, accepted as f64 / (steps - burn).max(1) as f64))
+    Some((kept, kept_density, accepted as f64 / (steps - burn).max(1) as f64))
 }
 
 /// Sample covariance (row-major d×d) of rows.
@@ -212,11 +214,12 @@ pub fn sample(
         -0.5 * chi2_of(u) + u.iter().map(|&v| log_prior_u(v)).sum::<f64>()
     };
     let steps = steps.min(MAX_STEPS);
-    let (draws, acceptance) = metropolis(log_density, &start, &cov, steps, thin, seed)?;
-    let mut runner = model.runner();
+    let (draws, densities, acceptance) = metropolis(log_density, &start, &cov, steps, thin, seed)?;
+    // Each draw's χ² from the density the chain computed for it, not a second simulation.
     let mut chis: Vec<f64> = draws
         .iter()
-        .filter_map(|u| residuals(&mut runner, design, &to_row(u), obs).map(|r| r.iter().map(|v| v * v).sum()))
+        .zip(&densities)
+        .map(|(u, l)| -2.0 * (l - u.iter().map(|&v| log_prior_u(v)).sum::<f64>()))
         .collect();
     chis.sort_by(f64::total_cmp);
     Some(Chain {
@@ -257,7 +260,7 @@ mod tests {
             -0.5 * (0..9).map(|k| r[k / 3] * p[k] * r[k % 3]).sum::<f64>()
         };
         let start_cov: Vec<f64> = (0..9).map(|k| if k % 4 == 0 { 0.01 * sd[k / 3] * sd[k / 3] } else { 0.0 }).collect();
-        let (draws, acc) = metropolis(log_density, &[0.0, 0.0, 0.0], &start_cov, 200_000, 4, 7).unwrap();
+        let (draws, _, acc) = metropolis(log_density, &[0.0, 0.0, 0.0], &start_cov, 200_000, 4, 7).unwrap();
         let c = covariance(&draws, 3);
         let m: Vec<f64> = (0..3).map(|k| draws.iter().map(|x| x[k]).sum::<f64>() / draws.len() as f64).collect();
         for i in 0..3 {

@@ -327,6 +327,22 @@ pub struct ExactPosterior {
     pub ms: f64,
 }
 
+/// What an exact posterior is, said beside it wherever it is reported.
+pub const EXACT_NOTE: &str = "the posterior under the model's own noise likelihood: exact when the model describes \
+     the ear (fit.ok), narrower than the flow's; summaries[].map is the best least-squares fit";
+
+impl ExactPosterior {
+    /// The normal-range reading of the chain's draws, withdrawn (every parameter
+    /// `unreliable`, with the reason) when the fit check failed.
+    pub fn reading(&self, npe: &Npe, withdrawn: Option<&str>) -> Vec<crate::npe::normal::Differential> {
+        let mut reading = crate::npe::normal::read(npe.params(), &self.chain.samples);
+        if let Some(why) = withdrawn {
+            crate::npe::normal::withdraw(&mut reading, why);
+        }
+        reading
+    }
+}
+
 /// Least-squares starts of [`exact`]: the MAP and this many minus one posterior draws.
 pub const EXACT_STARTS: usize = 16;
 

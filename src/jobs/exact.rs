@@ -58,24 +58,18 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
     let fit = crate::discrepancy::fitcheck::fit_check(&npe, &x, &present, &inf);
     r.report(0.05, format!("least-squares fits, then {} chain steps", p.steps));
     let ex = crate::discrepancy::fitcheck::exact(&npe, &x, &present, &inf, p.steps, p.seed)?;
-    let mut reading = crate::npe::normal::read(npe.params(), &ex.chain.samples);
-    let fit = match fit {
-        Ok(f) => {
-            if f.ok == Some(false) {
-                crate::npe::normal::withdraw(&mut reading, f.reason.as_deref().unwrap_or_default());
-            }
-            serde_json::json!(f)
-        }
-        Err(e) => serde_json::json!({ "ok": null, "reason": e.to_string() }),
+    let withdrawn = match &fit {
+        Ok(f) if f.ok == Some(false) => Some(f.reason.clone().unwrap_or_default()),
+        _ => None,
     };
+    let fit = fit.map_or_else(|e| serde_json::json!({ "ok": null, "reason": e.to_string() }), |f| serde_json::json!(f));
     r.still_ours(ctx)?;
     Ok(serde_json::json!({
         "model": id,
         "fit": fit,
         "flow": inf.summaries,
+        "differential": ex.reading(&npe, withdrawn.as_deref()),
         "exact": ex,
-        "differential": reading,
-        "note": "the posterior under the model's own noise likelihood: exact when the model describes the ear (fit.ok), \
-                 narrower than the flow's; exact.summaries[].map is the best least-squares fit",
+        "note": crate::discrepancy::fitcheck::EXACT_NOTE,
     }))
 }
