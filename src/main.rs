@@ -1,3 +1,5 @@
+//! The `otofit` command line: the service, the pipeline and the studies (see `otofit --help`).
+
 use clap::Parser;
 
 fn main() {

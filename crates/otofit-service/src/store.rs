@@ -318,7 +318,7 @@ impl Store {
             .busy_timeout(Duration::from_secs(5))
             .foreign_keys(true);
         let pool = SqlitePoolOptions::new().max_connections(4).connect_with(opts).await?;
-        sqlx::migrate!("./migrations").run(&pool).await?;
+        sqlx::migrate!("../../migrations").run(&pool).await?;
         Ok(Store { pool: Pool::Sqlite(pool) })
     }
 
@@ -327,7 +327,7 @@ impl Store {
     pub async fn open_postgres(url: &str) -> Result<Store, sqlx::Error> {
         let pool =
             PgPoolOptions::new().max_connections(8).acquire_timeout(Duration::from_secs(10)).connect(url).await?;
-        sqlx::migrate!("./migrations/postgres").run(&pool).await?;
+        sqlx::migrate!("../../migrations/postgres").run(&pool).await?;
         Ok(Store { pool: Pool::Postgres(pool) })
     }
 

@@ -28,7 +28,7 @@ type Result<T> = std::result::Result<T, ReferenceError>;
 
 /// The anchor table, compiled into the binary so that the service and the Docker image
 /// need no data folder.
-pub const EAR_JSON: &str = include_str!("../reference/ear.json");
+pub const EAR_JSON: &str = include_str!("../../../reference/ear.json");
 
 #[derive(Deserialize)]
 struct Curve {
@@ -136,7 +136,7 @@ mod tests {
     fn shipped_csvs_match_the_table() {
         let model = Model::new(ModelConfig::default()).unwrap();
         let r = build(model.frequencies()).unwrap();
-        let root = env!("CARGO_MANIFEST_DIR");
+        let root = concat!(env!("CARGO_MANIFEST_DIR"), "/../..");
         let obs = std::fs::read_to_string(format!("{root}/reference/obs.csv")).unwrap();
         let std = std::fs::read_to_string(format!("{root}/reference/std.csv")).unwrap();
         assert_eq!(

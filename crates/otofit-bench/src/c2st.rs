@@ -297,7 +297,7 @@ mod tests {
     /// spread 10 % wider about the observation score clearly above it.
     #[test]
     fn two_reference_draws_of_the_10d_gaussian_task_score_one_half() {
-        use crate::bench::{Task, observation};
+        use crate::{Task, observation};
         let task = Task::GaussianLinearUniform;
         let x = observation(task, 1);
         let draw = |seed| task.reference(&x, 3000, &mut ChaCha8Rng::seed_from_u64(seed));

@@ -1242,7 +1242,7 @@ mod tests {
         let fe = geo.fe();
         let t_asm = t0.elapsed().as_secs_f64();
         let (modes, info) = ManubriumModes::new(&fe).unwrap();
-        let freqs = crate::sim::log_grid(200.0, 8000.0, 50);
+        let freqs = crate::log_grid(200.0, 8000.0, 50);
         let reps = 200;
         let mut acc = c64::new(0.0, 0.0);
         let mut per_fast = 0.0;

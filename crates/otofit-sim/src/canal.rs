@@ -204,7 +204,7 @@ fn thomas(lo: &[c64], di: &[c64], up: &[c64], rhs: &mut [c64]) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::air::{absorbance, line_constants, line_input_impedance};
+    use crate::air::{absorbance, line_constants, line_input_impedance};
     use std::f64::consts::PI;
 
     const L: f64 = 0.012;

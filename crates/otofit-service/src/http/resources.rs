@@ -35,7 +35,7 @@ pub async fn metrics(State(st): State<AppState>) -> Result<Response, Problem> {
 }
 
 pub async fn openapi() -> Response {
-    let mut r = include_str!("../../openapi.yaml").into_response();
+    let mut r = include_str!("../../../../openapi.yaml").into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/yaml"));
     r
 }

@@ -8,7 +8,10 @@ pub mod glm;
 pub mod mcmc;
 pub mod tasks;
 
-use crate::npe::{self, Dataset, Obs, TrainSettings};
+// The layer below, under the names the modules use for it (`crate::npe::…`).
+use otofit_npe::{dataset, npe, stats};
+
+use crate::npe::{Dataset, Obs, TrainSettings};
 use anyhow::{Context, Result};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;

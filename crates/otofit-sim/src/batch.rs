@@ -122,7 +122,7 @@ pub fn default_noise_std(model: &Model) -> Vec<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::sim::ModelConfig;
+    use crate::ModelConfig;
 
     #[test]
     fn draws_are_reproducible_and_inside_the_prior() {
@@ -162,7 +162,7 @@ mod tests {
         let mut r = model.runner();
         for (row, x) in rows.iter().zip(&par) {
             let (t, fx) = d.split(row);
-            assert_eq!(x.as_ref().unwrap(), &crate::sim::simulate(&mut r, &t, &fx).unwrap());
+            assert_eq!(x.as_ref().unwrap(), &crate::simulate(&mut r, &t, &fx).unwrap());
         }
         let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed: 3 };
         let n1 = run_rows(&model, &d, &rows, 0, Some(&noise));
