@@ -31,7 +31,8 @@ pub struct ServeArgs {
     /// How this process runs jobs: leases, chunks, retries, the artifact store.
     #[command(flatten)]
     pub jobs: JobFlags,
-    /// Checkpoint registered as the default model on first start.
+    /// Checkpoint registered as the default model on first start; the server refuses to
+    /// start when it cannot be loaded (`none`: no default model).
     #[arg(long, default_value = "models/default.otofit")]
     pub default_model: PathBuf,
     /// SHA-256 (hex) of an accepted API key; repeat or comma-separate. When set (or when
@@ -142,6 +143,22 @@ fn resolve_default_model(given: &Path) -> PathBuf {
         tracing::info!(path = %found.display(), "default model found outside the working directory");
     }
     found
+}
+
+/// `--default-model` resolved and loaded once, so that a server never starts with a
+/// default it cannot answer with; `none` serves without one (models come from train jobs).
+fn usable_default_model(given: &Path) -> Result<PathBuf> {
+    if given == Path::new("none") {
+        return Ok(PathBuf::new());
+    }
+    let path = resolve_default_model(given);
+    crate::npe::Npe::load(&path).with_context(|| {
+        format!(
+            "--default-model {}: not a usable otofit model (pass --default-model none to serve without one)",
+            given.display()
+        )
+    })?;
+    Ok(path)
 }
 
 /// The service context on `data_dir` (SQLite there) with the default /infer limits: the
@@ -336,11 +353,13 @@ pub fn parse_key_hashes(hex_hashes: &[String]) -> Result<Vec<[u8; 32]>> {
         .collect()
 }
 
-/// Logs to stderr (`RUST_LOG` filters; JSON lines with `json`).
+/// Logs to stdout (`RUST_LOG` filters; JSON lines with `json`).
 pub fn init_logs(json: bool) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| "info,tower_http=info,sqlx=warn".into());
-    let sub = tracing_subscriber::fmt().with_env_filter(filter);
+    // Colour codes only for a terminal: redirected to a file or a collector, plain text.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stdout());
+    let sub = tracing_subscriber::fmt().with_env_filter(filter).with_ansi(ansi);
     if json { sub.json().init() } else { sub.init() }
 }
 
@@ -364,9 +383,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
         bail!("--workers must be 0..={MAX_WORKERS}, got {}", args.workers);
     }
     let idle = std::time::Duration::from_secs_f64(args.idle_timeout);
+    let default_model = usable_default_model(&args.default_model)?;
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     let res = rt.block_on(async move {
-        let default_model = resolve_default_model(&args.default_model);
         let artifacts = args.jobs.artifacts.as_deref();
         let ctx = open_db(&database, &args.data_dir, &default_model, queue, limits, settings, artifacts).await?;
         if !args.addr.ip().is_loopback() && keys.is_empty() && !ctx.store.has_keys().await? {
@@ -382,7 +401,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let c2 = ctx.clone();
         let stopping = Arc::new(tokio::sync::Notify::new());
         let s2 = stopping.clone();
-        let server = axum::serve(listener, http::with_request_timeout(app, idle)).with_graceful_shutdown(async move {
+        // The peer address reaches the handlers: the inference gate bounds bodies per address.
+        let app = http::with_request_timeout(app, idle).into_make_service_with_connect_info::<http::conn::ClientAddr>();
+        let server = axum::serve(listener, app).with_graceful_shutdown(async move {
             shutdown_signal().await;
             tracing::info!("shutting down: no new jobs; the running one stops at its next check");
             c2.shutdown.store(true, Ordering::Relaxed);

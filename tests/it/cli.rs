@@ -1020,3 +1020,24 @@ fn readme_commands_parse_and_their_inputs_exist() {
     eprintln!("{checked} README commands checked");
     assert!(checked >= 20, "only {checked} README commands found");
 }
+
+/// A server never starts with a default model it cannot answer with: the flag is named,
+/// and `none` serves without one.
+#[test]
+fn serve_refuses_a_default_model_it_cannot_load() {
+    let d = scratch("bad-default");
+    let data = d.join("data");
+    let out = otofit(&[
+        "serve",
+        "--addr",
+        "127.0.0.1:0",
+        "--data-dir",
+        data.to_str().unwrap(),
+        "--default-model",
+        "/nonexistent.otofit",
+    ]);
+    assert!(!out.status.success(), "started with a missing default model");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("--default-model /nonexistent.otofit") && err.contains("--default-model none"), "{err}");
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -168,7 +168,7 @@ async fn bad_requests_get_problems_that_name_the_field() {
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
     let (status, _, p) = call(&app, "POST", "/infer", Some(json!({"measurements": {"wbt": {}}}))).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY);
-    assert!(p["errors"][0]["field"] == "wbt", "{p}");
+    assert!(p["errors"][0]["field"] == "measurements.wbt", "named by its JSON path: {p}");
     let req = Request::builder()
         .method("POST")
         .uri("/infer")
@@ -511,6 +511,22 @@ async fn poison_pill_theta_is_refused_and_extreme_allowed_rows_finish() {
     let (status, _, body) = call(&app, "POST", "/jobs", Some(pill)).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
     assert!(body.to_string().contains("params.theta[0][0]"), "{body}");
+    // Every bad value is named, not only the first, with ranges in short numbers.
+    let pill = json!({"kind": "resimulate", "params": {"theta": [vec![1e-308; 14]]}});
+    let (status, _, body) = call(&app, "POST", "/jobs", Some(pill)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    // Parameters whose range starts at zero (an elastic drum, no angle, no fluid mass) take it.
+    let positive = otofit::sim::PARAMS.iter().filter(|p| p.low > 0.0).count();
+    assert_eq!(body["errors"].as_array().unwrap().len(), positive, "{body}");
+    assert!(!body.to_string().contains("0000000"), "{body}");
+    // A geometry of zero runs nowhere: refused at posting, each value named.
+    let mut zero = otofit::sim::Theta::nominal().0.to_vec();
+    zero[7..10].fill(0.0);
+    let (status, _, body) =
+        call(&app, "POST", "/jobs", Some(json!({"kind": "resimulate", "params": {"theta": [zero]}}))).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
+    let fields: Vec<&str> = body["errors"].as_array().unwrap().iter().map(|e| e["field"].as_str().unwrap()).collect();
+    assert_eq!(fields, ["params.theta[0][7]", "params.theta[0][8]", "params.theta[0][9]"], "{body}");
     let pill = json!({"kind": "simulate", "params": {"theta": [[1e6, 5e6, 2e6, 2e5, 6e6, 7.5e-5, f64::MAX]]}});
     let (status, _, body) = call(&app, "POST", "/jobs", Some(pill)).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
@@ -531,6 +547,7 @@ async fn poison_pill_theta_is_refused_and_extreme_allowed_rows_finish() {
         .await
         .expect("the job finishes");
     assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["result"]["failed_rows"], 0, "{done}");
 }
 
 /// The openapi.yaml /infer example (the typical ear, `npe::normal::centre_row`, noise-free,
@@ -1066,6 +1083,12 @@ async fn contract_gaps_are_closed() {
     assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED);
     assert!(problem(&headers) && headers.contains_key(header::ALLOW), "{headers:?}");
     assert_eq!(p["status"], 405, "{p}");
+    let allowed = p["detail"].as_str().unwrap().rsplit("allowed: ").next().unwrap().to_string();
+    assert!(allowed == "GET, POST" || allowed == "POST, GET", "{p}");
+    let (status, headers, p) = call(&app, "PUT", "/infer", None).await;
+    assert_eq!(status, StatusCode::METHOD_NOT_ALLOWED);
+    assert!(p["detail"].as_str().unwrap().ends_with("allowed: POST"), "{p}");
+    assert_eq!(headers[header::ALLOW], "POST", "{headers:?}");
     let (status, headers, p) = call(&app, "GET", "/jobs?limit=abc", None).await;
     assert_eq!((status, problem(&headers)), (StatusCode::BAD_REQUEST, true), "{p}");
     assert_eq!(p["errors"][0]["field"], "limit", "{p}");
@@ -1504,4 +1527,52 @@ async fn infer_refines_the_map_on_request() {
     req["refine"] = json!(201);
     let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("refine")), "{p}");
+}
+
+/// Sparse curves are refused, never scored as if measured: two points can never give a
+/// finding. Every answer opens with a verdict; a model that cannot be loaded is named
+/// without its server path; a missing field is named by its JSON path.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sparse_inputs_are_insufficient_and_answers_carry_a_verdict() {
+    let (app, ctx, _dir) = app(vec![], 8, false).await;
+    let two = json!({"measurements": {"absorbance": {"frequencies_hz": [200, 8000], "values": [0.02, 0.1]}}});
+    let (status, _, p) = call(&app, "POST", "/infer", Some(two)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert_eq!(p["code"], "insufficient_data", "{p}");
+    assert_eq!(p["errors"][0]["field"], "measurements.absorbance.frequencies_hz", "{p}");
+    assert!(p["errors"][0]["message"].as_str().unwrap().contains("5.32 octaves"), "{p}");
+    // A WBT at 1/3 octave is dense enough; one at whole octaves is not.
+    let wbt = |step: f64| {
+        let f: Vec<f64> =
+            (0..).map(|k| 200.0 * 2f64.powf(k as f64 * step)).take_while(|f| *f < 7999.0).chain([8000.0]).collect();
+        let v: Vec<f64> = f.iter().map(|_| 0.5).collect();
+        json!({"measurements": {"absorbance": {"frequencies_hz": f, "values": v}}, "samples": 50, "return_samples": false})
+    };
+    let (status, _, p) = call(&app, "POST", "/infer", Some(wbt(1.0))).await;
+    assert_eq!((status, p["code"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("insufficient_data")), "{p}");
+    let (status, _, body) = call(&app, "POST", "/infer", Some(wbt(1.0 / 3.0))).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    let code = body["verdict"]["code"].as_str().unwrap();
+    assert!(["reliable_no_finding", "reliable_findings", "unreliable_model_misfit"].contains(&code), "{body}");
+    assert!(!body["verdict"]["sentence"].as_str().unwrap().is_empty());
+    // The nominal ear: it fits, and nothing is outside its range.
+    let (status, _, body) = call(&app, "POST", "/infer", Some(nominal_request())).await;
+    assert_eq!(status, StatusCode::OK, "{body}");
+    assert_eq!(body["verdict"]["code"], "reliable_no_finding", "{}", body["verdict"]);
+    // A missing phase is named by its path.
+    let mut req = nominal_request();
+    req["measurements"]["impedance"].as_object_mut().unwrap().remove("phase");
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert_eq!(p["errors"][0]["field"], "measurements.impedance.phase", "{p}");
+    // A registered model whose file is gone: 503 naming the model, not the path.
+    let gone = ctx.data_dir.join("models/gone.otofit");
+    ctx.store.add_model("gone", &gone.display().to_string(), false, None).await.unwrap();
+    let mut req = nominal_request();
+    req["model"] = json!("gone");
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{p}");
+    let detail = p["detail"].as_str().unwrap();
+    assert!(detail.contains("'gone'") && !detail.contains(&*ctx.data_dir.display().to_string()), "{p}");
+    assert!(!p.to_string().contains("/models/gone.otofit"), "{p}");
 }

@@ -11,5 +11,6 @@ mod resume;
 mod retry;
 mod s3;
 mod sim;
+mod slow_clients;
 mod tenants;
 mod train_resume;

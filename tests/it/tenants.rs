@@ -30,6 +30,18 @@ async fn send(app: &Router, key: Option<&str>, method: &str, uri: &str, body: Op
     (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
 }
 
+/// A text answer of GET `uri` with `key`.
+async fn text(app: &Router, key: Option<&str>, uri: &str) -> String {
+    let mut req = Request::builder().method("GET").uri(uri);
+    if let Some(k) = key {
+        req = req.header(header::AUTHORIZATION, format!("Bearer {k}"));
+    }
+    let res = app.clone().oneshot(req.body(Body::empty()).unwrap()).await.unwrap();
+    assert_eq!(res.status(), StatusCode::OK, "GET {uri}");
+    let bytes = axum::body::to_bytes(res.into_body(), usize::MAX).await.unwrap();
+    String::from_utf8(bytes.to_vec()).unwrap()
+}
+
 /// A simulate job posted by `key`, then run to success by hand (claimed and finished, its
 /// dataset files and a report file written), without a dispatcher.
 pub(crate) async fn succeeded_simulate(app: &Router, ctx: &Ctx, key: &str) -> String {
@@ -132,6 +144,30 @@ async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend
     assert_eq!(j["redacted"], json!(["params.observation"]), "{backend}");
     let (_, j) = send(app, a, "GET", &format!("/jobs/{jr}"), None).await;
     assert_eq!(j["params"]["observation"].as_array().map(Vec::len), Some(350), "{backend}: the owner sees it");
+    // Its figures are drawn from the measurement: the same rule holds for them.
+    let reports = ctx.data_dir.join("reports").join(&jr);
+    std::fs::create_dir_all(&reports).unwrap();
+    std::fs::write(reports.join("spectra.svg"), "<svg/>").unwrap();
+    let figure = format!("/jobs/{jr}/files/spectra.svg");
+    let (status, p) = send(app, Some(&ops.key), "GET", &figure, None).await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "{backend}: the admin reads the observation's figure: {p}");
+    assert_eq!(send(app, a, "GET", &figure, None).await.0, StatusCode::OK, "{backend}: the owner's figure");
+
+    // /metrics: a tenant's key counts its own jobs only, and no process counters.
+    let beta_metrics = text(app, b, "/metrics").await;
+    assert!(
+        beta_metrics.contains("otofit_jobs{kind=\"simulate\",state=\"succeeded\"} 1\n"),
+        "{backend}: {beta_metrics}"
+    );
+    assert!(
+        beta_metrics.contains("otofit_jobs{kind=\"resimulate\",state=\"queued\"} 0\n"),
+        "{backend}: {beta_metrics}"
+    );
+    assert!(!beta_metrics.contains("otofit_simulated_rows_total"), "{backend}: {beta_metrics}");
+    let all = text(app, Some(&ops.key), "/metrics").await;
+    assert!(all.contains("otofit_jobs{kind=\"simulate\",state=\"succeeded\"} 2\n"), "{backend}: {all}");
+    assert!(all.contains("otofit_jobs{kind=\"resimulate\",state=\"queued\"} 1\n"), "{backend}: {all}");
+    assert!(all.contains("otofit_simulated_rows_total"), "{backend}: {all}");
 
     // A revoked key is refused; the server stays keyed.
     let keys = ctx.store.keys().await.unwrap();

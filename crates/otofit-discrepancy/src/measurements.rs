@@ -19,6 +19,17 @@ pub enum MeasurementError {
     Invalid(Vec<(String, String)>),
 }
 
+/// How an error about measured points too sparse to score begins.
+pub const INSUFFICIENT_DATA: &str = "insufficient data:";
+
+impl MeasurementError {
+    /// Whether every problem is measured points too sparse for the band (the request
+    /// is well formed but carries too little to read an ear from).
+    pub fn insufficient_data(&self) -> bool {
+        matches!(self, MeasurementError::Invalid(errs) if !errs.is_empty() && errs.iter().all(|(_, m)| m.starts_with(INSUFFICIENT_DATA)))
+    }
+}
+
 /// One ear's measurements, each on its own frequency grid; any subset may be given.
 #[derive(Debug, Default, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
@@ -150,6 +161,10 @@ fn resample(
         let n = grid.len();
         match lo.zip(hi) {
             Some((lo, hi)) if lo <= k && n - 1 - hi <= k => {
+                if let Some(message) = sparse(f, grid) {
+                    errs.push((format!("{field}.frequencies_hz"), message));
+                    return None;
+                }
                 let mut out = crate::sim::output::interpolate_log_f(f, v, grid);
                 out.iter_mut().zip(grid).filter(|(_, g)| !inside(**g)).for_each(|(o, _)| *o = f64::NAN);
                 return Some(out);
@@ -186,7 +201,34 @@ fn resample(
         ));
         return None;
     }
+    if let Some(message) = sparse(f, grid) {
+        errs.push((format!("{field}.frequencies_hz"), message));
+        return None;
+    }
     Some(crate::sim::output::interpolate_log_f(f, v, grid))
+}
+
+/// Widest gap between two measured frequencies inside the model band, in octaves. The
+/// grid is interpolated from the points given, and the fit check scores every grid
+/// point: a curve with wider gaps would be scored as if measured where it was not.
+/// Half an octave admits every device layout in use (1/3 to 1/24 octave).
+pub const MAX_GAP_OCTAVES: f64 = 0.5;
+
+/// Why the measured points are too sparse for the model band, if they are.
+fn sparse(f: &[f64], grid: &[f64]) -> Option<String> {
+    let (g0, g1) = (grid[0], grid[grid.len() - 1]);
+    let (lo, hi, octaves) = f
+        .windows(2)
+        .map(|w| (w[0].max(g0), w[1].min(g1)))
+        .filter(|(a, b)| b > a)
+        .map(|(a, b)| (a, b, (b / a).log2()))
+        .max_by(|x, y| x.2.total_cmp(&y.2))?;
+    (octaves > MAX_GAP_OCTAVES).then(|| {
+        format!(
+            "{INSUFFICIENT_DATA} no measured point between {lo:.0} and {hi:.0} Hz ({octaves:.2} octaves); \
+             measure at least every {MAX_GAP_OCTAVES} octave over the band, as devices do"
+        )
+    })
 }
 
 fn check_values(field: &str, v: &[f64], positive: bool, errs: &mut Vec<(String, String)>) {
@@ -333,7 +375,8 @@ fn mag_phase(
     let phase = crate::sim::output::unwrap(phase.into_iter());
     let (Some(a), Some(b)) = (
         resample(&fld, &mp.frequencies_hz, &logmag, grid, t.cut, errs),
-        resample(&fld, &mp.frequencies_hz, &phase, grid, t.cut, errs),
+        // The same frequencies: their errors are the magnitude's, named once.
+        resample(&fld, &mp.frequencies_hz, &phase, grid, t.cut, &mut Vec::new()),
     ) else {
         return false;
     };

@@ -128,7 +128,10 @@ impl Metrics {
 
     /// The exposition: the job table's `queue` counts (kind, state, count) for every job
     /// kind of `kinds`, and this process's series.
-    pub fn render(&self, kinds: &[&str], queue: &[crate::store::QueueCount]) -> String {
+    ///
+    /// `process`: with this process's counters and histograms, which count every
+    /// tenant's work (for admins and a worker's metrics port, not for a tenant's key).
+    pub fn render(&self, kinds: &[&str], queue: &[crate::store::QueueCount], process: bool) -> String {
         let mut out = String::new();
         let _ = writeln!(
             out,
@@ -141,6 +144,9 @@ impl Metrics {
                 let n: i64 = queue.iter().filter(|c| c.kind == kind && c.state == state).map(|c| c.count).sum();
                 let _ = writeln!(out, "otofit_jobs{{kind=\"{kind}\",state=\"{state}\"}} {n}");
             }
+        }
+        if !process {
+            return out;
         }
         let counters = [
             ("otofit_job_claims_total", "Jobs claimed by this process.", &self.claims),
@@ -187,6 +193,7 @@ mod tests {
         let text = m.render(
             &crate::jobs::KINDS,
             &[crate::store::QueueCount { kind: "train".into(), state: "queued".into(), count: 2 }],
+            true,
         );
         assert!(text.contains("otofit_jobs{kind=\"train\",state=\"queued\"} 2\n"), "{text}");
         assert!(text.contains("otofit_jobs{kind=\"simulate\",state=\"running\"} 0\n"));

@@ -682,10 +682,12 @@ impl Store {
         Ok(n == 1)
     }
 
-    /// Jobs per (kind, state), for /metrics.
-    pub async fn queue_counts(&self) -> Result<Vec<QueueCount>, sqlx::Error> {
-        const SQL: &str = "SELECT kind, state, COUNT(*) AS n FROM jobs GROUP BY kind, state ORDER BY kind, state";
+    /// Jobs per (kind, state), for /metrics: one tenant's, or every tenant's (`None`).
+    pub async fn queue_counts(&self, tenant: Option<&str>) -> Result<Vec<QueueCount>, sqlx::Error> {
+        const SQL: &str = "SELECT kind, state, COUNT(*) AS n FROM jobs WHERE ($1 IS NULL OR tenant = $1) \
+                           GROUP BY kind, state ORDER BY kind, state";
         Ok(on_pool!(self, p => sqlx::query(SQL)
+            .bind(tenant)
             .fetch_all(p)
             .await?
             .iter()

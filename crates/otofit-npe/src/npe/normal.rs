@@ -230,6 +230,44 @@ pub fn withdraw(readings: &mut [Differential], why: &str) {
     }
 }
 
+/// The answer in one line: what a clinician reads first.
+#[derive(Clone, Debug, serde::Serialize, PartialEq)]
+pub struct Verdict {
+    /// `reliable_no_finding`, `reliable_findings`, `unreliable_model_misfit` or
+    /// `unchecked` (the model was never calibrated, so its fit cannot be judged).
+    pub code: &'static str,
+    /// One sentence for a person.
+    pub sentence: String,
+    /// The parameters read below or above their normal range, as `NAME below|above`.
+    pub findings: Vec<String>,
+}
+
+/// The verdict of a differential whose fit check said `fit_ok` (`None`: no check).
+pub fn verdict(readings: &[Differential], fit_ok: Option<bool>) -> Verdict {
+    let findings: Vec<String> = readings
+        .iter()
+        .filter(|d| matches!(d.reading, "below" | "above"))
+        .map(|d| format!("{} {}", d.name, d.reading))
+        .collect();
+    let undetermined = readings.iter().filter(|d| d.reading == "undetermined").count();
+    let (code, sentence) = match fit_ok {
+        Some(false) => (
+            "unreliable_model_misfit",
+            "The model does not reproduce these measurements, so no parameter is read; look for the missing effect (see next).".to_string(),
+        ),
+        None => ("unchecked", "The model is not calibrated, so its fit cannot be judged; read the parameters with care.".to_string()),
+        Some(true) if findings.is_empty() => (
+            "reliable_no_finding",
+            format!(
+                "The model fits; no parameter is outside its normal range ({undetermined} of {} undetermined).",
+                readings.len()
+            ),
+        ),
+        Some(true) => ("reliable_findings", format!("The model fits; outside the normal range: {}.", findings.join(", "))),
+    };
+    Verdict { code, sentence, findings }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -110,3 +110,21 @@ impl AsyncWrite for IdleTimeoutIo {
         self.io.is_write_vectored()
     }
 }
+
+/// The peer address of a request's connection (axum's `ConnectInfo`), for the bounds
+/// kept per client address. Its own type because axum only knows how to take a plain
+/// `SocketAddr` from its own listener.
+#[derive(Clone, Copy, Debug)]
+pub struct ClientAddr(pub std::net::SocketAddr);
+
+impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, IdleTimeoutListener>> for ClientAddr {
+    fn connect_info(stream: axum::serve::IncomingStream<'_, IdleTimeoutListener>) -> Self {
+        ClientAddr(*stream.remote_addr())
+    }
+}
+
+impl axum::extract::connect_info::Connected<axum::serve::IncomingStream<'_, TcpListener>> for ClientAddr {
+    fn connect_info(stream: axum::serve::IncomingStream<'_, TcpListener>) -> Self {
+        ClientAddr(*stream.remote_addr())
+    }
+}

@@ -59,12 +59,20 @@ pub(super) fn features(
     m: &Measurements,
     csv: Option<&Imported>,
 ) -> Result<crate::measurements::Features, Problem> {
-    crate::measurements::features(npe, m).map_err(|e| match e {
-        MeasurementError::NotOtofitModel => Problem::new(StatusCode::CONFLICT, e.to_string()),
-        MeasurementError::Invalid(errs) => match csv {
-            Some(imp) => Problem::invalid(errs.iter().map(|(f, m)| imp.column_of(f, m)).collect()),
-            None => Problem::invalid(errs),
-        },
+    crate::measurements::features(npe, m).map_err(|e| {
+        let insufficient = e.insufficient_data();
+        let mut p = match e {
+            MeasurementError::NotOtofitModel => Problem::new(StatusCode::CONFLICT, e.to_string()),
+            MeasurementError::Invalid(errs) => match csv {
+                Some(imp) => Problem::invalid(errs.iter().map(|(f, m)| imp.column_of(f, m)).collect()),
+                None => Problem::invalid(errs),
+            },
+        };
+        if insufficient {
+            p.code = Some("insufficient_data");
+            p.detail = "too few measured points to read this ear: nothing is inferred from them".into();
+        }
+        p
     })
 }
 
@@ -182,7 +190,9 @@ pub(super) async fn model_for(
         .await
         .map_err(Problem::internal)?
         .map_err(|e| {
-            Problem::new(StatusCode::SERVICE_UNAVAILABLE, format!("model '{}' cannot be loaded: {e:#}", row.id))
+            // The cause names a server path: logged, not answered.
+            tracing::error!(model = %row.id, error = %format!("{e:#}"), "model cannot be loaded");
+            Problem::new(StatusCode::SERVICE_UNAVAILABLE, format!("model '{}' cannot be loaded (logged)", row.id))
         })?;
     Ok((row, npe))
 }
@@ -221,11 +231,13 @@ pub async fn infer(
     let Answer { inf, fit, fit_ms, corner, refined } = answer;
     let mut differential = crate::npe::normal::read(npe.params(), &inf.samples);
     let (fit, next) = fit_and_next(fit, req.model.as_deref(), &mut differential);
+    let verdict = crate::npe::normal::verdict(&differential, fit["ok"].as_bool());
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
     // they describe the probe's placement, not the ear, and have no normal range.
     let (geometry, tissue): (Vec<_>, Vec<_>) =
         inf.summaries.iter().partition(|s| crate::sim::params::is_geometry(&s.name));
     let mut doc = json!({
+        "verdict": verdict,
         "model": row.id,
         "fit": fit,
         "parameters": tissue,

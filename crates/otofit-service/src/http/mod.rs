@@ -7,13 +7,14 @@ pub use auth::{Principal, host_allowed};
 pub mod conn;
 mod infer;
 mod log_prob;
-pub use crate::gate::{InferGate, InferLimits};
+pub use crate::gate::{BODY_DEADLINE, InferGate, InferLimits, UPLOADS_PER_ADDRESS};
 pub use crate::metrics;
 mod resources;
 
 use crate::jobs::Ctx;
 use axum::Router;
-use axum::extract::{Request, State};
+use axum::body::Body;
+use axum::extract::{ConnectInfo, Request, State};
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
@@ -61,12 +62,49 @@ fn busy(detail: String, retry_after: u64) -> Response {
 }
 
 /// The /infer gate with its latency recorded for /metrics (status and seconds, waiting
-/// for a slot included).
+/// for a slot included). The body is received in full before a slot is taken, so a
+/// client that trickles its body holds no slot (408 after [`BODY_DEADLINE`]).
 async fn infer_gate(State(st): State<AppState>, req: Request, next: Next) -> Response {
     let t0 = std::time::Instant::now();
-    let r = infer_slot(State(st.clone()), req, next).await;
+    let r = match receive_body(&st, req).await {
+        Ok(req) => infer_slot(State(st.clone()), req, next).await,
+        Err(r) => r,
+    };
     st.ctx.metrics.inferred(r.status().as_u16(), t0.elapsed().as_secs_f64());
     r
+}
+
+/// The request with its body received in full: within [`BODY_DEADLINE`] (408), at most
+/// [`MAX_BODY`] bytes (413), at most [`UPLOADS_PER_ADDRESS`] at once from one client
+/// address (429).
+async fn receive_body(st: &AppState, req: Request) -> Result<Request, Response> {
+    let addr = req.extensions().get::<ConnectInfo<conn::ClientAddr>>().map(|c| c.0.0.ip());
+    let _upload = match addr {
+        Some(ip) => match st.ctx.infer_gate.upload(ip) {
+            Some(u) => Some(u),
+            None => {
+                let detail = format!(
+                    "{UPLOADS_PER_ADDRESS} request bodies from this address are still arriving; retry when they are done"
+                );
+                let mut r = Problem::new(StatusCode::TOO_MANY_REQUESTS, detail).into_response();
+                r.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(1));
+                return Err(r);
+            }
+        },
+        None => None,
+    };
+    let (parts, body) = req.into_parts();
+    match tokio::time::timeout(BODY_DEADLINE, axum::body::to_bytes(body, MAX_BODY)).await {
+        Ok(Ok(bytes)) => Ok(Request::from_parts(parts, Body::from(bytes))),
+        Ok(Err(_)) => {
+            Err(Problem::new(StatusCode::PAYLOAD_TOO_LARGE, format!("request body over {MAX_BODY} bytes"))
+                .into_response())
+        }
+        Err(_) => {
+            let detail = format!("the request body did not arrive within {} s", BODY_DEADLINE.as_secs());
+            Err(Problem::new(StatusCode::REQUEST_TIMEOUT, detail).into_response())
+        }
+    }
 }
 
 /// The /infer gate (a layer on that route): a slot or a short wait for one, then the
@@ -157,6 +195,9 @@ pub struct Problem {
     /// The request fields that were invalid, and why (422 only).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub errors: Vec<FieldProblem>,
+    /// A machine-readable reason where one status has several (e.g. `insufficient_data`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub code: Option<&'static str>,
 }
 
 /// One invalid field of a request.
@@ -179,6 +220,7 @@ impl Problem {
             status: status.as_u16(),
             detail: detail.into(),
             errors: vec![],
+            code: None,
         }
     }
 
@@ -217,11 +259,8 @@ pub fn json_body<T: serde::de::DeserializeOwned>(headers: &axum::http::HeaderMap
     match axum::Json::<T>::from_bytes(body) {
         Ok(axum::Json(value)) => Ok(value),
         Err(axum::extract::rejection::JsonRejection::JsonDataError(e)) => {
-            let (mut field, message) = crate::jobs::field_error("", &e.body_text());
-            // An unknown or missing field is named by itself (`wbt`), as it always was.
-            if let Some(name) = message.split('`').nth(1).filter(|_| message.contains(" field `")) {
-                field = name.to_string();
-            }
+            // The field's JSON path: a missing one's is its parent's path and its name.
+            let (field, message) = crate::jobs::field_error("", &e.body_text());
             Err(Problem::invalid(vec![(if field.is_empty() { "body".into() } else { field }, message)]))
         }
         Err(e) => {
@@ -261,6 +300,7 @@ async fn head_limits(req: Request, next: Next) -> Response {
 /// of tower-http (413, 408) and of handlers that are not problems yet. The headers that go
 /// with a status (Allow, Retry-After, WWW-Authenticate) are kept.
 async fn problems(req: Request, next: Next) -> Response {
+    let path = req.uri().path().to_string();
     let r = next.run(req).await;
     let status = r.status();
     let is_problem = r.headers().get(header::CONTENT_TYPE).is_some_and(|v| v == "application/problem+json");
@@ -270,7 +310,10 @@ async fn problems(req: Request, next: Next) -> Response {
     let (parts, body) = r.into_parts();
     let text = axum::body::to_bytes(body, 4096).await.unwrap_or_default();
     let text = String::from_utf8_lossy(&text).trim().to_string();
-    let allow = parts.headers.get(header::ALLOW).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
+    let mut allow = parts.headers.get(header::ALLOW).and_then(|v| v.to_str().ok()).unwrap_or("").to_string();
+    if status == StatusCode::METHOD_NOT_ALLOWED && allow.is_empty() {
+        allow = allowed_methods(&path);
+    }
     let mut p = match status {
         StatusCode::PAYLOAD_TOO_LARGE => Problem::new(status, format!("request body over {MAX_BODY} bytes")),
         StatusCode::METHOD_NOT_ALLOWED => Problem::new(status, format!("method not allowed here; allowed: {allow}")),
@@ -291,7 +334,25 @@ async fn problems(req: Request, next: Next) -> Response {
             out.headers_mut().insert(h, v.clone());
         }
     }
+    if status == StatusCode::METHOD_NOT_ALLOWED
+        && let Ok(v) = HeaderValue::from_str(&allow)
+    {
+        out.headers_mut().insert(header::ALLOW, v);
+    }
     out
+}
+
+/// The methods [`ROUTES`] answers on `path` (`{…}` segments match any), as an Allow value.
+fn allowed_methods(path: &str) -> String {
+    let segments: Vec<&str> = path.trim_matches('/').split('/').collect();
+    let matches = |route: &str| {
+        let r: Vec<&str> = route.trim_matches('/').split('/').collect();
+        r.len() == segments.len() && r.iter().zip(&segments).all(|(a, b)| a.starts_with('{') || a == b)
+    };
+    let mut methods: Vec<String> =
+        ROUTES.iter().filter(|(_, route)| matches(route)).map(|(m, _)| m.to_ascii_uppercase()).collect();
+    methods.dedup();
+    methods.join(", ")
 }
 
 /// Bounds every request's total time, body included: 408 after `timeout`.

@@ -21,15 +21,24 @@ pub async fn ready(State(st): State<AppState>) -> Response {
         Ok(Some(m)) => st.ctx.loaded(&m.id, std::path::Path::new(&m.path)).is_ok(),
         _ => false,
     };
-    let body = Json(json!({ "ready": db && model, "database": db, "default_model": model }));
-    if db && model { body.into_response() } else { (StatusCode::SERVICE_UNAVAILABLE, body).into_response() }
+    if db && model {
+        return Json(json!({ "ready": true, "database": true, "default_model": true })).into_response();
+    }
+    let what = |ok: bool| if ok { "ok" } else { "unavailable" };
+    let detail = format!("not ready: database {}, default model {}", what(db), what(model));
+    let mut p = Problem::new(StatusCode::SERVICE_UNAVAILABLE, detail);
+    p.code = Some("not_ready");
+    p.into_response()
 }
 
 /// Prometheus text format: the job table by kind and state, this process's counters and
-/// histograms (see `http::metrics`).
-pub async fn metrics(State(st): State<AppState>) -> Result<Response, Problem> {
-    let queue = st.ctx.store.queue_counts().await.map_err(Problem::internal)?;
-    let mut r = st.ctx.metrics.render(&crate::jobs::KINDS, &queue).into_response();
+/// histograms (see `http::metrics`). A tenant's key sees its own jobs only and none of
+/// the process counters, which count every tenant's work; admins and a worker's metrics
+/// port (no keys, no principal) see everything.
+pub async fn metrics(State(st): State<AppState>, who: Option<Extension<Principal>>) -> Result<Response, Problem> {
+    let scope = who.as_ref().and_then(|w| w.scope());
+    let queue = st.ctx.store.queue_counts(scope).await.map_err(Problem::internal)?;
+    let mut r = st.ctx.metrics.render(&crate::jobs::KINDS, &queue, scope.is_none()).into_response();
     r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"));
     Ok(r)
 }
@@ -397,8 +406,13 @@ pub async fn get_job_file(
     if ct.is_empty() || name.contains('/') || name.contains("..") {
         return Err(Problem::new(StatusCode::NOT_FOUND, format!("no file '{name}'")));
     }
-    if visible_job(&st, &who, &id).await?.is_none() {
+    let Some(job) = visible_job(&st, &who, &id).await? else {
         return Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'")));
+    };
+    // A job's files are drawn from its measurements: they follow the params' rule.
+    if job.tenant != who.tenant && MEASUREMENT_PARAMS.iter().any(|k| job.params.get(k).is_some()) {
+        let detail = format!("job '{id}' holds another tenant's measurements: its files are that tenant's only");
+        return Err(Problem::new(StatusCode::NOT_FOUND, detail));
     }
     let bytes = st
         .ctx

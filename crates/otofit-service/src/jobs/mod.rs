@@ -489,10 +489,14 @@ async fn settle(
         Err(e) => fail(format!("worker panicked: {e}")).await,
         // Interrupted by shutdown: back to the queue, the attempt not counted.
         Ok(_) if stop.cancelled && stop.shutting_down => ("requeued", store.requeue(id, token).await),
-        // A cancelled training still returns its best weights: that is a result. Its files
-        // go to the object store (if one is configured) before it shows as succeeded.
+        // A cancelled training still returns its best weights: a result, kept, under the
+        // state the user asked for. Its files go to the object store (if one is
+        // configured) before the job shows as ended.
         Ok(Ok(doc)) => match put_outputs(ctx, id, token, renew).await {
-            Ok(()) => ("succeeded", store.finish(id, token, "succeeded", None, Some(&doc)).await),
+            Ok(()) => {
+                let state = if stop.cancelled { "cancelled" } else { "succeeded" };
+                (state, store.finish(id, token, state, None, Some(&doc)).await)
+            }
             Err(e) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
             Err(e) => fail(scrub(ctx, &format!("{e:#}"))).await,
         },
@@ -533,7 +537,7 @@ async fn clean_up(ctx: &Ctx, job: &JobRow, token: &str, label: &str, owned: bool
         // An absolute path (every process sharing the data directory, mounted at the same
         // path, loads the model there whatever its working directory) or the model's URL
         // in the object store (every process fetches it from there).
-        if j.state == "succeeded"
+        if matches!(j.state.as_str(), "succeeded" | "cancelled")
             && file.exists()
             && let Ok(path) = ctx.artifacts.model_ref(&job.id)
         {

@@ -72,7 +72,9 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &ResimulateParams, r: &Reporter) -
             Err(e) => serde_json::json!({ "error": e.to_string() }),
         })
         .collect();
-    r.report(1.0, format!("{} rows", p.theta.len()));
+    // A row the simulator refused is in `x` as its error; the job says how many.
+    let failed = out.iter().filter(|o| o.is_err()).count();
+    r.report(1.0, format!("{} rows, {failed} failed", p.theta.len()));
     let ok: Vec<&[f64]> = out.iter().filter_map(|o| o.as_deref().ok()).collect();
     let page = crate::plot::resimulation(model.frequencies(), &theta, &ok, p.observation.as_deref());
     r.still_ours(ctx)?;
@@ -84,6 +86,7 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &ResimulateParams, r: &Reporter) -
     Ok(serde_json::json!({
         "features": feature_names(model.frequencies()),
         "x": x,
+        "failed_rows": failed,
         "rho": page.rho,
         "figures": [files("spectra.svg")],
         "report": files("report.html"),

@@ -195,27 +195,44 @@ pub(super) fn with_geometry(rows: &[Vec<f64>], n_effects: usize) -> Vec<Vec<f64>
 }
 
 /// Checks the parameter values of `params.theta` rows (effects columns are checked
-/// by the simulator's own range guard).
+/// by the simulator's own range guard): every value the simulator cannot run with, or
+/// that lies beyond the prior box's slack, is named.
 pub(super) fn theta_values(rows: &[Vec<f64>], errs: &mut Vec<FieldError>) {
+    let slack = 10f64.powf(THETA_SLACK_DECADES);
     for (i, row) in rows.iter().enumerate() {
         for (k, (v, p)) in row.iter().zip(PARAMS.iter()).enumerate() {
-            let slack = 10f64.powf(THETA_SLACK_DECADES);
             let (lo, hi) = match p.scale {
                 Scale::Log10 => (p.low / slack, p.high * slack),
-                Scale::Linear => (p.low - (p.high - p.low), p.high + (p.high - p.low)),
+                // A box's width below its low end, or a decade where that would reach zero.
+                Scale::Linear => {
+                    let below = p.low - (p.high - p.low);
+                    (
+                        if below > 0.0 || p.low == 0.0 { below.max(0.0) } else { p.low / slack },
+                        p.high + (p.high - p.low),
+                    )
+                }
             };
-            if !v.is_finite() || *v < lo || *v > hi {
+            if !p.physical(*v) || *v < lo || *v > hi {
+                let why = if p.physical(*v) { "the prior box widened each way" } else { "must be > 0" };
                 errs.push((
                     format!("params.theta[{i}][{k}]"),
-                    format!(
-                        "{} = {v:e} {} is outside {lo:e}..={hi:e} (the prior box ±{THETA_SLACK_DECADES} decade)",
-                        p.name, p.unit
-                    ),
+                    format!("{} = {} {} is outside {}..={} ({why})", p.name, short(*v), p.unit, short(lo), short(hi)),
                 ));
-                return;
             }
         }
     }
+}
+
+/// A number with at most four significant digits: `-0.019`, `2.5e-5`, `1e-308`.
+fn short(v: f64) -> String {
+    if v == 0.0 || (1e-3..1e4).contains(&v.abs()) {
+        let s = format!("{v:.4}");
+        let s = s.trim_end_matches('0').trim_end_matches('.');
+        return if s == "-0" { "0".into() } else { s.into() };
+    }
+    let s = format!("{v:.3e}");
+    let (m, e) = s.split_once('e').unwrap_or((&s, "0"));
+    format!("{}e{e}", m.trim_end_matches('0').trim_end_matches('.'))
 }
 
 /// Known effect names, for error messages.
