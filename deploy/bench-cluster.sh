@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 14's cluster check on one machine: PostgreSQL (Debian's 15, run as `postgres`),
+# The cluster check on one machine: PostgreSQL (Debian's 15, run as `postgres`),
 # one `serve --workers 0` and 3 `worker --threads 1`; a 200,000-row simulate job; one
 # worker is `kill -9`ed once a few chunks are done. Prints the chunks each worker
 # finished, the job's attempts, the wall time, and the SHA-256 of theta.csv and x.csv

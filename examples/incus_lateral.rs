@@ -1,4 +1,4 @@
-//! Issue 11 item 3: what the incus moving across the stapes axis (the ISJ shearing between
+//! What the incus moving across the stapes axis (the ISJ shearing between
 //! two moving bodies, `Geometry::incus_lateral`) changes. For the nominal ear and prior
 //! draws: how far the features move, in test–retest STDs per measure; and how well the
 //! features pin each parameter down, as the Cramér–Rao bound from the Fisher information

@@ -1,4 +1,4 @@
-//! Searches the nominal ear for a point that meets issue 11's normative targets at once:
+//! Searches the nominal ear for a point that meets the v4 normative targets at once:
 //! stapes V/P within ±5 dB of Goode 1994, phase at 8 kHz in [−450°, −250°], group delay
 //! 60–150 µs at 2–8 kHz, absorbance inside the adult 10–90 % range, cochlear share ≥ 30 %
 //! at 1–4 kHz. The knobs (`KNOBS`) are the seven tissue values, bounded by their normal
@@ -15,7 +15,7 @@
 //! knobs 11–14 (held at `LineDrum::NOMINAL` for the other drums; `rings` is then unused),
 //! with the loss factor η of knob 1 on its modulus; `FIX=7,9` holds those knobs at today's value; `W_SHARE=0` drops
 //! the cochlear-share target; `W_ZEC=1` adds the live-adult |Z_ec| and phase ranges at
-//! 250–2000 Hz (normative.json `zec`; off by default, as in sessions 11–12); `SHARE_MIN=a,b,c` sets its floors at 1, 2 and 4 kHz (default
+//! 250–2000 Hz (normative.json `zec`; off by default); `SHARE_MIN=a,b,c` sets its floors at 1, 2 and 4 kHz (default
 //! 0.33 each; the norms cap the share at ~0.15 and ~0.03 at 2 and 4 kHz, docs/simulator.md); `THICK`, `DEPTH`, `GAP` comma lists of drum thickness,
 //! depth and manubrium-to-rim gap (m) to search over; `VISCO` the drum's viscoelastic
 //! exponent; `X0` a start point.

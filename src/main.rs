@@ -17,7 +17,7 @@ fn main() {
         // and hands freed heap tops back to the kernel, so a training step's tensors (a
         // batch of 1000 × 50 floats is 200 KB) came back as page faults on zeroed pages:
         // 767,000 in a 30 s training, 3.1 s of system time; with fixed thresholds 11,000 and
-        // 1.3 s (docs/npe.md, session 15). Not for the server, which would keep up to the
+        // 1.3 s (docs/results/npe.md). Not for the server, which would keep up to the
         // trim threshold per arena for its lifetime.
         #[cfg(target_env = "gnu")]
         // SAFETY: before any thread is started; both are documented mallopt parameters.

@@ -332,7 +332,7 @@ fn studies_show_the_direction_of_noise_and_training_size() {
     ok(&["study", "validate", "--n", "20", "--refine", "20", "--out", val.to_str().unwrap()]);
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(val.join("validate.json")).unwrap()).unwrap();
     assert!(v["mean_rho"].as_f64().unwrap() > 0.9, "{v}");
-    // Issue 11's target, met by the MAP refined against the observation (the flow's own
+    // The reference-ear target, met by the MAP refined against the observation (the flow's own
     // MAP: 0.968 on 200; README), and the refinement must not make the fit worse.
     let refined = v["refined"]["mean_rho"].as_f64().unwrap();
     assert!(refined >= 0.98 && refined > v["mean_rho"].as_f64().unwrap(), "{v}");
@@ -810,7 +810,7 @@ fn infer_with_the_shipped_model(obs: &std::path::Path, out: &std::path::Path) ->
     serde_json::from_slice(&o.stdout).unwrap()
 }
 
-/// Issue 16: a clinic's umbo LDV export (tests/data/ldv_umbo.uff: the nominal ear's umbo
+/// A clinic's umbo LDV export (tests/data/ldv_umbo.uff: the nominal ear's umbo
 /// velocity, mm/s over Pa) imports as `umbo_velocity` and infers alone with the shipped
 /// model, which fits it.
 #[test]
@@ -878,7 +878,7 @@ fn a_uff58_ldv_export_imports_and_infers() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
-/// Issue 16.5: `infer --log-prob` gives log q(θ|x) of given parameter sets: on the
+/// `infer --log-prob` gives log q(θ|x) of given parameter sets: on the
 /// openapi example (the nominal ear) the nominal θ is far more probable than one with the
 /// eardrum 10× softer; a θ outside the prior box is null and listed.
 #[test]
@@ -975,7 +975,7 @@ fn infer_exact_samples_the_likelihoods_posterior_of_the_typical_ear() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
-/// Issue 16: the README's commands run verbatim from a clone. Every `otofit` line of its
+/// The README's commands run verbatim from a clone. Every `otofit` line of its
 /// shell blocks (continuations joined, trailing comments dropped) is parsed by the real
 /// command line, and every file or folder it reads is shipped in the repository or
 /// written by a line before it (`--out`, a `> file` redirect).

@@ -1,4 +1,4 @@
-//! Issue 13: contract fuzzing, schemathesis-style. Every operation of openapi.yaml gets
+//! Contract fuzzing, schemathesis-style. Every operation of openapi.yaml gets
 //! `EXAMPLES` requests made by a seeded generator from the valid bodies the spec and the
 //! other tests use: fields removed, wrong JSON types, null, huge, negative and
 //! NaN-as-string numbers, long and unicode strings, deep nesting, unknown fields, arrays

@@ -506,7 +506,7 @@ fn a_job_killed_with_sigkill_is_requeued_and_completes_after_restart() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn poison_pill_theta_is_refused_and_extreme_allowed_rows_finish() {
     let (app, _ctx, _dir) = app(vec![], 8, true).await;
-    // Issue 13: these values once looped the figure code forever, allocating without bound.
+    // These values once looped the figure code forever, allocating without bound.
     let pill = json!({"kind": "resimulate", "params": {"theta": [vec![1e-308; 7]]}});
     let (status, _, body) = call(&app, "POST", "/jobs", Some(pill)).await;
     assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{body}");
@@ -662,7 +662,7 @@ async fn every_inference_carries_a_fit_check_and_withdraws_readings_when_the_mod
     assert_eq!(body["next"]["body"]["kind"], "diagnose", "{}", body["next"]);
 }
 
-/// Issue 13.6: the queue limit holds under concurrent posts (the count and the insert
+/// The queue limit holds under concurrent posts (the count and the insert
 /// are one statement).
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn concurrent_job_posts_never_exceed_the_queue_limit() {
@@ -694,7 +694,7 @@ async fn concurrent_job_posts_never_exceed_the_queue_limit() {
     }
 }
 
-/// Issue 13.5: a diagnose job's model is an id looked up in the store, never a path;
+/// A diagnose job's model is an id looked up in the store, never a path;
 /// `default` is the registered default model; errors name the id, not server paths.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn diagnose_models_are_registered_ids_never_paths() {
@@ -745,7 +745,7 @@ async fn diagnose_models_are_registered_ids_never_paths() {
     }
 }
 
-/// Issue 13.2: a running diagnose stops within 30 s of its cancel, in whichever step it is
+/// A running diagnose stops within 30 s of its cancel, in whichever step it is
 /// (the null runs, or simulating and training the extended model), and writes nothing after.
 /// Alone it stops in ~1 s; a 5 s bound flaked on a loaded host, and a diagnose that ignores
 /// the cancel runs on for minutes in every step.
@@ -843,7 +843,7 @@ fn exit_within(child: &mut std::process::Child, secs: u64) -> Option<std::proces
     None
 }
 
-/// Issue 13.2: one process per data directory; a second `otofit serve` on it refuses to
+/// One process per data directory; a second `otofit serve` on it refuses to
 /// start and says why.
 #[test]
 fn a_second_server_on_the_same_data_dir_refuses_to_start() {
@@ -936,7 +936,7 @@ fn clinic_request() -> Value {
     req
 }
 
-/// Umbo velocity (issue 11.5, issue 16): WBT + umbo LDV is answered, the umbo narrows the
+/// Umbo velocity: WBT + umbo LDV is answered, the umbo narrows the
 /// posterior of the tissue parameters on average, and its fields are checked by name.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn wideband_tympanometry_with_umbo_ldv_gets_a_narrower_posterior() {
@@ -974,7 +974,7 @@ async fn limited_app(limits: otofit::http::InferLimits) -> (Router, TempDir) {
     (router(AppState::new(ctx, vec![])), dir)
 }
 
-/// Issue 13.3: /infer runs at most `concurrency` at once with a short queue, answers 503 +
+/// /infer runs at most `concurrency` at once with a short queue, answers 503 +
 /// Retry-After (problem+json) beyond it, and 503 once past its deadline.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn infer_is_bounded_in_concurrency_and_time() {
@@ -1014,7 +1014,7 @@ async fn infer_is_bounded_in_concurrency_and_time() {
     assert!(body["detail"].as_str().unwrap().contains("deadline"), "{body}");
 }
 
-/// Issue 13.3: a connection that sends half a request is closed after the idle timeout, and
+/// A connection that sends half a request is closed after the idle timeout, and
 /// does not hold up a SIGTERM shutdown.
 #[test]
 fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
@@ -1071,7 +1071,7 @@ fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
     eprintln!("exited {:.2} s after SIGTERM", t0.elapsed().as_secs_f64());
 }
 
-/// Issue 13.8: contract gaps. Every error is problem+json (405, extractor 400s naming the
+/// Contract gaps. Every error is problem+json (405, extractor 400s naming the
 /// parameter); list limits out of range are refused, not clamped; the Bearer scheme is
 /// case-insensitive; a body is one JSON value of exactly application/json.
 #[tokio::test]
@@ -1129,7 +1129,7 @@ async fn contract_gaps_are_closed() {
     assert_eq!((status, problem(&headers)), (StatusCode::UNAUTHORIZED, true));
 }
 
-/// Issue 13.8: an over-long request target (414) or too many or too large header fields
+/// An over-long request target (414) or too many or too large header fields
 /// (431) get problems, not hyper's empty bodies (which remain past hyper's own bounds).
 #[tokio::test]
 async fn long_targets_and_large_heads_get_problems() {
@@ -1155,7 +1155,7 @@ async fn long_targets_and_large_heads_get_problems() {
     assert_eq!(raw(&app, fine).await.0, StatusCode::OK);
 }
 
-/// Issue 13.7: a simulate job that fails leaves no temporary files, and a restart removes
+/// A simulate job that fails leaves no temporary files, and a restart removes
 /// those of runs that were killed.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
@@ -1189,7 +1189,7 @@ async fn failed_and_killed_simulate_jobs_leave_no_temporary_files() {
     assert!(!staging.exists(), "a killed attempt's staging folder goes too");
 }
 
-/// Issue 13.2: SIGTERM during a diagnose: the process exits within seconds (not after its
+/// SIGTERM during a diagnose: the process exits within seconds (not after its
 /// 60 s grace), the job goes back to the queue without counting the attempt, nothing written.
 #[test]
 fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
@@ -1223,7 +1223,7 @@ fn sigterm_during_a_diagnose_exits_promptly_and_requeues_it() {
     eprintln!("exited {secs:.2} s after SIGTERM");
 }
 
-/// Issue 13.5: a model that cannot be loaded is reported by its id; the file's path stays
+/// A model that cannot be loaded is reported by its id; the file's path stays
 /// in the server log.
 #[tokio::test]
 async fn unloadable_models_do_not_show_server_paths() {
@@ -1244,7 +1244,7 @@ async fn unloadable_models_do_not_show_server_paths() {
     assert_eq!(p["errors"][0]["message"], "model 'broken' cannot be loaded (the server log says why)", "{p}");
 }
 
-/// Issue 13.8: every operation documents its other errors (401, 405, 408, 500) as
+/// Every operation documents its other errors (401, 405, 408, 500) as
 /// problem+json, and those answers are problem+json.
 #[tokio::test]
 async fn every_operation_documents_its_errors_as_problems() {
@@ -1267,7 +1267,7 @@ async fn every_operation_documents_its_errors_as_problems() {
     }
 }
 
-/// Issue 13.2 (fencing): a worker whose job was re-queued and claimed again (a restart)
+/// Fencing: A worker whose job was re-queued and claimed again (a restart)
 /// can no longer end it; only the current claim's worker can.
 #[tokio::test]
 async fn only_the_current_attempt_can_end_a_job() {
@@ -1290,7 +1290,7 @@ async fn only_the_current_attempt_can_end_a_job() {
     assert_eq!(store.job("j").await.unwrap().unwrap().state, "succeeded");
 }
 
-/// Issue 13.8: a job param of the wrong type, unknown or missing is named by its full
+/// A job param of the wrong type, unknown or missing is named by its full
 /// JSON path, not as `params`.
 #[tokio::test]
 async fn job_param_errors_carry_the_full_path() {
@@ -1313,7 +1313,7 @@ async fn job_param_errors_carry_the_full_path() {
     }
 }
 
-/// Issue 13.8: a body field of the wrong type is named by its JSON path, not `body` or its
+/// A body field of the wrong type is named by its JSON path, not `body` or its
 /// value.
 #[tokio::test]
 async fn body_type_errors_carry_the_full_path() {
@@ -1359,7 +1359,7 @@ async fn keyless_server_answers_only_loopback_names_ip_literals_and_allowed_host
     assert_eq!(get(keyed, "evil.example").await.0, StatusCode::UNAUTHORIZED);
 }
 
-/// Issue 16: one ear as a long-layout table (`text/csv`), the request's options in the
+/// One ear as a long-layout table (`text/csv`), the request's options in the
 /// query; errors name the column.
 #[tokio::test]
 async fn a_long_layout_csv_body_is_inferred_and_its_errors_name_the_column() {
@@ -1413,7 +1413,7 @@ async fn a_long_layout_csv_body_is_inferred_and_its_errors_name_the_column() {
     assert_eq!(band(&r, "absorbance"), [232, 8000], "{}", r["inputs"]);
 }
 
-/// Issue 14: GET /metrics in the Prometheus text format: the job table by kind and state,
+/// GET /metrics in the Prometheus text format: the job table by kind and state,
 /// this process's claims, simulated rows, job durations and /infer latencies.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn metrics_count_jobs_rows_and_inferences() {
@@ -1443,7 +1443,7 @@ async fn metrics_count_jobs_rows_and_inferences() {
     }
 }
 
-/// Issue 16.5: POST /log_prob gives log q(θ|x) of given rows for one ear's measurements:
+/// POST /log_prob gives log q(θ|x) of given rows for one ear's measurements:
 /// on the typical ear its own θ beats an eardrum 10× softer, a row outside the prior
 /// box is null and listed, and a row of the wrong width is a 422 naming it.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -1471,7 +1471,7 @@ async fn log_prob_ranks_the_truth_and_names_bad_rows() {
     assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("theta[0]")), "{p}");
 }
 
-/// Issue 16.5: POST /infer draws the posterior's corner plot on request (`plot=corner` as a
+/// POST /infer draws the posterior's corner plot on request (`plot=corner` as a
 /// query parameter or a body field), an SVG with tick values, and names a figure it does
 /// not know.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -116,7 +116,7 @@ fn exact_summaries(widen: f64) -> impl Fn(u64, &[f64]) -> Summaries {
     }
 }
 
-/// The ±8 % std check issue 17 asks for, and its own sensitivity: the exact posterior
+/// The ±8 % std check, and its own sensitivity: the exact posterior
 /// passes it and the exact posterior 18 % too wide fails it.
 #[test]
 fn the_8_percent_check_fails_a_posterior_18_percent_too_wide() {
@@ -182,7 +182,7 @@ fn checkpoints_round_trip_and_bad_files_are_refused() {
     // The header rewritten with an unknown format (its length field kept consistent).
     let v9 = with_header(&bytes, |h| h.replace("\"format_version\":2", "\"format_version\":9"));
     assert!(err(&v9).contains("format 9"), "{}", err(&v9));
-    // A header length near u64::MAX (issue 15: once a slice panic) is a named error.
+    // A header length near u64::MAX (once a slice panic) is a named error.
     let mut huge = bytes.clone();
     huge[11..19].copy_from_slice(&(u64::MAX - 3).to_le_bytes());
     assert!(err(&huge).contains("header length"), "{}", err(&huge));

@@ -301,7 +301,7 @@ async fn an_expired_lease_is_taken_back_and_the_stale_worker_is_fenced_out() {
     }
 }
 
-/// Issue 13.6 for any number of servers: concurrent posts never exceed the queue limit
+/// For any number of servers: concurrent posts never exceed the queue limit
 /// (on PostgreSQL the count and the insert run under an advisory lock).
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn concurrent_inserts_from_many_servers_never_exceed_the_queue_limit() {

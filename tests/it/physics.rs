@@ -248,7 +248,7 @@ fn head_lateral(model: &Model, x: &[c64]) -> c64 {
 
 #[test]
 fn the_incus_across_the_stapes_axis_obeys_its_own_equation_of_motion() {
-    // Issue 11 item 3 (`Geometry::incus_lateral`): the incus's lateral unknown couples to
+    // `Geometry::incus_lateral`: the incus's lateral unknown couples to
     // the rest only through the ISJ's shear spring, so its row is a closed form: the joint
     // spring κ_j·g_isj against the incus held by the PIL (ligaments' modulus) and the IMJ
     // (joints') and its mass, y_i = κ_j g_isj·y_head / (κ_j g_isj + κ_l g_pil + κ_j g_imj
@@ -428,7 +428,7 @@ fn the_reference_ears_impedance_and_absorbance_set_a_floor_on_its_reduced_chi2()
         eprintln!("canal area {:.1} mm²: reduced χ² ≥ {f:.3}", s * 1e6);
     }
     // The floor falls as the canal widens; the values docs/simulator.md quotes (at the
-    // prior's widest canal, of issue 11's χ²ν ≤ 3 at most 1.11 is left for the rest).
+    // prior's widest canal, of the χ²ν ≤ 3 target at most 1.11 is left for the rest).
     assert!(floors.windows(2).all(|w| w[1] < w[0]), "{floors:?}");
     for (got, quoted) in floors.iter().zip([3.679, 3.093, 2.659, 2.102, 1.889]) {
         assert!((got - quoted).abs() < 0.002, "{floors:?}");

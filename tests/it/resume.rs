@@ -193,7 +193,7 @@ async fn a_cancelled_simulate_leaves_no_parts_or_temporary_files() {
 
 /// A chunk plan left incomplete (a process killed while planning, before the plan was
 /// written in one transaction) is replaced, not taken for the whole job: the dataset
-/// has every row. Session 15's CI once published 20,000 of 40,000 rows this way.
+/// has every row. A CI run once published 20,000 of 40,000 rows this way.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_partial_chunk_plan_is_replaced_and_the_dataset_has_every_row() {
     for (name, db) in backends().await {

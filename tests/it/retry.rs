@@ -1,4 +1,4 @@
-//! Retries with backoff (issue 14): a failed attempt of a job with attempts left goes
+//! Retries with backoff: a failed attempt of a job with attempts left goes
 //! back to the queue and is not claimed before its backoff (doubling, capped) has passed;
 //! GET /jobs/{id} shows when (`retry_at`) and why (`error`). On both backends.
 

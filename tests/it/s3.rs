@@ -153,7 +153,7 @@ fn files_under(dir: &Path) -> Vec<String> {
     out
 }
 
-/// Issue 14.3: a worker with data directory A stores a simulate job's dataset in S3
+/// A worker with data directory A stores a simulate job's dataset in S3
 /// (moto); a worker with data directory C fetches it to train a model and stores the
 /// model and a resimulate job's report; a `serve` with data directory B (the same
 /// PostgreSQL job table, no shared files) serves the dataset and the report from the

@@ -222,7 +222,7 @@ fn explain_reports_the_drum_variants_and_refuses_bad_ones() {
         .unwrap();
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("study reference"));
     assert!(!dir.exists(), "study validate ran with --drum");
-    // The incus across the stapes axis (issue 11 item 3) is a report variant too.
+    // The incus across the stapes axis is a report variant too.
     let (ok, _, err) = explain(&["--incus-lateral"]);
     assert!(ok, "{err}");
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
@@ -295,7 +295,7 @@ fn probe_offset_moves_impedance_phase_and_keeps_absorbance() {
     assert!(max_diff(&f, &moved, &base, 3, 2000.0, 8000.0) > 0.1, "Zec phase must move at high f");
 }
 
-/// Issue 12's "strong hidden effects flagged ≥ 90 %" cannot hold for the probe offset:
+/// "Strong hidden effects flagged ≥ 90 %" cannot hold for the probe offset:
 /// a plane moved Δx toward the drum is exactly an ear whose canal is Δx shorter, a valid
 /// ear of the prior, so no fit check may flag it (bench fit: 5 %, the null's rate).
 #[test]

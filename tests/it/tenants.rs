@@ -1,4 +1,4 @@
-//! Issue 13.4: tenants. Keys belong to tenants; jobs, datasets and models belong to the
+//! Tenants. Keys belong to tenants; jobs, datasets and models belong to the
 //! tenant that made them; another tenant's id answers 404 on every route that takes one,
 //! lists show only one's own, an admin key sees all but not other tenants' measurements.
 //! On SQLite and, when its binaries are installed, PostgreSQL.

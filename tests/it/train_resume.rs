@@ -1,4 +1,4 @@
-//! Checkpointed training (issue 13): a training stopped (in process) or killed (a worker
+//! Checkpointed training: a training stopped (in process) or killed (a worker
 //! process, SIGKILL) resumes from its last checkpoint, and its model is the same, bit for
 //! bit, as an uninterrupted run's with the same seed.
 

@@ -128,7 +128,7 @@ impl FlowConfig {
 /// transforms). Each stored permutation takes the previous transform's order to this
 /// one's, since `log_prob` applies them one after another.
 ///
-/// Checkpoints before this (issue 17) stored the orders themselves, which composed left
+/// Checkpoints before this (before v7) stored the orders themselves, which composed left
 /// the last parameter of a model with 6 or more never transformed: its posterior was the
 /// base distribution whatever the observation. They keep loading with their stored
 /// permutations.

@@ -770,7 +770,7 @@ const JACOBIAN_CHUNK: usize = 256;
 
 /// Up to this many elements [`spline_jacobians`] runs on the calling thread: handing a
 /// training batch's few thousand elements to rayon cost more in wake-ups (futex,
-/// sched_yield) than it saved on two cores (docs/npe.md, session 15).
+/// sched_yield) than it saved on two cores (docs/results/npe.md).
 const SERIAL_ELEMENTS: usize = 16_384;
 
 /// The training's spline pass (`spline::forward`), in f64 from burn's f32: for element e,
