@@ -1,0 +1,394 @@
+//! The suite's runner: for each model × condition, noisy ears read by a posterior the way
+//! `otofit infer` and `POST /infer` read one (samples and MAP, the fit check, the
+//! normal-range differential, withdrawn when the fit fails), and the rates a clinic
+//! would live with.
+//!
+//! Scores, per model × condition, over all its ears:
+//! - `fit_ok`: the fit check passed;
+//! - `correct`: the fit check passed and the answer shipped names the condition
+//!   ([`Condition::expected`]); for a healthy ear, holds no finding at all;
+//! - `confident_wrong`: the answer shipped holds a finding (P ≥ 0.95 below or above its
+//!   normal range) on a parameter the condition does not name: a wrong structure
+//!   named while the fit check passed;
+//! - the same two before the fit check withdraws anything (`*_raw`): what the posterior
+//!   alone says.
+//!
+//! Ears the CLI would refuse (a feature outside the physical envelope,
+//! `otofit_sim::output::implausible`) are counted as refused and read as nothing.
+
+use super::hudde_engel::HuddeEngel;
+use super::kringlebotn::Kringlebotn;
+use super::{CONDITIONS, Condition, EarModel, Geometry, features, training_air};
+use anyhow::{Result, bail};
+use otofit_discrepancy::discrepancy::fitcheck::fit_check;
+use otofit_npe::npe::normal::{self, Differential};
+use otofit_npe::npe::{Npe, Obs};
+use otofit_sim::batch::Noise;
+use otofit_sim::output;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rayon::prelude::*;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// The published models of the suite.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum ModelKind {
+    /// Kringlebotn 1988's network ([`Kringlebotn`]).
+    #[serde(rename = "kringlebotn_1988")]
+    Kringlebotn1988,
+    /// Hudde & Engel 1998's adult model ([`HuddeEngel`]).
+    #[serde(rename = "hudde_engel_1998")]
+    HuddeEngel1998,
+}
+
+/// Every model, in table order.
+pub const MODELS: [ModelKind; 2] = [ModelKind::Kringlebotn1988, ModelKind::HuddeEngel1998];
+
+/// Stapes fixation's range of annular-ligament stiffening, drawn log-uniformly per ear.
+pub const STAPES_FIXATION: (f64, f64) = (10.0, 100.0);
+
+impl ModelKind {
+    /// Name as in the table and the JSON.
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::Kringlebotn1988 => "kringlebotn_1988",
+            ModelKind::HuddeEngel1998 => "hudde_engel_1998",
+        }
+    }
+
+    /// One ear of this model with `condition`; `severity` in [0, 1] places it within the
+    /// condition's range. Returns the ear and the severity in the condition's own unit
+    /// (the stapes' stiffening factor, the malleus' 100; 1 where it has none).
+    pub fn ear(self, condition: Condition, severity: f64) -> (Box<dyn EarModel + Send + Sync>, f64) {
+        let stiffening = STAPES_FIXATION.0 * (STAPES_FIXATION.1 / STAPES_FIXATION.0).powf(severity);
+        match self {
+            ModelKind::Kringlebotn1988 => {
+                let k = Kringlebotn::published();
+                match condition {
+                    Condition::Healthy => (Box::new(k), 1.0),
+                    Condition::StapesFixation => (Box::new(k.stapes_fixed(stiffening)), stiffening),
+                    Condition::MalleusFixation => (Box::new(k.malleus_fixed()), 100.0),
+                    Condition::Discontinuity => (Box::new(k.disconnected()), 1.0),
+                }
+            }
+            ModelKind::HuddeEngel1998 => {
+                let h = HuddeEngel::published();
+                match condition {
+                    Condition::Healthy => (Box::new(h), 1.0),
+                    Condition::StapesFixation => (Box::new(h.stapes_fixed(stiffening)), stiffening),
+                    Condition::MalleusFixation => (Box::new(h.malleus_fixed()), 100.0),
+                    Condition::Discontinuity => (Box::new(h.disconnected()), 1.0),
+                }
+            }
+        }
+    }
+}
+
+/// How big a run is.
+#[derive(Clone, Debug)]
+pub struct CrossParams {
+    /// Noisy ears per model × condition.
+    pub ears: usize,
+    /// Seed of the severities, the noise and the posterior draws.
+    pub seed: u64,
+    /// Posterior samples per ear (the CLI's and the service's default: 1000).
+    pub samples: usize,
+    /// Multiplies otofit's 1× test–retest noise (`otofit simulate --noise-scale`).
+    pub noise_scale: f64,
+    /// The feature groups given to the posterior and the fit check (e.g. `impedance`,
+    /// `absorbance`: wideband tympanometry alone); all when empty.
+    pub groups: Vec<String>,
+}
+
+impl Default for CrossParams {
+    fn default() -> Self {
+        CrossParams { ears: 20, seed: 1, samples: 1000, noise_scale: 1.0, groups: vec![] }
+    }
+}
+
+/// One ear's reading.
+#[derive(Clone, Debug, Serialize)]
+pub struct EarOutcome {
+    /// The condition's severity (its own unit, see [`ModelKind::ear`]).
+    pub severity: f64,
+    /// Why the CLI would refuse this ear (a feature outside the physical envelope).
+    pub refused: Option<String>,
+    /// The fit check's verdict (`None`: refused, or the check could not run).
+    pub fit_ok: Option<bool>,
+    /// The fit check's posterior-predictive reduced χ².
+    pub reduced_chi2: Option<f64>,
+    /// Why the fit check failed, in its words.
+    pub fit_reason: Option<String>,
+    /// Findings (`NAME below|above`) before the fit check withdraws anything.
+    pub findings_raw: Vec<String>,
+    /// Findings as shipped (empty when the fit failed).
+    pub findings: Vec<String>,
+}
+
+/// The scores of one model × condition.
+#[derive(Clone, Debug, Serialize)]
+pub struct CaseResult {
+    /// The model.
+    pub model: ModelKind,
+    /// The condition.
+    pub condition: Condition,
+    /// The readings that name the condition (`NAME below|above`); none for healthy.
+    pub expected: Vec<String>,
+    /// Ears read.
+    pub ears: usize,
+    /// Ears the CLI would refuse.
+    pub refused: usize,
+    /// Fraction of ears whose fit check passed.
+    pub fit_ok: f64,
+    /// Fraction whose fit check passed and whose answer names the condition (healthy: no
+    /// finding).
+    pub correct: f64,
+    /// Fraction whose shipped answer holds a finding the condition does not name.
+    pub confident_wrong: f64,
+    /// `correct` before the fit check withdraws anything.
+    pub correct_raw: f64,
+    /// `confident_wrong` before the fit check withdraws anything.
+    pub confident_wrong_raw: f64,
+    /// Median reduced χ² of the fit check over the ears it ran on.
+    pub median_chi2: Option<f64>,
+    /// How often each finding was shipped.
+    pub findings: BTreeMap<String, usize>,
+    /// How often each finding was read before the fit check.
+    pub findings_raw: BTreeMap<String, usize>,
+    /// Every ear.
+    pub per_ear: Vec<EarOutcome>,
+}
+
+/// `NAME below|above` for every confident finding of a differential.
+fn findings(d: &[Differential]) -> Vec<String> {
+    d.iter().filter(|r| matches!(r.reading, "below" | "above")).map(|r| format!("{} {}", r.name, r.reading)).collect()
+}
+
+/// Whether a set of findings names `condition` (healthy: holds none).
+fn names_condition(found: &[String], expected: &[String]) -> bool {
+    if expected.is_empty() { found.is_empty() } else { found.iter().any(|f| expected.contains(f)) }
+}
+
+/// Whether a set of findings holds one the condition does not name.
+fn names_another(found: &[String], expected: &[String]) -> bool {
+    found.iter().any(|f| !expected.contains(f))
+}
+
+/// Reads one ear as `otofit infer` does.
+fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -> Result<EarOutcome> {
+    let mut ear = EarOutcome {
+        severity: 1.0,
+        refused: None,
+        fit_ok: None,
+        reduced_chi2: None,
+        fit_reason: None,
+        findings_raw: vec![],
+        findings: vec![],
+    };
+    if let Some((m, i, v)) = output::implausible(x, present, npe.header.frequencies_hz.len()).first() {
+        ear.refused = Some(format!(
+            "{} = {v} outside the envelope of {}",
+            npe.header.feature_names[*i],
+            output::MEASURES[*m].name
+        ));
+        return Ok(ear);
+    }
+    let inf = npe.infer(&Obs { x, present: Some(present) }, samples, seed)?;
+    let mut differential = normal::read(npe.params(), &inf.samples);
+    ear.findings_raw = findings(&differential);
+    match fit_check(npe, x, present, &inf) {
+        Ok(f) => {
+            ear.fit_ok = f.ok;
+            ear.reduced_chi2 = Some(f.reduced_chi2);
+            if f.ok == Some(false) {
+                ear.fit_reason = f.reason.clone();
+                normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
+            }
+        }
+        Err(e) => ear.fit_reason = Some(e.to_string()),
+    }
+    ear.findings = findings(&differential);
+    Ok(ear)
+}
+
+/// Runs every model × condition with `p.ears` noisy ears each; `progress`
+/// hears each case as it ends.
+pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) -> Result<Vec<CaseResult>> {
+    let freqs = npe.header.frequencies_hz.clone();
+    if npe.header.feature_names != output::feature_names(&freqs) {
+        bail!("the model's features are not otofit's seven measures on its grid: no cross-model ears for it");
+    }
+    let (geometry, air) = (Geometry::nominal(), training_air());
+    let noise = Noise { std: output::noise_std(&freqs), scale: p.noise_scale, seed: p.seed };
+    let mut present = vec![p.groups.is_empty(); freqs.len() * output::N_MEASURES];
+    for name in &p.groups {
+        let Some(g) = npe.header.groups.iter().find(|g| &g.name == name) else {
+            let known: Vec<&str> = npe.header.groups.iter().map(|g| g.name.as_str()).collect();
+            bail!("unknown feature group '{name}' (known: {})", known.join(", "));
+        };
+        g.features.iter().for_each(|&i| present[i] = true);
+    }
+    let mut out = vec![];
+    let cases = MODELS.iter().flat_map(|&m| CONDITIONS.iter().map(move |&c| (m, c)));
+    for (case, (model, condition)) in cases.enumerate() {
+        let expected: Vec<String> = condition.expected().iter().map(|(n, d)| format!("{n} {d}")).collect();
+        let per_ear: Vec<EarOutcome> = (0..p.ears)
+            .into_par_iter()
+            .map(|k| {
+                let row = case * 1_000_000 + k;
+                let mut rng = ChaCha8Rng::seed_from_u64(p.seed);
+                rng.set_stream(row as u64);
+                let (ear, severity) = model.ear(condition, rng.random::<f64>());
+                let clean = features(ear.as_ref(), &geometry, &air, &freqs);
+                let x = if p.noise_scale > 0.0 { noise.apply(&clean, row) } else { clean };
+                let mut o = read_ear(npe, &x, &present, p.samples, p.seed.wrapping_add(row as u64))?;
+                o.severity = severity;
+                Ok(o)
+            })
+            .collect::<Result<_>>()?;
+        let n = per_ear.len().max(1) as f64;
+        let rate = |f: &dyn Fn(&EarOutcome) -> bool| per_ear.iter().filter(|e| f(e)).count() as f64 / n;
+        let count = |get: &dyn Fn(&EarOutcome) -> &Vec<String>| {
+            let mut m = BTreeMap::new();
+            for e in &per_ear {
+                for f in get(e) {
+                    *m.entry(f.clone()).or_insert(0) += 1;
+                }
+            }
+            m
+        };
+        let mut chi2: Vec<f64> = per_ear.iter().filter_map(|e| e.reduced_chi2).collect();
+        chi2.sort_by(f64::total_cmp);
+        // A shipped answer is right only with the fit check passed: a withdrawn reading
+        // says nothing about the ear, healthy or not.
+        let scored = |found: &dyn Fn(&EarOutcome) -> &Vec<String>, right: bool, shipped: bool| {
+            rate(&|e| {
+                e.refused.is_none()
+                    && if right {
+                        (!shipped || e.fit_ok == Some(true)) && names_condition(found(e), &expected)
+                    } else {
+                        names_another(found(e), &expected)
+                    }
+            })
+        };
+        let result = CaseResult {
+            model,
+            condition,
+            ears: per_ear.len(),
+            refused: per_ear.iter().filter(|e| e.refused.is_some()).count(),
+            fit_ok: rate(&|e| e.fit_ok == Some(true)),
+            correct: scored(&|e| &e.findings, true, true),
+            confident_wrong: scored(&|e| &e.findings, false, true),
+            correct_raw: scored(&|e| &e.findings_raw, true, false),
+            confident_wrong_raw: scored(&|e| &e.findings_raw, false, false),
+            median_chi2: (!chi2.is_empty()).then(|| chi2[(chi2.len() - 1) / 2]),
+            findings: count(&|e| &e.findings),
+            findings_raw: count(&|e| &e.findings_raw),
+            expected,
+            per_ear,
+        };
+        progress(&result);
+        out.push(result);
+    }
+    Ok(out)
+}
+
+/// The results as a Markdown table: one row per model × condition.
+pub fn table(results: &[CaseResult]) -> String {
+    let mut s = String::from(
+        "| model | condition | should read | ears | refused | fit ok | correct | confident wrong | correct, before fit check | confident wrong, before fit check | median χ² | most frequent wrong finding (ears, before fit check) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    let pct = |v: f64| format!("{:.0} %", 100.0 * v);
+    for r in results {
+        let wrong = r
+            .findings_raw
+            .iter()
+            .filter(|(f, _)| !r.expected.contains(f))
+            .max_by_key(|(_, n)| **n)
+            .map_or("—".to_string(), |(f, n)| format!("{f} ({n})"));
+        let should = if r.expected.is_empty() { "no finding".to_string() } else { r.expected.join(" or ") };
+        s.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            r.model.name(),
+            r.condition.name(),
+            should,
+            r.ears,
+            r.refused,
+            pct(r.fit_ok),
+            pct(r.correct),
+            pct(r.confident_wrong),
+            pct(r.correct_raw),
+            pct(r.confident_wrong_raw),
+            r.median_chi2.map_or("—".to_string(), |c| format!("{c:.1}")),
+            wrong
+        ));
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn scoring_follows_the_condition() {
+        let e = |v: &[&str]| v.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let sal = e(&["E_sal above"]);
+        assert!(names_condition(&e(&["E_sal above", "E_eardrum below"]), &sal));
+        assert!(names_another(&e(&["E_sal above", "E_eardrum below"]), &sal));
+        assert!(!names_another(&e(&["E_sal above"]), &sal));
+        assert!(names_condition(&[], &[]) && !names_condition(&e(&["E_joints below"]), &[]));
+        assert!(names_another(&e(&["E_joints below"]), &[]));
+    }
+
+    /// Every model is passive (absorbance in [0, 1] at the probe, the drum's resistance
+    /// not negative) and gives finite features inside otofit's physical envelope for
+    /// every condition, at both ends of the condition's range.
+    #[test]
+    fn every_ear_is_a_plausible_measurement() {
+        let freqs = otofit_sim::log_grid(200.0, 8000.0, 50);
+        let present = vec![true; 350];
+        for m in MODELS {
+            for c in CONDITIONS {
+                for s in [0.0, 1.0] {
+                    let (ear, _) = m.ear(c, s);
+                    assert!(freqs.iter().all(|&f| ear.at(f).z_drum.re >= 0.0), "{} {}", m.name(), c.name());
+                    let x = features(ear.as_ref(), &Geometry::nominal(), &training_air(), &freqs);
+                    let absorbance = &x[200..250];
+                    assert!(absorbance.iter().all(|a| (0.0..=1.0).contains(a)), "{} {}", m.name(), c.name());
+                    assert!(x.iter().all(|v| v.is_finite()), "{} {}", m.name(), c.name());
+                    let bad = output::implausible(&x, &present, freqs.len());
+                    assert!(bad.is_empty(), "{} {} severity {s}: {bad:?}", m.name(), c.name());
+                }
+            }
+        }
+    }
+
+    /// The runner on two ears per case with the shipped model: every case scored, no ear
+    /// refused, rates in [0, 1], the same numbers twice, the groups given respected.
+    #[test]
+    fn runner_reads_a_couple_of_ears() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
+        let npe = Npe::load(&path).unwrap();
+        let p = CrossParams { ears: 2, samples: 200, ..CrossParams::default() };
+        let t = std::time::Instant::now();
+        let a = run(&npe, &p, &mut |_| {}).unwrap();
+        assert!(t.elapsed().as_secs_f64() < 30.0, "{:.1} s", t.elapsed().as_secs_f64());
+        assert_eq!(a.len(), 8);
+        for r in &a {
+            assert_eq!((r.ears, r.refused), (2, 0), "{} {}", r.model.name(), r.condition.name());
+            for v in [r.fit_ok, r.correct, r.confident_wrong, r.correct_raw, r.confident_wrong_raw] {
+                assert!((0.0..=1.0).contains(&v), "{v}");
+            }
+        }
+        let b = run(&npe, &p, &mut |_| {}).unwrap();
+        let key = |v: &[CaseResult]| serde_json::to_string(&v.iter().map(|r| &r.per_ear).collect::<Vec<_>>()).unwrap();
+        assert_eq!(key(&a), key(&b));
+        let wbt = CrossParams { groups: vec!["impedance".into(), "absorbance".into()], ..p.clone() };
+        assert_ne!(key(&run(&npe, &wbt, &mut |_| {}).unwrap()), key(&a));
+        let bad = CrossParams { groups: vec!["tympanogram".into()], ..p.clone() };
+        assert!(run(&npe, &bad, &mut |_| {}).unwrap_err().to_string().contains("unknown feature group"));
+        assert_eq!(table(&a).lines().count(), 10);
+    }
+}
