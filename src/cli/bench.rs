@@ -79,6 +79,31 @@ pub enum BenchWhat {
     /// Posterior accuracy on standard SBI tasks: C2ST against reference posteriors and
     /// training time (JSON too).
     C2st(Box<super::bench_c2st::C2stArgs>),
+    /// Ears from published middle-ear models otofit does not contain (Kringlebotn 1988,
+    /// Hudde & Engel 1998), healthy and with three conditions, read by the model as
+    /// `otofit infer` reads them: fit-check pass rate, right readings and confident wrong
+    /// ones, per model × condition (table on stdout; crossmodel.md and crossmodel.json in
+    /// --out).
+    Crossmodel {
+        /// Noisy ears per model × condition (otofit's 1× test–retest noise, one seed each).
+        #[arg(long, default_value_t = 20)]
+        ears: usize,
+        /// Folder for crossmodel.md (the table) and crossmodel.json (every ear).
+        #[arg(long)]
+        out: std::path::PathBuf,
+        /// The model that reads the ears.
+        #[arg(long, default_value = "models/default.otofit")]
+        model: std::path::PathBuf,
+        /// Seed of the severities, the noise and the posterior draws.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Posterior samples per ear.
+        #[arg(long, default_value_t = 1000)]
+        samples: usize,
+        /// Feature groups given, comma-separated (e.g. impedance,absorbance: WBT alone); all if empty.
+        #[arg(long, default_value = "")]
+        measures: String,
+    },
     /// Discrepancy naming on hidden-effect cases (simulator-only pipeline).
     Discrepancy {
         /// Hidden cases per effect.
@@ -102,8 +127,64 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Infer { clients, requests, samples, direct: false } => infer(clients, requests, samples),
         BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
         BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
+        BenchWhat::Crossmodel { ears, out, model, seed, samples, measures } => {
+            crossmodel(ears, &out, &model, seed, samples, &measures)
+        }
         BenchWhat::C2st(a) => super::bench_c2st::run(*a),
     }
+}
+
+/// `otofit bench crossmodel`: the cross-model suite, its table on stdout and in
+/// `out`/crossmodel.md, every ear in `out`/crossmodel.json.
+fn crossmodel(
+    ears: usize,
+    out: &std::path::Path,
+    model: &std::path::Path,
+    seed: u64,
+    samples: usize,
+    measures: &str,
+) -> Result<()> {
+    use crate::bench::crossmodel::run::{self, CrossParams};
+    use anyhow::Context;
+    if !(1..=10_000).contains(&ears) {
+        anyhow::bail!("--ears must be 1..=10000 (got {ears})");
+    }
+    if samples == 0 || samples > 1_000_000 {
+        anyhow::bail!("--samples must be between 1 and 1000000");
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("--out {}: cannot create it", out.display()))?;
+    let npe = crate::npe::Npe::load(model)?;
+    let groups: Vec<String> = measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
+    let p = CrossParams { ears, seed, samples, groups, ..CrossParams::default() };
+    let given = if measures.is_empty() { "all" } else { measures };
+    let t = Instant::now();
+    let results = run::run(&npe, &p, &mut |r| {
+        eprintln!(
+            "{} {}: fit ok {:.0} %, correct {:.0} %, confident wrong {:.0} % ({:.0} s)",
+            r.model.name(),
+            r.condition.name(),
+            100.0 * r.fit_ok,
+            100.0 * r.correct,
+            100.0 * r.confident_wrong,
+            t.elapsed().as_secs_f64()
+        )
+    })?;
+    let table = run::table(&results);
+    println!("measures given: {given}");
+    print!("{table}");
+    std::fs::write(out.join("crossmodel.md"), format!("measures given: {given}\n\n{table}"))?;
+    let doc = serde_json::json!({
+        "model": model.display().to_string(),
+        "ears": ears,
+        "seed": seed,
+        "samples": samples,
+        "noise_scale": p.noise_scale,
+        "measures": given,
+        "seconds": t.elapsed().as_secs_f64(),
+        "results": results,
+    });
+    std::fs::write(out.join("crossmodel.json"), serde_json::to_vec_pretty(&doc)?)?;
+    Ok(())
 }
 
 fn median(v: &mut [f64]) -> f64 {
