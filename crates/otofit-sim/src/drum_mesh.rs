@@ -287,7 +287,7 @@ pub fn assemble(
 
 /// Each node DOF's place, the free ones numbered in node order, and how many are free.
 /// `place` returns None for fixed, Some([NaN, _]) for free, Some(c) for malleus.
-fn number_dofs(n_nodes: usize, place: impl Fn(usize, usize) -> Option<[f64; 2]>) -> (Vec<Dof>, usize) {
+pub(crate) fn number_dofs(n_nodes: usize, place: impl Fn(usize, usize) -> Option<[f64; 2]>) -> (Vec<Dof>, usize) {
     let mut dofs = Vec::with_capacity(6 * n_nodes);
     let mut n = 0;
     for node in 0..n_nodes {
@@ -307,7 +307,7 @@ fn number_dofs(n_nodes: usize, place: impl Fn(usize, usize) -> Option<[f64; 2]>)
 
 impl DrumFe {
     /// Adds one element whose local DOF `i` goes to `at(i)`.
-    fn add_element(&mut self, el: &TriShell, at: impl Fn(usize) -> Dof, weight: f64) {
+    pub(crate) fn add_element(&mut self, el: &TriShell, at: impl Fn(usize) -> Dof, weight: f64) {
         for i in 0..18 {
             match at(i) {
                 Dof::Fixed => continue,
@@ -456,7 +456,7 @@ impl DrumFe {
 const SERIES: usize = 26;
 const SERIES_RATIO: f64 = 0.25;
 /// Entries of a symmetric 5×5 matrix, upper triangle row by row.
-const PAIRS: [(usize, usize); 15] = [
+pub(crate) const PAIRS: [(usize, usize); 15] = [
     (0, 0),
     (0, 1),
     (0, 2),
@@ -624,7 +624,22 @@ impl ManubriumModes {
         h
     }
 
-    fn finish(&self, c: &DrumCoefficients, h: &[c64; 15]) -> [[c64; 4]; 4] {
+    /// A drum with no interior modes, only the manubrium's own terms of `fe`: with
+    /// [`Self::finish`] it turns an interior's H (computed some other way, e.g. by a
+    /// direct solve) into the condensed block.
+    pub(crate) fn boundary_only(fe: &DrumFe) -> ManubriumModes {
+        ManubriumModes {
+            mu: vec![],
+            g: vec![],
+            k_bb: fe.k_bb,
+            m_bb: fe.m_bb,
+            b_b: fe.b_b,
+            tail: vec![[[0.0; 15]; SERIES]],
+        }
+    }
+
+    /// The condensed block from H = Σ_k g_k g_kᵀ/(κ + sμ_k) over `PAIRS`.
+    pub(crate) fn finish(&self, c: &DrumCoefficients, h: &[c64; 15]) -> [[c64; 4]; 4] {
         let mut hm = [[c64::new(0.0, 0.0); 5]; 5];
         for (e, &(a, b)) in PAIRS.iter().enumerate() {
             hm[a][b] = h[e];

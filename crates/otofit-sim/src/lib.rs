@@ -10,6 +10,7 @@
 //! No I/O here: the CLI and the service do that.
 
 pub mod air;
+pub mod anatomical_drum;
 pub mod batch;
 pub mod canal;
 pub mod drum;

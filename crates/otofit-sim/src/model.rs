@@ -19,6 +19,7 @@
 //! verification of it and the path to non-uniform canals.
 
 use super::air::{self, Air};
+use super::anatomical_drum::{self, AnatomicalCondensed, AnatomicalDrum};
 use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
 use super::line_drum::{LineDrum, LineTuning, simpson};
@@ -142,6 +143,17 @@ impl Default for Geometry {
 }
 
 impl Geometry {
+    /// The anatomical ear (`--drum anatomical`): [`AnatomicalDrum::default`] with its
+    /// frequency-independent loss factor on the notes-based chain of
+    /// [`Geometry::axisymmetric`] (masses and ligament geometry unscaled).
+    pub fn anatomical() -> Geometry {
+        Geometry {
+            tm_shape: DrumShape::Anatomical(AnatomicalDrum::default()),
+            tm_loss: DrumLoss::LossFactor(anatomical_drum::LOSS_FACTOR),
+            ..Geometry::axisymmetric()
+        }
+    }
+
     /// The v1–v5 ear: the axisymmetric FE drum with Rayleigh loss and the chain's
     /// notes-based masses and ligament geometry (`--drum axisymmetric`; the FE drum's
     /// closed-form tests use it).
@@ -241,6 +253,10 @@ pub enum DrumShape {
     /// Session 12, an experiment: the drum as a lossy transmission line from the canal to
     /// the umbo (`line_drum.rs`, Puria & Allen 1998); no FE, no modes.
     Line(LineDrum),
+    /// The anatomical FE drum (`anatomical_drum.rs`): elliptical outline, measured
+    /// thickness, the manubrium as a strip of finite width, a compliant annulus. Always
+    /// condensed onto the malleus.
+    Anatomical(AnatomicalDrum),
 }
 
 impl DrumShape {
@@ -325,6 +341,8 @@ enum Condensed {
     Axisymmetric(DrumModes),
     /// On (umbo, θ_m, p_drum, p_cavity); holds the manubrium's own terms too.
     Manubrium(std::sync::Arc<ManubriumModes>),
+    /// The anatomical drum, on the same four unknowns.
+    Anatomical(std::sync::Arc<AnatomicalCondensed>),
     /// On (umbo, p_drum, p_cavity): the line's two-port and its shunt.
     Line(LineDrum),
 }
@@ -539,6 +557,12 @@ impl Model {
                     coef[bl.drum_schur + 4 * i..bl.drum_schur + 4 * i + 4].copy_from_slice(row);
                 }
             }
+            Some(Condensed::Anatomical(drum)) => {
+                let block = drum.block(&self.drum_coefficients(coef, w));
+                for (i, row) in block.iter().enumerate() {
+                    coef[bl.drum_schur + 4 * i..bl.drum_schur + 4 * i + 4].copy_from_slice(row);
+                }
+            }
             Some(Condensed::Line(line)) => {
                 let block = line.block(coef[bl.tm], w, coef[bl.cavity_row].re);
                 coef[bl.drum_schur..bl.drum_schur + 9].copy_from_slice(&block);
@@ -579,7 +603,9 @@ impl Dofs {
     fn condensed(&self, shape: DrumShape) -> Vec<usize> {
         match shape {
             DrumShape::Axisymmetric | DrumShape::Line(_) => vec![self.umbo, self.p_drum, self.p_cavity],
-            DrumShape::Manubrium { .. } => vec![self.umbo, self.theta_m, self.p_drum, self.p_cavity],
+            DrumShape::Manubrium { .. } | DrumShape::Anatomical(_) => {
+                vec![self.umbo, self.theta_m, self.p_drum, self.p_cavity]
+            }
         }
     }
 }
@@ -619,7 +645,8 @@ fn drum_nodes(config: &ModelConfig) -> Result<Vec<(f64, f64)>, SimError> {
     match g.tm_shape {
         DrumShape::Axisymmetric => Ok(cone_nodes(g.disc_radius, g.tm_radius, g.tm_depth, g.tm_bulge, g.tm_elements)),
         DrumShape::Manubrium { .. } if !config.reduce_drum => Err(SimError::DrumNotCondensed { shape: "Manubrium" }),
-        DrumShape::Manubrium { .. } | DrumShape::Line(_) => Ok(Vec::new()),
+        DrumShape::Anatomical(_) if !config.reduce_drum => Err(SimError::DrumNotCondensed { shape: "Anatomical" }),
+        DrumShape::Manubrium { .. } | DrumShape::Line(_) | DrumShape::Anatomical(_) => Ok(Vec::new()),
     }
 }
 
@@ -652,6 +679,7 @@ fn drum(
             Some(Condensed::Manubrium(drum.modes_shared()?))
         }
         DrumShape::Line(line) => Some(Condensed::Line(line)),
+        DrumShape::Anatomical(drum) => Some(Condensed::Anatomical(drum.condensed_shared()?)),
     };
     if drum.is_some() {
         let condensed_at = dofs.condensed(g.tm_shape);
@@ -973,6 +1001,9 @@ impl Runner<'_> {
                 let (t, p, pc) = (x[d.theta_m], x[d.p_drum], x[d.p_cavity]);
                 let eta = modes.interior(&c, [u, t, p, pc]);
                 (modes.volume(&eta, u, t), modes.unit_stiffness_energy(&eta, u, t))
+            }
+            Some(Condensed::Anatomical(drum)) => {
+                drum.volume_and_energy(&c, [u, x[d.theta_m], x[d.p_drum], x[d.p_cavity]])
             }
             Some(Condensed::Line(line)) => {
                 let (kappa, jw) = (self.coef[bl.tm], c64::new(0.0, w));
