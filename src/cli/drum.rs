@@ -14,9 +14,11 @@ pub struct DrumOpts {
     /// Eardrum for the report: `line` (the default since v6: the transmission-line drum
     /// of `sim::line_drum::LineTuning::v7`, loss factor η 0.77 unless --drum-loss is
     /// given, ossicle masses ×1.73, annular-ligament geometry ×1), `axisymmetric` (the
-    /// v1–v5 ear: FE cone, Rayleigh loss, unscaled chain) or `manubrium` (v5's chain with
+    /// v1–v5 ear: FE cone, Rayleigh loss, unscaled chain), `manubrium` (v5's chain with
     /// flat-shell triangles attached along the manubrium; docs/simulator.md says why it
-    /// was never the default).
+    /// was never the default) or `anatomical` (v5's chain with the anatomical FE drum of
+    /// `sim::anatomical_drum`: elliptical outline, measured thickness, a manubrium strip,
+    /// a compliant annulus, loss factor 0.2; docs/results/fe-drum.md).
     #[arg(long, value_enum)]
     pub drum: Option<DrumArg>,
     /// Eardrum loss for the report: `rayleigh` (E·(1 + jωβ), the default model's),
@@ -36,6 +38,7 @@ pub enum DrumArg {
     Axisymmetric,
     Manubrium,
     Line,
+    Anatomical,
 }
 
 impl DrumOpts {
@@ -60,6 +63,7 @@ impl DrumOpts {
                 config.geometry = Geometry { tm_shape: DrumShape::MANUBRIUM, ..Geometry::axisymmetric() }
             }
             Some(DrumArg::Axisymmetric) => config.geometry = Geometry::axisymmetric(),
+            Some(DrumArg::Anatomical) => config.geometry = Geometry::anatomical(),
             // The default; --drum-loss below replaces η.
             Some(DrumArg::Line) | None => {}
         }
