@@ -425,7 +425,7 @@ fn the_docker_build_copies_every_file_compiled_into_the_binary() {
         .filter(|l| !l.starts_with("--from"))
         .flat_map(|l| l.split_whitespace())
         .collect();
-    let mut stack = vec![root.join("src")];
+    let mut stack = vec![root.join("src"), root.join("crates")];
     let mut checked = 0;
     while let Some(dir) = stack.pop() {
         for e in std::fs::read_dir(&dir).unwrap() {

@@ -126,6 +126,7 @@ fn says_unexplained_when_the_effect_is_not_a_candidate() {
 /// flow's for every parameter (median over the ears). With the likelihood's ½ dropped
 /// (a posterior √2 too narrow) the coverage falls to 0.775 and the test fails.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn the_likelihoods_posterior_covers_the_truth_and_is_narrower_than_the_flows() {
     use otofit::discrepancy::fitcheck::exact;
     use otofit::npe::Obs;

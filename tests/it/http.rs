@@ -1576,3 +1576,49 @@ async fn sparse_inputs_are_insufficient_and_answers_carry_a_verdict() {
     assert!(detail.contains("'gone'") && !detail.contains(&*ctx.data_dir.display().to_string()), "{p}");
     assert!(!p.to_string().contains("/models/gone.otofit"), "{p}");
 }
+
+/// Unit slips that land inside the physical envelope are named with the unit they look
+/// like: CGS ohms declared as MΩ (10× off, which the absorbance contradicts), phases in
+/// cycles declared as radians, kHz sent as Hz.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unit_slips_inside_the_envelope_are_named() {
+    let (app, _, _dir) = app(vec![], 8, false).await;
+    let field_and_message = |p: &Value| {
+        let e = &p["errors"][0];
+        (e["field"].as_str().unwrap_or("").to_string(), e["message"].as_str().unwrap_or("").to_string())
+    };
+    // CGS acoustic ohms (SI / 1e5) declared as MΩ: ten times too large.
+    let mut req = scaled(nominal_request(), "impedance", "magnitude", 1e-5);
+    req["measurements"]["impedance"]["magnitude_unit"] = json!("MOhm");
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    let (field, message) = field_and_message(&p);
+    assert_eq!(field, "measurements.impedance.magnitude_unit", "{p}");
+    assert!(message.contains("send \"cgs\""), "{p}");
+    // And the other way: MΩ values declared as CGS.
+    let mut req = scaled(nominal_request(), "impedance", "magnitude", 1e-6);
+    req["measurements"]["impedance"]["magnitude_unit"] = json!("cgs");
+    let (_, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert!(field_and_message(&p).1.contains("send \"MOhm\""), "{p}");
+    // Impedance phases in cycles, declared (by default) as radians.
+    let req = scaled(nominal_request(), "impedance", "phase", 1.0 / std::f64::consts::TAU);
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    let (field, message) = field_and_message(&p);
+    assert_eq!(field, "measurements.impedance.phase_unit", "{p}");
+    assert!(message.contains("cycles"), "{p}");
+    // Frequencies in kHz: named once, with the hint.
+    let mut req = nominal_request();
+    for m in ["stapes_velocity", "impedance", "absorbance"] {
+        req = scaled(req, m, "frequencies_hz", 1e-3);
+    }
+    let (status, _, p) = call(&app, "POST", "/infer", Some(req)).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    let errors = p["errors"].as_array().unwrap();
+    assert_eq!(errors.len(), 3, "one error per measure: {p}");
+    assert!(errors.iter().all(|e| e["message"].as_str().unwrap().contains("look like kHz")), "{p}");
+    // The same ear declared correctly is answered.
+    let mut req = scaled(nominal_request(), "impedance", "magnitude", 1e-5);
+    req["measurements"]["impedance"]["magnitude_unit"] = json!("cgs");
+    assert_eq!(call(&app, "POST", "/infer", Some(req)).await.0, StatusCode::OK);
+}

@@ -133,6 +133,7 @@ fn recovers_the_analytic_linear_gaussian_posterior() {
 }
 
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn coverage_on_held_out_simulations_is_not_overconfident() {
     let model = trained();
     let held = linear_gaussian(150, 77);
@@ -164,6 +165,7 @@ fn with_header(bytes: &[u8], edit: impl Fn(String) -> String) -> Vec<u8> {
 }
 
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn checkpoints_round_trip_and_bad_files_are_refused() {
     let model = trained();
     let dir = std::env::temp_dir().join(format!("otofit-npe-{}", std::process::id()));
@@ -221,6 +223,7 @@ fn checkpoints_round_trip_and_bad_files_are_refused() {
 }
 
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn bad_training_and_calibration_settings_are_named_errors() {
     let ds = linear_gaussian(100, 3);
     let s = TrainSettings { embedding: false, max_epochs: 1, ..Default::default() };

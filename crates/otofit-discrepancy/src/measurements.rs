@@ -154,6 +154,14 @@ fn resample(
     if errs.len() > before {
         return None;
     }
+    // The model band is 0.2–8 kHz: a curve that ends at 20 "Hz" is in kHz.
+    if f[f.len() - 1] <= 20.0 && grid[0] > 20.0 {
+        errs.push((
+            format!("{field}.frequencies_hz"),
+            format!("they end at {} Hz, below the model band: they look like kHz; send Hz (× 1000)", f[f.len() - 1]),
+        ));
+        return None;
+    }
     let inside = |g: f64| g >= f[0] * 0.995 && g <= f[f.len() - 1] * 1.005;
     if let Some(k) = cut {
         let lo = grid.iter().position(|&g| inside(g));
@@ -333,11 +341,99 @@ pub fn features(npe: &Npe, m: &Measurements) -> Result<Features, MeasurementErro
     if errs.is_empty() {
         plausible(&x, t.grid, &mut errs);
     }
+    if errs.is_empty() {
+        unit_slips(m, &x, t.grid, &mut errs);
+    }
     if !errs.is_empty() {
         return Err(MeasurementError::Invalid(errs));
     }
     let present = complete(npe, &x, &used, measures)?;
     Ok((x, present, used))
+}
+
+/// Slips of a declared unit that still land inside the physical envelope: phases in
+/// cycles declared as radians, and an impedance off by a factor of ten (MΩ for CGS
+/// acoustic ohms) that its own absorbance contradicts.
+fn unit_slips(m: &Measurements, x: &[f64], grid: &[f64], errs: &mut Vec<(String, String)>) {
+    let n = grid.len();
+    let blocks = [
+        ("stapes_velocity", &m.stapes_velocity, 1),
+        ("impedance", &m.impedance, 3),
+        ("umbo_velocity", &m.umbo_velocity, 6),
+    ];
+    for (field, mp, block) in blocks {
+        let Some(mp) = mp else { continue };
+        let radians = mp.phase_unit.as_deref().is_none_or(|u| u.eq_ignore_ascii_case("rad"));
+        let phase: Vec<f64> = x[block * n..(block + 1) * n].iter().copied().filter(|v| v.is_finite()).collect();
+        if radians && cycles_as_radians(&phase) {
+            errs.push((
+                format!("measurements.{field}.phase_unit"),
+                format!(
+                    "every phase lies within ±{CYCLES_BOUND} rad, which no ear shows over its band (the phase \
+                     turns by radians); they look like cycles: send \"phase_unit\": \"cycles\""
+                ),
+            ));
+        }
+    }
+    if m.impedance.is_some() && m.absorbance.is_some() {
+        let mag: Vec<f64> = x[2 * n..3 * n].iter().map(|v| 10f64.powf(*v)).collect();
+        if let Some(k) = impedance_scale_slip(&mag, &x[3 * n..4 * n], &x[4 * n..5 * n]) {
+            let looks = if k > 1.0 {
+                "a larger unit than declared (e.g. MΩ declared as \"cgs\": send \"MOhm\")"
+            } else {
+                "a smaller unit than declared (e.g. CGS acoustic ohms declared as \"MOhm\": send \"cgs\")"
+            };
+            errs.push((
+                "measurements.impedance.magnitude_unit".into(),
+                format!(
+                    "the impedance and the absorbance disagree unless the impedance is {k}× what its unit says: \
+                     it looks like {looks}"
+                ),
+            ));
+        }
+    }
+}
+
+/// The largest |phase| (rad) of a curve that is taken for cycles declared as radians.
+/// A real ear's impedance phase sits near −1.2 rad at 200 Hz (a compliance), and its
+/// velocities' phases fall by several radians of group delay towards 8 kHz.
+const CYCLES_BOUND: f64 = 0.5;
+
+/// Whether `phase` (rad, on the model grid) looks like cycles: every value within
+/// ±[`CYCLES_BOUND`] over at least 10 grid points.
+fn cycles_as_radians(phase: &[f64]) -> bool {
+    phase.len() >= 10 && phase.iter().all(|v| v.abs() <= CYCLES_BOUND)
+}
+
+/// ρc of air (Pa·s/m) at 22–37 °C, 402–413: its spread is far below the canal area's.
+const RHO_C: f64 = 410.0;
+
+/// The factor (10 or 0.1) by which the impedance (|Z| in Pa·s/m³ and its phase in rad,
+/// on the grid) must be scaled to agree with the absorbance `a`, when it disagrees as
+/// given. Absorbance is 1 − |R|² with R = (Z − Z₀)/(Z + Z₀) at the probe, Z₀ = ρc/A for a
+/// canal area A anywhere in the prior's 25–70 mm² (the best one is taken): a factor of
+/// ten in |Z| is far outside what the area can explain.
+fn impedance_scale_slip(mag: &[f64], phase: &[f64], a: &[f64]) -> Option<f64> {
+    let mismatch = |k: f64| {
+        (0..=45)
+            .map(|i| RHO_C / ((25.0 + i as f64) * 1e-6))
+            .map(|z0| {
+                let (mut sum, mut count) = (0.0, 0usize);
+                for ((m, p), a) in mag.iter().zip(phase).zip(a) {
+                    if !(m.is_finite() && p.is_finite() && a.is_finite()) {
+                        continue;
+                    }
+                    let (re, im) = (k * m * p.cos() / z0, k * m * p.sin() / z0);
+                    let r2 = ((re - 1.0).powi(2) + im * im) / ((re + 1.0).powi(2) + im * im);
+                    sum += (a - (1.0 - r2)).abs();
+                    count += 1;
+                }
+                sum / count.max(1) as f64
+            })
+            .fold(f64::INFINITY, f64::min)
+    };
+    let given = mismatch(1.0);
+    [10.0, 0.1].into_iter().find(|&k| given > 0.1 && mismatch(k) < 0.5 * given.min(0.1))
 }
 
 /// The model's frequency grid, its band cut and how many measures it takes: where the
