@@ -119,6 +119,14 @@ pub fn absorbance(z: c64, z0: f64) -> f64 {
 mod tests {
     use super::*;
 
+    /// The range guard is live in tests (the test profile turns the workspace's own debug
+    /// assertions on), so a caller outside the expansion's range fails a test.
+    #[test]
+    #[should_panic(expected = "outside its range")]
+    fn the_expansions_range_guard_runs_in_tests() {
+        loss_f(2.0);
+    }
+
     #[test]
     fn air_fits_match_the_notes() {
         let a = Air::at_celsius(37.0);

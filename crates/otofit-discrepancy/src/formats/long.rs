@@ -193,17 +193,35 @@ fn split_unit(cell: &str) -> (String, Option<String>) {
 
 /// The delimiter of a header line: tab, semicolon (without commas) or comma.
 fn delimiter(header: &str) -> char {
-    if header.contains('\t') {
+    // Only delimiters outside quoted fields count: a quoted "Smith, J" is one cell.
+    let bare: String = header.split('"').step_by(2).collect();
+    if bare.contains('\t') {
         '\t'
-    } else if header.contains(';') && !header.contains(',') {
+    } else if bare.contains(';') && !bare.contains(',') {
         ';'
     } else {
         ','
     }
 }
 
+/// The cells of one line (RFC 4180 quoting: a delimiter inside quotes is text, `""`
+/// inside quotes is one quote), each trimmed.
 fn cells(line: &str, d: char) -> Vec<String> {
-    line.split(d).map(|c| c.trim().trim_matches('"').trim().to_string()).collect()
+    let (mut out, mut cell, mut quoted) = (Vec::new(), String::new(), false);
+    let mut chars = line.chars().peekable();
+    while let Some(c) = chars.next() {
+        match c {
+            '"' if quoted && chars.peek() == Some(&'"') => {
+                cell.push('"');
+                chars.next();
+            }
+            '"' => quoted = !quoted,
+            c if c == d && !quoted => out.push(std::mem::take(&mut cell).trim().to_string()),
+            c => cell.push(c),
+        }
+    }
+    out.push(cell.trim().to_string());
+    out
 }
 
 /// Whether a CSV header line is a long-layout table (it has a frequency column and no
@@ -760,6 +778,22 @@ mod tests {
         S1,Left,1000,0.5,2e7,-0.18,44\n\
         S1,Right,226,0.05,8.0e7,-0.235,45\n\
         S1,Right,1000,0.55,1.9e7,-0.17,45\n";
+
+    #[test]
+    fn quoted_fields_keep_their_delimiters_and_quotes() {
+        assert_eq!(cells(r#""Smith, J",226,"say ""hi""""#, ','), ["Smith, J", "226", r#"say "hi""#]);
+        assert_eq!(cells(" a ; \"b;c\" ;", ';'), ["a", "b;c", ""]);
+        assert_eq!(delimiter(r#""Name, full";Frequency [Hz];Absorbance"#), ';');
+        // A device export whose patient column holds the delimiter, quoted.
+        let text = "Patient,Frequency [Hz],Absorbance\n\"Smith, J\",226,0.05\n\"Smith, J\",1000,0.5\n\
+                    \"Smith, J\",4000,0.4\n";
+        let imp = read(text, &opts(&[], &[("Patient", "Smith, J")], None)).unwrap();
+        let a = imp.measurements.absorbance.as_ref().unwrap();
+        assert_eq!(
+            (a.frequencies_hz.as_slice(), a.values.as_slice()),
+            ([226.0, 1000.0, 4000.0].as_slice(), [0.05, 0.5, 0.4].as_slice())
+        );
+    }
 
     #[test]
     fn header_units_and_their_names() {
