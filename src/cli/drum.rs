@@ -26,7 +26,7 @@ pub struct DrumOpts {
     #[arg(long)]
     pub drum_loss: Option<String>,
     /// The incus also moves across the stapes axis, so the incudostapedial joint shears
-    /// between two moving bodies (issue 11 item 3, an experiment: docs/simulator.md "The
+    /// between two moving bodies (an experiment: docs/simulator.md "The
     /// incus across the stapes axis"); without it the joint's shear holds the stapes head
     /// to the ground, as in every model so far.
     #[arg(long)]

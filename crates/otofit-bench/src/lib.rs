@@ -123,11 +123,11 @@ pub fn sbi_nsf_settings() -> TrainSettings {
 /// The benchmark's recipe for `task`: sbi's NSF ([`sbi_nsf_settings`]), trained with a
 /// fixed epoch budget and a rate decayed by a half cosine instead of early stopping (at a
 /// constant rate the tasks need more epochs than the time targets allow: docs/npe.md,
-/// sessions 14-15); the 2-D tasks and SLCP with big batches. The GLM keeps sbi's recipe.
+/// measured 2026-11); the 2-D tasks and SLCP with big batches. The GLM keeps sbi's recipe.
 /// The best validation epoch is kept.
 pub fn recipe(task: Task) -> TrainSettings {
     let (epochs, batch, lr) = match task {
-        // 220 and 120, not 160 and 90: with the host spline pass (session 14) the shorter
+        // 220 and 120, not 160 and 90: with the host spline pass the shorter
         // budgets gave three-seed means of 0.567 and 0.565 by the benchmark's rule, these
         // 0.557 and 0.559 (docs/npe.md).
         Task::TwoMoons => (220, 1000, 3e-3),
@@ -135,7 +135,7 @@ pub fn recipe(task: Task) -> TrainSettings {
         // SLCP with sbi's recipe: 195 epochs, 62.6 s; this budget 25 s, C2ST no worse.
         Task::Slcp => (100, 1000, 3e-3),
         // Early stopping ran seeds 1-2 to 62 and 69 epochs (25-26 s); 30 epochs at sbi's
-        // batch and twice its rate score as well in 16-18 s (docs/npe.md, session 15).
+        // batch and twice its rate score as well in 16-18 s (docs/results/npe.md).
         Task::GaussianLinearUniform => (30, 200, 1e-3),
         Task::BernoulliGlm => return sbi_nsf_settings(),
     };

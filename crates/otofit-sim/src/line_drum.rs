@@ -143,7 +143,7 @@ impl LineDrum {
     }
 }
 
-/// Point (a) of session 12's search (docs/simulator.md, "A transmission-line drum"): the
+/// Point (a) of the first line-drum search (v6) (docs/simulator.md, "A transmission-line drum"): the
 /// nominal ear meets Goode ±5 dB (worst 0.8 dB), the 8 kHz phase (−272°), group delay
 /// 65–87 µs over 2–8 kHz and the adult absorbance range with every tissue value inside its
 /// normal range. Found by `DRUM=line W_SHARE=0 cargo run --example tune_nominal -- 12 6
@@ -167,7 +167,7 @@ pub struct LineTuning {
 }
 
 impl LineTuning {
-    /// Session 12's point (a) (see the type's doc for the search and its command).
+    /// The first search's point (a) (see the type's doc for the search and its command).
     pub const POINT_A: LineTuning = LineTuning {
         line: LineDrum { delay: 165.23e-6, z0: 3.0873e7, area: 25.591e-6, shunt: 7.3853e-12 },
         eta: 0.46349,
@@ -185,7 +185,7 @@ impl LineTuning {
         ],
     };
 
-    /// Session 13's point (d): the same search with the live-adult impedance ranges in the
+    /// The v7 search's point (d): the same search with the live-adult impedance ranges in the
     /// cost and the annular-ligament geometry held (`DRUM=line W_SHARE=0 W_ZEC=1 FIX=9
     /// cargo run --example tune_nominal -- 12 6 1500`, cost 0.023; the values below are its
     /// printed best point). Without the hold the same search puts that geometry on its

@@ -113,7 +113,7 @@ pub struct Geometry {
     pub g_isj: f64,
     /// Incudostapedial joint in shear.
     pub g_isj_shear: f64,
-    /// Issue 11 item 3, an experiment (docs/simulator.md, "The incus across the stapes
+    /// An experiment (docs/simulator.md, "The incus across the stapes
     /// axis"): the incus also translates across the stapes axis (in the rocking plane),
     /// held by the posterior incudal ligament and the incudomallear joint, so the ISJ
     /// shears between two moving bodies. `false` (every model so far): the ISJ's shear
@@ -250,7 +250,7 @@ pub enum DrumShape {
         /// Gap between the manubrium's lateral end and the rim, m.
         manubrium_to_rim: f64,
     },
-    /// Session 12, an experiment: the drum as a lossy transmission line from the canal to
+    /// v6–v7's default (an experiment when it was added, 2026-11): the drum as a lossy transmission line from the canal to
     /// the umbo (`line_drum.rs`, Puria & Allen 1998); no FE, no modes.
     Line(LineDrum),
     /// The anatomical FE drum (`anatomical_drum.rs`): elliptical outline, measured

@@ -67,7 +67,7 @@ pub const N_TISSUE: usize = 7;
 /// The inferred parameters, in the column order of theta.csv.
 ///
 /// The last three are nuisances of the measurement, not of the ear, inferred with the
-/// tissue so that the tissue posterior is not bent to absorb them (issue 11): the path
+/// tissue so that the tissue posterior is not bent to absorb them: the path
 /// from the impedance plane to the eardrum (a WBT probe sits a few mm to ~20 mm from the
 /// drum; the temporal-bone study's plane 12–15 mm), the canal cross-section (adult canals
 /// 25–70 mm², physics-notes §1.1) and the distance of the V/P microphone from the drum
