@@ -1,4 +1,5 @@
 //! One integration-test binary (one link step on 2 cores).
+mod alternatives;
 mod baseline;
 mod cli;
 mod discrepancy;

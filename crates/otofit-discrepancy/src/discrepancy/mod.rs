@@ -2,6 +2,7 @@
 //! missing effect explains it (candidate fits scored with a BIC penalty), and how much
 //! the gap shrinks. Synchronous and free of I/O; the CLI and the service drive it.
 
+pub mod alternatives;
 pub mod exact;
 pub mod fit;
 pub mod fitcheck;
