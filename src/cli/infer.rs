@@ -279,7 +279,21 @@ pub fn run(args: InferArgs) -> Result<()> {
             }
             Err(e) => serde_json::json!({ "ok": null, "reason": e.to_string() }),
         };
+        // The competing explanations of a shipped finding, as POST /infer gives them.
+        let alternatives = crate::discrepancy::alternatives::alternatives(
+            &model,
+            x,
+            present,
+            (&inf.map, &inf.samples),
+            &differential,
+            fit["ok"].as_bool(),
+            &Default::default(),
+        );
         let mut json = serde_json::json!({ "observation": r, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
+        if let Some(a) = alternatives {
+            json["timing_ms"]["alternatives"] = serde_json::json!(a.ms);
+            json["alternatives"] = serde_json::json!(a);
+        }
         if args.refine > 0 {
             let fit = crate::discrepancy::fitcheck::refine(&model, x, present, &inf.map, args.refine)
                 .with_context(|| format!("--refine, observation {}", r + 1))?;

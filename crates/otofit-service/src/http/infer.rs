@@ -4,6 +4,7 @@
 //! frequency, [`crate::formats::long`]) with the request's options as query parameters.
 
 use super::{AppState, Problem, json_body};
+use crate::discrepancy::alternatives::{self, Alternatives, AlternativesParams};
 use crate::discrepancy::fitcheck::{FitCheck, FitCheckError, MAX_REFINE_STEPS, Refined};
 use crate::npe::{Inference, Npe, NpeError, Obs, Summary};
 use axum::Json;
@@ -228,8 +229,7 @@ pub async fn infer(
         .map_err(Problem::internal)?
         .map_err(npe_problem)?;
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
-    let Answer { inf, fit, fit_ms, corner, refined } = answer;
-    let mut differential = crate::npe::normal::read(npe.params(), &inf.samples);
+    let Answer { inf, fit, fit_ms, corner, refined, mut differential, alternatives } = answer;
     let (fit, next) = fit_and_next(fit, req.model.as_deref(), &mut differential);
     let verdict = crate::npe::normal::verdict(&differential, fit["ok"].as_bool());
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
@@ -254,8 +254,17 @@ pub async fn infer(
         },
         "samples_count": n,
         "seed": seed,
-        "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms, "fit": fit_ms, "total": t0.elapsed().as_secs_f64() * 1e3 },
+        "timing_ms": {
+            "sample": inf.sample_ms,
+            "map": inf.map_ms,
+            "fit": fit_ms,
+            "alternatives": alternatives.as_ref().map_or(0.0, |a| a.ms),
+            "total": t0.elapsed().as_secs_f64() * 1e3,
+        },
     });
+    if let Some(a) = alternatives {
+        doc["alternatives"] = json!(a);
+    }
     if !next.is_null() {
         doc["next"] = next;
     }
@@ -279,11 +288,17 @@ struct Answer {
     corner: Option<String>,
     /// The least-squares best fit from the MAP, when asked for.
     refined: Option<Result<Refined, FitCheckError>>,
+    /// The normal-range differential of the samples (before a failed fit withdraws it).
+    differential: Vec<crate::npe::normal::Differential>,
+    /// The competing explanations of its findings, when the fit check passed and there
+    /// is a finding.
+    alternatives: Option<Alternatives>,
 }
 
 /// The posterior of features `x` (`present` marks those measured) from `n` samples of
 /// `seed`, its fit check (timed apart), with `refine` > 0 the best fit from its MAP and,
-/// with `plot`, its corner plot.
+/// with `plot`, its corner plot; the differential and, for a passed fit check with
+/// findings, their alternatives.
 fn posterior(
     npe: &Npe,
     x: Vec<f64>,
@@ -299,7 +314,18 @@ fn posterior(
     let fit_ms = t.elapsed().as_secs_f64() * 1e3;
     let corner = (plot == Some(Plot::Corner))
         .then(|| crate::plot::posterior_corner(npe.params(), &inf.samples, None, &inf.map, title));
-    Ok(Answer { inf, fit: fit.map(|f| (f, x)), fit_ms, corner, refined })
+    let differential = crate::npe::normal::read(npe.params(), &inf.samples);
+    let fit_ok = fit.as_ref().ok().and_then(|f| f.ok);
+    let alternatives = alternatives::alternatives(
+        npe,
+        &x,
+        &present,
+        (&inf.map, &inf.samples),
+        &differential,
+        fit_ok,
+        &AlternativesParams::default(),
+    );
+    Ok(Answer { inf, fit: fit.map(|f| (f, x)), fit_ms, corner, refined, differential, alternatives })
 }
 
 /// The response's `fit` and, when the fit check fails, its `next` step (a diagnose job
