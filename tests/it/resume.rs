@@ -160,6 +160,18 @@ async fn the_chunks_of_one_job_are_shared_by_all_workers() {
     assert_eq!(chunks.len(), 20);
     let by: std::collections::BTreeSet<_> = chunks.iter().filter_map(|c| c.worker.clone()).collect();
     assert!(by.len() >= 2, "the chunks were run by one worker only: {by:?}");
+    // Each worker's /metrics counts the chunks it ran, its own job's and others'.
+    let ran = |c: &otofit::jobs::Ctx| -> u64 {
+        let text = c.metrics.render(&otofit::jobs::KINDS, &[], true);
+        let line = text.lines().find(|l| l.starts_with("otofit_chunk_runs_total ")).unwrap().to_string();
+        line.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    let counted: Vec<u64> = ctxs.iter().map(|c| ran(c)).collect();
+    for (c, n) in ctxs.iter().zip(&counted) {
+        let marked = chunks.iter().filter(|k| k.worker.as_deref() == Some(c.worker.as_str())).count() as u64;
+        assert!(*n >= marked, "worker {} counted {n} chunks but ran {marked}: {counted:?}", c.worker);
+    }
+    assert!(counted.iter().sum::<u64>() >= 20, "{counted:?}");
     for f in ["theta.csv", "x.csv"] {
         let (got, want) =
             (std::fs::read(data.join("datasets/shared").join(f)).unwrap(), std::fs::read(ref_dir.join(f)).unwrap());

@@ -77,6 +77,7 @@ pub struct Metrics {
     job_seconds: Histogram,
     infer_seconds: Histogram,
     claims: AtomicU64,
+    chunks: AtomicU64,
     leases_lost: AtomicU64,
     reaped: AtomicU64,
     rows: AtomicU64,
@@ -88,6 +89,7 @@ impl Default for Metrics {
             job_seconds: Histogram::new(&JOB_BUCKETS),
             infer_seconds: Histogram::new(&INFER_BUCKETS),
             claims: AtomicU64::new(0),
+            chunks: AtomicU64::new(0),
             leases_lost: AtomicU64::new(0),
             reaped: AtomicU64::new(0),
             rows: AtomicU64::new(0),
@@ -109,6 +111,12 @@ impl Metrics {
     /// A job was claimed by this process.
     pub fn claimed(&self) {
         self.claims.fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// A chunk of a simulate job was claimed and run by this process (its own job's or,
+    /// as an idle worker, another's).
+    pub fn chunk_run(&self) {
+        self.chunks.fetch_add(1, Ordering::Relaxed);
     }
 
     /// A running job's lease was lost (another worker may have taken it).
@@ -150,6 +158,11 @@ impl Metrics {
         }
         let counters = [
             ("otofit_job_claims_total", "Jobs claimed by this process.", &self.claims),
+            (
+                "otofit_chunk_runs_total",
+                "Chunks of simulate jobs this process claimed and ran (its own jobs' and others').",
+                &self.chunks,
+            ),
             ("otofit_job_leases_lost_total", "Running jobs this process lost to an expired lease.", &self.leases_lost),
             (
                 "otofit_jobs_reaped_total",
@@ -190,6 +203,7 @@ mod tests {
         m.inferred(200, 0.2);
         m.inferred(503, 12.0);
         m.simulated(1024);
+        m.chunk_run();
         let text = m.render(
             &crate::jobs::KINDS,
             &[crate::store::QueueCount { kind: "train".into(), state: "queued".into(), count: 2 }],
@@ -203,6 +217,7 @@ mod tests {
         assert!(text.contains("otofit_infer_duration_seconds_bucket{code=\"503\",le=\"+Inf\"} 1\n"));
         assert!(text.contains("otofit_infer_duration_seconds_count{code=\"200\"} 2\n"));
         assert!(text.contains("otofit_simulated_rows_total 1024\n"));
+        assert!(text.contains("otofit_chunk_runs_total 1\n"), "{text}");
         // Every sample line is `name{labels} value` or `name value` with a numeric value.
         for line in text.lines().filter(|l| !l.starts_with('#')) {
             let value = line.rsplit(' ').next().unwrap();

@@ -214,6 +214,7 @@ fn run_chunk(
 ) -> Result<()> {
     let rt = tokio::runtime::Handle::current();
     let c = &claim.chunk;
+    ctx.metrics.chunk_run();
     let lost = Arc::new(AtomicBool::new(false));
     let renewal = rt.spawn(renew_chunk(ctx.store.clone(), claim.clone(), ctx.lease, lost.clone()));
     let mut last = 0;
