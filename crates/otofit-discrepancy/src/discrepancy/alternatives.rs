@@ -42,6 +42,7 @@
 //! difference is at least half of it.
 
 use super::fit::{Fit, Observation, feature_residual, residuals};
+use super::fitcheck::sigma;
 use crate::npe::Npe;
 use crate::npe::normal::{Differential, NORMAL, NormalRange};
 use crate::sim::batch::Design;
@@ -189,13 +190,6 @@ pub struct Alternatives {
     pub sentence: String,
     /// Wall time, ms.
     pub ms: f64,
-}
-
-/// Per-feature noise standard deviation of the model's training (1× when trained
-/// noise-free), as the fit check uses it.
-fn sigma(npe: &Npe) -> Vec<f64> {
-    let s = if npe.header.noise_scale > 0.0 { npe.header.noise_scale } else { 1.0 };
-    npe.header.noise_std.iter().map(|v| (v * s).max(1e-9)).collect()
 }
 
 /// The columns of a hypothesis' fit: tissue parameters in the hypothesis' boxes, the

@@ -95,7 +95,7 @@ pub fn simulator_for(npe: &Npe) -> Result<&'static Model, FitCheckError> {
 
 /// Per-feature noise standard deviation the model was trained with (1× when trained
 /// noise-free: the measurement itself is never noise-free).
-fn sigma(npe: &Npe) -> Vec<f64> {
+pub(crate) fn sigma(npe: &Npe) -> Vec<f64> {
     let s = sigma_scale(npe);
     npe.header.noise_std.iter().map(|v| (v * s).max(1e-9)).collect()
 }
