@@ -289,7 +289,8 @@ pub fn run(args: InferArgs) -> Result<()> {
             fit["ok"].as_bool(),
             &Default::default(),
         );
-        let mut json = serde_json::json!({ "observation": r, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
+        let verdict = crate::npe::normal::verdict(&differential, fit["ok"].as_bool());
+        let mut json = serde_json::json!({ "observation": r, "verdict": verdict, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
         if let Some(a) = alternatives {
             json["timing_ms"]["alternatives"] = serde_json::json!(a.ms);
             json["alternatives"] = serde_json::json!(a);
