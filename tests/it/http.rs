@@ -1622,3 +1622,19 @@ async fn unit_slips_inside_the_envelope_are_named() {
     req["measurements"]["impedance"]["magnitude_unit"] = json!("cgs");
     assert_eq!(call(&app, "POST", "/infer", Some(req)).await.0, StatusCode::OK);
 }
+
+/// Not ready is a problem like every other error: 503, problem+json, the missing part named.
+#[tokio::test]
+async fn not_ready_is_a_problem_naming_the_missing_part() {
+    let dir = temp_dir("not-ready");
+    let ctx = otofit::cli::serve::open(&dir, std::path::Path::new("/nonexistent.otofit"), 8).await.unwrap();
+    let app = router(AppState::new(ctx, vec![]));
+    let (status, headers, p) = call(&app, "GET", "/ready", None).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE, "{p}");
+    assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+    assert_eq!(
+        (p["code"].as_str(), p["detail"].as_str()),
+        (Some("not_ready"), Some("not ready: database ok, default model unavailable")),
+        "{p}"
+    );
+}

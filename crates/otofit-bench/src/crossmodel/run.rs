@@ -20,6 +20,7 @@ use super::hudde_engel::HuddeEngel;
 use super::kringlebotn::Kringlebotn;
 use super::{CONDITIONS, Condition, EarModel, Geometry, features, training_air};
 use anyhow::{Result, bail};
+use otofit_discrepancy::discrepancy::alternatives::{AlternativesParams, alternatives};
 use otofit_discrepancy::discrepancy::fitcheck::fit_check;
 use otofit_npe::npe::normal::{self, Differential};
 use otofit_npe::npe::{Npe, Obs};
@@ -124,6 +125,9 @@ pub struct EarOutcome {
     pub findings_raw: Vec<String>,
     /// Findings as shipped (empty when the fit failed).
     pub findings: Vec<String>,
+    /// With the fit check passed: the explanations the differential with alternatives
+    /// keeps (`NAME below|above`, or `none`), the best and those within its margin.
+    pub alternatives: Vec<String>,
 }
 
 /// The scores of one model × condition.
@@ -150,6 +154,10 @@ pub struct CaseResult {
     pub correct_raw: f64,
     /// `confident_wrong` before the fit check withdraws anything.
     pub confident_wrong_raw: f64,
+    /// Of the ears whose fit check passed, the fraction whose answer names the condition
+    /// or keeps it among its alternatives (healthy: `none` kept among them); `None` with
+    /// no such ear.
+    pub among_alternatives: Option<f64>,
     /// Median reduced χ² of the fit check over the ears it ran on.
     pub median_chi2: Option<f64>,
     /// How often each finding was shipped.
@@ -185,6 +193,7 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
         fit_reason: None,
         findings_raw: vec![],
         findings: vec![],
+        alternatives: vec![],
     };
     if let Some((m, i, v)) = output::implausible(x, present, npe.header.frequencies_hz.len()).first() {
         ear.refused = Some(format!(
@@ -209,6 +218,19 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
         Err(e) => ear.fit_reason = Some(e.to_string()),
     }
     ear.findings = findings(&differential);
+    // The competing explanations, also when nothing is read: is the condition among them?
+    let p = AlternativesParams { when_no_finding: true, ..Default::default() };
+    if let Some(a) = alternatives(npe, x, present, (&inf.map, &inf.samples), &differential, ear.fit_ok, &p) {
+        ear.alternatives = a
+            .hypotheses
+            .iter()
+            .filter(|h| h.delta_chi2 < a.margin && !h.at_normal_limit)
+            .map(|h| h.parameter.map_or("none".to_string(), |n| format!("{n} {}", h.direction)))
+            .collect();
+    } else if ear.fit_ok == Some(true) && ear.findings.is_empty() {
+        // Nothing abnormal fits within the margin of a normal ear.
+        ear.alternatives = vec!["none".into()];
+    }
     Ok(ear)
 }
 
@@ -283,6 +305,19 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
             correct_raw: scored(&|e| &e.findings_raw, true, false),
             confident_wrong_raw: scored(&|e| &e.findings_raw, false, false),
             median_chi2: (!chi2.is_empty()).then(|| chi2[(chi2.len() - 1) / 2]),
+            among_alternatives: {
+                let ok: Vec<&EarOutcome> = per_ear.iter().filter(|e| e.fit_ok == Some(true)).collect();
+                // Healthy: `none` must be among the explanations kept (an answer without a
+                // finding whose least squares prefer an abnormal ear does not count).
+                let kept = |e: &EarOutcome| {
+                    if expected.is_empty() {
+                        e.alternatives.iter().any(|a| a == "none")
+                    } else {
+                        names_condition(&e.findings, &expected) || e.alternatives.iter().any(|a| expected.contains(a))
+                    }
+                };
+                (!ok.is_empty()).then(|| ok.iter().filter(|e| kept(e)).count() as f64 / ok.len() as f64)
+            },
             findings: count(&|e| &e.findings),
             findings_raw: count(&|e| &e.findings_raw),
             expected,
@@ -297,7 +332,7 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
 /// The results as a Markdown table: one row per model × condition.
 pub fn table(results: &[CaseResult]) -> String {
     let mut s = String::from(
-        "| model | condition | should read | ears | refused | fit ok | correct | confident wrong | correct, before fit check | confident wrong, before fit check | median χ² | most frequent wrong finding (ears, before fit check) |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| model | condition | should read | ears | refused | fit ok | correct | confident wrong | correct, before fit check | confident wrong, before fit check | named or among the alternatives (of fit ok) | median χ² | most frequent wrong finding (ears, before fit check) |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     let pct = |v: f64| format!("{:.0} %", 100.0 * v);
     for r in results {
@@ -309,7 +344,7 @@ pub fn table(results: &[CaseResult]) -> String {
             .map_or("—".to_string(), |(f, n)| format!("{f} ({n})"));
         let should = if r.expected.is_empty() { "no finding".to_string() } else { r.expected.join(" or ") };
         s.push_str(&format!(
-            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.model.name(),
             r.condition.name(),
             should,
@@ -320,6 +355,7 @@ pub fn table(results: &[CaseResult]) -> String {
             pct(r.confident_wrong),
             pct(r.correct_raw),
             pct(r.confident_wrong_raw),
+            r.among_alternatives.map_or("—".to_string(), pct),
             r.median_chi2.map_or("—".to_string(), |c| format!("{c:.1}")),
             wrong
         ));
