@@ -1638,3 +1638,45 @@ async fn not_ready_is_a_problem_naming_the_missing_part() {
         "{p}"
     );
 }
+
+/// The README's example answer is what the server answers for the example it sends: a
+/// stale example (a retrained model, a changed reading) fails here. Every number the
+/// README states is compared to its rounding; timings are not.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_readme_example_answer_is_what_the_server_answers() {
+    let readme = std::fs::read_to_string(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
+    let block = readme.split("## Read the answer").nth(1).and_then(|s| s.split("```json\n").nth(1)).unwrap();
+    let stated: Value = serde_json::from_str(block.split("```").next().unwrap()).expect("the README's answer is JSON");
+    let (app, _, _dir) = app(vec![], 8, false).await;
+    let (status, _, got) = call(&app, "POST", "/infer", Some(nominal_request())).await;
+    assert_eq!(status, StatusCode::OK, "{got}");
+    // Equal to the README's rounding: three significant digits (≤ 0.51 % for values ≥ 1),
+    // two or three decimals for fractions (≤ 0.0051).
+    let close = |printed: &Value, actual: &Value, what: &str| {
+        let (p, a) = (printed.as_f64().unwrap(), actual.as_f64().unwrap());
+        let tolerance = if p.abs() >= 1.0 { 0.0051 * p.abs() } else { 0.0051 };
+        assert!((p - a).abs() <= tolerance, "README {what}: {p} printed, {a} answered");
+    };
+    assert_eq!(stated["verdict"], got["verdict"], "README verdict");
+    assert_eq!(stated["fit"]["ok"], got["fit"]["ok"]);
+    for k in ["reduced_chi2", "threshold"] {
+        close(&stated["fit"][k], &got["fit"][k], &format!("fit.{k}"));
+    }
+    assert_eq!(stated["fit"]["worst_measure"][0], got["fit"]["worst_measure"][0]);
+    close(&stated["fit"]["worst_measure"][1], &got["fit"]["worst_measure"][1], "fit.worst_measure");
+    let find =
+        |list: &Value, name: &Value| list.as_array().unwrap().iter().find(|d| d["name"] == *name).cloned().unwrap();
+    for (section, keys) in
+        [("differential", &["p_below", "p_within", "p_above"][..]), ("parameters", &["map", "q05", "q95", "cv"][..])]
+    {
+        for s in stated[section].as_array().unwrap() {
+            let g = find(&got[section], &s["name"]);
+            if section == "differential" {
+                assert_eq!(s["reading"], g["reading"], "README reading of {}", s["name"]);
+            }
+            for k in keys {
+                close(&s[*k], &g[*k], &format!("{section} {} {k}", s["name"]));
+            }
+        }
+    }
+}
