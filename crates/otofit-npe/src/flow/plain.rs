@@ -13,9 +13,7 @@ use std::sync::OnceLock;
 
 mod lanes;
 
-const MIN_WIDTH: f64 = 1e-3;
-const MIN_HEIGHT: f64 = 1e-3;
-const MIN_DERIVATIVE: f64 = 1e-3;
+use super::spline::{MIN_DERIVATIVE, MIN_HEIGHT, MIN_WIDTH};
 
 /// One linear layer: y = x W + b, W [in × out].
 #[derive(Clone, Debug)]

@@ -4,9 +4,14 @@
 use burn::prelude::*;
 use burn::tensor::activation::{softmax, softplus};
 
-const MIN_WIDTH: f64 = 1e-3;
-const MIN_HEIGHT: f64 = 1e-3;
-const MIN_DERIVATIVE: f64 = 1e-3;
+/// Smallest bin width, bin height and interior knot derivative (as fractions of the
+/// interval / slope units): the graph's spline here and the host's in `plain` share
+/// them, so that both compute the same transform.
+pub(crate) const MIN_WIDTH: f64 = 1e-3;
+/// See [`MIN_WIDTH`].
+pub(crate) const MIN_HEIGHT: f64 = 1e-3;
+/// See [`MIN_WIDTH`].
+pub(crate) const MIN_DERIVATIVE: f64 = 1e-3;
 
 /// Raw parameters per transformed dim: K widths, K heights, K − 1 interior derivatives.
 pub fn n_params(bins: usize) -> usize {
