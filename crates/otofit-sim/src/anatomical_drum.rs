@@ -362,18 +362,7 @@ impl AnatomicalDrum {
             }
         };
         let (dofs, n) = number_dofs(mesh.nodes.len(), place);
-        let mut fe = DrumFe {
-            n,
-            k_ii: Vec::new(),
-            m_ii: Vec::new(),
-            b_i: vec![0.0; n],
-            k_ib: [vec![0.0; n], vec![0.0; n]],
-            m_ib: [vec![0.0; n], vec![0.0; n]],
-            k_bb: [[0.0; 2]; 2],
-            m_bb: [[0.0; 2]; 2],
-            b_b: [0.0; 2],
-            dofs: Vec::new(),
-        };
+        let mut fe = DrumFe::empty(n);
         // Every element of the half counts twice (module docs).
         for t in &mesh.tris {
             let p = t.map(|v| mesh.nodes[v]);

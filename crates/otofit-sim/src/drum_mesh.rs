@@ -265,18 +265,7 @@ pub fn assemble(
     place: impl Fn(usize, usize) -> Option<[f64; 2]>,
 ) -> DrumFe {
     let (dofs, n) = number_dofs(nodes.len(), place);
-    let mut fe = DrumFe {
-        n,
-        k_ii: Vec::new(),
-        m_ii: Vec::new(),
-        b_i: vec![0.0; n],
-        k_ib: [vec![0.0; n], vec![0.0; n]],
-        m_ib: [vec![0.0; n], vec![0.0; n]],
-        k_bb: [[0.0; 2]; 2],
-        m_bb: [[0.0; 2]; 2],
-        b_b: [0.0; 2],
-        dofs: Vec::new(),
-    };
+    let mut fe = DrumFe::empty(n);
     for t in tris {
         let el = TriShell::with_drill([nodes[t[0]], nodes[t[1]], nodes[t[2]]], mat, drill);
         fe.add_element(&el, |i| dofs[6 * t[i / 6] + i % 6], weight);
@@ -306,6 +295,22 @@ pub(crate) fn number_dofs(n_nodes: usize, place: impl Fn(usize, usize) -> Option
 }
 
 impl DrumFe {
+    /// A drum of `n` interior unknowns with nothing assembled yet.
+    pub(crate) fn empty(n: usize) -> DrumFe {
+        DrumFe {
+            n,
+            k_ii: Vec::new(),
+            m_ii: Vec::new(),
+            b_i: vec![0.0; n],
+            k_ib: [vec![0.0; n], vec![0.0; n]],
+            m_ib: [vec![0.0; n], vec![0.0; n]],
+            k_bb: [[0.0; 2]; 2],
+            m_bb: [[0.0; 2]; 2],
+            b_b: [0.0; 2],
+            dofs: Vec::new(),
+        }
+    }
+
     /// Adds one element whose local DOF `i` goes to `at(i)`.
     pub(crate) fn add_element(&mut self, el: &TriShell, at: impl Fn(usize) -> Dof, weight: f64) {
         for i in 0..18 {
