@@ -2,23 +2,25 @@
 //! docs/simulator.md ("The v2 eardrum", "A transmission-line drum", "The incus across
 //! the stapes axis"), for reports only (`simulate --explain`,
 //! `study reference`, `bench sim`). Datasets and
-//! models always use the default drum (v6: the line): a model trained on a variant would
-//! be fit-checked against the default simulator.
+//! models always use the default drum (v8: the anatomical FE drum): a model trained on a
+//! variant would be fit-checked against the default simulator.
 
-use crate::sim::{DrumLoss, DrumShape, Geometry, ModelConfig, PARAMS};
+use crate::sim::line_drum::LineTuning;
+use crate::sim::{DrumLoss, DrumShape, Geometry, ModelConfig, PARAMS, Theta};
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 
 #[derive(Args, Debug, Default)]
 pub struct DrumOpts {
-    /// Eardrum for the report: `line` (the default since v6: the transmission-line drum
-    /// of `sim::line_drum::LineTuning::v7`, loss factor η 0.77 unless --drum-loss is
-    /// given, ossicle masses ×1.73, annular-ligament geometry ×1), `axisymmetric` (the
-    /// v1–v5 ear: FE cone, Rayleigh loss, unscaled chain), `manubrium` (v5's chain with
-    /// flat-shell triangles attached along the manubrium; docs/simulator.md says why it
-    /// was never the default) or `anatomical` (v5's chain with the anatomical FE drum of
-    /// `sim::anatomical_drum`: elliptical outline, measured thickness, a manubrium strip,
-    /// a compliant annulus, loss factor 0.2; docs/results/fe-drum.md).
+    /// Eardrum for the report: `anatomical` (the default since v8: the anatomical FE drum
+    /// of `sim::anatomical_drum` on the chain's cited masses: elliptical outline, measured
+    /// thickness, a manubrium strip, a compliant annulus, loss factor 0.2;
+    /// docs/results/fe-drum.md), `line` (v6–v7's transmission-line drum of
+    /// `sim::line_drum::LineTuning::v7`, tuned to the norms: loss factor η 0.77 unless
+    /// --drum-loss is given, ossicle masses ×1.73; the nominal ear is its tuned one),
+    /// `axisymmetric` (the v1–v5 ear: FE cone, Rayleigh loss, unscaled chain) or
+    /// `manubrium` (v5's chain with flat-shell triangles attached along the manubrium;
+    /// docs/simulator.md says why it was never the default).
     #[arg(long, value_enum)]
     pub drum: Option<DrumArg>,
     /// Eardrum loss for the report: `rayleigh` (E·(1 + jωβ), the default model's),
@@ -46,13 +48,25 @@ impl DrumOpts {
         self.drum.is_some() || self.drum_loss.is_some() || self.incus_lateral
     }
 
-    /// Extra least-squares starts for this drum (`study reference`): the nominal row of
-    /// the v1–v5 ear for the FE drums, since the default model's posterior is drawn for
-    /// the line drum.
+    /// Extra least-squares starts for this drum (`study reference`): the drum's own
+    /// nominal row, since the default model's posterior is drawn for the default ear.
     pub fn starts(&self) -> Vec<Vec<f64>> {
         match self.drum {
-            Some(DrumArg::Axisymmetric | DrumArg::Manubrium) => vec![v5_nominal()],
+            Some(DrumArg::Axisymmetric | DrumArg::Manubrium | DrumArg::Line) => vec![self.nominal().0.to_vec()],
             _ => Vec::new(),
+        }
+    }
+
+    /// The nominal ear of this drum (`simulate --explain` without --theta): the line's
+    /// tuned tissue values, the v1–v5 values for the older FE drums, else the prior's.
+    pub fn nominal(&self) -> Theta {
+        match self.drum {
+            Some(DrumArg::Line) => LineTuning::v7().theta(),
+            Some(DrumArg::Axisymmetric | DrumArg::Manubrium) => {
+                let row = v5_nominal();
+                Theta(std::array::from_fn(|i| row[i]))
+            }
+            Some(DrumArg::Anatomical) | None => Theta::nominal(),
         }
     }
 
@@ -63,9 +77,9 @@ impl DrumOpts {
                 config.geometry = Geometry { tm_shape: DrumShape::MANUBRIUM, ..Geometry::axisymmetric() }
             }
             Some(DrumArg::Axisymmetric) => config.geometry = Geometry::axisymmetric(),
-            Some(DrumArg::Anatomical) => config.geometry = Geometry::anatomical(),
+            Some(DrumArg::Line) => config.geometry = Geometry::line(),
             // The default; --drum-loss below replaces η.
-            Some(DrumArg::Line) | None => {}
+            Some(DrumArg::Anatomical) | None => {}
         }
         config.geometry.incus_lateral = self.incus_lateral;
         if let Some(text) = &self.drum_loss {
@@ -82,7 +96,8 @@ impl DrumOpts {
     }
 }
 
-/// The v1–v5 nominal row (tissue values of the axisymmetric ear, the rest v6's nominal).
+/// The v1–v5 nominal row (tissue values of the axisymmetric ear, the rest the prior's
+/// nominal).
 fn v5_nominal() -> Vec<f64> {
     const V5: [(&str, f64); 7] = [
         ("E_ligaments", 5e6),

@@ -154,7 +154,7 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     if args.explain {
         let (theta, fx) = match &given {
             Some(rows) => design.split(rows.first().context("--theta: no rows")?),
-            None => (crate::sim::Theta::nominal(), design.fixed),
+            None => (args.drum.nominal(), design.fixed),
         };
         return super::explain::report(config, &theta, &fx);
     }

@@ -235,9 +235,9 @@ fn explain_reports_the_drum_variants_and_refuses_bad_ones() {
     assert!(!dir.exists(), "a dataset was written with --incus-lateral");
 }
 
-/// The default drum is the line (v6), and `--drum axisymmetric` still reaches the v1–v5
-/// ear: the line delays the stapes more at 4 kHz than the axisymmetric drum, whose group
-/// delay there stays short (≈ 49 µs at v5's tissue values) even at v6's tissue values. A
+/// The default drum is the anatomical one (v8), and `--drum line` and `--drum
+/// axisymmetric` still reach their ears: the line delays the stapes more at 4 kHz than the
+/// axisymmetric drum, whose group delay there stays short (≈ 49 µs at v5's tissue values). A
 /// flag that fell back to the default drum would print the default's delay and fail.
 #[test]
 fn explain_with_the_line_drum_delays_the_stapes_more_than_the_axisymmetric_drum() {
@@ -249,7 +249,8 @@ fn explain_with_the_line_drum_delays_the_stapes_more_than_the_axisymmetric_drum(
     };
     let (default, line, axi) = (delay_4k(&[]), delay_4k(&["--drum", "line"]), delay_4k(&["--drum", "axisymmetric"]));
     eprintln!("group delay at 4 kHz: default {default:.1} us, --drum line {line:.1} us, axisymmetric {axi:.1} us");
-    assert_eq!(default, line, "the default drum is the line");
+    assert_eq!(default, delay_4k(&["--drum", "anatomical"]), "the default drum is the anatomical one");
+    assert_ne!(default, line, "--drum line did not reach the model");
     assert!(line > axi + 10.0, "line drum {line:.1} us vs axisymmetric {axi:.1} us at 4 kHz");
     let lossy = delay_4k(&["--drum", "line", "--drum-loss", "0.1"]);
     assert_ne!(lossy, line, "--drum-loss did not reach the line drum");

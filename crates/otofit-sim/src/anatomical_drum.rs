@@ -470,7 +470,7 @@ impl AnatomicalDrum {
     pub fn condensed(&self) -> Result<AnatomicalCondensed, DrumError> {
         let fe = self.fe();
         Ok(match self.solver {
-            DrumSolver::Modes => AnatomicalCondensed::Modes(ManubriumModes::new(&fe)?.0),
+            DrumSolver::Modes => AnatomicalCondensed::Modes(super::mode_cache::modes(&fe)?),
             DrumSolver::Direct => {
                 AnatomicalCondensed::Direct(Box::new(DirectDrum { own: ManubriumModes::boundary_only(&fe), fe }))
             }

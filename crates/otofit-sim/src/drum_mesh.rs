@@ -543,6 +543,15 @@ impl ManubriumModes {
         let order: Vec<usize> = (0..n).rev().collect();
         let mu: Vec<f64> = order.iter().map(|&k| s[k].max(0.0)).collect();
         let g: Vec<[f64; 5]> = order.iter().map(|&k| std::array::from_fn(|j| proj[(k, j)])).collect();
+        let info =
+            ModesInfo { n, cholesky_and_projection_s: (t1 - t0).as_secs_f64(), eigen_s: (t2 - t1).as_secs_f64() };
+        Ok((ManubriumModes::from_modes(mu, g, fe), info))
+    }
+
+    /// The condensation from modes already found (by [`ManubriumModes::new`] or read
+    /// from a cache file): the boundary blocks of `fe` and the series' tails.
+    pub fn from_modes(mu: Vec<f64>, g: Vec<[f64; 5]>, fe: &DrumFe) -> ManubriumModes {
+        let n = mu.len();
         let mut tail = vec![[[0.0; 15]; SERIES]; n + 1];
         for m in (0..n).rev() {
             let ratio = if mu[m] > 0.0 { mu.get(m + 1).map_or(0.0, |&x| x / mu[m]) } else { 0.0 };
@@ -555,9 +564,7 @@ impl ManubriumModes {
                 rp *= ratio;
             }
         }
-        let info =
-            ModesInfo { n, cholesky_and_projection_s: (t1 - t0).as_secs_f64(), eigen_s: (t2 - t1).as_secs_f64() };
-        Ok((ManubriumModes { mu, g, k_bb: fe.k_bb, m_bb: fe.m_bb, b_b: fe.b_b, tail }, info))
+        ManubriumModes { mu, g, k_bb: fe.k_bb, m_bb: fe.m_bb, b_b: fe.b_b, tail }
     }
 
     /// Natural frequencies (Hz) of the drum with the manubrium held, for modulus `e`.

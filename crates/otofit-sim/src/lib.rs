@@ -16,6 +16,7 @@ pub mod canal;
 pub mod drum;
 pub mod drum_mesh;
 pub mod line_drum;
+pub mod mode_cache;
 pub mod model;
 pub mod output;
 pub mod params;

@@ -133,17 +133,25 @@ pub struct Geometry {
 }
 
 impl Default for Geometry {
-    /// The v6 ear: the axisymmetric ear's chain with the transmission-line drum of
-    /// [`LineTuning::v7`] (docs/simulator.md, "v6" and "v7").
+    /// The v8 ear, [`Geometry::anatomical`]: the anatomical FE drum on the chain's cited
+    /// masses and ligament geometry, nothing scaled to fit a norm.
     fn default() -> Self {
-        let mut g = Geometry::axisymmetric();
-        LineTuning::v7().apply(&mut g);
-        g
+        Geometry::anatomical()
     }
 }
 
 impl Geometry {
-    /// The anatomical ear (`--drum anatomical`): [`AnatomicalDrum::default`] with its
+    /// The v6–v7 ear (`--drum line`): the axisymmetric ear's chain with the
+    /// transmission-line drum of [`LineTuning::v7`], whose loss factor and ossicle-mass
+    /// factor were tuned to the norms (docs/simulator.md, "v6" and "v7"). Kept for
+    /// comparison; its tuned tissue values are [`LineTuning::theta`].
+    pub fn line() -> Geometry {
+        let mut g = Geometry::axisymmetric();
+        LineTuning::v7().apply(&mut g);
+        g
+    }
+
+    /// The anatomical ear, the default since v8: [`AnatomicalDrum::default`] with its
     /// frequency-independent loss factor on the notes-based chain of
     /// [`Geometry::axisymmetric`] (masses and ligament geometry unscaled).
     pub fn anatomical() -> Geometry {

@@ -81,18 +81,21 @@ pub const N_TISSUE: usize = 7;
 /// normal ears with either at the top of its range read a false finding 11 % and 15 % of
 /// the time (`otofit bench fit`, docs/simulator.md "v5").
 ///
-/// The nominal tissue values are v7's tuned ear (`line_drum::LineTuning::v7`, each inside
-/// its normal range; cochlear_load 0.004 decades above its lower limit), the viscoelastic
-/// exponent too.
+/// The nominal tissue values (v8) are the geometric centres of the published normal ranges
+/// (`otofit_npe::npe::normal::NORMAL`, physics-notes §2; a test there keeps the two
+/// equal): a typical ear from the literature, not a point fitted to the norms. The nominal
+/// viscoelastic exponent is 0: the default drum's loss is its loss factor
+/// (`anatomical_drum::LOSS_FACTOR`). The line drum's tuned values are
+/// `line_drum::LineTuning::theta`.
 pub const PARAMS: [ParamSpec; N_PARAMS] = [
     ParamSpec { name: "E_eardrum", unit: "Pa", scale: Scale::Log10, low: 1e6, high: 300e6, nominal: 20e6 },
-    ParamSpec { name: "E_ligaments", unit: "Pa", scale: Scale::Log10, low: 5e4, high: 5e7, nominal: 3.1868e6 },
-    ParamSpec { name: "E_tendons", unit: "Pa", scale: Scale::Log10, low: 5e4, high: 5e7, nominal: 2.4842e6 },
-    ParamSpec { name: "E_sal", unit: "Pa", scale: Scale::Log10, low: 5e3, high: 1e7, nominal: 0.29611e6 },
-    ParamSpec { name: "E_joints", unit: "Pa", scale: Scale::Log10, low: 1e5, high: 1e9, nominal: 1.4704e6 },
-    ParamSpec { name: "damping_beta", unit: "s", scale: Scale::Log10, low: 7.5e-6, high: 7.5e-4, nominal: 8.4233e-5 },
+    ParamSpec { name: "E_ligaments", unit: "Pa", scale: Scale::Log10, low: 5e4, high: 5e7, nominal: 1.0247e6 },
+    ParamSpec { name: "E_tendons", unit: "Pa", scale: Scale::Log10, low: 5e4, high: 5e7, nominal: 1.6125e6 },
+    ParamSpec { name: "E_sal", unit: "Pa", scale: Scale::Log10, low: 5e3, high: 1e7, nominal: 3.3166e5 },
+    ParamSpec { name: "E_joints", unit: "Pa", scale: Scale::Log10, low: 1e5, high: 1e9, nominal: 1.7550e6 },
+    ParamSpec { name: "damping_beta", unit: "s", scale: Scale::Log10, low: 7.5e-6, high: 7.5e-4, nominal: 1.0607e-4 },
     ParamSpec {
-        name: "cochlear_load", unit: "Pa·s/m³", scale: Scale::Log10, low: 2e9, high: 2e11, nominal: 2.1079e10
+        name: "cochlear_load", unit: "Pa·s/m³", scale: Scale::Log10, low: 2e9, high: 2e11, nominal: 2.7111e10
     },
     ParamSpec { name: "canal_length", unit: "m", scale: Scale::Linear, low: 3e-3, high: 25e-3, nominal: 12e-3 },
     ParamSpec { name: "canal_area", unit: "m²", scale: Scale::Linear, low: 25e-6, high: 70e-6, nominal: 44e-6 },
@@ -100,7 +103,7 @@ pub const PARAMS: [ParamSpec; N_PARAMS] = [
     // Nominal: the largest volume, within 0.6 noise STD of an opened cavity (a temporal
     // bone, the study's and v2's default) on every feature of the nominal ear.
     ParamSpec { name: "cavity", unit: "m³", scale: Scale::Log10, low: 0.5e-6, high: 20e-6, nominal: 20e-6 },
-    ParamSpec { name: "tm_viscoelastic", unit: "1", scale: Scale::Linear, low: 0.0, high: 0.3, nominal: 0.017 },
+    ParamSpec { name: "tm_viscoelastic", unit: "1", scale: Scale::Linear, low: 0.0, high: 0.3, nominal: 0.0 },
     // Nominal 0: the beam along the piston axis and a massless cochlear load, the v4 ear.
     ParamSpec { name: "ldv_angle", unit: "deg", scale: Scale::Linear, low: 0.0, high: 60.0, nominal: 0.0 },
     ParamSpec { name: "cochlear_mass", unit: "kg/m⁴", scale: Scale::Linear, low: 0.0, high: 1e6, nominal: 0.0 },
