@@ -83,9 +83,8 @@ pub const NORMAL: [NormalRange; 7] = [
 ];
 
 /// The typical ear: every tissue value at the geometric centre of its normal range, the
-/// other parameters nominal (the openapi.yaml example, `bench fit`'s centre ear). Not the
-/// simulator's nominal ear, which sits on the lower limit of cochlear_load's range (v1–v5:
-/// damping_beta's too), where a calibrated posterior reads either side about equally often.
+/// other parameters nominal (the openapi.yaml example, `bench fit`'s centre ear). Since v8
+/// the simulator's nominal tissue values are these (to the 5 digits of `PARAMS`).
 pub fn centre_row() -> Vec<f64> {
     crate::sim::PARAMS
         .iter()
@@ -271,6 +270,14 @@ pub fn verdict(readings: &[Differential], fit_ok: Option<bool>) -> Verdict {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_simulators_nominal_tissue_is_the_centre_of_the_normal_ranges() {
+        let centre = centre_row();
+        for (p, c) in crate::sim::PARAMS.iter().zip(&centre).take(crate::sim::N_TISSUE) {
+            assert!((p.nominal / c - 1.0).abs() < 1e-4, "{}: nominal {} against the centre {c}", p.name, p.nominal);
+        }
+    }
 
     #[test]
     fn nearest_by_selection_is_the_sorted_order_statistic() {
