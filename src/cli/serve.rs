@@ -147,17 +147,21 @@ fn resolve_default_model(given: &Path) -> PathBuf {
 
 /// `--default-model` resolved and loaded once, so that a server never starts with a
 /// default it cannot answer with; `none` serves without one (models come from train jobs).
+/// The fit check's simulator is built here too (the eardrum's mesh and modes, ~0.1 s from
+/// the mode cache), so that the first request does not pay for it.
 fn usable_default_model(given: &Path) -> Result<PathBuf> {
     if given == Path::new("none") {
         return Ok(PathBuf::new());
     }
     let path = resolve_default_model(given);
-    crate::npe::Npe::load(&path).with_context(|| {
+    let npe = crate::npe::Npe::load(&path).with_context(|| {
         format!(
             "--default-model {}: not a usable otofit model (pass --default-model none to serve without one)",
             given.display()
         )
     })?;
+    // A model of another simulator is served without a fit check (its answers say so).
+    let _ = crate::discrepancy::fitcheck::simulator_for(&npe);
     Ok(path)
 }
 

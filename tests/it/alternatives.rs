@@ -56,14 +56,16 @@ fn label(a: &Alternatives) -> Vec<String> {
         .collect()
 }
 
-/// A fixed malleus (E_ligaments 4.5e7, above its normal range) measured by wideband
-/// tympanometry alone: a stiff tendon or ligament fits as well; the answer is ambiguous,
-/// names the best two in its sentence, holds the truth within the margin, and names a
-/// velocity the request did not send as the measure that separates them.
+/// A fixed stapes (E_sal 4e6, above its normal range) measured by wideband tympanometry
+/// alone: the chain's parameters are not identifiable from WBT at this ear (their
+/// Cramér–Rao bounds are several decades; docs/results/simulator.md), so a loose joint or
+/// a low cochlear load fits as well; the answer is ambiguous, names the best two in its
+/// sentence, holds the truth within the margin, and names the stapes velocity, which the
+/// request did not send, as the measure that separates them.
 #[test]
-fn a_fixed_malleus_under_wbt_alone_is_ambiguous_and_a_velocity_separates() {
+fn a_fixed_stapes_under_wbt_alone_is_ambiguous_and_a_velocity_separates() {
     let (npe, model) = (npe(), Model::new(ModelConfig::default()).unwrap());
-    let (x, present) = ear(&model, 1, 4.5e7, &["impedance", "absorbance"]);
+    let (x, present) = ear(&model, 3, 4e6, &["impedance", "absorbance"]);
     let a = read(&npe, &x, &present);
     assert!(a.ambiguous, "{:?}", label(&a));
     let (b0, b1) = otofit::discrepancy::alternatives::best_two(&a.hypotheses).unwrap();
@@ -72,7 +74,7 @@ fn a_fixed_malleus_under_wbt_alone_is_ambiguous_and_a_velocity_separates() {
         let name = h.parameter.unwrap_or("no finding");
         assert!(a.sentence.contains(name), "{} missing from: {}", name, a.sentence);
     }
-    let truth = a.hypotheses.iter().find(|h| h.parameter == Some("E_ligaments") && h.direction == "above").unwrap();
+    let truth = a.hypotheses.iter().find(|h| h.parameter == Some("E_sal") && h.direction == "above").unwrap();
     assert!(truth.delta_chi2 < a.margin, "{:?}", label(&a));
     let s = a.separate_by.as_ref().unwrap();
     assert!(!s.given && s.measure.ends_with("_velocity"), "{s:?}");
@@ -99,15 +101,20 @@ fn a_fixed_stapes_with_velocities_wins_clearly() {
     assert!(a.sentence.contains("E_sal above") && a.sentence.contains("fits best"), "{}", a.sentence);
 }
 
-/// The same fixed malleus with umbo velocity sent beside WBT: the measure named for
-/// WBT alone is now given, and the answer no longer rests on WBT's χ² alone.
+/// The same fixed stapes with umbo velocity sent beside WBT: the umbo barely sees a stiff
+/// annular ligament (−1 dB at 200–500 Hz for E_sal ×10; the semantics tests of
+/// otofit-sim), so the answer stays ambiguous, the truth within the margin, and the
+/// measure named is the stapes velocity, still not sent.
 #[test]
-fn umbo_velocity_changes_what_separates_a_fixed_malleus() {
+fn umbo_velocity_leaves_a_fixed_stapes_ambiguous_and_names_the_stapes_velocity() {
     let (npe, model) = (npe(), Model::new(ModelConfig::default()).unwrap());
-    let (x, present) = ear(&model, 1, 4.5e7, &["impedance", "absorbance", "umbo_velocity"]);
+    let (x, present) = ear(&model, 3, 4e6, &["impedance", "absorbance", "umbo_velocity"]);
     let a = read(&npe, &x, &present);
     let umbo = a.by_measure.iter().find(|m| m.measure == "umbo_velocity").unwrap();
     assert!(umbo.given, "{umbo:?}");
-    let truth = a.hypotheses.iter().find(|h| h.parameter == Some("E_ligaments") && h.direction == "above").unwrap();
+    assert!(a.ambiguous, "{:?}", label(&a));
+    let truth = a.hypotheses.iter().find(|h| h.parameter == Some("E_sal") && h.direction == "above").unwrap();
     assert!(truth.delta_chi2 < a.margin, "{:?}", label(&a));
+    let s = a.separate_by.as_ref().unwrap();
+    assert_eq!((s.measure.as_str(), s.given), ("stapes_velocity", false), "{s:?}");
 }
