@@ -3,12 +3,14 @@
 //! draw from the posterior for a few fixed observations and score the draws against
 //! reference posterior draws with a classifier two-sample test (C2ST); and the cross-model
 //! suite (`crossmodel`): ears from published middle-ear models otofit does not contain,
-//! read by the shipped posterior and its fit check.
+//! read by the shipped posterior and its fit check; and the shipped posterior against the
+//! likelihood's own on held-out simulated ears (`posterior`).
 
 pub mod c2st;
 pub mod crossmodel;
 pub mod glm;
 pub mod mcmc;
+pub mod posterior;
 pub mod tasks;
 
 // The layer below, under the names the modules use for it (`crate::npe::…`).
