@@ -256,3 +256,31 @@ fn merging_parts_that_do_not_cover_every_row_is_an_error() {
     dataset::merge_parts(&parts, 3, 30, &dir.join("c"), &mut meta()).unwrap();
     assert_eq!(std::fs::read_to_string(dir.join("c/x.csv")).unwrap().lines().count(), 31);
 }
+
+/// A simulate job's progress follows every worker's finished chunks: the chunk table,
+/// not only what the job's own worker last wrote (which lags while it runs a chunk of its
+/// own). Two of three chunks finished by "other workers", the third running, read as
+/// 2/3 of the rows.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn progress_counts_chunks_finished_by_any_worker() {
+    for (name, db) in backends().await {
+        let store = Store::connect(&db).await.unwrap();
+        let spec = JobSpec::parse("simulate", &json!({"n": 3000, "seed": 3})).unwrap();
+        assert!(store.insert_job_within("g", "simulate", &spec.params(), 3, 8).await.unwrap());
+        let lease = Duration::from_secs(30);
+        let job = store.claim("owner", lease).await.unwrap().expect("the job is claimed");
+        store.plan_chunks("g", &[(0, 1000), (1000, 1000), (2000, 1000)]).await.unwrap();
+        let planned = otofit::jobs::progress_from_chunks(&store.chunks("g").await.unwrap()).unwrap();
+        assert_eq!(planned, (0.0, "simulated 0/3000 rows (0/3 chunks)".to_string()), "{name}");
+        for helper in ["w1", "w2"] {
+            let claim = store.claim_chunk(Some("g"), helper, lease).await.unwrap().unwrap();
+            assert!(store.end_chunk(&claim, true).await.unwrap(), "{name}");
+        }
+        // The third is running on the owner: not finished, not counted.
+        store.claim_chunk(Some("g"), "owner", lease).await.unwrap().unwrap();
+        let (p, message) = otofit::jobs::progress_from_chunks(&store.chunks("g").await.unwrap()).unwrap();
+        assert!((p - 2.0 / 3.0).abs() < 1e-12, "{name}: {p}");
+        assert_eq!(message, "simulated 2000/3000 rows (2/3 chunks)", "{name}");
+        assert!(job.progress < p, "{name}: the owner wrote nothing meanwhile");
+    }
+}

@@ -26,7 +26,7 @@ pub use diagnose::DiagnoseParams;
 pub use exact::ExactParams;
 pub use limits::MAX_ROWS;
 pub use resimulate::ResimulateParams;
-pub use simulate::{CHUNK_ROWS, SimulateParams, chunk_plan, remove_temporary_files};
+pub use simulate::{CHUNK_ROWS, SimulateParams, chunk_plan, progress_from_chunks, remove_temporary_files};
 pub use spec::{FieldError, JobSpec, KINDS, MAX_ID, effect_names, field_error, is_plain_id};
 pub use train::TrainParams;
 
@@ -152,6 +152,13 @@ impl Ctx {
     pub fn with_settings(mut self, s: JobSettings) -> Ctx {
         self.retry = s.retry;
         self.with_lease(s.lease).with_chunk_rows(s.chunk_rows)
+    }
+
+    /// The lease of a chunk claim: the job's lease, at most [`CHUNK_LEASE`]. A chunk is
+    /// renewed every third of it, so a killed worker's chunk is free again within
+    /// seconds, not after the job's 30 s lease.
+    pub fn chunk_lease(&self) -> Duration {
+        self.lease.min(CHUNK_LEASE)
     }
 
     /// Claims jobs with leases of `lease` (renewed every third of it) instead of 30 s.
@@ -288,6 +295,15 @@ fn scrub(ctx: &Ctx, msg: &str) -> String {
     out
 }
 
+/// Longest lease of a chunk claim (see [`Ctx::chunk_lease`]).
+pub const CHUNK_LEASE: Duration = Duration::from_secs(6);
+
+/// How long an idle dispatcher waits before looking for work again when nothing in this
+/// process told it of new work (a job posted to another process, a chunk freed by a
+/// dead worker): short, so that a second worker joins a job within a fraction of a
+/// second. Each look is a few indexed queries.
+const IDLE_POLL: Duration = Duration::from_millis(250);
+
 /// The dispatcher: takes back jobs whose lease expired, claims and runs jobs until
 /// shutdown; with no job queued it helps with a chunk of a running simulate job (any
 /// worker's). Any number of dispatchers, in any number of processes, may share a store.
@@ -314,15 +330,15 @@ pub async fn dispatcher(ctx: Arc<Ctx>) {
             Ok(None) if ctx.artifacts.is_remote() => {
                 tokio::select! {
                     _ = ctx.notify.notified() => {}
-                    _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                    _ = tokio::time::sleep(IDLE_POLL) => {}
                 }
             }
-            Ok(None) => match ctx.store.claim_chunk(None, &ctx.worker, ctx.lease).await {
+            Ok(None) => match ctx.store.claim_chunk(None, &ctx.worker, ctx.chunk_lease()).await {
                 Ok(Some(chunk)) => simulate::help(ctx.clone(), chunk).await,
                 Ok(None) => {
                     tokio::select! {
                         _ = ctx.notify.notified() => {}
-                        _ = tokio::time::sleep(Duration::from_secs(1)) => {}
+                        _ = tokio::time::sleep(IDLE_POLL) => {}
                     }
                 }
                 Err(e) => {

@@ -158,7 +158,7 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
         if done == chunks.len() {
             break;
         }
-        match rt.block_on(ctx.store.claim_chunk(Some(id), &ctx.worker, ctx.lease))? {
+        match rt.block_on(ctx.store.claim_chunk(Some(id), &ctx.worker, ctx.chunk_lease()))? {
             Some(claim) if finished(&claim.chunk) => {
                 rt.block_on(ctx.store.end_chunk(&claim, true))?;
             }
@@ -202,6 +202,22 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
     }))
 }
 
+/// A running simulate job's progress as its chunk table tells it: the rows of finished
+/// chunks, whichever worker finished them, over all rows, with the job's own message
+/// format. `None` before the chunks are planned. GET /jobs/{id} shows the larger of this
+/// and what the job's worker last wrote, which lags while that worker runs a chunk of
+/// its own or waits for others.
+pub fn progress_from_chunks(chunks: &[ChunkRow]) -> Option<(f64, String)> {
+    let total: usize = chunks.iter().map(|c| c.n_rows).sum();
+    if total == 0 {
+        return None;
+    }
+    let finished: Vec<&ChunkRow> = chunks.iter().filter(|c| c.state == "done").collect();
+    let rows: usize = finished.iter().map(|c| c.n_rows).sum();
+    let message = format!("simulated {rows}/{total} rows ({}/{} chunks)", finished.len(), chunks.len());
+    Some((rows as f64 / total as f64, message))
+}
+
 /// Runs one claimed chunk into its part file under the chunk's lease (renewed on the
 /// runtime meanwhile), then marks it done; a chunk that stops or fails goes back to the
 /// queue for any worker. `Err(Stopped)` when `progress` or the lease stopped it.
@@ -216,7 +232,7 @@ fn run_chunk(
     let c = &claim.chunk;
     ctx.metrics.chunk_run();
     let lost = Arc::new(AtomicBool::new(false));
-    let renewal = rt.spawn(renew_chunk(ctx.store.clone(), claim.clone(), ctx.lease, lost.clone()));
+    let renewal = rt.spawn(renew_chunk(ctx.store.clone(), claim.clone(), ctx.chunk_lease(), lost.clone()));
     let mut last = 0;
     let res = setup.parts(parts).simulate(c.idx, c.first_row, c.n_rows, &claim.token[..16], &mut |rows| {
         ctx.metrics.simulated(rows.saturating_sub(last) as u64);
