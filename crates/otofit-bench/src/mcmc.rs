@@ -184,45 +184,9 @@ pub fn moment_error(rows: &[Vec<f64>], mean: &[f64], cov: &[Vec<f64>]) -> f64 {
     worst
 }
 
-/// Lower Cholesky factor of a symmetric positive-definite matrix (row-major).
-pub fn cholesky(a: &[Vec<f64>]) -> Option<Vec<Vec<f64>>> {
-    let d = a.len();
-    let mut l = vec![vec![0.0; d]; d];
-    for i in 0..d {
-        for j in 0..=i {
-            let s = a[i][j] - (0..j).map(|k| l[i][k] * l[j][k]).sum::<f64>();
-            if i == j {
-                if s <= 0.0 || !s.is_finite() {
-                    return None;
-                }
-                l[i][i] = s.sqrt();
-            } else {
-                l[i][j] = s / l[j][j];
-            }
-        }
-    }
-    Some(l)
-}
-
-/// Inverse of a symmetric positive-definite matrix through its Cholesky factor: column
-/// c solves L Lᵀ v = e_c.
-pub fn spd_inverse(a: &[Vec<f64>]) -> Option<Vec<Vec<f64>>> {
-    let l = cholesky(a)?;
-    let d = a.len();
-    let cols: Vec<Vec<f64>> = (0..d)
-        .map(|c| {
-            let mut v: Vec<f64> = (0..d).map(|i| if i == c { 1.0 } else { 0.0 }).collect();
-            for i in 0..d {
-                v[i] = (v[i] - (0..i).map(|k| l[i][k] * v[k]).sum::<f64>()) / l[i][i];
-            }
-            for i in (0..d).rev() {
-                v[i] = (v[i] - (i + 1..d).map(|k| l[k][i] * v[k]).sum::<f64>()) / l[i][i];
-            }
-            v
-        })
-        .collect();
-    Some((0..d).map(|i| (0..d).map(|j| cols[j][i]).collect()).collect())
-}
+/// Cholesky factor and inverse of a symmetric positive-definite matrix (row-major rows),
+/// shared with the exact chain (`otofit_npe::spd`).
+pub use otofit_npe::spd::{cholesky, inverse as spd_inverse};
 
 #[cfg(test)]
 mod tests {

@@ -5,6 +5,7 @@
 pub mod dataset;
 pub mod flow;
 pub mod npe;
+pub mod spd;
 pub mod stats;
 
 // The layer below, under the name the modules use for it (`crate::sim::…`).

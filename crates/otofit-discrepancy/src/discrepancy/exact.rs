@@ -132,42 +132,18 @@ fn covariance(rows: &[Vec<f64>], d: usize) -> Vec<f64> {
     c
 }
 
-/// Lower Cholesky factor (row-major) of a symmetric positive definite d×d matrix.
+/// Lower Cholesky factor (row-major, flat) of a symmetric positive definite d×d matrix.
 fn cholesky(a: &[f64], d: usize) -> Option<Vec<f64>> {
-    let mut l = vec![0.0; d * d];
-    for i in 0..d {
-        for j in 0..=i {
-            let s = a[i * d + j] - (0..j).map(|k| l[i * d + k] * l[j * d + k]).sum::<f64>();
-            if i == j {
-                if !(s > 0.0 && s.is_finite()) {
-                    return None;
-                }
-                l[i * d + i] = s.sqrt();
-            } else {
-                l[i * d + j] = s / l[j * d + j];
-            }
-        }
-    }
-    Some(l)
+    otofit_npe::spd::cholesky(&rows(a, d)).map(|l| l.concat())
 }
 
-/// The inverse of a symmetric positive definite matrix through its Cholesky factor.
+/// The inverse (row-major, flat) of a symmetric positive definite d×d matrix.
 fn spd_inverse(a: &[f64], d: usize) -> Option<Vec<f64>> {
-    let l = cholesky(a, d)?;
-    let mut inv = vec![0.0; d * d];
-    for col in 0..d {
-        // Solve L y = e_col, then Lᵀ x = y.
-        let mut y = vec![0.0; d];
-        for i in 0..d {
-            let e = if i == col { 1.0 } else { 0.0 };
-            y[i] = (e - (0..i).map(|k| l[i * d + k] * y[k]).sum::<f64>()) / l[i * d + i];
-        }
-        for i in (0..d).rev() {
-            let v = (y[i] - (i + 1..d).map(|k| l[k * d + i] * inv[k * d + col]).sum::<f64>()) / l[i * d + i];
-            inv[i * d + col] = v;
-        }
-    }
-    Some(inv)
+    otofit_npe::spd::inverse(&rows(a, d)).map(|m| m.concat())
+}
+
+fn rows(a: &[f64], d: usize) -> Vec<Vec<f64>> {
+    a.chunks(d.max(1)).map(<[f64]>::to_vec).collect()
 }
 
 /// log prior density of the unbounded coordinate u (uniform position q = σ(u) in the
