@@ -525,7 +525,7 @@ impl Model {
         Runner { model: self, ws: self.system.workspace(), coef: vec![c64::new(0.0, 0.0); self.system.n_blocks()] }
     }
 
-    fn fill_coefficients(&self, theta: &Theta, w: f64, coef: &mut [c64]) {
+    fn fill_coefficients(&self, theta: &Theta, fx: &Effects, w: f64, coef: &mut [c64]) {
         let bl = &self.blocks;
         let jw = c64::new(0.0, w);
         let rayleigh = c64::new(1.0, w * theta.damping_beta());
@@ -547,7 +547,15 @@ impl Model {
         coef[bl.joints] = rayleigh * theta.e_joints();
         coef[bl.sal] = rayleigh * theta.e_sal();
         coef[bl.mass] = c64::new(-w * w, 0.0);
-        coef[bl.cochlea] = jw * c64::new(theta.cochlear_load(), w * theta.cochlear_mass());
+        // The cochlear input impedance, shunted by a third window's acoustic mass when one
+        // is open: the displaced fluid takes both paths (params::EFFECTS, third_window).
+        let mut z_cochlea = c64::new(theta.cochlear_load(), w * theta.cochlear_mass());
+        let m_tw = fx.third_window_mass();
+        if m_tw > 0.0 {
+            let z_tw = c64::new(0.0, w * m_tw);
+            z_cochlea = z_cochlea * z_tw / (z_cochlea + z_tw);
+        }
+        coef[bl.cochlea] = jw * z_cochlea;
         coef[bl.drum_load] = c64::new(1.0, 0.0);
         coef[bl.drum_flow] = jw;
         coef[bl.cavity_load] = c64::new(1.0, 0.0);
@@ -904,13 +912,19 @@ impl Runner<'_> {
     /// Solves one frequency for a unit volume velocity into the eardrum; the full
     /// solution is then in [`Self::solution`].
     pub fn solve_at(&mut self, theta: &Theta, freq_hz: f64) -> Result<(), SimError> {
+        self.solve_with(theta, &Effects::default(), freq_hz)
+    }
+
+    /// [`Self::solve_at`] with the effects that act inside the middle ear (a third
+    /// window); those at the probe act on the responses after the solve.
+    pub fn solve_with(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
         for (i, v) in theta.0.iter().enumerate() {
             if !super::params::PARAMS[i].physical(*v) {
                 return Err(SimError::BadParameter { name: super::params::PARAMS[i].name, value: *v });
             }
         }
         let w = 2.0 * PI * freq_hz;
-        self.model.fill_coefficients(theta, w, &mut self.coef);
+        self.model.fill_coefficients(theta, fx, w, &mut self.coef);
         self.model.system.solve(&self.coef, &[(self.model.dofs.p_drum, c64::new(1.0, 0.0))], &mut self.ws, freq_hz)?;
         Ok(())
     }
@@ -929,7 +943,7 @@ impl Runner<'_> {
 
     /// Measured responses at one frequency, effects applied.
     pub fn response_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<Response, SimError> {
-        self.solve_at(theta, freq_hz)?;
+        self.solve_with(theta, fx, freq_hz)?;
         let m = self.model;
         let g = &m.config.geometry;
         let x = &self.ws.x;

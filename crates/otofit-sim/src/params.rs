@@ -240,7 +240,7 @@ impl EffectSpec {
 }
 
 /// Number of optional effects.
-pub const N_EFFECTS: usize = 2;
+pub const N_EFFECTS: usize = 3;
 
 /// The effect library, in a fixed order (physics-notes §4 for forms and signatures).
 pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
@@ -261,6 +261,23 @@ pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
         high: 0.5e-3,
         scale: Scale::Log10,
         description: "leak of radius a (length 5 mm) shunting the probe",
+    },
+    // A third window (superior canal dehiscence): the perilymph the stapes displaces
+    // escapes through the dehiscence as well as through the cochlear partition, an
+    // acoustic mass in parallel with the cochlear load (the shunt of Songer & Rosowski
+    // 2007, JASA 122:943; lossless here, its limiting form). The range is ρL/A for
+    // perilymph (1000 kg/m³) through dehiscences of 0.5–5 mm² and 1–3 mm of canal lumen
+    // (2e5–6e6 kg/m⁴). Signature: the cochlear input impedance falls at low frequency,
+    // so low-frequency stapes and umbo velocity rise (Rosowski et al. 2004, Otol Neurotol
+    // 25:323), with little change above 1–2 kHz.
+    EffectSpec {
+        name: "third_window",
+        unit: "kg/m⁴",
+        off: 0.0,
+        low: 2e5,
+        high: 6e6,
+        scale: Scale::Log10,
+        description: "a third window (superior canal dehiscence): an inner-ear shunt of acoustic mass M in parallel with the cochlear load",
     },
 ];
 
@@ -335,6 +352,10 @@ impl Effects {
     /// Radius of a leak shunting the probe, m.
     pub fn leak_radius(&self) -> f64 {
         self.0[1]
+    }
+    /// Acoustic mass of a third-window shunt beside the cochlea, kg/m⁴ (0: none).
+    pub fn third_window_mass(&self) -> f64 {
+        self.0[2]
     }
 }
 
