@@ -188,3 +188,19 @@ fn names_a_hidden_third_window_among_every_effect() {
     let after = r.after.as_ref().unwrap();
     assert!(after.reduced_chi2 < r.before.reduced_chi2, "χ²ν {} → {}", r.before.reduced_chi2, after.reduced_chi2);
 }
+
+/// A hidden perforation (0.5 mm radius) is named among every effect of the library, its
+/// radius estimated, and the gap closed: the ear does not fit without it.
+#[test]
+fn names_a_hidden_perforation_and_closes_the_gap() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let x = observation(&model, Some(("perforation", 0.5e-3)), 5);
+    let r = diagnose(&model, &base(), &x, &settings((0..otofit::sim::N_EFFECTS).collect()), &mut |_| {}).unwrap();
+    let scores: Vec<_> = r.candidates.iter().map(|c| (c.effect, c.score)).collect();
+    eprintln!("χ²ν before {:.2}, candidates {scores:?}", r.before.reduced_chi2);
+    assert_eq!((r.verdict, r.named), (Verdict::EffectNamed, Some("perforation")), "{scores:?}");
+    let p = r.effect_posterior.as_ref().unwrap();
+    assert!(p.q05 <= 0.5e-3 && 0.5e-3 <= p.q95, "90 % interval [{}, {}]", p.q05, p.q95);
+    let after = r.after.as_ref().unwrap();
+    assert!(after.reduced_chi2 < r.before.reduced_chi2 / 5.0, "χ²ν {} → {}", r.before.reduced_chi2, after.reduced_chi2);
+}

@@ -63,7 +63,7 @@ fn passive_and_energy_conserving_for_every_effect_at_random_draws() {
     // Over the whole grid, for random θ over the prior and every effect setting: every
     // loss (canal walls, drum, each ossicular Rayleigh block, cochlea) is ≥ 0, the parts
     // sum to the power in, Re Z ≥ 0 at the probe and at the measurement plane after the
-    // effects (offset, leak), and 0 ≤ A ≤ 1. A sign error in a loss term (e.g. an
+    // effects (offset, leak; a perforation and a third window inside), and 0 ≤ A ≤ 1. A sign error in a loss term (e.g. an
     // energy-producing viscoelastic drum at tm_viscoelastic = 0.3) fails here.
     let model = Model::new(ModelConfig::default()).unwrap();
     let mut runner = model.runner();
@@ -76,7 +76,7 @@ fn passive_and_energy_conserving_for_every_effect_at_random_draws() {
             for &f in model.frequencies() {
                 let r = runner.response_at(&theta, fx, f).unwrap();
                 let p = runner.power_balance(&theta, f);
-                let parts = [p.canal, p.drum, p.ligaments, p.tendons, p.joints, p.sal, p.cochlea];
+                let parts = [p.canal, p.drum, p.ligaments, p.tendons, p.joints, p.sal, p.cochlea, p.perforation];
                 let eps = 1e-12 * p.probe.abs();
                 assert!(
                     p.probe > 0.0 && parts.iter().all(|&v| v >= -eps),

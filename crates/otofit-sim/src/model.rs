@@ -338,6 +338,10 @@ struct Blocks {
     cavity_load: usize, // +b p_cav in the mechanics rows
     cavity_row: usize,  // (1/C_cav) bᵀq − p_cav = 0
     cavity_diag: usize,
+    /// A perforation's flow from the canal into the cavity, Y_p(p_drum − p_cav): in the
+    /// flow row, and as volume into the cavity row (`perforation` effect; 0 when closed).
+    perforation_flow: usize,
+    perforation_cavity: usize,
     /// The condensed drum: n² blocks (row-major) on its n boundary unknowns, (umbo,
     /// p_drum, p_cavity) or, for the manubrium drum, (umbo, θ_m, p_drum, p_cavity).
     drum_schur: usize,
@@ -562,6 +566,12 @@ impl Model {
         let v = theta.cavity_volume();
         coef[bl.cavity_row] = c64::new(self.air.bulk_modulus() / v, 0.0);
         coef[bl.cavity_diag] = c64::new(1.0, 0.0);
+        let y_p = match fx.perforation_radius() {
+            a if a > 0.0 => 1.0 / perforation_impedance(&self.air, a, w),
+            _ => c64::new(0.0, 0.0),
+        };
+        coef[bl.perforation_flow] = y_p;
+        coef[bl.perforation_cavity] = y_p * (self.air.bulk_modulus() / v) / jw;
         match &self.drum {
             Some(Condensed::Axisymmetric(modes)) => {
                 let schur = modes.schur(&self.drum_coefficients(coef, w));
@@ -643,6 +653,8 @@ impl Blocks {
             cavity_load: sb.block(),
             cavity_row: sb.block(),
             cavity_diag: sb.block(),
+            perforation_flow: sb.block(),
+            perforation_cavity: sb.block(),
             drum_schur: {
                 let first = sb.block();
                 for _ in 1..n_condensed.pow(2) {
@@ -778,6 +790,26 @@ fn couple_pressures(b: &[f64], d: &Dofs, blocks: &Blocks, sb: &mut SystemBuilder
         sb.add(blocks.cavity_row, d.p_cavity, i, bi);
     }
     sb.add(blocks.cavity_diag, d.p_cavity, d.p_cavity, -1.0);
+    // A perforation: flow Y_p(p_drum − p_cavity) leaves the flow row's balance and enters
+    // the cavity as volume Y_p(p_drum − p_cavity)/(jω).
+    for (block, row) in [(blocks.perforation_flow, last), (blocks.perforation_cavity, d.p_cavity)] {
+        sb.add(block, row, last, 1.0);
+        sb.add(block, row, d.p_cavity, -1.0);
+    }
+}
+
+/// Acoustic impedance of a perforation of radius `a` through the pars tensa: the air plug
+/// of a short tube (the membrane's thickness, [`anatomical_drum::THICKNESS_MIDDLE`]) with
+/// an end correction of 0.85a on each side, its mass ρ(t + 1.7a)/(πa²) and its viscous
+/// resistance 8μ(t + 1.7a)/(πa⁴) (Poiseuille over the same length, as for the probe
+/// leak) — the acoustic mass and resistance path from the canal to the middle-ear cavity
+/// of Voss et al. 2001 (JASA 110:1432). The drum keeps its area and stiffness: a hole of
+/// a few mm² in a 60 mm² membrane.
+pub fn perforation_impedance(air: &Air, a: f64, w: f64) -> c64 {
+    let length = anatomical_drum::THICKNESS_MIDDLE + 1.7 * a;
+    let mass = air.rho * length / (PI * a * a);
+    let res = 8.0 * air.mu * length / (PI * a.powi(4));
+    c64::new(res, w * mass)
 }
 
 /// The axisymmetric drum's stiffness (per unit E), mass and swept volume, assembled
@@ -883,9 +915,9 @@ pub struct PowerBalance {
     pub probe: f64,
     /// Power dissipated by the canal walls.
     pub canal: f64,
-    /// Power entering the middle ear at the drum.
+    /// Power entering the middle ear at the drum (through a perforation too).
     pub into_drum: f64,
-    /// All middle-ear dissipation: the sum of the six parts below.
+    /// All middle-ear dissipation: the sum of the seven parts below.
     pub mechanical: f64,
     /// The eardrum's loss (Rayleigh and, when on, viscoelastic), interior and disc.
     pub drum: f64,
@@ -899,6 +931,8 @@ pub struct PowerBalance {
     pub sal: f64,
     /// Power delivered to the cochlear load ½·Re(Z_c)·A_fp²·|v_piston|².
     pub cochlea: f64,
+    /// Loss in a perforation's air plug, ½·Re(Z_p)·|U_hole|² (0 without one).
+    pub perforation: f64,
 }
 
 impl PowerBalance {
@@ -1038,11 +1072,30 @@ impl Runner<'_> {
         };
         vol += v_int;
         drum += 0.5 * w * self.coef[bl.tm].im * e_int * scale;
-        let into_drum = 0.5 * (x[m.dofs.p_drum].conj() * c64::new(0.0, w) * vol).re * scale;
+        // A perforation's flow joins the drum's at the canal side and loses ½Re(Z_p)|U_p|²
+        // in the hole; the cavity takes both flows and, a pure compliance, no net power.
+        let dp = x[m.dofs.p_drum] - x[m.dofs.p_cavity];
+        let u_hole = self.coef[bl.perforation_flow] * dp;
+        let flow_in = c64::new(0.0, w) * vol + u_hole;
+        let into_drum = 0.5 * (x[m.dofs.p_drum].conj() * flow_in).re * scale;
+        let perforation = 0.5 * (dp.conj() * u_hole).re * scale;
         let (ligaments, tendons, joints) = (loss(bl.ligaments), loss(bl.tendons), loss(bl.joints));
         let (sal, cochlea) = (loss(bl.sal), loss(bl.cochlea));
-        let mechanical = drum + ligaments + tendons + joints + sal + cochlea;
-        PowerBalance { freq_hz, probe, canal, into_drum, mechanical, drum, ligaments, tendons, joints, sal, cochlea }
+        let mechanical = drum + ligaments + tendons + joints + sal + cochlea + perforation;
+        PowerBalance {
+            freq_hz,
+            probe,
+            canal,
+            into_drum,
+            mechanical,
+            drum,
+            ligaments,
+            tendons,
+            joints,
+            sal,
+            cochlea,
+            perforation,
+        }
     }
 
     /// The power balance at every frequency of the model's grid (one solve each).

@@ -240,7 +240,7 @@ impl EffectSpec {
 }
 
 /// Number of optional effects.
-pub const N_EFFECTS: usize = 3;
+pub const N_EFFECTS: usize = 4;
 
 /// The effect library, in a fixed order (physics-notes §4 for forms and signatures).
 pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
@@ -278,6 +278,22 @@ pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
         high: 6e6,
         scale: Scale::Log10,
         description: "a third window (superior canal dehiscence): an inner-ear shunt of acoustic mass M in parallel with the cochlear load",
+    },
+    // A perforation of the pars tensa: air flows from the canal through the hole into the
+    // middle-ear cavity beside the drum, an acoustic mass and resistance in a path from
+    // p_drum to p_cavity (Voss et al. 2001, JASA 110:1432; `model::perforation_impedance`).
+    // Radii 0.25–2.5 mm: the 0.5–5 mm diameters of Voss et al.'s temporal bones.
+    // Signature: the pressure difference across the drum falls at low frequency, so
+    // low-frequency velocities fall and the low-frequency impedance drops, with the
+    // perforation's mass resonating with the cavity's compliance.
+    EffectSpec {
+        name: "perforation",
+        unit: "m",
+        off: 0.0,
+        low: 0.25e-3,
+        high: 2.5e-3,
+        scale: Scale::Log10,
+        description: "a perforation of radius a in the pars tensa: a path from the canal into the middle-ear cavity",
     },
 ];
 
@@ -356,6 +372,10 @@ impl Effects {
     /// Acoustic mass of a third-window shunt beside the cochlea, kg/m⁴ (0: none).
     pub fn third_window_mass(&self) -> f64 {
         self.0[2]
+    }
+    /// Radius of a perforation of the pars tensa, m (0: none).
+    pub fn perforation_radius(&self) -> f64 {
+        self.0[3]
     }
 }
 
