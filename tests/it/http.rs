@@ -1013,6 +1013,37 @@ async fn infer_is_bounded_in_concurrency_and_time() {
     assert!(body["detail"].as_str().unwrap().contains("deadline"), "{body}");
 }
 
+/// `serve`'s log redirected to a file (a pipe here, as under systemd or a container
+/// runtime) carries no ANSI colour codes: a collector reads plain text.
+#[test]
+fn a_redirected_server_log_is_plain_text() {
+    use std::io::Read;
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let dir = temp_dir("ansi");
+    let mut server = Reap(
+        std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
+            .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap()])
+            .args(["--default-model", default_model().to_str().unwrap()])
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    for _ in 0..100 {
+        if http(port, "GET", "/health", None).is_some() {
+            break;
+        }
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    assert!(http(port, "GET", "/models", None).is_some(), "the server answers");
+    std::process::Command::new("kill").args(["-TERM", &server.id().to_string()]).status().unwrap();
+    assert!(exit_within(&mut server, 10).is_some(), "stopped after SIGTERM");
+    let mut log = String::new();
+    server.stdout.take().unwrap().read_to_string(&mut log).unwrap();
+    assert!(log.contains("otofit serving"), "the start-up line was logged: {log:?}");
+    assert!(!log.contains('\u{1b}'), "ANSI escape in a redirected log: {log:?}");
+}
+
 /// A connection that sends half a request is closed after the idle timeout, and
 /// does not hold up a SIGTERM shutdown.
 #[test]
