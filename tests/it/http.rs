@@ -1013,18 +1013,18 @@ async fn infer_is_bounded_in_concurrency_and_time() {
     assert!(body["detail"].as_str().unwrap().contains("deadline"), "{body}");
 }
 
-/// `serve`'s log redirected to a file (a pipe here, as under systemd or a container
-/// runtime) carries no ANSI colour codes: a collector reads plain text.
-#[test]
-fn a_redirected_server_log_is_plain_text() {
-    use std::io::Read;
+/// `otofit serve` on a free loopback port with the default model and `extra` flags, its
+/// stdout to `stdout`, once it answers /health; the data directory lives as long as the
+/// returned guard.
+fn serve_on_a_free_port(tag: &str, extra: &[&str], stdout: std::process::Stdio) -> (Reap, u16, TempDir) {
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let dir = temp_dir("ansi");
-    let mut server = Reap(
+    let dir = temp_dir(tag);
+    let server = Reap(
         std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
             .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap()])
             .args(["--default-model", default_model().to_str().unwrap()])
-            .stdout(std::process::Stdio::piped())
+            .args(extra)
+            .stdout(stdout)
             .stderr(std::process::Stdio::null())
             .spawn()
             .unwrap(),
@@ -1035,6 +1035,15 @@ fn a_redirected_server_log_is_plain_text() {
         }
         std::thread::sleep(std::time::Duration::from_millis(100));
     }
+    (server, port, dir)
+}
+
+/// `serve`'s log redirected to a file (a pipe here, as under systemd or a container
+/// runtime) carries no ANSI colour codes: a collector reads plain text.
+#[test]
+fn a_redirected_server_log_is_plain_text() {
+    use std::io::Read;
+    let (mut server, port, _dir) = serve_on_a_free_port("ansi", &[], std::process::Stdio::piped());
     assert!(http(port, "GET", "/models", None).is_some(), "the server answers");
     std::process::Command::new("kill").args(["-TERM", &server.id().to_string()]).status().unwrap();
     assert!(exit_within(&mut server, 10).is_some(), "stopped after SIGTERM");
@@ -1049,30 +1058,8 @@ fn a_redirected_server_log_is_plain_text() {
 #[test]
 fn half_sent_requests_are_dropped_and_do_not_delay_shutdown() {
     use std::io::{Read, Write};
-    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
-    let dir = temp_dir("idle");
-    let mut server = Reap(
-        std::process::Command::new(env!("CARGO_BIN_EXE_otofit"))
-            .args(["serve", "--addr", &format!("127.0.0.1:{port}"), "--data-dir", dir.to_str().unwrap()])
-            .args([
-                "--default-model",
-                default_model().to_str().unwrap(),
-                "--idle-timeout",
-                "1",
-                "--infer-deadline",
-                "0.5",
-            ])
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::null())
-            .spawn()
-            .unwrap(),
-    );
-    for _ in 0..100 {
-        if http(port, "GET", "/health", None).is_some() {
-            break;
-        }
-        std::thread::sleep(std::time::Duration::from_millis(100));
-    }
+    let (mut server, port, _dir) =
+        serve_on_a_free_port("idle", &["--idle-timeout", "1", "--infer-deadline", "0.5"], std::process::Stdio::null());
     let half = |bytes: &str| {
         let mut s = std::net::TcpStream::connect(("127.0.0.1", port)).unwrap();
         s.set_read_timeout(Some(std::time::Duration::from_secs(10))).unwrap();

@@ -640,14 +640,7 @@ impl ManubriumModes {
     /// [`Self::finish`] it turns an interior's H (computed some other way, e.g. by a
     /// direct solve) into the condensed block.
     pub(crate) fn boundary_only(fe: &DrumFe) -> ManubriumModes {
-        ManubriumModes {
-            mu: vec![],
-            g: vec![],
-            k_bb: fe.k_bb,
-            m_bb: fe.m_bb,
-            b_b: fe.b_b,
-            tail: vec![[[0.0; 15]; SERIES]],
-        }
+        ManubriumModes::from_modes(Vec::new(), Vec::new(), fe)
     }
 
     /// The condensed block from H = Σ_k g_k g_kᵀ/(κ + sμ_k) over `PAIRS`.
@@ -1338,15 +1331,7 @@ mod tests {
     struct DrumModes0;
     impl DrumModes0 {
         fn block(&self, fe: &DrumFe, c: &DrumCoefficients) -> [[c64; 4]; 4] {
-            let m = ManubriumModes {
-                mu: vec![],
-                g: vec![],
-                k_bb: fe.k_bb,
-                m_bb: fe.m_bb,
-                b_b: fe.b_b,
-                tail: vec![[[0.0; 15]; SERIES]],
-            };
-            m.block(c)
+            ManubriumModes::boundary_only(fe).block(c)
         }
     }
 }

@@ -41,7 +41,7 @@
 //! the contiguous run of grid frequencies around the largest difference where the
 //! difference is at least half of it.
 
-use super::fit::{Fit, Observation, feature_residual, residuals};
+use super::fit::{Fit, Observation, damped_step, feature_residual, residuals};
 use super::fitcheck::sigma;
 use crate::npe::Npe;
 use crate::npe::normal::{Differential, NORMAL, NormalRange};
@@ -50,7 +50,6 @@ use crate::sim::output::MEASURES;
 use crate::sim::params::{N_PARAMS, N_TISSUE, PARAMS, ParamSpec, Scale};
 use crate::sim::{Model, simulate};
 use faer::Mat;
-use faer::prelude::Solve;
 use rayon::prelude::*;
 use serde::Serialize;
 
@@ -312,30 +311,23 @@ pub fn fit_box(
             break;
         }
         let jtj = Mat::<f64>::from_fn(n, n, |i, j| jac[free[i]].iter().zip(&jac[free[j]]).map(|(a, b)| a * b).sum());
-        let mut improved = false;
-        for _ in 0..10 {
-            let a = Mat::from_fn(n, n, |i, j| jtj[(i, j)] + if i == j { lambda * jtj[(i, i)].max(1e-9) } else { 0.0 });
-            let rhs = Mat::from_fn(n, 1, |i, _| -jtr[free[i]]);
-            let step = a.partial_piv_lu().solve(&rhs);
+        let jtr_free: Vec<f64> = free.iter().map(|&k| jtr[k]).collect();
+        let to_trial = |step: &Mat<f64>| {
             let mut trial = q.clone();
             for (i, &k) in free.iter().enumerate() {
                 let s = step[(i, 0)];
                 trial[k] = (q[k] + if s.is_finite() { s } else { 0.0 }).clamp(0.0, 1.0);
             }
-            match residuals(&to_row(&trial)) {
-                Some(rt) if chi2(&rt) < c => {
-                    let gain = c - chi2(&rt);
-                    q = trial;
-                    r = rt;
-                    c -= gain;
-                    lambda = (lambda / 3.0).max(1e-7);
-                    improved = gain > 1e-6 * c.max(1.0);
-                    break;
-                }
-                _ => lambda *= 4.0,
-            }
-        }
-        if !improved {
+            trial
+        };
+        let Some((trial, rt, ct)) = damped_step(&jtj, &jtr_free, &mut lambda, c, to_trial, |t| residuals(&to_row(t)))
+        else {
+            break;
+        };
+        let gain = c - ct;
+        (q, r) = (trial, rt);
+        c -= gain;
+        if gain <= 1e-6 * c.max(1.0) {
             break;
         }
     }

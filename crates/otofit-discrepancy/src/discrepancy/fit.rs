@@ -123,26 +123,14 @@ pub fn fit_columns(
         }
         jtj = Mat::from_fn(d, d, |i, j| jac[i].iter().zip(&jac[j]).map(|(a, b)| a * b).sum());
         let jtr: Vec<f64> = (0..d).map(|i| jac[i].iter().zip(&r).map(|(a, b)| a * b).sum()).collect();
-        let mut improved = false;
-        for _ in 0..10 {
-            let a = Mat::from_fn(d, d, |i, j| jtj[(i, j)] + if i == j { lambda * jtj[(i, i)].max(1e-9) } else { 0.0 });
-            let rhs = Mat::from_fn(d, 1, |i, _| -jtr[i]);
-            let step = a.partial_piv_lu().solve(&rhs);
-            let trial: Vec<f64> = (0..d).map(|i| (u[i] + step[(i, 0)]).clamp(-20.0, 20.0)).collect();
-            match residuals(&to_row(&trial)) {
-                Some(rt) if chi2(&rt) < c => {
-                    let gain = c - chi2(&rt);
-                    u = trial;
-                    r = rt;
-                    c -= gain;
-                    lambda = (lambda / 3.0).max(1e-7);
-                    improved = gain > 1e-6 * c.max(1.0);
-                    break;
-                }
-                _ => lambda *= 4.0,
-            }
-        }
-        if !improved {
+        let to_trial = |step: &Mat<f64>| (0..d).map(|i| (u[i] + step[(i, 0)]).clamp(-20.0, 20.0)).collect();
+        let Some((trial, rt, ct)) = damped_step(&jtj, &jtr, &mut lambda, c, to_trial, |t| residuals(&to_row(t))) else {
+            break;
+        };
+        let gain = c - ct;
+        (u, r) = (trial, rt);
+        c -= gain;
+        if gain <= 1e-6 * c.max(1.0) {
             break;
         }
     }
@@ -151,6 +139,36 @@ pub fn fit_columns(
     let u_std = (0..d).map(|i| inv[(i, i)].abs().sqrt()).collect();
     let jtj = (0..d * d).map(|k| jtj[(k / d, k % d)]).collect();
     Some(Fit { row: to_row(&u), chi2: c, n_features: r.len(), iterations, u_std, jtj })
+}
+
+/// Levenberg–Marquardt's damped step, up to ten tries: solves (JᵀJ + λ·diag JᵀJ) s = −Jᵀr
+/// (the diagonal floored at 1e-9), makes a trial point of s with `to_trial`, and keeps the
+/// first whose χ² is below `c`. λ falls by 3 on a success (not below 1e-7) and grows by 4
+/// on a failure. The point, its residuals and its χ²; `None` after ten failures. Shared
+/// by the unbounded fit here and the box fit of the alternatives.
+pub(super) fn damped_step(
+    jtj: &Mat<f64>,
+    jtr: &[f64],
+    lambda: &mut f64,
+    c: f64,
+    mut to_trial: impl FnMut(&Mat<f64>) -> Vec<f64>,
+    mut residuals: impl FnMut(&[f64]) -> Option<Vec<f64>>,
+) -> Option<(Vec<f64>, Vec<f64>, f64)> {
+    let n = jtr.len();
+    for _ in 0..10 {
+        let a = Mat::from_fn(n, n, |i, j| jtj[(i, j)] + if i == j { *lambda * jtj[(i, i)].max(1e-9) } else { 0.0 });
+        let rhs = Mat::from_fn(n, 1, |i, _| -jtr[i]);
+        let trial = to_trial(&a.partial_piv_lu().solve(&rhs));
+        match residuals(&trial) {
+            Some(rt) if chi2(&rt) < c => {
+                *lambda = (*lambda / 3.0).max(1e-7);
+                let ct = chi2(&rt);
+                return Some((trial, rt, ct));
+            }
+            _ => *lambda *= 4.0,
+        }
+    }
+    None
 }
 
 #[cfg(test)]
