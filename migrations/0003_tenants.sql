@@ -1,4 +1,4 @@
--- Tenants (issue 13): API keys belong to a tenant, and jobs (datasets are simulate jobs)
+-- Tenants: API keys belong to a tenant, and jobs (datasets are simulate jobs)
 -- and models belong to the tenant that made them. Keys are stored as the SHA-256 of the
 -- key (hex), never the key; `id` is the key's public prefix, for `otofit keys list/revoke`.
 -- A revoked key stays (revoked_at set): a server that once had keys never turns keyless.

@@ -1,4 +1,4 @@
--- Chunked simulate jobs (issues 13.7, 14.2): a simulate job of n rows is split into
+-- Chunked simulate jobs: a simulate job of n rows is split into
 -- chunks planned once, at its first attempt; any worker may claim a chunk of a running
 -- job (a lease per chunk, like a job's), writes it as a part file of the dataset and
 -- marks it done. A re-claimed job resumes from the finished parts. Rows are kept after

@@ -614,3 +614,36 @@ fn scale_out_flags_are_validated_naming_the_flag() {
         assert!(!out.status.success() && err.contains(flag), "{args:?}: {err}");
     }
 }
+
+/// A PostgreSQL database migrated before the chunks migration's comment was reworded
+/// (its first released checksum put back) still opens, with the new checksum stored.
+#[tokio::test]
+async fn a_postgres_database_migrated_with_the_old_wording_still_opens() {
+    let Some(url) = fresh_database().await else { return };
+    let old: Vec<u8> = (0..48)
+        .map(|i| {
+            let hex =
+                "00697cc548db7905e80717a0a46c9276848e34266ed456173b7d5081cd31548ccd9521d86ee6a9b305387fa31245eb79";
+            u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).unwrap()
+        })
+        .collect();
+    let checksum = |pool: &sqlx::PgPool| {
+        let pool = pool.clone();
+        async move {
+            let (sum,): (Vec<u8>,) = sqlx::query_as("SELECT checksum FROM _sqlx_migrations WHERE version = 3")
+                .fetch_one(&pool)
+                .await
+                .unwrap();
+            sum
+        }
+    };
+    let store = Store::connect(&Database::Postgres(url.clone())).await.unwrap();
+    let otofit::store::Pool::Postgres(pool) = &store.pool else { unreachable!() };
+    let new = checksum(pool).await;
+    sqlx::query("UPDATE _sqlx_migrations SET checksum = $1 WHERE version = 3").bind(&old).execute(pool).await.unwrap();
+    pool.close().await;
+    let store = Store::connect(&Database::Postgres(url)).await.expect("the old wording's database opens");
+    let otofit::store::Pool::Postgres(pool) = &store.pool else { unreachable!() };
+    assert_eq!(checksum(pool).await, new);
+    assert_ne!(old, new);
+}

@@ -1,4 +1,4 @@
-//! Chunked, resumable simulate jobs (issues 13.7 and 14.2) on both backends: a worker
+//! Chunked, resumable simulate jobs on both backends: a worker
 //! process killed mid-job leaves finished part files; the job, taken up again (SQLite:
 //! a new process; PostgreSQL: another worker after the lease), resumes from them, and
 //! its dataset is the same bytes as an uninterrupted run with the same seed.

@@ -100,6 +100,12 @@ macro_rules! on_pool {
 
 mod chunks;
 mod keys;
+mod relabel;
+
+/// The SQLite schema's migrations.
+static SQLITE_MIGRATIONS: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations");
+/// The PostgreSQL schema's migrations (the same tables, its own types).
+static POSTGRES_MIGRATIONS: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations/postgres");
 pub use chunks::{ChunkClaim, ChunkRow, chunk_id};
 pub use keys::{ApiKey, KeyOwner, NewKey, key_hash};
 
@@ -318,7 +324,8 @@ impl Store {
             .busy_timeout(Duration::from_secs(5))
             .foreign_keys(true);
         let pool = SqlitePoolOptions::new().max_connections(4).connect_with(opts).await?;
-        sqlx::migrate!("../../migrations").run(&pool).await?;
+        relabel::sqlite(&pool, &SQLITE_MIGRATIONS).await?;
+        SQLITE_MIGRATIONS.run(&pool).await?;
         Ok(Store { pool: Pool::Sqlite(pool) })
     }
 
@@ -327,7 +334,8 @@ impl Store {
     pub async fn open_postgres(url: &str) -> Result<Store, sqlx::Error> {
         let pool =
             PgPoolOptions::new().max_connections(8).acquire_timeout(Duration::from_secs(10)).connect(url).await?;
-        sqlx::migrate!("../../migrations/postgres").run(&pool).await?;
+        relabel::postgres(&pool, &POSTGRES_MIGRATIONS).await?;
+        POSTGRES_MIGRATIONS.run(&pool).await?;
         Ok(Store { pool: Pool::Postgres(pool) })
     }
 

@@ -102,7 +102,7 @@ pub const THICKNESS_UMBO: f64 = 90e-6;
 pub const THICKENED_BAND: f64 = 0.2;
 /// Soft-tissue density, kg/m³ (notes §0: 1100, Motallebzadeh 2017).
 pub const DENSITY: f64 = 1100.0;
-/// Poisson ratio of the membrane (notes §0: soft tissue 0.3–0.49, the study's 0.485).
+/// Poisson ratio of the membrane (notes §0: 0.3–0.49 for soft tissue, the study's 0.485).
 pub const POISSON: f64 = 0.485;
 /// Annulus modulus over pars tensa modulus: 0.6 MPa against 35 MPa in Gan, Feng & Sun
 /// 2004 (Ann Biomed Eng 32:847; the same 0.6 MPa in Koike et al. 2002, JASA 111:1306;
