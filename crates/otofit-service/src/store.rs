@@ -194,32 +194,34 @@ pub fn rfc3339_ms(ms: i64) -> String {
     format!("{year:04}-{month:02}-{day:02}T{:02}:{:02}:{:02}.{:03}Z", rem / 3600, rem % 3600 / 60, rem % 60, millis)
 }
 
-/// Typed column access shared by the two drivers' rows.
+/// Typed column access shared by the two drivers' rows. A column of an unexpected type
+/// (a schema drift) is an error of the query, never a panic inside a handler or the
+/// dispatcher.
 trait Cols {
-    fn text(&self, c: &str) -> String;
-    fn opt_text(&self, c: &str) -> Option<String>;
-    fn int(&self, c: &str) -> i64;
-    fn opt_int(&self, c: &str) -> Option<i64>;
-    fn real(&self, c: &str) -> f64;
+    fn text(&self, c: &str) -> Result<String, sqlx::Error>;
+    fn opt_text(&self, c: &str) -> Result<Option<String>, sqlx::Error>;
+    fn int(&self, c: &str) -> Result<i64, sqlx::Error>;
+    fn opt_int(&self, c: &str) -> Result<Option<i64>, sqlx::Error>;
+    fn real(&self, c: &str) -> Result<f64, sqlx::Error>;
 }
 
 macro_rules! impl_cols {
     ($row:ty) => {
         impl Cols for $row {
-            fn text(&self, c: &str) -> String {
-                self.get(c)
+            fn text(&self, c: &str) -> Result<String, sqlx::Error> {
+                self.try_get(c)
             }
-            fn opt_text(&self, c: &str) -> Option<String> {
-                self.get(c)
+            fn opt_text(&self, c: &str) -> Result<Option<String>, sqlx::Error> {
+                self.try_get(c)
             }
-            fn int(&self, c: &str) -> i64 {
-                self.get(c)
+            fn int(&self, c: &str) -> Result<i64, sqlx::Error> {
+                self.try_get(c)
             }
-            fn opt_int(&self, c: &str) -> Option<i64> {
-                self.get(c)
+            fn opt_int(&self, c: &str) -> Result<Option<i64>, sqlx::Error> {
+                self.try_get(c)
             }
-            fn real(&self, c: &str) -> f64 {
-                self.get(c)
+            fn real(&self, c: &str) -> Result<f64, sqlx::Error> {
+                self.try_get(c)
             }
         }
     };
@@ -227,39 +229,40 @@ macro_rules! impl_cols {
 impl_cols!(SqliteRow);
 impl_cols!(PgRow);
 
-fn job_from(row: &impl Cols) -> JobRow {
+fn job_from(row: &impl Cols) -> Result<JobRow, sqlx::Error> {
     let json = |s: Option<String>| s.and_then(|s| serde_json::from_str(&s).ok());
-    JobRow {
-        id: row.text("id"),
-        tenant: row.text("tenant"),
-        kind: row.text("kind"),
-        state: row.text("state"),
-        params: json(Some(row.text("params"))).unwrap_or(serde_json::Value::Null),
-        progress: row.real("progress"),
-        message: row.text("message"),
-        attempts: row.int("attempts"),
-        max_attempts: row.int("max_attempts"),
-        cancel_requested: row.int("cancel_requested") != 0,
-        error: row.opt_text("error"),
-        result: json(row.opt_text("result")),
-        created_at: row.text("created_at"),
-        started_at: row.opt_text("started_at"),
-        finished_at: row.opt_text("finished_at"),
-        retry_at: row.opt_int("run_after_ms").filter(|_| row.text("state") == "queued").map(rfc3339_ms),
-        lease_token: row.opt_text("lease_token"),
-        worker: row.opt_text("worker"),
-    }
+    let state = row.text("state")?;
+    Ok(JobRow {
+        id: row.text("id")?,
+        tenant: row.text("tenant")?,
+        kind: row.text("kind")?,
+        retry_at: row.opt_int("run_after_ms")?.filter(|_| state == "queued").map(rfc3339_ms),
+        state,
+        params: json(Some(row.text("params")?)).unwrap_or(serde_json::Value::Null),
+        progress: row.real("progress")?,
+        message: row.text("message")?,
+        attempts: row.int("attempts")?,
+        max_attempts: row.int("max_attempts")?,
+        cancel_requested: row.int("cancel_requested")? != 0,
+        error: row.opt_text("error")?,
+        result: json(row.opt_text("result")?),
+        created_at: row.text("created_at")?,
+        started_at: row.opt_text("started_at")?,
+        finished_at: row.opt_text("finished_at")?,
+        lease_token: row.opt_text("lease_token")?,
+        worker: row.opt_text("worker")?,
+    })
 }
 
-fn model_from(row: &impl Cols) -> ModelRow {
-    ModelRow {
-        id: row.text("id"),
-        path: row.text("path"),
-        is_default: row.int("is_default") != 0,
-        created_at: row.text("created_at"),
-        source_job: row.opt_text("source_job"),
-        tenant: row.opt_text("tenant"),
-    }
+fn model_from(row: &impl Cols) -> Result<ModelRow, sqlx::Error> {
+    Ok(ModelRow {
+        id: row.text("id")?,
+        path: row.text("path")?,
+        is_default: row.int("is_default")? != 0,
+        created_at: row.text("created_at")?,
+        source_job: row.opt_text("source_job")?,
+        tenant: row.opt_text("tenant")?,
+    })
 }
 
 /// Active jobs of one kind in one state, for /metrics.
@@ -404,19 +407,23 @@ impl Store {
     pub async fn models(&self, tenant: Option<&str>) -> Result<Vec<ModelRow>, sqlx::Error> {
         const SQL: &str =
             "SELECT * FROM models WHERE ($1 IS NULL OR tenant IS NULL OR tenant = $1) ORDER BY created_at, id";
-        Ok(on_pool!(self, p => sqlx::query(SQL).bind(tenant).fetch_all(p).await?.iter().map(model_from).collect()))
+        Ok(
+            on_pool!(self, p => sqlx::query(SQL).bind(tenant).fetch_all(p).await?.iter().map(model_from).collect::<Result<_, _>>()?),
+        )
     }
 
     /// The registered model `id`, if any.
     pub async fn model(&self, id: &str) -> Result<Option<ModelRow>, sqlx::Error> {
         const SQL: &str = "SELECT * FROM models WHERE id = $1";
-        Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(model_from)))
+        Ok(
+            on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(model_from).transpose()?),
+        )
     }
 
     /// The model marked as default, if any.
     pub async fn default_model(&self) -> Result<Option<ModelRow>, sqlx::Error> {
         const SQL: &str = "SELECT * FROM models WHERE is_default = 1 LIMIT 1";
-        Ok(on_pool!(self, p => sqlx::query(SQL).fetch_optional(p).await?.as_ref().map(model_from)))
+        Ok(on_pool!(self, p => sqlx::query(SQL).fetch_optional(p).await?.as_ref().map(model_from).transpose()?))
     }
 
     /// Queues a job if fewer than `limit` jobs are queued or running. The count and the
@@ -494,7 +501,7 @@ impl Store {
     /// The job `id`, if any.
     pub async fn job(&self, id: &str) -> Result<Option<JobRow>, sqlx::Error> {
         const SQL: &str = "SELECT * FROM jobs WHERE id = $1";
-        Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(job_from)))
+        Ok(on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.as_ref().map(job_from).transpose()?))
     }
 
     /// The newest `limit` jobs (of `state` if given) of `tenant`; of all tenants with `None`.
@@ -514,7 +521,7 @@ impl Store {
             .await?
             .iter()
             .map(job_from)
-            .collect()))
+            .collect::<Result<_, _>>()?))
     }
 
     /// Claims the oldest queued job that is due (not waiting out a retry's backoff)
@@ -541,7 +548,8 @@ impl Store {
             .fetch_optional(p)
             .await?
             .as_ref()
-            .map(job_from)))
+            .map(job_from)
+            .transpose()?))
     }
 
     /// Renews the lease of the claim `token` for `lease` more. `false`: the lease is lost
@@ -699,15 +707,15 @@ impl Store {
             .fetch_all(p)
             .await?
             .iter()
-            .map(|r| QueueCount { kind: r.text("kind"), state: r.text("state"), count: r.int("n") })
-            .collect()))
+            .map(|r| Ok(QueueCount { kind: r.text("kind")?, state: r.text("state")?, count: r.int("n")? }))
+            .collect::<Result<_, sqlx::Error>>()?))
     }
 
     /// The lease expiry of a job in ms on the database clock (tests, operators).
     pub async fn lease_expires_ms(&self, id: &str) -> Result<Option<i64>, sqlx::Error> {
         const SQL: &str = "SELECT lease_expires_ms FROM jobs WHERE id = $1";
         Ok(
-            on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.and_then(|r| r.opt_int("lease_expires_ms"))),
+            on_pool!(self, p => sqlx::query(SQL).bind(id).fetch_optional(p).await?.map(|r| r.opt_int("lease_expires_ms")).transpose()?.flatten()),
         )
     }
 }
@@ -721,6 +729,20 @@ mod tests {
         let t = super::now();
         assert_eq!(t.len(), 24, "{t}");
         assert!(t.starts_with("20") && t.ends_with('Z') && &t[10..11] == "T");
+    }
+
+    /// A column whose stored type drifted (SQLite keeps whatever it is given) fails the
+    /// query with an error naming the column; reading it must not panic the caller.
+    #[tokio::test]
+    async fn a_drifted_column_is_an_error_not_a_panic() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&dir.path().join("otofit.db")).await.unwrap();
+        assert!(store.insert_job_within("j1", "simulate", &serde_json::json!({"n": 1}), 1, 10).await.unwrap());
+        let Pool::Sqlite(pool) = &store.pool else { unreachable!() };
+        sqlx::query("UPDATE jobs SET progress = 'half' WHERE id = 'j1'").execute(pool).await.unwrap();
+        let e = store.job("j1").await.expect_err("a text progress must not read as a job");
+        assert!(e.to_string().contains("progress"), "{e}");
+        assert!(store.jobs(None, 10, None).await.is_err());
     }
 
     #[test]

@@ -37,17 +37,17 @@ pub struct ChunkClaim {
     pub token: String,
 }
 
-fn chunk_from(row: &impl Cols) -> ChunkRow {
-    ChunkRow {
-        id: row.text("id"),
-        job_id: row.text("job_id"),
-        idx: row.int("idx") as usize,
-        first_row: row.int("first_row") as usize,
-        n_rows: row.int("n_rows") as usize,
-        state: row.text("state"),
-        worker: row.opt_text("worker"),
-        attempts: row.int("attempts"),
-    }
+fn chunk_from(row: &impl Cols) -> Result<ChunkRow, sqlx::Error> {
+    Ok(ChunkRow {
+        id: row.text("id")?,
+        job_id: row.text("job_id")?,
+        idx: row.int("idx")? as usize,
+        first_row: row.int("first_row")? as usize,
+        n_rows: row.int("n_rows")? as usize,
+        state: row.text("state")?,
+        worker: row.opt_text("worker")?,
+        attempts: row.int("attempts")?,
+    })
 }
 
 /// Whether `chunks` (in order) cover rows `0..n` once each, in a row.
@@ -106,7 +106,9 @@ impl Store {
     /// simulate job).
     pub async fn chunks(&self, job: &str) -> Result<Vec<ChunkRow>, sqlx::Error> {
         const SQL: &str = "SELECT * FROM job_chunks WHERE job_id = $1 ORDER BY idx";
-        Ok(on_pool!(self, p => sqlx::query(SQL).bind(job).fetch_all(p).await?.iter().map(chunk_from).collect()))
+        Ok(
+            on_pool!(self, p => sqlx::query(SQL).bind(job).fetch_all(p).await?.iter().map(chunk_from).collect::<Result<_, _>>()?),
+        )
     }
 
     /// Claims a chunk that is neither done nor held under a live lease, of `job` or (with
@@ -138,7 +140,8 @@ impl Store {
             .fetch_optional(p)
             .await?
             .as_ref()
-            .map(chunk_from));
+            .map(chunk_from)
+            .transpose()?);
         Ok(row.map(|chunk| ChunkClaim { chunk, token }))
     }
 

@@ -69,7 +69,7 @@ impl Store {
     /// Every key, revoked ones included, oldest first.
     pub async fn keys(&self) -> Result<Vec<ApiKey>, sqlx::Error> {
         const SQL: &str = "SELECT id, tenant, admin, created_at, revoked_at FROM api_keys ORDER BY created_at, id";
-        Ok(on_pool!(self, p => sqlx::query(SQL).fetch_all(p).await?.iter().map(key_from).collect()))
+        Ok(on_pool!(self, p => sqlx::query(SQL).fetch_all(p).await?.iter().map(key_from).collect::<Result<_, _>>()?))
     }
 
     /// Revokes key `id`: `None` if there is no such key, else whether it was active.
@@ -91,7 +91,8 @@ impl Store {
             .bind(&hash)
             .fetch_optional(p)
             .await?
-            .map(|r| KeyOwner { tenant: r.text("tenant"), admin: r.int("admin") != 0 })))
+            .map(|r| Ok::<_, sqlx::Error>(KeyOwner { tenant: r.text("tenant")?, admin: r.int("admin")? != 0 }))
+            .transpose()?))
     }
 
     /// Whether any key was ever made (revoked ones count).
@@ -102,12 +103,12 @@ impl Store {
     }
 }
 
-fn key_from(r: &impl Cols) -> ApiKey {
-    ApiKey {
-        id: r.text("id"),
-        tenant: r.text("tenant"),
-        admin: r.int("admin") != 0,
-        created_at: r.text("created_at"),
-        revoked_at: r.opt_text("revoked_at"),
-    }
+fn key_from(r: &impl Cols) -> Result<ApiKey, sqlx::Error> {
+    Ok(ApiKey {
+        id: r.text("id")?,
+        tenant: r.text("tenant")?,
+        admin: r.int("admin")? != 0,
+        created_at: r.text("created_at")?,
+        revoked_at: r.opt_text("revoked_at")?,
+    })
 }
