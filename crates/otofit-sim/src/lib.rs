@@ -15,6 +15,7 @@ pub mod batch;
 pub mod canal;
 pub mod drum;
 pub mod drum_mesh;
+pub mod ear_effects;
 pub mod line_drum;
 pub mod mode_cache;
 pub mod model;

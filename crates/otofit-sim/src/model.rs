@@ -22,6 +22,7 @@ use super::air::{self, Air};
 use super::anatomical_drum::{self, AnatomicalCondensed, AnatomicalDrum};
 use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
+use super::ear_effects;
 use super::line_drum::{LineDrum, LineTuning, simpson};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
@@ -342,6 +343,9 @@ struct Blocks {
     /// flow row, and as volume into the cavity row (`perforation` effect; 0 when closed).
     perforation_flow: usize,
     perforation_cavity: usize,
+    /// The incudostapedial joint again (axial and shear), weighted (s − 1)·κ_joints so that
+    /// the joint's total is s·κ_joints (`isj_discontinuity`; 0 when intact).
+    isj: usize,
     /// The condensed drum: n² blocks (row-major) on its n boundary unknowns, (umbo,
     /// p_drum, p_cavity) or, for the manubrium drum, (umbo, θ_m, p_drum, p_cavity).
     drum_schur: usize,
@@ -550,6 +554,16 @@ impl Model {
         coef[bl.tendons] = rayleigh * theta.e_tendons();
         coef[bl.joints] = rayleigh * theta.e_joints();
         coef[bl.sal] = rayleigh * theta.e_sal();
+        // A static pressure across the drum: lossless pre-stress stiffness on the drum and
+        // the chain's suspension (`ear_effects::pressure_stiffening`).
+        let stiffening = ear_effects::pressure_stiffening(fx.static_pressure());
+        if stiffening > 0.0 {
+            coef[bl.tm] += stiffening * theta.e_eardrum();
+            coef[bl.ligaments] += stiffening * theta.e_ligaments();
+            coef[bl.sal] += stiffening * theta.e_sal();
+        }
+        // An interrupted incudostapedial joint: its spring and dashpot scaled by s.
+        coef[bl.isj] = coef[bl.joints] * (fx.isj_factor() - 1.0);
         coef[bl.mass] = c64::new(-w * w, 0.0);
         // The cochlear input impedance, shunted by a third window's acoustic mass when one
         // is open: the displaced fluid takes both paths (params::EFFECTS, third_window).
@@ -563,15 +577,17 @@ impl Model {
         coef[bl.drum_load] = c64::new(1.0, 0.0);
         coef[bl.drum_flow] = jw;
         coef[bl.cavity_load] = c64::new(1.0, 0.0);
-        let v = theta.cavity_volume();
-        coef[bl.cavity_row] = c64::new(self.air.bulk_modulus() / v, 0.0);
-        coef[bl.cavity_diag] = c64::new(1.0, 0.0);
+        // The air behind the drum: a compliance, or with fluid and a mastoid the
+        // impedance of `ear_effects::cavity_coefficients`.
+        let (cavity_row, cavity_diag) = ear_effects::cavity_coefficients(&self.air, theta.cavity_volume(), fx, w);
+        coef[bl.cavity_row] = c64::new(cavity_row, 0.0);
+        coef[bl.cavity_diag] = cavity_diag;
         let y_p = match fx.perforation_radius() {
             a if a > 0.0 => 1.0 / perforation_impedance(&self.air, a, w),
             _ => c64::new(0.0, 0.0),
         };
         coef[bl.perforation_flow] = y_p;
-        coef[bl.perforation_cavity] = y_p * (self.air.bulk_modulus() / v) / jw;
+        coef[bl.perforation_cavity] = y_p * cavity_row / jw;
         match &self.drum {
             Some(Condensed::Axisymmetric(modes)) => {
                 let schur = modes.schur(&self.drum_coefficients(coef, w));
@@ -655,6 +671,7 @@ impl Blocks {
             cavity_diag: sb.block(),
             perforation_flow: sb.block(),
             perforation_cavity: sb.block(),
+            isj: sb.block(),
             drum_schur: {
                 let first = sb.block();
                 for _ in 1..n_condensed.pow(2) {
@@ -758,6 +775,7 @@ fn ossicles(g: &Geometry, d: &Dofs, blocks: &Blocks, sb: &mut SystemBuilder) {
     let mut isj = incus_at(g.arm_lp);
     isj.extend(head_z.iter().map(|&(i, c)| (i, -c)));
     sb.add_outer(blocks.joints, &isj, g.g_isj);
+    sb.add_outer(blocks.isj, &isj, g.g_isj);
     match d.y_incus {
         // The lenticular process moves across the axis with the incus: the ISJ shears
         // between the two bodies; the PIL and the IMJ hold the incus.
@@ -765,11 +783,15 @@ fn ossicles(g: &Geometry, d: &Dofs, blocks: &Blocks, sb: &mut SystemBuilder) {
             let mut shear = vec![(yi, 1.0)];
             shear.extend(head_y.iter().map(|&(i, c)| (i, -c)));
             sb.add_outer(blocks.joints, &shear, g.g_isj_shear);
+            sb.add_outer(blocks.isj, &shear, g.g_isj_shear);
             sb.add(blocks.mass, yi, yi, g.m_incus);
             sb.add(blocks.ligaments, yi, yi, g.g_pil_lateral);
             sb.add(blocks.joints, yi, yi, g.g_imj_lateral);
         }
-        None => sb.add_outer(blocks.joints, &head_y, g.g_isj_shear),
+        None => {
+            sb.add_outer(blocks.joints, &head_y, g.g_isj_shear);
+            sb.add_outer(blocks.isj, &head_y, g.g_isj_shear);
+        }
     }
     // Stapes annular ligament: piston and rocking.
     sb.add(blocks.sal, d.x_stapes, d.x_stapes, g.g_sal);
@@ -905,7 +927,8 @@ pub struct Runner<'m> {
 /// Power balance of one solve (W, for a unit probe volume velocity): what enters at the
 /// probe, what the canal walls dissipate, what enters the middle ear at the drum, and
 /// where the middle ear dissipates it: probe = canal + into_drum and into_drum =
-/// mechanical (the cavity stores, never dissipates). The probe leak and the probe offset
+/// mechanical (a closed cavity stores, never dissipates; a mastoid's aditus and cells do).
+/// The probe leak and the probe offset
 /// act on Z_ec after the solve and are not part of it.
 #[derive(Clone, Copy, Debug)]
 pub struct PowerBalance {
@@ -917,7 +940,7 @@ pub struct PowerBalance {
     pub canal: f64,
     /// Power entering the middle ear at the drum (through a perforation too).
     pub into_drum: f64,
-    /// All middle-ear dissipation: the sum of the seven parts below.
+    /// All middle-ear dissipation: the sum of the nine parts below.
     pub mechanical: f64,
     /// The eardrum's loss (Rayleigh and, when on, viscoelastic), interior and disc.
     pub drum: f64,
@@ -933,6 +956,10 @@ pub struct PowerBalance {
     pub cochlea: f64,
     /// Loss in a perforation's air plug, ½·Re(Z_p)·|U_hole|² (0 without one).
     pub perforation: f64,
+    /// Power the air spaces behind the drum absorb, ½·Re(p̄_cav·U) for all the flow U into
+    /// them: 0 for a closed compliance, with or without fluid; the aditus' and the mastoid
+    /// cells' loss when a mastoid is on.
+    pub cavity: f64,
 }
 
 impl PowerBalance {
@@ -950,7 +977,8 @@ impl Runner<'_> {
     }
 
     /// [`Self::solve_at`] with the effects that act inside the middle ear (a third
-    /// window); those at the probe act on the responses after the solve.
+    /// window, a perforation, fluid, a static pressure, a mastoid, an interrupted
+    /// incudostapedial joint); those at the probe act on the responses after the solve.
     pub fn solve_with(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
         for (i, v) in theta.0.iter().enumerate() {
             if !super::params::PARAMS[i].physical(*v) {
@@ -1079,9 +1107,12 @@ impl Runner<'_> {
         let flow_in = c64::new(0.0, w) * vol + u_hole;
         let into_drum = 0.5 * (x[m.dofs.p_drum].conj() * flow_in).re * scale;
         let perforation = 0.5 * (dp.conj() * u_hole).re * scale;
-        let (ligaments, tendons, joints) = (loss(bl.ligaments), loss(bl.tendons), loss(bl.joints));
+        let cavity = 0.5 * (x[m.dofs.p_cavity].conj() * (c64::new(0.0, w) * vol + u_hole)).re * scale;
+        // The joints' block holds the whole incudostapedial joint; its `isj` copy carries
+        // the (s − 1) of an interrupted one, so the two sum to the joint's true loss.
+        let (ligaments, tendons, joints) = (loss(bl.ligaments), loss(bl.tendons), loss(bl.joints) + loss(bl.isj));
         let (sal, cochlea) = (loss(bl.sal), loss(bl.cochlea));
-        let mechanical = drum + ligaments + tendons + joints + sal + cochlea + perforation;
+        let mechanical = drum + ligaments + tendons + joints + sal + cochlea + perforation + cavity;
         PowerBalance {
             freq_hz,
             probe,
@@ -1095,6 +1126,7 @@ impl Runner<'_> {
             sal,
             cochlea,
             perforation,
+            cavity,
         }
     }
 

@@ -240,7 +240,7 @@ impl EffectSpec {
 }
 
 /// Number of optional effects.
-pub const N_EFFECTS: usize = 4;
+pub const N_EFFECTS: usize = 8;
 
 /// The effect library, in a fixed order (physics-notes §4 for forms and signatures).
 pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
@@ -294,6 +294,67 @@ pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
         high: 2.5e-3,
         scale: Scale::Log10,
         description: "a perforation of radius a in the pars tensa: a path from the canal into the middle-ear cavity",
+    },
+    // Fluid in the middle ear (otitis media with effusion): the fraction φ of the air space
+    // filled, the air left v(1 − φ) and the fluid's mass on the drum
+    // (`ear_effects::cavity_coefficients`). Ravicz, Rosowski & Merchant 2004 (Hear Res
+    // 195:103) filled temporal bones from a few per cent to full: below 1 kHz the loss
+    // (up to 25 dB in umbo velocity) follows the air left, above it (up to 35 dB) the
+    // drum's area in contact with fluid. 0.05–0.95: a trace to all but a bubble (a full
+    // ear has no air compliance left, a limit this lumped form does not reach).
+    EffectSpec {
+        name: "effusion",
+        unit: "1",
+        off: 0.0,
+        low: 0.05,
+        high: 0.95,
+        scale: Scale::Linear,
+        description: "fluid filling the fraction φ of the middle-ear air space: less air, and the fluid's mass on the drum; umbo and stapes velocity fall most above 1 kHz, absorbance falls",
+    },
+    // A static pressure in the middle ear below (or above) the canal's, e.g. from a blocked
+    // Eustachian tube; the value is p_middle_ear − p_canal (a tympanogram's peak pressure
+    // when the canal is at ambient pressure). The drum and the chain's suspension stiffen
+    // by (2ΔP/TW)² without loss (`ear_effects::pressure_stiffening`); the model is even in
+    // ΔP, so only underpressure, the clinical case, is in the range: −300 to −10 daPa
+    // (Voss et al. 2012, Ear Hear 33:195, measured ±300 daPa).
+    EffectSpec {
+        name: "pressure",
+        unit: "Pa",
+        off: 0.0,
+        low: -3000.0,
+        high: -100.0,
+        scale: Scale::Linear,
+        description: "static middle-ear pressure relative to the canal (negative: underpressure): a stiffer drum and chain; absorbance and velocities fall below 1–2 kHz",
+    },
+    // A mastoid air-cell network behind the aditus ad antrum: the fraction f of the
+    // middle-ear air volume lies behind the aditus' mass and resistance, the rest in the
+    // tympanum (`ear_effects::mastoid_admittance`, Hudde & Engel 1998's adult network;
+    // Stepp & Voss 2005, JASA 118:861). The total volume, and so the low-frequency
+    // compliance, stays the inferred `cavity`; what the base cannot make is the aditus'
+    // antiresonance with the tympanic air, a narrow notch in absorbance and velocity at
+    // 1–3.5 kHz (Voss et al. 2000, Hear Res 150:43). 0.5–0.97: a tympanum of 0.5–1 cm³
+    // beside mastoids of 1 to over 20 cm³ (Hudde & Engel: 0.5 and 8.8 cm³, f = 0.95).
+    EffectSpec {
+        name: "mastoid",
+        unit: "1",
+        off: 0.0,
+        low: 0.5,
+        high: 0.97,
+        scale: Scale::Linear,
+        description: "a mastoid air-cell network holding the fraction f of the middle-ear air behind the aditus: a notch in absorbance and velocities at the aditus' antiresonance (1–3.5 kHz)",
+    },
+    // An interrupted incudostapedial joint (an eroded lenticular process, a fibrous
+    // union): the joint's spring and its Rayleigh dashpot scaled by s ≪ 1, the incudomallear
+    // joint unchanged (physics-notes §4, the form of Nakajima et al. 2012, Ear Hear 33:35).
+    // 1e-6 (a gap: no joint left) to 0.1 (a loose fibrous joint); off = 1.
+    EffectSpec {
+        name: "isj_discontinuity",
+        unit: "1",
+        off: 1.0,
+        low: 1e-6,
+        high: 0.1,
+        scale: Scale::Log10,
+        description: "incudostapedial joint stiffness scaled by s: stapes velocity falls across the band, the unloaded drum moves more (an absorbance peak near 0.5–1 kHz)",
     },
 ];
 
@@ -376,6 +437,22 @@ impl Effects {
     /// Radius of a perforation of the pars tensa, m (0: none).
     pub fn perforation_radius(&self) -> f64 {
         self.0[3]
+    }
+    /// Fraction of the middle-ear air space filled with fluid (0: none).
+    pub fn effusion_fill(&self) -> f64 {
+        self.0[4]
+    }
+    /// Static pressure of the middle ear relative to the canal, Pa (0: none).
+    pub fn static_pressure(&self) -> f64 {
+        self.0[5]
+    }
+    /// Fraction of the middle-ear air behind the aditus, in the mastoid (0: no mastoid).
+    pub fn mastoid_fraction(&self) -> f64 {
+        self.0[6]
+    }
+    /// Factor on the incudostapedial joint's stiffness (1: intact).
+    pub fn isj_factor(&self) -> f64 {
+        self.0[7]
     }
 }
 

@@ -106,3 +106,194 @@ fn a_perforation_lowers_transmission_below_its_resonance_with_the_cavity() {
         last.1 - s0
     );
 }
+
+/// The largest absolute difference between two feature vectors.
+fn worst(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+}
+
+fn features_of(model: &Model, theta: &Theta, fx: &Effects) -> Vec<f64> {
+    features(&model.runner().run(theta, fx).unwrap())
+}
+
+/// Mean absorbance over `band`.
+fn absorbance(model: &Model, fx: &Effects, band: &[f64]) -> f64 {
+    let mut r = model.runner();
+    band.iter().map(|&f| r.response_at(&Theta::nominal(), fx, f).unwrap().absorbance()).sum::<f64>() / band.len() as f64
+}
+
+/// Prints an effect's signature on the nominal ear: stapes and umbo level changes and the
+/// absorbance change in three bands.
+fn signature(model: &Model, fx: &Effects, label: &str) -> [(f64, f64, f64); 3] {
+    let bands: [&[f64]; 3] =
+        [&[200.0, 300.0, 400.0, 500.0], &[1000.0, 1500.0, 2000.0], &[4000.0, 5000.0, 6300.0, 8000.0]];
+    let off = Effects::default();
+    let out = bands.map(|b| {
+        let ((u0, s0), (u1, s1)) = (levels(model, &off, b), levels(model, fx, b));
+        (s1 - s0, u1 - u0, absorbance(model, fx, b) - absorbance(model, &off, b))
+    });
+    eprintln!(
+        "{label}: stapes / umbo dB, ΔA at 0.2–0.5 kHz {:+.1} / {:+.1}, {:+.3}; 1–2 kHz {:+.1} / {:+.1}, {:+.3}; 4–8 kHz {:+.1} / {:+.1}, {:+.3}",
+        out[0].0, out[0].1, out[0].2, out[1].0, out[1].1, out[1].2, out[2].0, out[2].1, out[2].2
+    );
+    out
+}
+
+/// Drum and chain made rigid (moduli 10⁷× the prior's top, as in the perforation test): a
+/// hole of radius `a` is the only way in, so the impedance at the drum is the hole's plug
+/// in series with whatever lies behind it.
+fn rigid_with_hole(model: &Model, fx: &Effects, f: f64) -> c64 {
+    let mut theta = Theta::nominal();
+    for i in 0..5 {
+        theta.0[i] *= 1e7;
+    }
+    let mut r = model.runner();
+    r.solve_with(&theta, fx, f).unwrap();
+    r.solution()[model.dofs.p_drum]
+}
+
+#[test]
+fn an_effusion_is_a_fluid_mass_in_series_with_the_air_left() {
+    // Behind a rigid drum with a 1 mm hole: Z = Z_p + jωM_f + ρc²/(jωV(1 − φ)), the fluid's
+    // mass ρ·d·φ/A (d = 2 mm, A = 59.7 mm²) before the air that is left.
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let (a, fill) = (1e-3, 0.6);
+    let mut fx = with("perforation", a);
+    fx.set("effusion", fill).unwrap();
+    let v = Theta::nominal().cavity_volume() * (1.0 - fill);
+    let m_f = 1000.0 * 2e-3 * fill / (std::f64::consts::PI * 4.0e-3 * 4.75e-3);
+    for f in [200.0, 1000.0, 4000.0] {
+        let w = 2.0 * std::f64::consts::PI * f;
+        let want =
+            perforation_impedance(&model.air, a, w) + c64::new(0.0, w * m_f - model.air.bulk_modulus() / (v * w));
+        let z = rigid_with_hole(&model, &fx, f);
+        assert!((z - want).norm() < 1e-3 * want.norm(), "{f} Hz: {z} against {want}");
+    }
+}
+
+#[test]
+fn an_effusion_lowers_velocities_most_at_high_frequency_and_vanishes_when_drained() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let off = features_of(&model, &Theta::nominal(), &Effects::default());
+    let trace = features_of(&model, &Theta::nominal(), &with("effusion", 1e-9));
+    assert!(worst(&off, &trace) < 1e-6, "a drained ear: {:e}", worst(&off, &trace));
+    let mut last = 0.0;
+    for fill in [0.3, 0.6, 0.95] {
+        let s = signature(&model, &with("effusion", fill), &format!("effusion {fill}"));
+        // Ravicz et al. 2004: the loss grows with the fill, more at high frequency.
+        assert!(s[2].1 < last && s[2].1 < s[0].1, "umbo 4–8 kHz {:+.1} dB, 0.2–0.5 kHz {:+.1} dB", s[2].1, s[0].1);
+        last = s[2].1;
+    }
+    assert!(last < -10.0, "a nearly full ear loses {last:+.1} dB of umbo velocity at 4–8 kHz");
+}
+
+#[test]
+fn a_static_pressure_without_tissue_loss_is_a_stiffer_drum_and_suspension() {
+    // With every tissue loss off (drum loss factor 0, β → 0) the pre-stress stiffness
+    // (2ΔP/TW)² is indistinguishable from moduli scaled by 1 + (2ΔP/TW)²; at half the
+    // tympanometric width (37.5 daPa) the factor is exactly 2.
+    let mut config = ModelConfig::default();
+    config.geometry.tm_loss = otofit_sim::DrumLoss::LossFactor(0.0);
+    let model = Model::new(config).unwrap();
+    let mut theta = Theta::nominal();
+    theta.0[5] = 1e-20; // damping_beta
+    let mut stiff = theta;
+    for i in [0, 1, 3] {
+        stiff.0[i] *= 2.0; // E_eardrum, E_ligaments, E_sal
+    }
+    let mut fx = Effects::default();
+    fx.0[Effects::index("pressure").unwrap()] = -375.0;
+    let (a, b) = (features_of(&model, &theta, &fx), features_of(&model, &stiff, &Effects::default()));
+    assert!(worst(&a, &b) < 1e-9, "{:e}", worst(&a, &b));
+}
+
+#[test]
+fn a_static_pressure_lowers_low_frequency_absorbance_and_vanishes_at_zero() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let off = features_of(&model, &Theta::nominal(), &Effects::default());
+    let mut fx = Effects::default();
+    fx.0[Effects::index("pressure").unwrap()] = -1e-3;
+    assert!(worst(&off, &features_of(&model, &Theta::nominal(), &fx)) < 1e-6);
+    for p in [-1000.0, -2000.0, -3000.0] {
+        let s = signature(&model, &with("pressure", p), &format!("pressure {p} Pa"));
+        // Voss et al. 2012: reflectance rises (absorbance falls) below 1–2 kHz.
+        assert!(s[0].2 < 0.0 && s[0].0 < -3.0, "{p} Pa: 0.2–0.5 kHz ΔA {:+.3}, stapes {:+.1} dB", s[0].2, s[0].0);
+    }
+}
+
+#[test]
+fn a_mastoid_is_the_aditus_branch_in_parallel_with_the_tympanic_air() {
+    // Behind a rigid drum with a hole: Z = Z_p + 1/(jωC_t + Y_m), C_t the tympanic air
+    // (1 − f)V/ρc², Y_m the aditus (880 kg/m⁴, 1.7e6 Pa·s/m³) before the mastoid cells
+    // fV/ρc² with their resonance at 3.5 kHz, Q 0.4: Hudde & Engel's network, written out
+    // here apart from the code.
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let (a, behind) = (1e-3, 0.9);
+    let mut fx = with("perforation", a);
+    fx.set("mastoid", behind).unwrap();
+    let (v, k) = (Theta::nominal().cavity_volume(), model.air.bulk_modulus());
+    for f in [200.0, 1500.0, 4000.0] {
+        let w = 2.0 * std::f64::consts::PI * f;
+        let jw = c64::new(0.0, w);
+        let x = f / 3500.0;
+        let cells = jw * (behind * v / k) / c64::new(1.0 - x * x, x / 0.4);
+        let branch = 1.0 / (c64::new(1.7e6, w * 880.0) + 1.0 / cells);
+        let want = perforation_impedance(&model.air, a, w) + 1.0 / (jw * ((1.0 - behind) * v / k) + branch);
+        let z = rigid_with_hole(&model, &fx, f);
+        assert!((z - want).norm() < 1e-3 * want.norm(), "{f} Hz: {z} against {want}");
+    }
+}
+
+#[test]
+fn a_mastoid_makes_a_notch_at_the_aditus_antiresonance_and_absorbs_power() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let off = features_of(&model, &Theta::nominal(), &Effects::default());
+    assert!(worst(&off, &features_of(&model, &Theta::nominal(), &with("mastoid", 1e-9))) < 1e-6);
+    // The tympanic air (2 cm³ of 20) against the aditus and the 18 cm³ behind it: the
+    // lossless antiresonance lies at √((C_t + C_m)/(M C_t C_m))/2π = 1.49 kHz.
+    let fx = with("mastoid", 0.9);
+    signature(&model, &fx, "mastoid 0.9");
+    let mut r = model.runner();
+    let (mut deepest, mut at) = (0.0, 0.0);
+    for i in 0..=60 {
+        let f = 500.0 * (4000.0f64 / 500.0).powf(i as f64 / 60.0);
+        let base = r.response_at(&Theta::nominal(), &Effects::default(), f).unwrap();
+        let with = r.response_at(&Theta::nominal(), &fx, f).unwrap();
+        let p = r.power_balance(&Theta::nominal(), f);
+        assert!(p.cavity >= 0.0 && (p.into_drum - p.mechanical).abs() < 1e-9 * p.probe, "{f} Hz: {p:?}");
+        let d = 20.0 * (with.vu_over_p.norm() / base.vu_over_p.norm()).log10();
+        if d < deepest {
+            (deepest, at) = (d, f);
+        }
+    }
+    eprintln!("mastoid 0.9: deepest umbo notch {deepest:+.1} dB at {at:.0} Hz");
+    assert!((1000.0..2200.0).contains(&at) && deepest < -3.0, "notch {deepest:+.1} dB at {at:.0} Hz");
+}
+
+#[test]
+fn an_interrupted_incudostapedial_joint_is_that_joint_alone_made_softer() {
+    // Scaling E_joints by s while the incudomallear joint's geometry grows by 1/s leaves
+    // that joint as it was and scales only the incudostapedial one: the effect's ear.
+    let s = 1e-3;
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let mut config = ModelConfig::default();
+    for g in [&mut config.geometry.g_imj, &mut config.geometry.g_imj_rot, &mut config.geometry.g_imj_lateral] {
+        *g /= s;
+    }
+    let scaled = Model::new(config).unwrap();
+    let mut theta = Theta::nominal();
+    theta.0[4] *= s;
+    let a = features_of(&model, &Theta::nominal(), &with("isj_discontinuity", s));
+    let b = features_of(&scaled, &theta, &Effects::default());
+    assert!(worst(&a, &b) < 1e-9, "{:e}", worst(&a, &b));
+}
+
+#[test]
+fn an_interrupted_incudostapedial_joint_loses_stapes_velocity_across_the_band() {
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let s = signature(&model, &with("isj_discontinuity", 1e-6), "isj_discontinuity 1e-6");
+    // Nakajima et al. 2012: stapes velocity 20–40 dB down across the band; the unloaded
+    // drum moves more at low frequency.
+    assert!(s.iter().all(|b| b.0 < -15.0), "stapes {:+.1} / {:+.1} / {:+.1} dB", s[0].0, s[1].0, s[2].0);
+    assert!(s[0].1 > 0.0, "umbo 0.2–0.5 kHz {:+.1} dB", s[0].1);
+}
