@@ -50,9 +50,30 @@ pub struct SimulateArgs {
     /// Replace an existing dataset in --out.
     #[arg(long)]
     pub force: bool,
+    /// Table format: csv (theta.csv, x.csv; any tool reads them) or npy (theta.npy,
+    /// x.npy, float64; numpy.load reads them; for large tables, written far faster).
+    #[arg(long, value_enum, default_value_t = FormatArg::Csv)]
+    pub format: FormatArg,
     /// With --explain only: the eardrum variant to report on.
     #[command(flatten)]
     pub drum: super::drum::DrumOpts,
+}
+
+/// Table format (--format).
+#[derive(Clone, Copy, Debug, ValueEnum)]
+#[allow(missing_docs)] // explained in the flag's help, as for PresetArg
+pub enum FormatArg {
+    Csv,
+    Npy,
+}
+
+impl From<FormatArg> for dataset::Format {
+    fn from(f: FormatArg) -> dataset::Format {
+        match f {
+            FormatArg::Csv => dataset::Format::Csv,
+            FormatArg::Npy => dataset::Format::Npy,
+        }
+    }
 }
 
 /// Air in the canal (--preset).
@@ -175,7 +196,15 @@ pub fn run(args: SimulateArgs) -> Result<()> {
         None => Rows::Prior { n: args.n.unwrap_or(0), seed: args.seed },
     };
     let mut bar = super::progress::Progress::new("simulated", "rows", rows.len() as u64);
-    let meta = dataset::simulate_to_dir(&model, &design, &rows, &noise, preset, &out, &mut |done, _| {
+    let run = dataset::DatasetRun {
+        model: &model,
+        design: &design,
+        rows: &rows,
+        noise: &noise,
+        preset,
+        format: args.format.into(),
+    };
+    let meta = dataset::simulate_to_dir(&run, &out, &mut |done, _| {
         bar.set(done as u64);
         true
     })?;

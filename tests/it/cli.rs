@@ -21,6 +21,41 @@ fn scratch(name: &str) -> PathBuf {
     d
 }
 
+/// `--format npy` writes the numbers of the CSV tables, and the thread count changes no
+/// byte of a CSV table (its rows are formatted in parallel blocks). 1,100 rows cross
+/// both the 1,024-row simulation batch and the 64-row formatting block.
+#[test]
+fn npy_tables_hold_the_csv_numbers_and_threads_change_no_csv_byte() {
+    use otofit::npe::Dataset;
+    let d = scratch("npy");
+    let simulate = |out: &PathBuf, threads: &str, format: &str| {
+        let o = Command::new(env!("CARGO_BIN_EXE_otofit"))
+            .env("RAYON_NUM_THREADS", threads)
+            .args(["simulate", "--n", "1100", "--seed", "5", "--noise-scale", "1", "--vary", "probe_leak"])
+            .args(["--format", format, "--out", out.to_str().unwrap()])
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    let (one, two, npy) = (d.join("one"), d.join("two"), d.join("npy"));
+    simulate(&one, "1", "csv");
+    simulate(&two, "2", "csv");
+    simulate(&npy, "2", "npy");
+    for f in ["theta.csv", "x.csv"] {
+        assert!(std::fs::read(one.join(f)).unwrap() == std::fs::read(two.join(f)).unwrap(), "{f} differs");
+    }
+    assert!(!npy.join("x.csv").exists() && !npy.join("x.npy.tmp").exists());
+    let raw = std::fs::read(npy.join("x.npy")).unwrap();
+    let head = String::from_utf8_lossy(&raw[..128]);
+    assert!(raw.starts_with(b"\x93NUMPY\x01\x00") && head.contains("1100, 350)"), "{head}");
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(npy.join("meta.json")).unwrap()).unwrap();
+    assert_eq!(meta["format"], "npy");
+    let (csv, bin) = (Dataset::load(&one).unwrap(), Dataset::load(&npy).unwrap());
+    assert_eq!(csv.theta.len(), 1100);
+    assert!(csv.theta == bin.theta && csv.x == bin.x, "the .npy tables hold other numbers");
+    assert_eq!(csv.feature_names, bin.feature_names);
+}
+
 #[test]
 fn simulate_writes_an_aligned_dataset_and_is_reproducible() {
     let d = scratch("sim");

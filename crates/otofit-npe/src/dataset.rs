@@ -85,6 +85,8 @@ pub struct Meta {
     pub seed: Option<u64>,
     /// Rows written (failed rows excluded).
     pub n_rows: usize,
+    /// How the tables are stored (theta.csv/x.csv or theta.npy/x.npy).
+    pub format: Format,
     /// The model preset the rows were simulated with.
     pub preset: crate::sim::Preset,
     /// The columns of theta.csv: each parameter's name, unit, range and scale.
@@ -191,6 +193,7 @@ impl Meta {
             otofit_version: env!("CARGO_PKG_VERSION"),
             seed,
             n_rows: 0,
+            format: Format::Csv,
             preset,
             parameters: design.columns(),
             frequencies_hz: freqs.to_vec(),
@@ -204,16 +207,41 @@ impl Meta {
     }
 }
 
+/// How a dataset's two tables are stored.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    /// theta.csv and x.csv with header rows: any tool reads them; the service serves them.
+    #[default]
+    Csv,
+    /// theta.npy and x.npy, float64 (rows, columns), their columns named in meta.json:
+    /// for large tables, written and read at memory speed (`numpy.load`).
+    Npy,
+}
+
+impl Format {
+    /// The names of the θ table, the x table and meta.json.
+    pub fn files(self) -> [&'static str; 3] {
+        match self {
+            Format::Csv => FILES,
+            Format::Npy => ["theta.npy", "x.npy", "meta.json"],
+        }
+    }
+}
+
 /// Streams rows into `dir` under temporary names; [`Self::finish`] renames them.
 pub struct Writer {
     dir: PathBuf,
+    format: Format,
     theta: BufWriter<File>,
     x: BufWriter<File>,
+    /// Columns of the θ and x tables.
+    cols: (usize, usize),
     /// Rows written so far.
     pub rows: usize,
 }
 
-/// The files of a dataset folder.
+/// The files of a CSV dataset folder (the service's datasets).
 pub const FILES: [&str; 3] = ["theta.csv", "x.csv", "meta.json"];
 
 fn tmp(dir: &Path, name: &str) -> PathBuf {
@@ -221,33 +249,52 @@ fn tmp(dir: &Path, name: &str) -> PathBuf {
 }
 
 impl Writer {
-    /// Opens the temporary table files in `dir` (created if needed) and writes their headers.
-    pub fn create(dir: &Path, meta: &Meta) -> Result<Writer> {
+    /// Opens the temporary table files in `dir` (created if needed) and writes their
+    /// headers (the column names for CSV, a placeholder for .npy).
+    pub fn create(dir: &Path, meta: &Meta, format: Format) -> Result<Writer> {
         std::fs::create_dir_all(dir).map_err(io("create", dir))?;
+        let names = format.files();
         let open = |name: &str| -> Result<BufWriter<File>> {
             let p = tmp(dir, name);
-            Ok(BufWriter::new(File::create(&p).map_err(io("write", &p))?))
+            Ok(BufWriter::with_capacity(1 << 20, File::create(&p).map_err(io("write", &p))?))
         };
-        let mut theta = open(FILES[0])?;
-        let mut x = open(FILES[1])?;
-        writeln!(theta, "{}", meta.parameters.iter().map(|p| p.name).collect::<Vec<_>>().join(","))
-            .map_err(io("write", &tmp(dir, FILES[0])))?;
-        writeln!(x, "{}", meta.features.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(","))
-            .map_err(io("write", &tmp(dir, FILES[1])))?;
-        Ok(Writer { dir: dir.to_path_buf(), theta, x, rows: 0 })
+        let mut theta = open(names[0])?;
+        let mut x = open(names[1])?;
+        let cols = (meta.parameters.len(), meta.features.len());
+        let (head_t, head_x) = match format {
+            Format::Csv => (
+                format!("{}\n", meta.parameters.iter().map(|p| p.name).collect::<Vec<_>>().join(",")).into_bytes(),
+                format!("{}\n", meta.features.iter().map(|f| f.name.as_str()).collect::<Vec<_>>().join(","))
+                    .into_bytes(),
+            ),
+            Format::Npy => (crate::npy::header(0, cols.0), crate::npy::header(0, cols.1)),
+        };
+        theta.write_all(&head_t).map_err(io("write", &tmp(dir, names[0])))?;
+        x.write_all(&head_x).map_err(io("write", &tmp(dir, names[1])))?;
+        Ok(Writer { dir: dir.to_path_buf(), format, theta, x, cols, rows: 0 })
     }
 
-    /// Appends one row to theta.csv and x.csv.
-    pub fn push(&mut self, theta: &[f64], x: &[f64]) -> Result<()> {
-        write_row(&mut self.theta, theta).map_err(io("write", &tmp(&self.dir, FILES[0])))?;
-        write_row(&mut self.x, x).map_err(io("write", &tmp(&self.dir, FILES[1])))?;
-        self.rows += 1;
+    /// Appends a block of rows: `theta` and `x` hold whole rows, one after the other.
+    pub fn push_block(&mut self, block: &Block) -> Result<()> {
+        let names = self.format.files();
+        let (pt, px) = (tmp(&self.dir, names[0]), tmp(&self.dir, names[1]));
+        match self.format {
+            Format::Csv => {
+                self.theta.write_all(&csv_rows(&block.theta, block.rows)).map_err(io("write", &pt))?;
+                self.x.write_all(&csv_rows(&block.x, block.rows)).map_err(io("write", &px))?;
+            }
+            Format::Npy => {
+                crate::npy::write_values(&mut self.theta, &block.theta).map_err(io("write", &pt))?;
+                crate::npy::write_values(&mut self.x, &block.x).map_err(io("write", &px))?;
+            }
+        }
+        self.rows += block.rows;
         Ok(())
     }
 
     /// Removes the temporary files (a cancelled run leaves nothing behind).
     pub fn abandon(self) {
-        for name in FILES {
+        for name in self.format.files() {
             let _ = std::fs::remove_file(tmp(&self.dir, name));
         }
     }
@@ -255,17 +302,59 @@ impl Writer {
     /// Flushes, writes meta.json and renames all three files into place.
     pub fn finish(mut self, meta: &mut Meta) -> Result<()> {
         meta.n_rows = self.rows;
-        self.theta.flush().map_err(io("write", &tmp(&self.dir, FILES[0])))?;
-        self.x.flush().map_err(io("write", &tmp(&self.dir, FILES[1])))?;
+        meta.format = self.format;
+        let names = self.format.files();
+        for (w, name, cols) in [(&mut self.theta, names[0], self.cols.0), (&mut self.x, names[1], self.cols.1)] {
+            let done = match self.format {
+                Format::Csv => w.flush(),
+                Format::Npy => w.flush().and_then(|_| crate::npy::finish(w.get_mut(), self.rows as u64, cols)),
+            };
+            done.map_err(io("write", &tmp(&self.dir, name)))?;
+        }
         drop(self.theta);
         drop(self.x);
-        let p = tmp(&self.dir, FILES[2]);
+        let p = tmp(&self.dir, names[2]);
         std::fs::write(&p, serde_json::to_vec_pretty(meta).map_err(DatasetError::Encode)?).map_err(io("write", &p))?;
-        for name in FILES {
+        for name in names {
             std::fs::rename(tmp(&self.dir, name), self.dir.join(name)).map_err(io("rename", &self.dir.join(name)))?;
         }
         Ok(())
     }
+}
+
+/// Finished rows of one sub-batch, θ and x each flattened row after row.
+#[derive(Default)]
+pub struct Block {
+    /// θ rows, one after the other.
+    pub theta: Vec<f64>,
+    /// x rows, one after the other.
+    pub x: Vec<f64>,
+    /// How many rows.
+    pub rows: usize,
+}
+
+/// `rows` rows (`values` holds them one after the other) as CSV lines. Formatting the shortest round-tripping decimal
+/// of each number is most of the cost of writing a CSV table, so blocks of rows are
+/// formatted on rayon's threads and joined in order: the bytes are the same whatever
+/// the thread count.
+fn csv_rows(values: &[f64], rows: usize) -> Vec<u8> {
+    use rayon::prelude::*;
+    const ROWS_PER_TASK: usize = 64;
+    if rows == 0 {
+        return Vec::new();
+    }
+    let cols = values.len() / rows;
+    let parts: Vec<Vec<u8>> = values
+        .par_chunks(cols.max(1) * ROWS_PER_TASK)
+        .map(|chunk| {
+            let mut out = Vec::with_capacity(chunk.len() * 24);
+            for row in chunk.chunks(cols.max(1)) {
+                write_row(&mut out, row).expect("writing to memory");
+            }
+            out
+        })
+        .collect();
+    parts.concat()
 }
 
 fn write_row(w: &mut impl Write, v: &[f64]) -> std::io::Result<()> {
@@ -304,25 +393,38 @@ pub struct Cancelled {
     pub total: usize,
 }
 
-/// Simulates `rows` into `dir` (chunks of 1024 on rayon, rows streamed to disk).
+/// What a dataset run simulates and how it is stored.
+pub struct DatasetRun<'a> {
+    /// The simulator.
+    pub model: &'a crate::sim::Model,
+    /// The parameters and their prior.
+    pub design: &'a Design,
+    /// Where the rows come from.
+    pub rows: &'a Rows,
+    /// The noise added to x.
+    pub noise: &'a Noise,
+    /// The model preset (recorded in meta.json).
+    pub preset: crate::sim::Preset,
+    /// The tables' format.
+    pub format: Format,
+}
+
+/// Simulates `run.rows` into `dir` (chunks of 1024 on rayon, rows streamed to disk).
 /// `progress(done, total)` is called after each chunk; returning `false` cancels, and
 /// the temporary files are removed.
 pub fn simulate_to_dir(
-    model: &crate::sim::Model,
-    design: &Design,
-    rows: &Rows,
-    noise: &Noise,
-    preset: crate::sim::Preset,
+    run: &DatasetRun<'_>,
     dir: &Path,
     progress: &mut dyn FnMut(usize, usize) -> bool,
 ) -> Result<Meta> {
     let start = std::time::Instant::now();
+    let DatasetRun { model, design, rows, noise, preset, format } = *run;
     let n = rows.len();
     let mut meta = Meta::new(design, preset, model.frequencies(), noise, rows.seed());
-    let mut writer = Writer::create(dir, &meta)?;
+    let mut writer = Writer::create(dir, &meta, format)?;
     let batch = Batch { model, design, rows, noise };
     let mut done = 0;
-    let finished = batch.run(0, n, &mut meta.failed, &mut |t, x| writer.push(t, x), &mut |d| {
+    let finished = batch.run(0, n, &mut meta.failed, &mut |b| writer.push_block(b), &mut |d| {
         done = d;
         progress(d, n)
     });
@@ -365,8 +467,8 @@ impl Rows {
     }
 }
 
-/// Where finished rows go: (theta, x).
-type RowSink<'a> = dyn FnMut(&[f64], &[f64]) -> Result<()> + 'a;
+/// Where each sub-batch's finished rows go.
+type RowSink<'a> = dyn FnMut(&Block) -> Result<()> + 'a;
 
 /// Rows through the simulator: what one dataset run needs.
 struct Batch<'a> {
@@ -399,17 +501,23 @@ impl Batch<'_> {
                 Rows::Prior { seed, .. } => self.design.draw(*seed, from, k),
             };
             let results = crate::sim::batch::run_rows(self.model, self.design, &batch, from, Some(self.noise));
+            let mut block = Block::default();
             for (i, (row, res)) in batch.iter().zip(results).enumerate() {
                 let (_, fx) = self.design.split(row);
                 let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
                 let fail = |reason: String| Failed { row: from + i, reason };
                 match (res, bad_effect) {
                     (_, Some((e, v))) => failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high))),
-                    (Ok(x), None) if x.iter().all(|v| v.is_finite()) => push(row, &x)?,
+                    (Ok(x), None) if x.iter().all(|v| v.is_finite()) => {
+                        block.theta.extend_from_slice(row);
+                        block.x.extend_from_slice(&x);
+                        block.rows += 1;
+                    }
                     (Ok(_), None) => failed.push(fail("non-finite output".into())),
                     (Err(e), None) => failed.push(fail(e.to_string())),
                 }
             }
+            push(&block)?;
             if !progress(from + k - first) && from + k < end {
                 return Ok(false);
             }
@@ -488,10 +596,10 @@ impl PartRun<'_> {
             let (mut theta, mut x) = (open(FILES[0])?, open(FILES[1])?);
             let mut part = Part { first, len, rows: 0, failed: vec![], wall_seconds: 0.0 };
             let batch = Batch { model: self.model, design: self.design, rows: self.rows, noise: self.noise };
-            let mut push = |t: &[f64], v: &[f64]| {
-                write_row(&mut theta, t).map_err(io("write", &tmp(FILES[0])))?;
-                write_row(&mut x, v).map_err(io("write", &tmp(FILES[1])))?;
-                part.rows += 1;
+            let mut push = |b: &Block| {
+                theta.write_all(&csv_rows(&b.theta, b.rows)).map_err(io("write", &tmp(FILES[0])))?;
+                x.write_all(&csv_rows(&b.x, b.rows)).map_err(io("write", &tmp(FILES[1])))?;
+                part.rows += b.rows;
                 Ok(())
             };
             if !batch.run(first, len, &mut part.failed, &mut push, progress)? {
@@ -524,7 +632,7 @@ impl PartRun<'_> {
 /// not a short dataset. `meta` is [`Meta::new`]'s; its counts, failures and time (the
 /// parts' compute) are filled in.
 pub fn merge_parts(parts: &Path, n_parts: usize, n_rows: usize, dir: &Path, meta: &mut Meta) -> Result<()> {
-    let mut writer = Writer::create(dir, meta)?;
+    let mut writer = Writer::create(dir, meta, Format::Csv)?;
     let mut next = 0;
     let mut append = |idx: usize, writer: &mut Writer| -> Result<Part> {
         let unusable = |why: String| {
@@ -605,6 +713,24 @@ pub fn read_csv(path: &Path) -> Result<Table> {
             .collect::<Result<Vec<f64>>>()?;
         rows.push(row);
     }
+    Ok(Table { header, rows })
+}
+
+/// Reads a .npy table whose columns are `header` (from the dataset's meta.json);
+/// errors name the file.
+pub fn read_npy(path: &Path, header: Vec<String>) -> Result<Table> {
+    let f = File::open(path).map_err(io("open", path))?;
+    let (rows, cols, values) = crate::npy::read(&mut BufReader::new(f)).map_err(|e| match e {
+        crate::npy::NpyError::Io(e) => {
+            DatasetError::Io(FileError { action: "read", path: path.to_path_buf(), source: e })
+        }
+        crate::npy::NpyError::Format(why) => DatasetError::table(path, why),
+    })?;
+    if cols != header.len() {
+        let why = format!("{cols} columns, but meta.json names {}", header.len());
+        return Err(DatasetError::table(path, why));
+    }
+    let rows = if cols == 0 { vec![vec![]; rows] } else { values.chunks_exact(cols).map(<[f64]>::to_vec).collect() };
     Ok(Table { header, rows })
 }
 

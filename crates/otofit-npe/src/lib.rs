@@ -5,6 +5,7 @@
 pub mod dataset;
 pub mod flow;
 pub mod npe;
+pub mod npy;
 pub mod spd;
 pub mod stats;
 

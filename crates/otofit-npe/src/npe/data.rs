@@ -3,7 +3,7 @@
 
 use super::prior::Param;
 use super::{NpeError, Result};
-use crate::dataset::read_csv;
+use crate::dataset::{Format, read_csv, read_npy};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -53,10 +53,15 @@ struct Meta {
     groups: Vec<MetaGroup>,
     #[serde(default)]
     noise: Option<MetaNoise>,
+    /// Absent in datasets written before .npy tables: CSV.
+    #[serde(default)]
+    format: Format,
 }
 
 #[derive(Deserialize)]
 struct MetaFeature {
+    #[serde(default)]
+    name: String,
     #[serde(default)]
     measure: String,
 }
@@ -95,10 +100,18 @@ impl Dataset {
         for p in &params {
             p.validate().map_err(|e| NpeError::table(dir, e.to_string()))?;
         }
-        let tt = read_csv(&dir.join("theta.csv"))?;
-        let xt = read_csv(&dir.join("x.csv"))?;
+        let format = meta.as_ref().map(|m| m.format).unwrap_or_default();
+        let [theta_file, x_file, _] = format.files();
+        let (tt, xt) = match (format, &meta) {
+            (Format::Npy, Some(m)) => {
+                let names = params.iter().map(|p| p.name.clone()).collect();
+                let features = m.features.iter().map(|f| f.name.clone()).collect();
+                (read_npy(&dir.join(theta_file), names)?, read_npy(&dir.join(x_file), features)?)
+            }
+            _ => (read_csv(&dir.join(theta_file))?, read_csv(&dir.join(x_file))?),
+        };
         if tt.rows.len() != xt.rows.len() {
-            let why = format!("theta.csv has {} rows but x.csv has {}", tt.rows.len(), xt.rows.len());
+            let why = format!("{theta_file} has {} rows but {x_file} has {}", tt.rows.len(), xt.rows.len());
             return Err(NpeError::table(dir, why));
         }
         // theta.csv columns in prior order, by name.
@@ -108,7 +121,7 @@ impl Dataset {
                 tt.header
                     .iter()
                     .position(|h| *h == p.name)
-                    .ok_or_else(|| NpeError::table(dir, format!("theta.csv has no column '{}'", p.name)))
+                    .ok_or_else(|| NpeError::table(dir, format!("{theta_file} has no column '{}'", p.name)))
             })
             .collect::<Result<_>>()?;
         let nf = xt.header.len();
