@@ -127,6 +127,9 @@ pub enum BenchWhat {
         #[arg(long, default_value = "models/default.otofit")]
         model: std::path::PathBuf,
     },
+    /// Scaling with threads: dataset generation (CSV and .npy) and training epoch time at
+    /// 1, 2, 4, … threads up to the cores, with speed-up and efficiency.
+    Scale(super::bench_scale::ScaleArgs),
     /// Discrepancy naming on hidden-effect cases (simulator-only pipeline).
     Discrepancy {
         /// Hidden cases per effect.
@@ -154,6 +157,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
             crossmodel(ears, &out, &model, seed, samples, &measures)
         }
         BenchWhat::C2st(a) => super::bench_c2st::run(*a),
+        BenchWhat::Scale(a) => super::bench_scale::run(a),
         BenchWhat::Posterior { ears, seed, steps, out, model } => posterior(ears, seed, steps, out.as_deref(), &model),
     }
 }

@@ -5,6 +5,7 @@ use clap::{Parser, Subcommand};
 pub mod bench;
 mod bench_c2st;
 mod bench_fit;
+mod bench_scale;
 pub mod calibrate;
 pub mod diagnose;
 mod drum;

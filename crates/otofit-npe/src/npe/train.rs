@@ -299,11 +299,10 @@ fn loss_of(flow: &Flow, cfg: &FlowConfig, v: Vec<f32>, inp: Vec<f32>, b: usize, 
 }
 
 /// A batch's mean loss and its gradient; `None` if the loss is not finite. A batch of
-/// [`SPLIT_ROWS`] or more is split in two halves whose gradients are taken on two
-/// threads, the second through a copy of the flow with its own autodiff graph (burn
-/// locks a graph while it runs backward), and added weighted by their rows: the batch's
-/// gradient up to rounding. Whether a batch is split depends on its size only, never on
-/// the machine or the thread count, so a seed trains the same weights everywhere.
+/// [`SPLIT_ROWS`] or more is split into [`parts`] contiguous parts whose gradients are
+/// taken on as many threads, each part after the first through a copy of the flow with
+/// its own autodiff graph (burn locks a graph while it runs backward), and added
+/// weighted by their rows: the batch's gradient up to rounding.
 pub(crate) fn batch_gradient(
     flow: &Flow,
     cfg: &FlowConfig,
@@ -317,52 +316,82 @@ pub(crate) fn batch_gradient(
         let l = scalar(loss.clone());
         l.is_finite().then(|| (l, GradientsParams::from_grads(loss.backward(), f)))
     };
-    if b < SPLIT_ROWS {
+    let threads = rayon::current_num_threads();
+    let k = parts(b, threads);
+    if k == 1 {
         return one(flow, v, inp, b);
     }
-    let h = b / 2;
-    let (mut va, mut ia) = (v, inp);
-    let (vb, ib) = (va.split_off(h * cfg.dim), ia.split_off(h * cfg.inputs));
-    let twin = flow.valid().train();
-    let twin = &twin;
-    let second = move || one(twin, vb, ib, b - h);
+    // Part i holds rows i·b/k .. (i+1)·b/k; split off from the end, the first stays.
+    let bounds: Vec<usize> = (0..=k).map(|i| i * b / k).collect();
+    let (mut v, mut inp) = (v, inp);
+    let mut rest: Vec<(Vec<f32>, Vec<f32>, usize)> = (1..k)
+        .rev()
+        .map(|i| (v.split_off(bounds[i] * cfg.dim), inp.split_off(bounds[i] * cfg.inputs), bounds[i + 1] - bounds[i]))
+        .collect();
+    rest.reverse();
+    let twins: Vec<Flow> = (1..k).map(|_| flow.valid().train()).collect();
+    let one = &one;
     // One after the other where the process was given one thread (`--threads 1`): the
-    // same numbers, since the split does not depend on it.
-    let (a, second) = if rayon::current_num_threads() > 1 {
+    // same numbers as two threads, since [`parts`] gives both the same split.
+    let results: Vec<Option<(f64, GradientsParams)>> = if threads > 1 {
         std::thread::scope(|s| {
-            let second = s.spawn(second);
-            (one(flow, va, ia, h), second.join().ok().flatten())
+            let others: Vec<_> =
+                twins.iter().zip(rest).map(|(t, (v, i, n))| s.spawn(move || one(t, v, i, n))).collect();
+            let first = one(flow, v, inp, bounds[1]);
+            std::iter::once(first).chain(others.into_iter().map(|h| h.join().ok().flatten())).collect()
         })
     } else {
-        (one(flow, va, ia, h), second())
+        let first = one(flow, v, inp, bounds[1]);
+        std::iter::once(first).chain(twins.iter().zip(rest).map(|(t, (v, i, n))| one(t, v, i, n))).collect()
     };
-    let ((la, mut ga), (lb, mut gb)) = (a?, second?);
-    let (wa, wb) = (h as f64 / b as f64, (b - h) as f64 / b as f64);
-    let mut merge = MergeGrads { a: &mut ga, b: &mut gb, wa, wb, out: GradientsParams::new() };
+    let (losses, mut grads): (Vec<f64>, Vec<GradientsParams>) = results.into_iter().collect::<Option<_>>()?;
+    let weights: Vec<f64> = bounds.windows(2).map(|w| (w[1] - w[0]) as f64 / b as f64).collect();
+    let loss = losses.iter().zip(&weights).fold(0.0, |acc, (l, w)| acc + w * l);
+    let mut merge = MergeGrads { parts: &mut grads, weights: &weights, out: GradientsParams::new() };
     flow.visit(&mut merge);
-    Some((wa * la + wb * lb, merge.out))
+    Some((loss, merge.out))
 }
 
-/// Batches of this many rows or more are split over two threads ([`batch_gradient`]).
-pub const SPLIT_ROWS: usize = 400;
+/// Batches of this many rows or more are split over threads ([`batch_gradient`]).
+pub const SPLIT_ROWS: usize = 128;
 
-/// Adds two halves' gradients, weighted by their rows, parameter by parameter.
+/// The fewest rows of a part of a split batch: smaller parts cost more in copies of the
+/// flow and thread starts than their gradients save.
+pub const MIN_PART_ROWS: usize = 64;
+
+/// How many parts a batch of `b` rows is split into on `threads` threads: one below
+/// [`SPLIT_ROWS`]; else as many as the threads, at least two and no more than parts of
+/// [`MIN_PART_ROWS`]. One and two threads split alike (two parts, the second after the
+/// first on one thread), so a seed trains the same weights with either; more threads
+/// split finer, which changes the rounding of the summed gradient, so a seed's weights
+/// are the same for a given thread count above two.
+pub fn parts(b: usize, threads: usize) -> usize {
+    if b < SPLIT_ROWS { 1 } else { threads.clamp(2, (b / MIN_PART_ROWS).max(2)) }
+}
+
+/// Adds the parts' gradients, weighted by their rows, parameter by parameter, in the
+/// parts' order.
 struct MergeGrads<'a> {
-    a: &'a mut GradientsParams,
-    b: &'a mut GradientsParams,
-    wa: f64,
-    wb: f64,
+    parts: &'a mut [GradientsParams],
+    weights: &'a [f64],
     out: GradientsParams,
 }
 
 impl burn::module::ModuleVisitor for MergeGrads<'_> {
     fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
         let id = param.id;
-        match (self.a.remove::<D>(id), self.b.remove::<D>(id)) {
-            (Some(a), Some(b)) => self.out.register(id, a * self.wa + b * self.wb),
-            (Some(a), None) => self.out.register(id, a * self.wa),
-            (None, Some(b)) => self.out.register(id, b * self.wb),
-            (None, None) => {}
+        let mut sum: Option<Tensor<D>> = None;
+        for (g, &w) in self.parts.iter_mut().zip(self.weights) {
+            if let Some(t) = g.remove::<D>(id) {
+                let t = t * w;
+                sum = Some(match sum {
+                    Some(s) => s + t,
+                    None => t,
+                });
+            }
+        }
+        if let Some(s) = sum {
+            self.out.register(id, s);
         }
     }
 }
@@ -1038,25 +1067,44 @@ mod tests {
         }
     }
 
-    /// A batch split over two threads has the whole batch's loss and gradient (to f32
-    /// rounding), for every parameter, with the halves of unequal size.
+    /// A batch split over 1, 2, 3 or 5 threads has the whole batch's loss and gradient
+    /// (to f32 rounding), for every parameter, with parts of unequal size; one and two
+    /// threads give the same bits.
     #[test]
     fn a_split_batch_has_the_whole_batchs_gradient() {
         let device = Device::flex().autodiff();
         let cfg = FlowConfig { blocks: 2, lu: true, scaled_bins: true, ..FlowConfig::new(3, 4, false) };
         let flow = Flow::seeded(&cfg, &device, Some(11));
-        let b = SPLIT_ROWS + 1;
+        let b = 5 * MIN_PART_ROWS + 3;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
         let v: Vec<f32> = (0..b * cfg.dim).map(|_| rng.random_range(-2.0..2.0)).collect();
         let inp: Vec<f32> = (0..b * cfg.inputs).map(|_| rng.random_range(-1.0..1.0)).collect();
-        let (split_loss, split) = batch_gradient(&flow, &cfg, &device, v.clone(), inp.clone(), b).unwrap();
-        let loss = loss_of(&flow, &cfg, v, inp, b, &device);
+        let loss = loss_of(&flow, &cfg, v.clone(), inp.clone(), b, &device);
         let whole_loss = scalar(loss.clone());
         let whole = GradientsParams::from_grads(loss.backward(), &flow);
-        assert!((split_loss - whole_loss).abs() < 1e-5 * whole_loss.abs().max(1.0), "{split_loss} vs {whole_loss}");
-        let mut cmp = Compare { a: &whole, b: &split, worst: 0.0, count: 0 };
-        flow.visit(&mut cmp);
-        assert_eq!(cmp.count, whole.len(), "every parameter's gradient is there");
-        assert!(cmp.worst < 1e-4, "worst relative difference {}", cmp.worst);
+        let mut losses = vec![];
+        for threads in [1, 2, 3, 5] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let (split_loss, split) =
+                pool.install(|| batch_gradient(&flow, &cfg, &device, v.clone(), inp.clone(), b)).unwrap();
+            let close = (split_loss - whole_loss).abs() < 1e-5 * whole_loss.abs().max(1.0);
+            assert!(close, "{threads} threads: {split_loss} vs {whole_loss}");
+            let mut cmp = Compare { a: &whole, b: &split, worst: 0.0, count: 0 };
+            flow.visit(&mut cmp);
+            assert_eq!(cmp.count, whole.len(), "{threads} threads: every parameter's gradient is there");
+            assert!(cmp.worst < 1e-4, "{threads} threads: worst relative difference {}", cmp.worst);
+            losses.push(split_loss);
+        }
+        assert_eq!(losses[0].to_bits(), losses[1].to_bits(), "one and two threads split alike");
+    }
+
+    #[test]
+    fn batches_split_by_size_and_threads_alike_for_one_and_two() {
+        assert_eq!(parts(SPLIT_ROWS - 1, 16), 1);
+        assert_eq!(parts(200, 1), 2);
+        assert_eq!(parts(200, 2), 2);
+        assert_eq!(parts(200, 16), 3);
+        assert_eq!(parts(1000, 4), 4);
+        assert_eq!(parts(1000, 64), 15);
     }
 }
