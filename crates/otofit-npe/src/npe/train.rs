@@ -714,16 +714,59 @@ fn fingerprint(s: &TrainSettings, header: &Header) -> String {
     hex::encode(h.finalize())
 }
 
+/// Why a training checkpoint was not written or not used. Neither stops the training:
+/// it goes on without writing, or starts over, and the log says why.
+#[derive(Debug, thiserror::Error)]
+enum CheckpointError {
+    /// The file system refused.
+    #[error("cannot {action} {}: {source}", path.display())]
+    Io {
+        /// What was being done.
+        action: &'static str,
+        /// The file.
+        path: PathBuf,
+        /// The refusal.
+        source: std::io::Error,
+    },
+    /// Weights or the optimizer's state could not be encoded (burn's recorder).
+    #[error("cannot encode the {what}: {why}")]
+    Encode {
+        /// Which part.
+        what: &'static str,
+        /// burn's message.
+        why: String,
+    },
+    /// A part of the file does not decode into this training's flow or optimizer.
+    #[error("the checkpoint's {what} do not fit this training: {why}")]
+    Decode {
+        /// Which part.
+        what: &'static str,
+        /// The decoder's message.
+        why: String,
+    },
+    /// The file is a checkpoint of a training with other settings or data.
+    #[error("a checkpoint of another training (settings or data differ)")]
+    Foreign,
+    /// The file is not a checkpoint, or is truncated or inconsistent.
+    #[error("not a training checkpoint (damaged or truncated)")]
+    Damaged,
+}
+
+type CheckpointResult<T> = std::result::Result<T, CheckpointError>;
+
 /// A record's bytes.
-fn record_bytes(r: &ModuleRecord) -> std::result::Result<Vec<u8>, String> {
-    r.clone().into_bytes().map(|b| b.to_vec()).map_err(|e| format!("encoding weights: {e:?}"))
+fn record_bytes(r: &ModuleRecord) -> CheckpointResult<Vec<u8>> {
+    r.clone()
+        .into_bytes()
+        .map(|b| b.to_vec())
+        .map_err(|e| CheckpointError::Encode { what: "weights", why: format!("{e:?}") })
 }
 
 /// A record from its bytes, checked against the flow it is for.
-fn record_from(b: &[u8], cfg: &FlowConfig) -> std::result::Result<ModuleRecord, String> {
-    let r = ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec()))
-        .map_err(|e| format!("weights: {e:?}"))?;
-    new_flow(cfg, &Device::flex(), None).try_load_record(r.clone()).map_err(|e| format!("weights: {e:?}"))?;
+fn record_from(b: &[u8], cfg: &FlowConfig) -> CheckpointResult<ModuleRecord> {
+    let decode = |e: &dyn std::fmt::Debug| CheckpointError::Decode { what: "weights", why: format!("{e:?}") };
+    let r = ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec())).map_err(|e| decode(&e))?;
+    new_flow(cfg, &Device::flex(), None).try_load_record(r.clone()).map_err(|e| decode(&e))?;
     Ok(r)
 }
 
@@ -780,7 +823,7 @@ impl Saver<'_> {
         (self.last, self.cost) = (Instant::now(), t0.elapsed());
     }
 
-    fn write(&mut self, fin: &Finished, cur: Option<&MemberRun>) -> std::result::Result<(), String> {
+    fn write(&mut self, fin: &Finished, cur: Option<&MemberRun>) -> CheckpointResult<()> {
         for r in &fin.records[self.members.len()..] {
             self.members.push(record_bytes(r)?);
         }
@@ -789,7 +832,11 @@ impl Saver<'_> {
             None => None,
             Some(m) => {
                 blobs.push(record_bytes(&m.flow.clone().into_record())?);
-                blobs.push(m.opt.into_bytes().map_err(|e| format!("encoding the optimizer: {e:?}"))?.to_vec());
+                let opt = m.opt.into_bytes();
+                blobs.push(
+                    opt.map_err(|e| CheckpointError::Encode { what: "optimizer state", why: format!("{e:?}") })?
+                        .to_vec(),
+                );
                 if let Some(r) = &m.record {
                     blobs.push(record_bytes(r)?);
                 }
@@ -817,7 +864,8 @@ impl Saver<'_> {
             wall_seconds: self.wall_before + self.start.elapsed().as_secs_f64(),
             current,
         };
-        let json = serde_json::to_vec(&saved).map_err(|e| e.to_string())?;
+        let json = serde_json::to_vec(&saved)
+            .map_err(|e| CheckpointError::Encode { what: "training state", why: e.to_string() })?;
         let mut out = CKPT_MAGIC.to_vec();
         for part in std::iter::once(&json).chain(&self.members).chain(&blobs) {
             out.extend_from_slice(&(part.len() as u64).to_le_bytes());
@@ -827,28 +875,31 @@ impl Saver<'_> {
         let mut tmp = path.as_os_str().to_owned();
         tmp.push(format!(".{}.tmp", self.c.tag));
         let tmp = PathBuf::from(tmp);
-        let io = |what: &str, e: std::io::Error| format!("{what}: {e}");
-        let mut f = std::fs::File::create(&tmp).map_err(|e| io("create", e))?;
-        f.write_all(&out).and_then(|_| f.sync_all()).map_err(|e| io("write", e))?;
+        let io = |action: &'static str, path: &Path| {
+            let path = path.to_path_buf();
+            move |source| CheckpointError::Io { action, path, source }
+        };
+        let mut f = std::fs::File::create(&tmp).map_err(io("create", &tmp))?;
+        f.write_all(&out).and_then(|_| f.sync_all()).map_err(io("write", &tmp))?;
         drop(f);
         // Another writer of this training (an attempt that took the job over) got further.
         if read_head(path).is_some_and(|h| h.fingerprint == saved.fingerprint && h.epochs_done > saved.epochs_done) {
             let _ = std::fs::remove_file(&tmp);
             return Ok(());
         }
-        std::fs::rename(&tmp, path).map_err(|e| io("rename", e))
+        std::fs::rename(&tmp, path).map_err(io("rename", path))
     }
 
     /// The state a checkpoint of this training holds, if there is one: the finished
     /// members, the member under way, the training time before. `Err` says why a
     /// checkpoint there is not used.
-    fn load(&self, run: &Run) -> std::result::Result<Option<(Finished, Option<MemberRun>, f64)>, String> {
+    fn load(&self, run: &Run) -> CheckpointResult<Option<(Finished, Option<MemberRun>, f64)>> {
         let bytes = match std::fs::read(&self.c.path) {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-            Err(e) => return Err(e.to_string()),
+            Err(source) => return Err(CheckpointError::Io { action: "read", path: self.c.path.clone(), source }),
         };
-        let bad = || "not a training checkpoint".to_string();
+        let bad = || CheckpointError::Damaged;
         let mut rest = bytes.strip_prefix(CKPT_MAGIC.as_slice()).ok_or_else(bad)?;
         let mut parts = vec![];
         while !rest.is_empty() {
@@ -856,9 +907,9 @@ impl Saver<'_> {
             parts.push(part);
             rest = after;
         }
-        let saved: Saved = serde_json::from_slice(parts.first().ok_or_else(bad)?).map_err(|e| e.to_string())?;
+        let saved: Saved = serde_json::from_slice(parts.first().ok_or_else(bad)?).map_err(|_| bad())?;
         if saved.fingerprint != self.fingerprint {
-            return Err("a checkpoint of another training (settings or data differ)".into());
+            return Err(CheckpointError::Foreign);
         }
         let (cfg, members) = (run.cfg, run.s.ensemble.max(1));
         let blobs = &parts[1..];
@@ -887,10 +938,10 @@ impl Saver<'_> {
         }
         let flow = new_flow(cfg, &run.device, None)
             .try_load_record(record_from(flow, cfg)?)
-            .map_err(|e| format!("weights: {e:?}"))?;
+            .map_err(|e| CheckpointError::Decode { what: "weights", why: format!("{e:?}") })?;
         let opt = optimizer(run.s)
             .from_bytes(burn::tensor::Bytes::from_bytes_vec(opt.to_vec()))
-            .map_err(|e| format!("optimizer: {e:?}"))?;
+            .map_err(|e| CheckpointError::Decode { what: "optimizer state", why: format!("{e:?}") })?;
         let seed: [u8; 32] = hex::decode(&st.rng.0).ok().and_then(|s| s.try_into().ok()).ok_or_else(bad)?;
         let mut rng = ChaCha8Rng::from_seed(seed);
         rng.set_stream(st.rng.1);
@@ -1096,6 +1147,20 @@ mod tests {
             losses.push(split_loss);
         }
         assert_eq!(losses[0].to_bits(), losses[1].to_bits(), "one and two threads split alike");
+    }
+
+    /// Weights of another flow, or bytes that are no record, are a typed refusal that
+    /// says which part, not a panic or a bare string.
+    #[test]
+    fn checkpoint_weights_of_another_flow_are_refused_by_name() {
+        let small = FlowConfig::new(3, 4, false);
+        let other = FlowConfig { blocks: 2, ..FlowConfig::new(5, 4, false) };
+        let bytes = record_bytes(&Flow::seeded(&small, &Device::flex(), Some(1)).into_record()).unwrap();
+        assert!(record_from(&bytes, &small).is_ok());
+        let e = record_from(&bytes, &other).unwrap_err();
+        assert!(matches!(e, CheckpointError::Decode { what: "weights", .. }), "{e:?}");
+        let e = record_from(b"not a record", &small).unwrap_err();
+        assert!(e.to_string().starts_with("the checkpoint's weights do not fit"), "{e}");
     }
 
     #[test]
