@@ -118,7 +118,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     false_alarms(&draw, &base, &s, clean)?;
     println!("visible: the effect's noise-free signature Σ(Δx/σ)² > {VISIBLE}");
     println!(
-        "{:<16} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  other verdicts",
+        "{:<18} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  named % by fifth of the range, detection limit, other verdicts",
         "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit"
     );
     for e in 0..EFFECTS.len() {
@@ -207,14 +207,17 @@ fn false_alarms(draw: &Cases, base: &crate::npe::Npe, s: &Settings, clean: usize
     Ok(())
 }
 
-/// One row of the table: how often effect `e`, hidden, is named (overall and when its
-/// signature is visible above the noise), how often its 90 % interval covers the truth,
-/// and what the other cases were called instead.
+/// One row of the table: how often effect `e`, hidden, is named (overall, when its
+/// signature is visible above the noise, and in each fifth of its range by size), its
+/// detection limit, how often its 90 % interval covers the truth, and what the other
+/// cases were called instead.
 fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, cases: usize) -> Result<()> {
     let effect = &EFFECTS[e];
     let (mut n, mut named, mut vis, mut named_vis, mut covered) = (0, 0, 0, 0, 0);
     let (mut before, mut after) = (Vec::new(), Vec::new());
+    let mut bins = [(0usize, 0usize); SIZE_BINS];
     let mut other: std::collections::BTreeMap<String, usize> = Default::default();
+    let spec = effect.as_param();
     for i in 0..cases {
         let Some(Case { x, truth, strength }) = draw.draw(e * 1000 + i, Some(e)) else { continue };
         let r = diagnose(draw.model, base, &x, s, &mut |_| {})?;
@@ -222,12 +225,15 @@ fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, ca
         let visible = strength > VISIBLE;
         vis += usize::from(visible);
         before.push(r.before.reduced_chi2);
+        let t = truth.unwrap_or(f64::NAN);
+        let bin = ((unit_of(&spec, t) * SIZE_BINS as f64) as usize).min(SIZE_BINS - 1);
+        bins[bin].0 += 1;
         if r.named == Some(effect.name) {
             named += 1;
+            bins[bin].1 += 1;
             named_vis += usize::from(visible);
             let c = &r.candidates[0];
             after.push(c.reduced_chi2);
-            let t = truth.unwrap_or(f64::NAN);
             covered += usize::from(t >= c.interval90[0] && t <= c.interval90[1]);
         } else {
             let key = r.named.map_or_else(|| format!("{:?}", r.verdict), str::to_string);
@@ -235,8 +241,16 @@ fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, ca
         }
     }
     let med = |v: Vec<f64>| crate::stats::median_upper(&crate::stats::sorted(v));
+    let per_bin: Vec<String> = bins
+        .iter()
+        .map(|&(k, m)| if k == 0 { "–".into() } else { format!("{:.0}", 100.0 * m as f64 / k as f64) })
+        .collect();
+    let limit = match detection_limit(&bins) {
+        Some(b) => format!("{:.3e} {}", spec.from_unit(b as f64 / SIZE_BINS as f64), effect.unit),
+        None => "none".into(),
+    };
     println!(
-        "{:<16} {:>5} {:>8.0} {:>7} {:>11.0} {:>10.0} {:>9.2} {:>9.2}  {:?}",
+        "{:<18} {:>5} {:>8.0} {:>7} {:>11.0} {:>10.0} {:>9.2} {:>9.2}  by size {:<22} limit {limit}  {:?}",
         effect.name,
         n,
         100.0 * named as f64 / n.max(1) as f64,
@@ -245,14 +259,27 @@ fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, ca
         100.0 * covered as f64 / named.max(1) as f64,
         med(before),
         med(after),
+        per_bin.join("/"),
         other
     );
     Ok(())
 }
 
+/// Fifths of an effect's range (in its scale: log for log-scaled effects) that the
+/// naming rate is reported by.
+const SIZE_BINS: usize = 5;
+
+/// The detection limit's bin: the smallest bin from which every larger bin (each with
+/// cases) names the effect in ≥ 90 % of its cases; `None` when even the largest does not.
+fn detection_limit(bins: &[(usize, usize)]) -> Option<usize> {
+    let ok = |&(k, m): &(usize, usize)| k > 0 && 10 * m >= 9 * k;
+    (0..bins.len()).find(|&b| bins[b..].iter().all(ok))
+}
+
 /// One full diagnosis, retrain included, at full size: the wall time a user waits.
 fn full_diagnosis(draw: &Cases, base: &crate::npe::Npe, seed: u64) -> Result<()> {
-    let x = draw.draw(999_999, Some(3)).ok_or_else(|| anyhow::anyhow!("simulation failed"))?.x;
+    let leak = crate::sim::Effects::index("probe_leak").context("probe_leak is in the library")?;
+    let x = draw.draw(999_999, Some(leak)).ok_or_else(|| anyhow::anyhow!("simulation failed"))?.x;
     let full = Settings { seed, ..Settings::default() };
     let t1 = Instant::now();
     let r = diagnose(draw.model, base, &x, &full, &mut |_| {})?;
@@ -277,3 +304,16 @@ const NULL_CASES: usize = 120;
 
 /// Signature strength above which a hidden effect counts as visible at 1× noise.
 const VISIBLE: f64 = 50.0;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_detection_limit_is_where_every_larger_size_is_named() {
+        assert_eq!(detection_limit(&[(4, 0), (4, 1), (4, 4), (4, 4), (4, 4)]), Some(2));
+        assert_eq!(detection_limit(&[(10, 9), (10, 10), (10, 8), (10, 10), (10, 10)]), Some(3));
+        assert_eq!(detection_limit(&[(4, 4), (4, 4), (4, 4), (4, 4), (4, 3)]), None);
+        assert_eq!(detection_limit(&[(4, 4), (0, 0), (4, 4)]), Some(2), "a bin without cases proves nothing");
+    }
+}
