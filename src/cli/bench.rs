@@ -103,6 +103,10 @@ pub enum BenchWhat {
         /// Feature groups given, comma-separated (e.g. impedance,absorbance: WBT alone); all if empty.
         #[arg(long, default_value = "")]
         measures: String,
+        /// Also diagnose every ear the fit check refuses (all measures given) with the
+        /// discrepancy workflow, without retraining: misfits.md and misfits.json in --out.
+        #[arg(long)]
+        diagnose: bool,
     },
     /// The shipped posterior (the flow) against the posterior under the model's own
     /// likelihood (least-squares fits, then a Metropolis chain, as `otofit infer --exact`)
@@ -153,8 +157,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Infer { clients, requests, samples, direct: false } => infer(clients, requests, samples),
         BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
         BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
-        BenchWhat::Crossmodel { ears, out, model, seed, samples, measures } => {
-            crossmodel(ears, &out, &model, seed, samples, &measures)
+        BenchWhat::Crossmodel { ears, out, model, seed, samples, measures, diagnose } => {
+            crossmodel(ears, &out, &model, seed, samples, &measures)?;
+            if diagnose { crossmodel_misfits(ears, &out, &model, seed, samples) } else { Ok(()) }
         }
         BenchWhat::C2st(a) => super::bench_c2st::run(*a),
         BenchWhat::Scale(a) => super::bench_scale::run(a),
@@ -255,6 +260,40 @@ fn crossmodel(
         "results": results,
     });
     std::fs::write(out.join("crossmodel.json"), serde_json::to_vec_pretty(&doc)?)?;
+    Ok(())
+}
+
+/// `otofit bench crossmodel --diagnose`: the suite's misfit ears (all measures) through
+/// the discrepancy workflow, its table on stdout and in `out`/misfits.md, every ear in
+/// `out`/misfits.json.
+fn crossmodel_misfits(
+    ears: usize,
+    out: &std::path::Path,
+    model: &std::path::Path,
+    seed: u64,
+    samples: usize,
+) -> Result<()> {
+    use crate::bench::crossmodel::misfits;
+    use crate::bench::crossmodel::run::CrossParams;
+    let npe = crate::npe::Npe::load(model)?;
+    let sim = Model::new(ModelConfig::default())?;
+    let t = Instant::now();
+    let s = super::diagnose::bench_settings(&sim, &npe, seed)?;
+    let p = CrossParams { ears, seed, samples, ..CrossParams::default() };
+    let rows = misfits::run(&npe, &sim, &p, &s)?;
+    let table = misfits::table(&rows);
+    println!("\nmisfit ears (all measures) through the discrepancy workflow, no retraining:");
+    print!("{table}");
+    std::fs::write(out.join("misfits.md"), &table)?;
+    let doc = serde_json::json!({
+        "model": model.display().to_string(),
+        "ears": ears,
+        "seed": seed,
+        "seconds": t.elapsed().as_secs_f64(),
+        "rows": rows,
+    });
+    std::fs::write(out.join("misfits.json"), serde_json::to_vec_pretty(&doc)?)?;
+    println!("wall {:.0} s", t.elapsed().as_secs_f64());
     Ok(())
 }
 

@@ -113,7 +113,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     let base = crate::npe::Npe::load(std::path::Path::new("models/default.otofit"))?;
     let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed };
     let t0 = Instant::now();
-    let s = with_null_thresholds(&model, &base, &noise, seed)?;
+    let s = bench_settings(&model, &base, seed)?;
     let draw = Cases { model: &model, noise: &noise, seed };
     false_alarms(&draw, &base, &s, clean)?;
     println!("visible: the effect's noise-free signature Σ(Δx/σ)² > {VISIBLE}");
@@ -129,12 +129,13 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     Ok(())
 }
 
-/// The benchmark's settings: no retrain per case, and alarm thresholds measured once on
-/// more null cases than a single diagnosis uses, so that every case shares them.
-fn with_null_thresholds(model: &Model, base: &crate::npe::Npe, noise: &Noise, seed: u64) -> Result<Settings> {
+/// The benchmarks' settings: no retrain per case, and alarm thresholds measured once on
+/// more null cases than a single diagnosis uses (1× noise), so that every case shares them.
+pub(super) fn bench_settings(model: &Model, base: &crate::npe::Npe, seed: u64) -> Result<Settings> {
+    let noise = Noise { std: default_noise_std(model), scale: 1.0, seed };
     let t0 = Instant::now();
     let mut s = Settings { extend: false, null_cases: NULL_CASES, seed, ..Settings::default() };
-    let t = null_thresholds(model, base, noise, &vec![true; base.header.feature_names.len()], &s)?;
+    let t = null_thresholds(model, base, &noise, &vec![true; base.header.feature_names.len()], &s)?;
     s.thresholds = Some(t);
     let q = 100.0 * crate::discrepancy::workflow::ALARM_QUANTILE;
     println!(

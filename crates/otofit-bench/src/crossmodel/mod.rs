@@ -25,6 +25,7 @@
 pub mod canal;
 pub mod hudde_engel;
 pub mod kringlebotn;
+pub mod misfits;
 pub mod run;
 
 use faer::c64;

@@ -234,6 +234,24 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
     Ok(ear)
 }
 
+/// Ear `row` of `model` with `condition`: its features on `freqs` with otofit's noise
+/// (scaled by `p.noise_scale`, seeded by `p.seed` and the row) and its severity.
+pub fn noisy_ear(
+    model: ModelKind,
+    condition: Condition,
+    p: &CrossParams,
+    row: usize,
+    freqs: &[f64],
+) -> (Vec<f64>, f64) {
+    let mut rng = ChaCha8Rng::seed_from_u64(p.seed);
+    rng.set_stream(row as u64);
+    let (ear, severity) = model.ear(condition, rng.random::<f64>());
+    let clean = features(ear.as_ref(), &Geometry::nominal(), &training_air(), freqs);
+    let noise = Noise { std: output::noise_std(freqs), scale: p.noise_scale, seed: p.seed };
+    let x = if p.noise_scale > 0.0 { noise.apply(&clean, row) } else { clean };
+    (x, severity)
+}
+
 /// Runs every model × condition with `p.ears` noisy ears each; `progress`
 /// hears each case as it ends.
 pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) -> Result<Vec<CaseResult>> {
@@ -241,8 +259,6 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
     if npe.header.feature_names != output::feature_names(&freqs) {
         bail!("the model's features are not otofit's seven measures on its grid: no cross-model ears for it");
     }
-    let (geometry, air) = (Geometry::nominal(), training_air());
-    let noise = Noise { std: output::noise_std(&freqs), scale: p.noise_scale, seed: p.seed };
     let mut present = vec![p.groups.is_empty(); freqs.len() * output::N_MEASURES];
     for name in &p.groups {
         let Some(g) = npe.header.groups.iter().find(|g| &g.name == name) else {
@@ -259,11 +275,7 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
             .into_par_iter()
             .map(|k| {
                 let row = case * 1_000_000 + k;
-                let mut rng = ChaCha8Rng::seed_from_u64(p.seed);
-                rng.set_stream(row as u64);
-                let (ear, severity) = model.ear(condition, rng.random::<f64>());
-                let clean = features(ear.as_ref(), &geometry, &air, &freqs);
-                let x = if p.noise_scale > 0.0 { noise.apply(&clean, row) } else { clean };
+                let (x, severity) = noisy_ear(model, condition, p, row, &freqs);
                 let mut o = read_ear(npe, &x, &present, p.samples, p.seed.wrapping_add(row as u64))?;
                 o.severity = severity;
                 Ok(o)
