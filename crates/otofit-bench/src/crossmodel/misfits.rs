@@ -58,6 +58,22 @@ pub struct MisfitRow {
 }
 
 impl MisfitRow {
+    /// A row with nothing counted yet.
+    fn new(model: ModelKind, condition: Condition) -> MisfitRow {
+        MisfitRow {
+            model,
+            condition,
+            misfits: 0,
+            fit_ok: 0,
+            closed_half: 0,
+            unexplained: 0,
+            no_discrepancy: 0,
+            worse: 0,
+            named: BTreeMap::new(),
+            per_ear: vec![],
+        }
+    }
+
     /// Counts one misfit ear's diagnosis: the base model's reduced χ² `before` and the
     /// best candidate's `best_after`.
     fn tally(&mut self, verdict: Verdict, named: Option<&'static str>, before: f64, best_after: Option<f64>) {
@@ -84,18 +100,7 @@ pub fn run(npe: &Npe, sim: &Model, p: &CrossParams, s: &Settings) -> Result<Vec<
     let mut rows = vec![];
     let cases = MODELS.iter().flat_map(|&m| CONDITIONS.iter().map(move |&c| (m, c)));
     for (case, (model, condition)) in cases.enumerate() {
-        let mut row = MisfitRow {
-            model,
-            condition,
-            misfits: 0,
-            fit_ok: 0,
-            closed_half: 0,
-            unexplained: 0,
-            no_discrepancy: 0,
-            worse: 0,
-            named: BTreeMap::new(),
-            per_ear: vec![],
-        };
+        let mut row = MisfitRow::new(model, condition);
         for k in 0..p.ears {
             let ear = case * 1_000_000 + k;
             let (x, _) = noisy_ear(model, condition, p, ear, &freqs);
@@ -149,18 +154,7 @@ mod tests {
     use super::*;
 
     fn row() -> MisfitRow {
-        MisfitRow {
-            model: ModelKind::Kringlebotn1988,
-            condition: Condition::Healthy,
-            misfits: 3,
-            fit_ok: 0,
-            closed_half: 0,
-            unexplained: 0,
-            no_discrepancy: 0,
-            worse: 0,
-            named: BTreeMap::new(),
-            per_ear: vec![],
-        }
+        MisfitRow { misfits: 3, ..MisfitRow::new(ModelKind::Kringlebotn1988, Condition::Healthy) }
     }
 
     #[test]
