@@ -27,7 +27,7 @@ pub use exact::ExactParams;
 pub use limits::MAX_ROWS;
 pub use resimulate::ResimulateParams;
 pub use simulate::{CHUNK_ROWS, SimulateParams, chunk_plan, progress_from_chunks, remove_temporary_files};
-pub use spec::{FieldError, JobSpec, KINDS, MAX_ID, effect_names, field_error, is_plain_id};
+pub use spec::{FieldError, JobSpec, KINDS, MAX_ID, effect_names, field_error, is_plain_id, theta_box};
 pub use train::TrainParams;
 
 use crate::npe::Npe;

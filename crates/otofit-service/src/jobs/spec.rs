@@ -7,7 +7,7 @@ use super::exact::ExactParams;
 use super::resimulate::ResimulateParams;
 use super::simulate::SimulateParams;
 use super::train::TrainParams;
-use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS, Scale, with_nominal_geometry};
+use crate::sim::params::{EFFECTS, Effects, N_TISSUE, PARAMS, ParamSpec, Scale, with_nominal_geometry};
 use crate::store::JobRow;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -194,24 +194,32 @@ pub(super) fn with_geometry(rows: &[Vec<f64>], n_effects: usize) -> Vec<Vec<f64>
     rows.iter().map(|r| if r.len() == N_TISSUE + n_effects { with_nominal_geometry(r) } else { r.clone() }).collect()
 }
 
+/// The values a job's `params.theta` may give parameter `p` (inclusive): its prior box
+/// widened each way. openapi.yaml's ThetaRow states the same bounds. Each end is the
+/// nearest double to a decimal of 12 significant digits (0.000115, not the sum's
+/// 0.00011499999999999999): one the contract can write and a JSON parser reads back as
+/// the same number, so a client that sends the stated bound gets it taken.
+pub fn theta_box(p: &ParamSpec) -> (f64, f64) {
+    let slack = 10f64.powf(THETA_SLACK_DECADES);
+    let (lo, hi) = match p.scale {
+        Scale::Log10 => (p.low / slack, p.high * slack),
+        // A box's width below its low end, or a decade where that would reach zero.
+        Scale::Linear => {
+            let below = p.low - (p.high - p.low);
+            (if below > 0.0 || p.low == 0.0 { below.max(0.0) } else { p.low / slack }, p.high + (p.high - p.low))
+        }
+    };
+    let tidy = |v: f64| format!("{v:.11e}").parse().unwrap_or(v);
+    (tidy(lo), tidy(hi))
+}
+
 /// Checks the parameter values of `params.theta` rows (effects columns are checked
 /// by the simulator's own range guard): every value the simulator cannot run with, or
 /// that lies beyond the prior box's slack, is named.
 pub(super) fn theta_values(rows: &[Vec<f64>], errs: &mut Vec<FieldError>) {
-    let slack = 10f64.powf(THETA_SLACK_DECADES);
     for (i, row) in rows.iter().enumerate() {
         for (k, (v, p)) in row.iter().zip(PARAMS.iter()).enumerate() {
-            let (lo, hi) = match p.scale {
-                Scale::Log10 => (p.low / slack, p.high * slack),
-                // A box's width below its low end, or a decade where that would reach zero.
-                Scale::Linear => {
-                    let below = p.low - (p.high - p.low);
-                    (
-                        if below > 0.0 || p.low == 0.0 { below.max(0.0) } else { p.low / slack },
-                        p.high + (p.high - p.low),
-                    )
-                }
-            };
+            let (lo, hi) = theta_box(p);
             if !p.physical(*v) || *v < lo || *v > hi {
                 let why = if p.physical(*v) { "the prior box widened each way" } else { "must be > 0" };
                 errs.push((
@@ -286,6 +294,27 @@ mod tests {
         assert!(s.get("theta").is_none() && s["n"] == 5, "{s}");
         let back = JobSpec::of(&stored(&JobSpec::parse("simulate", &json!({"n": 5})).unwrap())).unwrap();
         assert!(matches!(back, JobSpec::Simulate(SimulateParams { n: Some(5), .. })));
+    }
+
+    /// `theta_box` is what posting checks, both ends included (openapi.yaml's ThetaRow
+    /// states it as minimum and maximum). Just outside: 1e-12 relative, as JSON text
+    /// (serde_json's parse of a number may land an ulp off the value written).
+    #[test]
+    fn theta_values_on_the_box_edges_are_taken_and_just_outside_refused() {
+        let nominal: Vec<f64> = PARAMS.iter().map(|p| p.nominal).collect();
+        for (k, p) in PARAMS.iter().enumerate() {
+            let (lo, hi) = theta_box(p);
+            let (below, above) = (lo - (lo * 1e-12).max(1e-300), hi * (1.0 + 1e-12));
+            for (v, ok) in [(lo, true), (hi, true), (below, false), (above, false)] {
+                let mut row = nominal.clone();
+                row[k] = v;
+                let res = JobSpec::parse("resimulate", &json!({ "theta": [row] }));
+                match res {
+                    Ok(_) => assert!(ok, "{} = {v} taken", p.name),
+                    Err(e) => assert!(!ok && e[0].0 == format!("params.theta[0][{k}]"), "{} = {v}: {e:?}", p.name),
+                }
+            }
+        }
     }
 
     #[test]
