@@ -152,6 +152,17 @@ fn rigid_with_hole(model: &Model, fx: &Effects, f: f64) -> c64 {
     r.solution()[model.dofs.p_drum]
 }
 
+/// Asserts, at three frequencies, that the impedance behind a rigid drum with a hole of
+/// radius `a` is the hole's plug in series with `behind(ω)`.
+fn assert_hole_in_series_with(model: &Model, fx: &Effects, a: f64, behind: impl Fn(f64) -> c64) {
+    for f in [200.0, 1500.0, 4000.0] {
+        let w = 2.0 * std::f64::consts::PI * f;
+        let want = perforation_impedance(&model.air, a, w) + behind(w);
+        let z = rigid_with_hole(model, fx, f);
+        assert!((z - want).norm() < 1e-3 * want.norm(), "{f} Hz: {z} against {want}");
+    }
+}
+
 #[test]
 fn an_effusion_is_a_fluid_mass_in_series_with_the_air_left() {
     // Behind a rigid drum with a 1 mm hole: Z = Z_p + jωM_f + ρc²/(jωV(1 − φ)), the fluid's
@@ -162,13 +173,7 @@ fn an_effusion_is_a_fluid_mass_in_series_with_the_air_left() {
     fx.set("effusion", fill).unwrap();
     let v = Theta::nominal().cavity_volume() * (1.0 - fill);
     let m_f = 1000.0 * 2e-3 * fill / (std::f64::consts::PI * 4.0e-3 * 4.75e-3);
-    for f in [200.0, 1000.0, 4000.0] {
-        let w = 2.0 * std::f64::consts::PI * f;
-        let want =
-            perforation_impedance(&model.air, a, w) + c64::new(0.0, w * m_f - model.air.bulk_modulus() / (v * w));
-        let z = rigid_with_hole(&model, &fx, f);
-        assert!((z - want).norm() < 1e-3 * want.norm(), "{f} Hz: {z} against {want}");
-    }
+    assert_hole_in_series_with(&model, &fx, a, |w| c64::new(0.0, w * m_f - model.air.bulk_modulus() / (v * w)));
 }
 
 #[test]
@@ -232,16 +237,13 @@ fn a_mastoid_is_the_aditus_branch_in_parallel_with_the_tympanic_air() {
     let mut fx = with("perforation", a);
     fx.set("mastoid", behind).unwrap();
     let (v, k) = (Theta::nominal().cavity_volume(), model.air.bulk_modulus());
-    for f in [200.0, 1500.0, 4000.0] {
-        let w = 2.0 * std::f64::consts::PI * f;
+    assert_hole_in_series_with(&model, &fx, a, |w| {
         let jw = c64::new(0.0, w);
-        let x = f / 3500.0;
+        let x = w / (2.0 * std::f64::consts::PI * 3500.0);
         let cells = jw * (behind * v / k) / c64::new(1.0 - x * x, x / 0.4);
         let branch = 1.0 / (c64::new(1.7e6, w * 880.0) + 1.0 / cells);
-        let want = perforation_impedance(&model.air, a, w) + 1.0 / (jw * ((1.0 - behind) * v / k) + branch);
-        let z = rigid_with_hole(&model, &fx, f);
-        assert!((z - want).norm() < 1e-3 * want.norm(), "{f} Hz: {z} against {want}");
-    }
+        1.0 / (jw * ((1.0 - behind) * v / k) + branch)
+    });
 }
 
 #[test]
