@@ -202,7 +202,7 @@ async fn bad_requests_get_problems_that_name_the_field() {
     assert_eq!(p["errors"][0]["field"], "params.effects.probe_leak", "{p}");
     let (status, _, p) =
         call(&app, "POST", "/jobs", Some(json!({"kind": "train", "params": {"dataset": "nope"}}))).await;
-    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.dataset")));
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::NOT_FOUND, Some("params.dataset")));
     assert_eq!(call(&app, "GET", "/jobs/nope", None).await.0, StatusCode::NOT_FOUND);
     assert_eq!(call(&app, "GET", "/jobs?state=done", None).await.0, StatusCode::UNPROCESSABLE_ENTITY);
     assert_eq!(call(&app, "GET", "/nowhere", None).await.0, StatusCode::NOT_FOUND);
@@ -423,7 +423,9 @@ async fn exact_job_samples_the_likelihoods_posterior() {
     bad(json!({"x": x, "steps": 1000}), "params.steps").await;
     bad(json!({"x": vec![Value::Null; 350]}), "params.x").await;
     bad(json!({"x": [1.0, 2.0]}), "params.x").await;
-    bad(json!({"x": x, "model": "no-such-model"}), "params.model").await;
+    let unknown = json!({"kind": "exact", "params": {"x": x, "model": "no-such-model"}});
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(unknown)).await;
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::NOT_FOUND, Some("params.model")), "{p}");
 }
 
 /// Blocking HTTP/1.1 over std (the real binary, on a socket).
@@ -708,7 +710,7 @@ async fn diagnose_models_are_registered_ids_never_paths() {
         );
     }
     let (status, _, p) = call(&app, "POST", "/jobs", Some(diag(json!("ghost"), json!([1.0])))).await;
-    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert_eq!(status, StatusCode::NOT_FOUND, "{p}");
     assert_eq!(p["errors"][0]["message"], "model 'ghost' is not registered", "{p}");
     // The default model answers by its id before any /infer has loaded it; a wrong-length x
     // is refused now, not when the job runs.
@@ -1328,6 +1330,34 @@ async fn job_param_errors_carry_the_full_path() {
         assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
         assert_eq!(p["errors"][0]["field"], field, "{p}");
     }
+}
+
+/// An id in job params that names nothing is a 404 naming the field, as GET /models/{id}
+/// and GET /datasets/{id} answer; a dataset whose simulate job has not succeeded a 409.
+/// (They were 422s: a schema-valid body refused for the store's state, not its content.)
+#[tokio::test]
+async fn job_params_naming_no_model_or_dataset_are_404_and_an_unready_dataset_409() {
+    let (app, _, _dir) = app(vec![], 8, false).await;
+    let x = vec![0.5; 350];
+    let post = |kind: &str, params: Value| call(&app, "POST", "/jobs", Some(json!({"kind": kind, "params": params})));
+    let (status, _, queued) = post("simulate", json!({"n": 5})).await;
+    assert_eq!(status, StatusCode::ACCEPTED);
+    let (status, _, exact) = post("exact", json!({"x": x})).await;
+    assert_eq!(status, StatusCode::ACCEPTED);
+    for (kind, params, want, field) in [
+        ("train", json!({"dataset": "nope"}), StatusCode::NOT_FOUND, "params.dataset"),
+        ("train", json!({"dataset": exact["id"]}), StatusCode::NOT_FOUND, "params.dataset"),
+        ("train", json!({"dataset": queued["id"]}), StatusCode::CONFLICT, "params.dataset"),
+        ("diagnose", json!({"model": "ghost", "x": x}), StatusCode::NOT_FOUND, "params.model"),
+        ("exact", json!({"model": "ghost", "x": x}), StatusCode::NOT_FOUND, "params.model"),
+    ] {
+        let (status, headers, p) = post(kind, params.clone()).await;
+        assert_eq!((status, p["errors"][0]["field"].as_str()), (want, Some(field)), "{kind} {params}: {p}");
+        assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+        assert_eq!(p["status"], want.as_u16());
+    }
+    let (_, _, p) = post("train", json!({"dataset": queued["id"]})).await;
+    assert!(p["errors"][0]["message"].as_str().unwrap().ends_with("is not ready (job queued)"), "{p}");
 }
 
 /// A body field of the wrong type is named by its JSON path, not `body` or its

@@ -124,13 +124,13 @@ async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend
     let (_, models) = send(app, a, "GET", "/models", None).await;
     assert_eq!(ids(&models, "models"), vec!["default", "ma"], "{backend}");
 
-    // Another tenant's dataset and model cannot be used either: 422 as if unknown.
+    // Another tenant's dataset and model cannot be used either: 404 as if unknown.
     let train = json!({"kind": "train", "params": {"dataset": ja}});
     let (status, p) = send(app, b, "POST", "/jobs", Some(train)).await;
-    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.dataset")));
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::NOT_FOUND, Some("params.dataset")));
     let diagnose = json!({"kind": "diagnose", "params": {"model": "ma", "x": vec![0.5; 350]}});
     let (status, p) = send(app, b, "POST", "/jobs", Some(diagnose)).await;
-    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("params.model")));
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::NOT_FOUND, Some("params.model")));
     let mut infer = crate::http::nominal_request();
     infer["model"] = json!("ma");
     infer["samples"] = json!(10);

@@ -172,14 +172,19 @@ pub async fn create_job(
     let req: NewJob = json_body(&headers, &body)?;
     let spec = JobSpec::parse(&req.kind, &req.params).map_err(Problem::invalid)?;
     match &spec {
-        JobSpec::Train(p) => {
-            let ds = &p.dataset;
-            let found = visible_job(&st, &who, ds).await?;
-            if !matches!(found, Some(j) if j.kind == "simulate" && j.state == "succeeded") {
-                let message = format!("'{ds}' is not a succeeded simulate job");
-                return Err(Problem::invalid(vec![("params.dataset".into(), message)]));
+        // As GET /datasets/{id}: no such dataset (for this client) is a 404, one whose
+        // simulate job has not succeeded a 409; both name the field.
+        JobSpec::Train(p) => match visible_job(&st, &who, &p.dataset).await? {
+            Some(j) if j.kind == "simulate" && j.state == "succeeded" => {}
+            Some(j) if j.kind == "simulate" => {
+                let message = format!("dataset '{}' is not ready (job {})", p.dataset, j.state);
+                return Err(field_problem(StatusCode::CONFLICT, "params.dataset", message));
             }
-        }
+            _ => {
+                let message = format!("no dataset '{}' (a succeeded simulate job's id)", p.dataset);
+                return Err(field_problem(StatusCode::NOT_FOUND, "params.dataset", message));
+            }
+        },
         JobSpec::Diagnose(p) => model_takes(&st, &who, p.model.as_deref(), p.x.len()).await?,
         JobSpec::Exact(p) => model_takes(&st, &who, p.model.as_deref(), p.x.len()).await?,
         JobSpec::Simulate(_) | JobSpec::Resimulate(_) => {}
@@ -222,13 +227,22 @@ pub async fn create_job(
     Ok(r)
 }
 
-/// A diagnose job's base model (`params.model`, else the default) must be registered and
-/// take as many features as `params.x` has: both answered now, not when the job runs.
+/// A problem with `status` naming one field of the request (a 4xx other than 422).
+fn field_problem(status: StatusCode, field: &str, message: String) -> Problem {
+    let mut p = Problem::new(status, format!("{field}: {message}"));
+    p.errors = vec![super::FieldProblem { field: field.into(), message }];
+    p
+}
+
+/// A diagnose or exact job's model (`params.model`, else the default) must be registered
+/// (else a 404) and take as many features as `params.x` has (else a 422): both answered
+/// now, not when the job runs.
 async fn model_takes(st: &AppState, who: &Principal, model: Option<&str>, n: usize) -> Result<(), Problem> {
     let id = model.unwrap_or("default").to_string();
     let field = if model.is_some() { "params.model" } else { "params" };
+    // An id that names no model (for this client) is a 404, as GET /models/{id} answers.
     if visible_model(st, who, &id).await?.is_none() {
-        return Err(Problem::invalid(vec![(field.into(), format!("model '{id}' is not registered"))]));
+        return Err(field_problem(StatusCode::NOT_FOUND, field, format!("model '{id}' is not registered")));
     }
     let ctx = st.ctx.clone();
     let id2 = id.clone();
