@@ -1332,6 +1332,193 @@ async fn job_param_errors_carry_the_full_path() {
     }
 }
 
+/// The lines of component schema `name` in openapi.yaml (below its key, at four spaces;
+/// empty for a one-line schema, whose line is the first).
+fn component(name: &str) -> Vec<&'static str> {
+    let at = [format!("\n    {name}:\n"), format!("\n    {name}: ")]
+        .iter()
+        .find_map(|k| SPEC.find(k.as_str()))
+        .unwrap_or_else(|| panic!("openapi.yaml has no schema {name}"));
+    let mut lines = SPEC[at + 1..].lines();
+    let first = lines.next().unwrap();
+    std::iter::once(first).chain(lines.take_while(|l| l.starts_with("      "))).collect()
+}
+
+/// The names under a component schema's `properties:`, sorted.
+fn schema_properties(name: &str) -> Vec<String> {
+    let (mut inside, mut names) = (false, vec![]);
+    for l in component(name).into_iter().skip(1) {
+        let indent = l.len() - l.trim_start().len();
+        if indent == 6 {
+            inside = l.trim() == "properties:";
+        } else if inside && indent == 8 {
+            names.push(l.trim().split(':').next().unwrap().to_string());
+        }
+    }
+    names.sort();
+    names
+}
+
+/// The names of a component schema's own `required: [...]` (none if it has none).
+fn schema_required(name: &str) -> Vec<String> {
+    component(name).into_iter().find(|l| l.starts_with("      required: [")).map_or(vec![], |l| {
+        l.trim().trim_start_matches("required: [").trim_end_matches(']').split(", ").map(str::to_string).collect()
+    })
+}
+
+/// The number after `key: ` in a one-line flow mapping.
+fn flow_number(line: &str, key: &str) -> f64 {
+    let rest = line.split_once(&format!("{key}: ")).unwrap_or_else(|| panic!("no {key} in {line}")).1;
+    rest.split([',', ' ', '}']).next().unwrap().parse().unwrap_or_else(|e| panic!("{key} in {line}: {e}"))
+}
+
+/// The line of property `field` of component schema `schema`.
+fn property_line(schema: &str, field: &str) -> &'static str {
+    let key = format!("        {field}: ");
+    component(schema).into_iter().find(|l| l.starts_with(&key)).unwrap_or_else(|| panic!("{schema} has no {field}"))
+}
+
+/// openapi.yaml's params schema of a job kind (`SimulateParams` for `simulate`).
+fn params_schema(kind: &str) -> String {
+    format!("{}{}Params", kind[..1].to_uppercase(), &kind[1..])
+}
+
+/// A job's params as the server stores them (every field it has a default for written
+/// out), one per kind: together they give every field but `theta` of a simulate job.
+fn full_params() -> Vec<(&'static str, Value)> {
+    let x = vec![0.5; 350];
+    let nominal: Vec<f64> = otofit::sim::params::PARAMS.iter().map(|p| p.nominal).collect();
+    let given = [
+        ("simulate", json!({"n": 5, "effects": {"probe_leak": 1e-4}, "vary": ["probe_offset"]})),
+        ("train", json!({"dataset": "d1"})),
+        ("resimulate", json!({"theta": [nominal], "observation": x})),
+        ("diagnose", json!({"x": x, "model": "default", "candidates": ["probe_leak"]})),
+        ("exact", json!({"x": x, "model": "default"})),
+    ];
+    given.into_iter().map(|(k, p)| (k, jobs::JobSpec::parse(k, &p).unwrap().params())).collect()
+}
+
+/// Contract and server agree on each job kind's params: openapi.yaml types `params`
+/// per kind (NewJob: one schema per kind, picked by `kind`), with exactly the fields the
+/// server reads, so one kind's params are refused under another by both, for the same
+/// field. (Before, any object was schema-valid params for every kind: an `exact` job
+/// with a simulate job's params passed the schema and got a 422.)
+#[tokio::test]
+async fn each_job_kind_has_its_own_params_in_the_contract_and_the_server() {
+    let (app, _, _dir) = app(vec![], 8, false).await;
+    let new_job = component("NewJob").join("\n");
+    for kind in jobs::KINDS {
+        let params = params_schema(kind);
+        let job = component(&params.replace("Params", "Job")).join("\n");
+        assert!(new_job.contains(&format!("{kind}: \"#/components/schemas/{}Job\"", &params[..params.len() - 6])));
+        assert!(job.contains(&format!("kind: {{ type: string, const: {kind} }}")), "{job}");
+        assert!(job.contains(&format!("params: {{ $ref: \"#/components/schemas/{params}\" }}")), "{job}");
+        assert!(component(&params).contains(&"      additionalProperties: false"), "{params}");
+        // The server's fields, as serde lists them for an unknown one.
+        let body = json!({"kind": kind, "params": {"zz_unknown": 0}});
+        let (status, _, p) = call(&app, "POST", "/jobs", Some(body)).await;
+        assert_eq!(
+            (status, p["errors"][0]["field"].as_str()),
+            (StatusCode::UNPROCESSABLE_ENTITY, Some("params.zz_unknown"))
+        );
+        let message = p["errors"][0]["message"].as_str().unwrap();
+        let mut fields: Vec<String> =
+            message.split_once("expected").unwrap().1.split('`').skip(1).step_by(2).map(str::to_string).collect();
+        fields.sort();
+        assert_eq!(schema_properties(&params), fields, "{kind}: {message}");
+    }
+    let full = full_params();
+    for (kind, params) in &full {
+        let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": kind, "params": params}))).await;
+        // Valid for its own kind (train's dataset d1 does not exist: a 404).
+        let want = if *kind == "train" { StatusCode::NOT_FOUND } else { StatusCode::ACCEPTED };
+        assert_eq!(status, want, "{kind}: {p}");
+        for (other, _) in full.iter().filter(|(k, _)| k != kind) {
+            let schema = params_schema(other);
+            let (props, required) = (schema_properties(&schema), schema_required(&schema));
+            let given: Vec<&String> = params.as_object().unwrap().keys().collect();
+            let unknown: Vec<&&String> = given.iter().filter(|k| !props.contains(k)).collect();
+            let missing: Vec<&String> = required.iter().filter(|r| !given.contains(r)).collect();
+            assert!(!unknown.is_empty() || !missing.is_empty(), "{schema} takes {kind}'s params {params}");
+            let body = json!({"kind": other, "params": params});
+            let (status, headers, p) = call(&app, "POST", "/jobs", Some(body)).await;
+            assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{other} with {kind}'s params: {p}");
+            assert_eq!(headers[header::CONTENT_TYPE], "application/problem+json");
+            let field = p["errors"][0]["field"].as_str().unwrap().strip_prefix("params.").unwrap().to_string();
+            assert!(
+                unknown.iter().any(|u| ***u == field) || missing.iter().any(|m| **m == field),
+                "{other} with {kind}'s params: the server names {field}, the schema refuses {unknown:?} {missing:?}"
+            );
+        }
+    }
+    // The case schemathesis found: an exact job with a simulate job's params.
+    let simulate = &full.iter().find(|(k, _)| *k == "simulate").unwrap().1;
+    let (status, _, p) = call(&app, "POST", "/jobs", Some(json!({"kind": "exact", "params": simulate}))).await;
+    let field = p["errors"][0]["field"].as_str().unwrap();
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{p}");
+    assert!(["params.effects", "params.n", "params.noise_scale", "params.vary"].contains(&field), "{p}");
+}
+
+/// The bounds openapi.yaml states for job params are the server's: theta's values (its
+/// prior boxes widened), the effects' ranges and names, one width of simulate rows per
+/// count of varied effects, and the job limits.
+#[test]
+fn job_params_schema_states_the_servers_bounds() {
+    use otofit::jobs::limits;
+    use otofit::sim::params::{EFFECTS, N_EFFECTS, PARAMS};
+    let columns: Vec<&str> = component("ThetaRow").into_iter().filter(|l| l.trim_start().starts_with("- &t")).collect();
+    assert_eq!(columns.len(), PARAMS.len());
+    for (l, p) in columns.iter().zip(PARAMS.iter()) {
+        assert!(l.contains(&format!("description: \"{}, {}\"", p.name, p.unit)), "{l}");
+        let (lo, hi) = jobs::theta_box(p);
+        assert_eq!((flow_number(l, "minimum"), flow_number(l, "maximum")), (lo, hi), "{}", p.name);
+    }
+    let names: Vec<&str> = EFFECTS.iter().map(|e| e.name).collect();
+    assert_eq!(component("EffectName")[0], format!("    EffectName: {{ type: string, enum: [{}] }}", names.join(", ")));
+    let mut sorted = names.clone();
+    sorted.sort();
+    assert_eq!(schema_properties("Effects"), sorted);
+    for e in EFFECTS {
+        let l = property_line("Effects", e.name);
+        assert_eq!((flow_number(l, "minimum"), flow_number(l, "maximum")), (e.low, e.high), "{}", e.name);
+        if !(e.low..=e.high).contains(&e.off) {
+            assert_eq!(flow_number(l, "const"), e.off, "{}", e.name);
+        }
+    }
+    let rows = component("SimulateRows").join("\n");
+    for k in 1..=N_EFFECTS + 1 {
+        let branch = rows.contains(&format!("vary: {{ minItems: {k}, maxItems: {k} }}"));
+        assert_eq!(branch, k <= N_EFFECTS, "simulate rows with {k} varied effects");
+    }
+    for (schema, field, range) in [
+        ("SimulateParams", "n", limits::SIMULATE_ROWS),
+        ("TrainParams", "max_epochs", limits::EPOCHS),
+        ("TrainParams", "ensemble", limits::ENSEMBLE),
+        ("DiagnoseParams", "train_rows", limits::TRAIN_ROWS),
+        ("DiagnoseParams", "max_epochs", limits::EPOCHS),
+        ("DiagnoseParams", "null_cases", limits::NULL_CASES),
+        ("ExactParams", "steps", limits::EXACT_STEPS),
+    ] {
+        let l = property_line(schema, field);
+        assert_eq!(
+            (flow_number(l, "minimum"), flow_number(l, "maximum")),
+            (*range.start() as f64, *range.end() as f64),
+            "{schema}.{field}"
+        );
+    }
+    for (schema, range) in [("SimulateParams", limits::THETA_ROWS), ("ResimulateParams", limits::RESIMULATE_ROWS)] {
+        let l = property_line(schema, "theta");
+        assert_eq!(
+            (flow_number(l, "minItems"), flow_number(l, "maxItems")),
+            (*range.start() as f64, *range.end() as f64),
+            "{schema}.theta"
+        );
+    }
+    let features = (otofit::sim::output::N_MEASURES * otofit::sim::ModelConfig::default().frequencies.len()) as f64;
+    let l = property_line("ResimulateParams", "observation");
+    assert_eq!((flow_number(l, "minItems"), flow_number(l, "maxItems")), (features, features));
+}
+
 /// An id in job params that names nothing is a 404 naming the field, as GET /models/{id}
 /// and GET /datasets/{id} answer; a dataset whose simulate job has not succeeded a 409.
 /// (They were 422s: a schema-valid body refused for the store's state, not its content.)
