@@ -928,8 +928,7 @@ pub struct Runner<'m> {
 /// probe, what the canal walls dissipate, what enters the middle ear at the drum, and
 /// where the middle ear dissipates it: probe = canal + into_drum and into_drum =
 /// mechanical (a closed cavity stores, never dissipates; a mastoid's aditus and cells do).
-/// The probe leak and the probe offset
-/// act on Z_ec after the solve and are not part of it.
+/// The probe leak and the probe offset act on Z_ec after the solve and are not part of it.
 #[derive(Clone, Copy, Debug)]
 pub struct PowerBalance {
     /// Frequency, Hz.
@@ -940,7 +939,7 @@ pub struct PowerBalance {
     pub canal: f64,
     /// Power entering the middle ear at the drum (through a perforation too).
     pub into_drum: f64,
-    /// All middle-ear dissipation: the sum of the nine parts below.
+    /// All middle-ear dissipation: the sum of the eight parts below.
     pub mechanical: f64,
     /// The eardrum's loss (Rayleigh and, when on, viscoelastic), interior and disc.
     pub drum: f64,
