@@ -1299,13 +1299,15 @@ async fn only_the_current_attempt_can_end_a_job() {
     assert_eq!((first.attempts, second.attempts), (1, 2));
     let (t1, t2) = (first.lease_token.unwrap(), second.lease_token.unwrap());
     assert_ne!(t1, t2);
-    assert!(!store.finish("j", &t1, "succeeded", None, Some(&json!({"late": true}))).await.unwrap());
+    assert!(
+        !store.finish("j", &t1, otofit::store::JobState::Succeeded, None, Some(&json!({"late": true}))).await.unwrap()
+    );
     assert!(!store.requeue("j", &t1).await.unwrap());
     assert!(!store.heartbeat("j", &t1, jobs::DEFAULT_LEASE).await.unwrap());
     let j = store.job("j").await.unwrap().unwrap();
     assert_eq!((j.state.as_str(), j.result), ("running", None), "the late worker changed nothing");
     assert!(store.heartbeat("j", &t2, jobs::DEFAULT_LEASE).await.unwrap());
-    assert!(store.finish("j", &t2, "succeeded", None, Some(&json!({"rows": 5}))).await.unwrap());
+    assert!(store.finish("j", &t2, otofit::store::JobState::Succeeded, None, Some(&json!({"rows": 5}))).await.unwrap());
     assert_eq!(store.job("j").await.unwrap().unwrap().state, "succeeded");
 }
 

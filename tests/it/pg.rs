@@ -284,11 +284,17 @@ async fn an_expired_lease_is_taken_back_and_the_stale_worker_is_fenced_out() {
         // A wakes up: its renewal, progress, result and re-queue are all refused.
         assert!(!a.heartbeat("j", &t1, short).await.unwrap(), "{name}");
         a.progress("j", &t1, 0.9, "stale").await.unwrap();
-        assert!(!a.finish("j", &t1, "succeeded", None, Some(&json!({"stale": true}))).await.unwrap(), "{name}");
+        assert!(
+            !a.finish("j", &t1, otofit::store::JobState::Succeeded, None, Some(&json!({"stale": true}))).await.unwrap(),
+            "{name}"
+        );
         assert!(!a.requeue("j", &t1).await.unwrap(), "{name}");
         let j = b.job("j").await.unwrap().unwrap();
         assert_eq!((j.state.as_str(), j.progress, j.result), ("running", 0.0, None), "{name}");
-        assert!(b.finish("j", &t2, "succeeded", None, Some(&json!({"rows": 5}))).await.unwrap(), "{name}");
+        assert!(
+            b.finish("j", &t2, otofit::store::JobState::Succeeded, None, Some(&json!({"rows": 5}))).await.unwrap(),
+            "{name}"
+        );
         assert_eq!(b.job("j").await.unwrap().unwrap().state, "succeeded", "{name}");
         // On its last attempt an expired job fails instead of coming back forever.
         assert!(a.insert_job_within("k", "simulate", &json!({"n": 5}), 1, 8).await.unwrap());

@@ -59,7 +59,12 @@ pub(crate) async fn succeeded_simulate(app: &Router, ctx: &Ctx, key: &str) -> St
     std::fs::create_dir_all(&reports).unwrap();
     std::fs::write(reports.join("report.html"), "<p>report</p>").unwrap();
     let token = claimed.lease_token.unwrap();
-    assert!(ctx.store.finish(&id, &token, "succeeded", None, Some(&json!({"rows": 3}))).await.unwrap());
+    assert!(
+        ctx.store
+            .finish(&id, &token, otofit::store::JobState::Succeeded, None, Some(&json!({"rows": 3})))
+            .await
+            .unwrap()
+    );
     id
 }
 
@@ -288,7 +293,7 @@ async fn a_tenant_cannot_fill_the_whole_queue() {
         // A job of alpha's ends: alpha may post again.
         let claimed = ctx.store.claim("test", Duration::from_secs(30)).await.unwrap().unwrap();
         let token = claimed.lease_token.unwrap();
-        assert!(ctx.store.finish(&claimed.id, &token, "succeeded", None, None).await.unwrap());
+        assert!(ctx.store.finish(&claimed.id, &token, otofit::store::JobState::Succeeded, None, None).await.unwrap());
         assert_eq!(send(&app, Some(&alpha), "POST", "/jobs", job()).await.0, StatusCode::ACCEPTED, "{name}");
     }
 }

@@ -126,6 +126,63 @@ pub struct ModelRow {
     pub tenant: Option<String>,
 }
 
+/// Where a job is in its life: queued → running → succeeded, failed or cancelled (a
+/// failed attempt with attempts left, or a job re-queued at shutdown, is queued again).
+/// Stored and served as its lower-case name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum JobState {
+    /// Waiting for a worker (or for its retry's backoff to pass).
+    Queued,
+    /// Claimed by a worker under a lease.
+    Running,
+    /// Ended with a result.
+    Succeeded,
+    /// Ended without one, its attempts spent.
+    Failed,
+    /// Ended at a client's request.
+    Cancelled,
+}
+
+impl JobState {
+    /// Every state, in the order of a job's life.
+    pub const ALL: [JobState; 5] =
+        [JobState::Queued, JobState::Running, JobState::Succeeded, JobState::Failed, JobState::Cancelled];
+
+    /// The stored and served name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobState::Queued => "queued",
+            JobState::Running => "running",
+            JobState::Succeeded => "succeeded",
+            JobState::Failed => "failed",
+            JobState::Cancelled => "cancelled",
+        }
+    }
+
+    /// The state called `name`, if any.
+    pub fn parse(name: &str) -> Option<JobState> {
+        JobState::ALL.into_iter().find(|s| s.as_str() == name)
+    }
+
+    /// Queued or running: not ended.
+    pub fn is_active(self) -> bool {
+        matches!(self, JobState::Queued | JobState::Running)
+    }
+}
+
+impl std::fmt::Display for JobState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl PartialEq<&str> for JobState {
+    fn eq(&self, other: &&str) -> bool {
+        self.as_str() == *other
+    }
+}
+
 /// A job as stored: its spec, where it is in its life and how it ended.
 #[derive(Clone, Debug, Serialize)]
 pub struct JobRow {
@@ -135,8 +192,8 @@ pub struct JobRow {
     pub tenant: String,
     /// `simulate`, `train`, `diagnose` or another kind of `JobSpec`.
     pub kind: String,
-    /// `queued`, `running`, `succeeded`, `failed` or `cancelled`.
-    pub state: String,
+    /// Where the job is in its life.
+    pub state: JobState,
     /// The job's parameters as JSON (the `JobSpec` without its kind).
     pub params: serde_json::Value,
     /// Fraction done, 0 to 1, as last reported by the worker.
@@ -231,12 +288,16 @@ impl_cols!(PgRow);
 
 fn job_from(row: &impl Cols) -> Result<JobRow, sqlx::Error> {
     let json = |s: Option<String>| s.and_then(|s| serde_json::from_str(&s).ok());
-    let state = row.text("state")?;
+    let text = row.text("state")?;
+    let state = JobState::parse(&text).ok_or_else(|| sqlx::Error::ColumnDecode {
+        index: "state".into(),
+        source: format!("unknown job state '{text}'").into(),
+    })?;
     Ok(JobRow {
         id: row.text("id")?,
         tenant: row.text("tenant")?,
         kind: row.text("kind")?,
-        retry_at: row.opt_int("run_after_ms")?.filter(|_| state == "queued").map(rfc3339_ms),
+        retry_at: row.opt_int("run_after_ms")?.filter(|_| state == JobState::Queued).map(rfc3339_ms),
         state,
         params: json(Some(row.text("params")?)).unwrap_or(serde_json::Value::Null),
         progress: row.real("progress")?,
@@ -594,7 +655,7 @@ impl Store {
         &self,
         id: &str,
         token: &str,
-        state: &str,
+        state: JobState,
         error: Option<&str>,
         result: Option<&serde_json::Value>,
     ) -> Result<bool, sqlx::Error> {
@@ -603,7 +664,7 @@ impl Store {
              WHERE id = $5 AND state = 'running' AND lease_token = $6";
         let (result, ts) = (result.map(|r| r.to_string()), now());
         let n = on_pool!(self, p => sqlx::query(SQL)
-            .bind(state)
+            .bind(state.as_str())
             .bind(error)
             .bind(&result)
             .bind(&ts)
@@ -743,6 +804,19 @@ mod tests {
         let e = store.job("j1").await.expect_err("a text progress must not read as a job");
         assert!(e.to_string().contains("progress"), "{e}");
         assert!(store.jobs(None, 10, None).await.is_err());
+        sqlx::query("UPDATE jobs SET progress = 0.5, state = 'paused' WHERE id = 'j1'").execute(pool).await.unwrap();
+        let e = store.job("j1").await.expect_err("a state no job has must not read as a job");
+        assert!(e.to_string().contains("unknown job state 'paused'"), "{e}");
+    }
+
+    #[test]
+    fn job_states_are_served_by_their_stored_names() {
+        for s in JobState::ALL {
+            assert_eq!(JobState::parse(s.as_str()), Some(s));
+            assert_eq!(serde_json::to_value(s).unwrap(), s.as_str());
+        }
+        assert_eq!(JobState::parse("Queued"), None);
+        assert!(JobState::Running.is_active() && !JobState::Cancelled.is_active());
     }
 
     #[test]

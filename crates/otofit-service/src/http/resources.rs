@@ -2,7 +2,7 @@
 
 use super::{AppState, Principal, Problem, json_body};
 use crate::jobs::{self, JobSpec};
-use crate::store::{Admission, QueueBounds};
+use crate::store::{Admission, JobState, QueueBounds};
 use axum::body::Bytes;
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -311,11 +311,11 @@ pub async fn list_jobs(
     Extension(who): Extension<Principal>,
     StrictQuery(q): StrictQuery<JobQuery>,
 ) -> Result<Json<serde_json::Value>, Problem> {
-    const STATES: [&str; 5] = ["queued", "running", "succeeded", "failed", "cancelled"];
     if let Some(s) = &q.state
-        && !STATES.contains(&s.as_str())
+        && JobState::parse(s).is_none()
     {
-        return Err(Problem::invalid(vec![("state".into(), format!("must be one of {}", STATES.join(", ")))]));
+        let names: Vec<&str> = JobState::ALL.iter().map(|s| s.as_str()).collect();
+        return Err(Problem::invalid(vec![("state".into(), format!("must be one of {}", names.join(", ")))]));
     }
     let limit = q.limit.unwrap_or(100);
     if !(1..=1000).contains(&limit) {
@@ -355,7 +355,7 @@ pub async fn cancel_job(
 ) -> Result<Response, Problem> {
     match visible_job(&st, &who, &id).await? {
         None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'"))),
-        Some(j) if ["succeeded", "failed", "cancelled"].contains(&j.state.as_str()) => {
+        Some(j) if !j.state.is_active() => {
             Err(Problem::new(StatusCode::CONFLICT, format!("job '{id}' already ended ({})", j.state)))
         }
         Some(_) => {

@@ -31,7 +31,7 @@ pub use spec::{FieldError, JobSpec, KINDS, MAX_ID, effect_names, field_error, is
 pub use train::TrainParams;
 
 use crate::npe::Npe;
-use crate::store::{JobRow, Store};
+use crate::store::{JobRow, JobState, Store};
 use anyhow::{Context, Result, anyhow, bail};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -510,8 +510,8 @@ async fn settle(
         // configured) before the job shows as ended.
         Ok(Ok(doc)) => match put_outputs(ctx, id, token, renew).await {
             Ok(()) => {
-                let state = if stop.cancelled { "cancelled" } else { "succeeded" };
-                (state, store.finish(id, token, state, None, Some(&doc)).await)
+                let state = if stop.cancelled { JobState::Cancelled } else { JobState::Succeeded };
+                (state.as_str(), store.finish(id, token, state, None, Some(&doc)).await)
             }
             Err(e) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
             Err(e) => fail(scrub(ctx, &format!("{e:#}"))).await,
@@ -520,7 +520,7 @@ async fn settle(
             if leaves.dataset {
                 simulate::clear_cancelled(ctx, id, token).await;
             }
-            ("cancelled", store.finish(id, token, "cancelled", None, None).await)
+            ("cancelled", store.finish(id, token, JobState::Cancelled, None, None).await)
         }
         Ok(Err(e)) => fail(scrub(ctx, &format!("{e:#}"))).await,
     }
@@ -553,7 +553,7 @@ async fn clean_up(ctx: &Ctx, job: &JobRow, token: &str, label: &str, owned: bool
         // An absolute path (every process sharing the data directory, mounted at the same
         // path, loads the model there whatever its working directory) or the model's URL
         // in the object store (every process fetches it from there).
-        if matches!(j.state.as_str(), "succeeded" | "cancelled")
+        if matches!(j.state, JobState::Succeeded | JobState::Cancelled)
             && file.exists()
             && let Ok(path) = ctx.artifacts.model_ref(&job.id)
         {

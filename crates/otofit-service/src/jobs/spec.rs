@@ -258,7 +258,7 @@ mod tests {
             id: "j".into(),
             tenant: "t".into(),
             kind: spec.kind().into(),
-            state: "queued".into(),
+            state: crate::store::JobState::Queued,
             params: spec.params(),
             progress: 0.0,
             message: String::new(),

@@ -143,7 +143,7 @@ fn remove_ended_checkpoints(ctx: &Ctx) -> usize {
     ids.dedup();
     ids.iter()
         .filter(|id| match rt.block_on(ctx.store.job(id)) {
-            Ok(Some(j)) => !matches!(j.state.as_str(), "queued" | "running"),
+            Ok(Some(j)) => !j.state.is_active(),
             Ok(None) => true,
             Err(_) => false,
         })
