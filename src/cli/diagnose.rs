@@ -118,7 +118,7 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     false_alarms(&draw, &base, &s, clean)?;
     println!("visible: the effect's noise-free signature Σ(Δx/σ)² > {VISIBLE}");
     println!(
-        "{:<18} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  named % by fifth of the range, detection limit, other verdicts",
+        "{:<18} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  named % by fifth of the range (weakest first), detection limit, other verdicts",
         "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit"
     );
     for e in 0..EFFECTS.len() {
@@ -227,7 +227,11 @@ fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, ca
         vis += usize::from(visible);
         before.push(r.before.reduced_chi2);
         let t = truth.unwrap_or(f64::NAN);
-        let bin = ((unit_of(&spec, t) * SIZE_BINS as f64) as usize).min(SIZE_BINS - 1);
+        // Bins run from the weakest fifth to the strongest: an effect whose off value lies
+        // above its range (a joint factor below 1, an underpressure) grows toward `low`.
+        let u = unit_of(&spec, t);
+        let strength = if grows_downward(effect) { 1.0 - u } else { u };
+        let bin = ((strength * SIZE_BINS as f64) as usize).min(SIZE_BINS - 1);
         bins[bin].0 += 1;
         if r.named == Some(effect.name) {
             named += 1;
@@ -247,7 +251,11 @@ fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, ca
         .map(|&(k, m)| if k == 0 { "–".into() } else { format!("{:.0}", 100.0 * m as f64 / k as f64) })
         .collect();
     let limit = match detection_limit(&bins) {
-        Some(b) => format!("{:.3e} {}", spec.from_unit(b as f64 / SIZE_BINS as f64), effect.unit),
+        Some(b) => {
+            let edge = b as f64 / SIZE_BINS as f64;
+            let u = if grows_downward(effect) { 1.0 - edge } else { edge };
+            format!("{:.3e} {}", spec.from_unit(u), effect.unit)
+        }
         None => "none".into(),
     };
     println!(
@@ -266,8 +274,13 @@ fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, ca
     Ok(())
 }
 
-/// Fifths of an effect's range (in its scale: log for log-scaled effects) that the
-/// naming rate is reported by.
+/// Whether `effect` grows toward the low end of its range (its off value lies above it).
+fn grows_downward(effect: &crate::sim::params::EffectSpec) -> bool {
+    effect.off >= effect.high
+}
+
+/// Fifths of an effect's range (in its scale: log for log-scaled effects), weakest
+/// first, that the naming rate is reported by.
 const SIZE_BINS: usize = 5;
 
 /// The detection limit's bin: the smallest bin from which every larger bin (each with
@@ -309,6 +322,13 @@ const VISIBLE: f64 = 50.0;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn effects_whose_off_value_lies_above_their_range_grow_downward() {
+        let named = |n: &str| &EFFECTS[crate::sim::Effects::index(n).unwrap()];
+        assert!(grows_downward(named("isj_discontinuity")) && grows_downward(named("pressure")));
+        assert!(!grows_downward(named("perforation")) && !grows_downward(named("effusion")));
+    }
 
     #[test]
     fn the_detection_limit_is_where_every_larger_size_is_named() {
