@@ -388,9 +388,10 @@ impl Store {
             .busy_timeout(Duration::from_secs(5))
             .foreign_keys(true);
         let pool = SqlitePoolOptions::new().max_connections(4).connect_with(opts).await?;
-        relabel::sqlite(&pool, &SQLITE_MIGRATIONS).await?;
+        let store = Store { pool: Pool::Sqlite(pool.clone()) };
+        relabel::repair(&store, &SQLITE_MIGRATIONS, &relabel::SQLITE).await?;
         SQLITE_MIGRATIONS.run(&pool).await?;
-        Ok(Store { pool: Pool::Sqlite(pool) })
+        Ok(store)
     }
 
     /// Connects to PostgreSQL and applies its migrations (`migrations/postgres`; sqlx takes
@@ -398,9 +399,10 @@ impl Store {
     pub async fn open_postgres(url: &str) -> Result<Store, sqlx::Error> {
         let pool =
             PgPoolOptions::new().max_connections(8).acquire_timeout(Duration::from_secs(10)).connect(url).await?;
-        relabel::postgres(&pool, &POSTGRES_MIGRATIONS).await?;
+        let store = Store { pool: Pool::Postgres(pool.clone()) };
+        relabel::repair(&store, &POSTGRES_MIGRATIONS, &relabel::POSTGRES).await?;
         POSTGRES_MIGRATIONS.run(&pool).await?;
-        Ok(Store { pool: Pool::Postgres(pool) })
+        Ok(store)
     }
 
     /// Opens the store `db` names.

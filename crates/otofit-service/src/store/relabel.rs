@@ -5,11 +5,11 @@
 //! one's — only when it is exactly the old wording's, so a migration changed in any
 //! other way is still refused.
 
+use super::{Pool, Store};
 use sqlx::migrate::Migrator;
-use sqlx::{PgPool, SqlitePool};
 
 /// (version, SHA-384 in hex of the text as first released), SQLite tree.
-const SQLITE: [(i64, &str); 4] = [
+pub(super) const SQLITE: [(i64, &str); 4] = [
     (2, "40688739b960fbb61afd6a6440f6ddb80e77c18bb20f85e0c0196d929943ef5543c687b8f33a03a140fadf095da6334a"),
     (3, "5e8c1ee0b5da65d3325926acc89e4766911c67f5e31a3624bc4c86d343dd555d936cfdf61a45fba893717f3c48191399"),
     (4, "826d8dfd4a80669c0eec0a8c77d17c2cf8de129d41163faf768166228ef4c662406fccdf9b85822df2e24416afb7fc47"),
@@ -17,7 +17,7 @@ const SQLITE: [(i64, &str); 4] = [
 ];
 
 /// The same for the PostgreSQL tree.
-const POSTGRES: [(i64, &str); 1] =
+pub(super) const POSTGRES: [(i64, &str); 1] =
     [(3, "00697cc548db7905e80717a0a46c9276848e34266ed456173b7d5081cd31548ccd9521d86ee6a9b305387fa31245eb79")];
 
 fn unhex(s: &str) -> Vec<u8> {
@@ -34,44 +34,22 @@ fn moves(migrator: &Migrator, old: &[(i64, &str)]) -> Vec<(i64, Vec<u8>, Vec<u8>
         .collect()
 }
 
-/// Moves the old wordings' checksums to the new ones in a SQLite database.
-pub(super) async fn sqlite(pool: &SqlitePool, migrator: &Migrator) -> Result<(), sqlx::Error> {
-    let table: Option<(String,)> =
-        sqlx::query_as("SELECT name FROM sqlite_master WHERE type = 'table' AND name = '_sqlx_migrations'")
-            .fetch_optional(pool)
-            .await?;
+/// Moves the old wordings' checksums to the new ones in the store's database, for the
+/// reworded migrations `released` of `migrator`'s tree.
+pub(super) async fn repair(store: &Store, migrator: &Migrator, released: &[(i64, &str)]) -> Result<(), sqlx::Error> {
+    const SQLITE_TABLE: &str = "SELECT name FROM sqlite_master WHERE type = 'table' AND name = '_sqlx_migrations'";
+    const POSTGRES_TABLE: &str = "SELECT table_name::text FROM information_schema.tables \
+         WHERE table_schema = current_schema() AND table_name = '_sqlx_migrations'";
+    let table: Option<(String,)> = match &store.pool {
+        Pool::Sqlite(p) => sqlx::query_as(SQLITE_TABLE).fetch_optional(p).await?,
+        Pool::Postgres(p) => sqlx::query_as(POSTGRES_TABLE).fetch_optional(p).await?,
+    };
     if table.is_none() {
         return Ok(()); // a new database: nothing applied yet
     }
-    for (v, old, new) in moves(migrator, &SQLITE) {
-        sqlx::query("UPDATE _sqlx_migrations SET checksum = ? WHERE version = ? AND checksum = ?")
-            .bind(new)
-            .bind(v)
-            .bind(old)
-            .execute(pool)
-            .await?;
-    }
-    Ok(())
-}
-
-/// Moves the old wordings' checksums to the new ones in a PostgreSQL database.
-pub(super) async fn postgres(pool: &PgPool, migrator: &Migrator) -> Result<(), sqlx::Error> {
-    let table: Option<(String,)> = sqlx::query_as(
-        "SELECT table_name::text FROM information_schema.tables \
-         WHERE table_schema = current_schema() AND table_name = '_sqlx_migrations'",
-    )
-    .fetch_optional(pool)
-    .await?;
-    if table.is_none() {
-        return Ok(());
-    }
-    for (v, old, new) in moves(migrator, &POSTGRES) {
-        sqlx::query("UPDATE _sqlx_migrations SET checksum = $1 WHERE version = $2 AND checksum = $3")
-            .bind(new)
-            .bind(v)
-            .bind(old)
-            .execute(pool)
-            .await?;
+    const SQL: &str = "UPDATE _sqlx_migrations SET checksum = $1 WHERE version = $2 AND checksum = $3";
+    for (v, old, new) in moves(migrator, released) {
+        on_pool!(store, p => sqlx::query(SQL).bind(&new).bind(v).bind(&old).execute(p).await?.rows_affected());
     }
     Ok(())
 }
