@@ -1,6 +1,7 @@
 //! The physics of the optional effects that change the middle ear's own coefficients:
 //! fluid in the middle ear, a static pressure across the drum, a mastoid air-cell network
-//! behind the aditus, an interrupted incudostapedial joint (`params::EFFECTS`). The
+//! behind the aditus, an interrupted incudostapedial joint, a fixed malleus
+//! (`params::EFFECTS`). The
 //! perforation and the third window live beside the terms they change in `model.rs`.
 //!
 //! The cavity row of the system reads c_row·(V_drum + U_hole/jω) − c_diag·p_cav = 0, so
@@ -107,4 +108,35 @@ pub fn cavity_coefficients(air: &Air, v: f64, fx: &Effects, w: f64) -> (f64, c64
     let y_air = jw * ((1.0 - behind) * v_air / k) + mastoid_admittance(air, behind * v_air, w);
     let z = jw * m_f + 1.0 / y_air;
     (k / v, (k / v) / (jw * z))
+}
+
+/// Length of the adult malleus from the top of its head to the tip of the manubrium (the
+/// umbo), m: 8.08 mm mean (Binvignat et al. 2015, Int J Morphol 33:914); other series give
+/// 7.2–8.1 mm (Mudhol et al. 2022, J Anat Soc India 71:88; Noussios et al. 2016, J Clin
+/// Med Res 8:76, a meta-analysis).
+pub const MALLEUS_LENGTH: f64 = 8.0e-3;
+
+/// Height of the malleus head along the bone, m: the head is about as tall as it is wide,
+/// and its greatest width is 1.86–1.94 mm (Vedpathak et al. 2020, Int J Sci Res 9(7), CT of
+/// 114 adults).
+pub const MALLEUS_HEAD_HEIGHT: f64 = 1.9e-3;
+
+/// Where a fixation of the malleus head holds the malleus, for an umbo `arm_umbo` below the
+/// rotation axis: (the arm of the head's centre, m, negative above the axis as
+/// `Geometry::arm_imj`; the torsion per unit stiffness, m²).
+///
+/// A fixation binds the head to the attic wall over the head (fibrous tissue, a bony bar
+/// to the epitympanic wall, neo-osteogenesis around the head; Nakajima et al. 2005,
+/// Laryngoscope 115:147). The head's top lies the malleus' length above the umbo, so
+/// 8.0 − 5.5 = 2.5 mm above the axis for the default chain, and the head spans
+/// [`MALLEUS_HEAD_HEIGHT`] below it. A stiffness k spread evenly over that span, each point
+/// pulled back along z in proportion to its own displacement u + (l − l_u)·θ, stores
+/// ½k·mean(u_l²) = ½k·u_c² + ½(k·h²/12)·θ²: a spring k at the head's centre and a torsion
+/// spring k·h²/12. Held at one point only, the malleus would turn about the head as freely
+/// as its ligaments let its axis move (a point spring of any stiffness lowers the nominal
+/// ear's 250–500 Hz umbo velocity by under 3 dB); spread over the head, a stiff fixation
+/// stops the malleus, as a bony fixation does.
+pub fn malleus_head_fixation(arm_umbo: f64) -> (f64, f64) {
+    let top = MALLEUS_LENGTH - arm_umbo;
+    (-(top - MALLEUS_HEAD_HEIGHT / 2.0), MALLEUS_HEAD_HEIGHT * MALLEUS_HEAD_HEIGHT / 12.0)
 }

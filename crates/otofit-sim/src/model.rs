@@ -346,6 +346,8 @@ struct Blocks {
     /// The incudostapedial joint again (axial and shear), weighted (s − 1)·κ_joints so that
     /// the joint's total is s·κ_joints (`isj_discontinuity`; 0 when intact).
     isj: usize,
+    /// The malleus head bound to the attic wall (`malleus_fixation`; 0 when off).
+    malleus_fixation: usize,
     /// The condensed drum: n² blocks (row-major) on its n boundary unknowns, (umbo,
     /// p_drum, p_cavity) or, for the manubrium drum, (umbo, θ_m, p_drum, p_cavity).
     drum_schur: usize,
@@ -564,6 +566,9 @@ impl Model {
         }
         // An interrupted incudostapedial joint: its spring and dashpot scaled by s.
         coef[bl.isj] = coef[bl.joints] * (fx.isj_factor() - 1.0);
+        // A fixed malleus: the head bound to the attic wall without loss (it stores energy
+        // and dissipates none, so the power balance has no term for it).
+        coef[bl.malleus_fixation] = c64::new(fx.malleus_fixation(), 0.0);
         coef[bl.mass] = c64::new(-w * w, 0.0);
         // The cochlear input impedance, shunted by a third window's acoustic mass when one
         // is open: the displaced fluid takes both paths (params::EFFECTS, third_window).
@@ -672,6 +677,7 @@ impl Blocks {
             perforation_flow: sb.block(),
             perforation_cavity: sb.block(),
             isj: sb.block(),
+            malleus_fixation: sb.block(),
             drum_schur: {
                 let first = sb.block();
                 for _ in 1..n_condensed.pow(2) {
@@ -793,6 +799,12 @@ fn ossicles(g: &Geometry, d: &Dofs, blocks: &Blocks, sb: &mut SystemBuilder) {
             sb.add_outer(blocks.isj, &head_y, g.g_isj_shear);
         }
     }
+    // A fixed malleus: the head bound to the attic wall, a spring at the head's centre and
+    // a torsion spring (`ear_effects::malleus_head_fixation`; the block's coefficient is
+    // the stiffness in N/m, 0 when off).
+    let (head, torsion) = ear_effects::malleus_head_fixation(lu);
+    sb.add_outer(blocks.malleus_fixation, &malleus_at(head), 1.0);
+    sb.add(blocks.malleus_fixation, d.theta_m, d.theta_m, torsion);
     // Stapes annular ligament: piston and rocking.
     sb.add(blocks.sal, d.x_stapes, d.x_stapes, g.g_sal);
     sb.add(blocks.sal, d.phi_stapes, d.phi_stapes, g.g_sal_rock);
@@ -977,7 +989,8 @@ impl Runner<'_> {
 
     /// [`Self::solve_at`] with the effects that act inside the middle ear (a third
     /// window, a perforation, fluid, a static pressure, a mastoid, an interrupted
-    /// incudostapedial joint); those at the probe act on the responses after the solve.
+    /// incudostapedial joint, a fixed malleus); those at the probe act on the responses
+    /// after the solve.
     pub fn solve_with(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
         for (i, v) in theta.0.iter().enumerate() {
             if !super::params::PARAMS[i].physical(*v) {

@@ -240,7 +240,7 @@ impl EffectSpec {
 }
 
 /// Number of optional effects.
-pub const N_EFFECTS: usize = 8;
+pub const N_EFFECTS: usize = 9;
 
 /// The effect library, in a fixed order (physics-notes §4 for forms and signatures).
 pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
@@ -356,6 +356,29 @@ pub const EFFECTS: [EffectSpec; N_EFFECTS] = [
         scale: Scale::Log10,
         description: "incudostapedial joint stiffness scaled by s: stapes velocity falls across the band, the unloaded drum moves more (an absorbance peak near 0.5–1 kHz)",
     },
+    // A fixed malleus: the head bound to the attic wall by fibrous tissue, a bony bar or
+    // neo-osteogenesis (Nakajima et al. 2005, Laryngoscope 115:147), a lossless stiffness k
+    // spread over the head, 0.6–2.5 mm above the rotation axis: a spring at the head's
+    // centre and a torsion spring (`ear_effects::malleus_head_fixation`). The anterior
+    // mallear and posterior incudal ligaments lie on the axis, so no value of E_ligaments
+    // makes it. The range's low end, 1e3 N/m, is about three times the anterior mallear
+    // ligament's own spring (370 N/m at the nominal E_ligaments) and costs about 1 dB; its
+    // high end, 1e7 N/m, is the axial spring EA/L of a bar of bone (E ≈ 17 GPa; Reilly &
+    // Burstein 1975, J Biomech 8:393) 0.6 mm² across and 1 mm long, and costs 39 dB. So
+    // the range spans Nakajima et al.'s grades of stapes-velocity loss: fibrous tissue
+    // around the head under 10 dB, a bony bar 10–30 dB, extensive neo-osteogenesis over
+    // 35 dB. Signature: umbo and stapes velocity fall together below 2 kHz, where a stapes
+    // fixation lowers the stapes' and leaves the umbo's (Nakajima et al. 2005, Hear Res
+    // 204:60; Rosowski et al. 2003, Otol Neurotol 24:165).
+    EffectSpec {
+        name: "malleus_fixation",
+        unit: "N/m",
+        off: 0.0,
+        low: 1e3,
+        high: 1e7,
+        scale: Scale::Log10,
+        description: "the malleus head bound to the attic wall with stiffness k: umbo and stapes velocity fall together below 2 kHz, absorbance falls a little",
+    },
 ];
 
 /// Why an effect could not be set: each variant names the effect.
@@ -453,6 +476,10 @@ impl Effects {
     /// Factor on the incudostapedial joint's stiffness (1: intact).
     pub fn isj_factor(&self) -> f64 {
         self.0[7]
+    }
+    /// Stiffness of the malleus head's fixation to the attic wall, N/m (0: none).
+    pub fn malleus_fixation(&self) -> f64 {
+        self.0[8]
     }
 }
 
