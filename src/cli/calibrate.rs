@@ -1,6 +1,7 @@
 //! `otofit calibrate`: coverage and SBC ranks of a model on held-out simulations; with
 //! `--tune`, also the post-hoc recalibration (base temperature) and the fit check's null,
-//! written into the model.
+//! written into the model; with `--diagnose-null`, the diagnose workflow's null, written
+//! into the model.
 
 use crate::npe::calibrate::{TUNE_LEVELS, calibrate_with, tune_temperature};
 use crate::npe::{Dataset, Npe};
@@ -15,8 +16,8 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub model: PathBuf,
     /// Held-out dataset folder (not the training set).
-    #[arg(long)]
-    pub data: PathBuf,
+    #[arg(long, required_unless_present = "diagnose_null")]
+    pub data: Option<PathBuf>,
     /// Rows used (the first N; at most the dataset's rows).
     #[arg(long, default_value_t = 200)]
     pub n: usize,
@@ -44,6 +45,16 @@ pub struct CalibrateArgs {
     /// Print the full result as JSON (coverage per level, SBC ranks) instead of the table.
     #[arg(long, conflicts_with = "tune")]
     pub json: bool,
+    /// Measure the diagnose workflow's null on this many effect-free simulations and
+    /// write it into the model (or into --out), so that `otofit diagnose` and diagnose
+    /// jobs skip their per-ear null. Needs no --data.
+    #[arg(long, conflicts_with_all = ["tune", "report", "json"])]
+    pub diagnose_null: Option<usize>,
+    /// Feature groups given, per stored null (comma-separated group names, or `all`);
+    /// repeat for several sets. An ear whose measures are not one of these sets gets its
+    /// null measured per ear.
+    #[arg(long, default_values_t = ["all".to_string(), "impedance,absorbance".to_string()])]
+    pub diagnose_groups: Vec<String>,
 }
 
 /// Runs `otofit calibrate`.
@@ -58,12 +69,16 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         bail!("--null-cases must be 20..=100000 (got {})", args.null_cases);
     }
     let mut model = Npe::load(&args.model)?;
-    let ds = Dataset::load(&args.data)?;
+    if let Some(cases) = args.diagnose_null {
+        return diagnose_null(model, &args, cases);
+    }
+    let data = args.data.as_ref().context("--data is required")?;
+    let ds = Dataset::load(data)?;
     if ds.feature_names != model.header.feature_names {
-        bail!("{}: its features differ from the model's", args.data.display());
+        bail!("{}: its features differ from the model's", data.display());
     }
     if args.n > ds.theta.len() {
-        bail!("--n {} exceeds the {} rows of {}", args.n, ds.theta.len(), args.data.display());
+        bail!("--n {} exceeds the {} rows of {}", args.n, ds.theta.len(), data.display());
     }
     // Held-out x are noise-free simulations: add the model's training noise once.
     let noise = crate::sim::batch::Noise {
@@ -124,4 +139,55 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         println!("  {:<16} {:.3}  {:6.1}{}", r.name, m, chi2, if chi2 > 21.7 { "  (not uniform)" } else { "" });
     }
     Ok(())
+}
+
+/// Measures the diagnose workflow's null for each `--diagnose-groups` set and writes it
+/// into the model.
+fn diagnose_null(mut model: Npe, args: &CalibrateArgs, cases: usize) -> Result<()> {
+    use crate::discrepancy::workflow::{Settings, measure_null};
+    use crate::jobs::limits::{NULL_CASES, check};
+    check(&NULL_CASES, cases).map_err(|m| anyhow::anyhow!("--diagnose-null {m}"))?;
+    let sets = args
+        .diagnose_groups
+        .iter()
+        .map(|g| given_set(&model, g).with_context(|| format!("--diagnose-groups '{g}'")))
+        .collect::<Result<Vec<_>>>()?;
+    let sim = crate::sim::Model::new(crate::sim::ModelConfig::default())?;
+    let noise = crate::sim::batch::Noise { std: model.header.noise_std.clone(), scale: 1.0, seed: args.seed };
+    let s = Settings { null_cases: cases, seed: args.seed, extend: false, ..Settings::default() };
+    let bar = super::progress::Progress::stages("diagnose null");
+    let null = measure_null(&sim, &model, &noise, &sets, &s, &mut |k, n| {
+        bar.message(&format!("feature set {} of {n}", (k + 1).min(n)))
+    })?;
+    bar.finish();
+    for t in &null.subsets {
+        eprintln!(
+            "diagnose null on {} ears, {}: base reduced χ² threshold {:.3}, best-drop threshold {:.1}",
+            null.cases,
+            t.groups.join("+"),
+            t.base_reduced_chi2,
+            t.best_drop
+        );
+    }
+    model.header.diagnose_null = Some(null);
+    let out = args.out.as_ref().unwrap_or(&args.model);
+    model.save(out)?;
+    eprintln!("wrote {}", out.display());
+    Ok(())
+}
+
+/// The features given when the named groups are (`all`: every feature).
+fn given_set(model: &Npe, groups: &str) -> Result<Vec<bool>> {
+    let f = model.header.feature_names.len();
+    if groups.trim() == "all" {
+        return Ok(vec![true; f]);
+    }
+    let mut given = vec![false; f];
+    for name in groups.split(',').map(str::trim) {
+        let known = || model.header.groups.iter().map(|g| g.name.as_str()).collect::<Vec<_>>().join(", ");
+        let g = model.header.groups.iter().find(|g| g.name == name);
+        let g = g.with_context(|| format!("unknown feature group '{name}' (the model's: {})", known()))?;
+        g.features.iter().for_each(|&i| given[i] = true);
+    }
+    Ok(given)
 }

@@ -1,6 +1,6 @@
 //! The discrepancy workflow on the command line, and its benchmark.
 
-use crate::discrepancy::workflow::{Settings, diagnose, null_thresholds};
+use crate::discrepancy::workflow::{Settings, diagnose, null_thresholds, stored_thresholds};
 use crate::discrepancy::{self, Verdict};
 use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
 use crate::sim::params::{EFFECTS, N_EFFECTS, N_PARAMS};
@@ -35,9 +35,13 @@ pub struct DiagnoseArgs {
     /// Epochs of the extended model's training (1..=5000, as a diagnose job).
     #[arg(long, default_value_t = 300)]
     pub max_epochs: usize,
-    /// Effect-free simulations for the null distribution of the statistics.
+    /// Effect-free simulations for the null distribution of the statistics, when it is
+    /// measured for this ear (the model stores none for these measures, or --measure-null).
     #[arg(long, default_value_t = 40)]
     pub null_cases: usize,
+    /// Measure the null for this ear even when the model stores one (slower).
+    #[arg(long)]
+    pub measure_null: bool,
     /// Seed of the null simulations, the fits' starts and the extended training.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -75,6 +79,7 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
         train_rows: args.train_rows,
         max_epochs: args.max_epochs,
         null_cases: args.null_cases,
+        measure_null: args.measure_null,
         seed: args.seed,
         ..Settings::default()
     };
@@ -92,6 +97,7 @@ pub fn run(args: DiagnoseArgs) -> Result<()> {
     };
     write_report(&args.out, &report, &links)?;
     println!("verdict: {:?}{}", report.verdict, report.named.map(|n| format!(" ({n})")).unwrap_or_default());
+    println!("alarm thresholds: {}", report.null.describe());
     for b in &report.before.bands {
         println!("  {}", b.describe());
     }
@@ -129,17 +135,24 @@ pub fn bench(cases: usize, clean: usize, seed: u64) -> Result<()> {
     Ok(())
 }
 
-/// The benchmarks' settings: no retrain per case, and alarm thresholds measured once on
-/// more null cases than a single diagnosis uses (1× noise), so that every case shares them.
+/// The benchmarks' settings: no retrain per case, and alarm thresholds shared by every
+/// case: the model's stored null when it was measured on at least as many effect-free
+/// ears as the benchmark would use, else measured once here (1× noise).
 pub(super) fn bench_settings(model: &Model, base: &crate::npe::Npe, seed: u64) -> Result<Settings> {
     let noise = Noise { std: default_noise_std(model), scale: 1.0, seed };
     let t0 = Instant::now();
     let mut s = Settings { extend: false, null_cases: NULL_CASES, seed, ..Settings::default() };
-    let t = null_thresholds(model, base, &noise, &vec![true; base.header.feature_names.len()], &s)?;
-    s.thresholds = Some(t);
+    let all = vec![true; base.header.feature_names.len()];
     let q = 100.0 * crate::discrepancy::workflow::ALARM_QUANTILE;
+    let (t, whence) = match stored_thresholds(base, &all, &s).filter(|(_, cases)| *cases >= NULL_CASES) {
+        Some((t, cases)) => (t, format!("the model's, {cases} effect-free cases")),
+        None => {
+            (null_thresholds(model, base, &noise, &all, &s)?, format!("{NULL_CASES} effect-free cases, measured once"))
+        }
+    };
+    s.thresholds = Some(t);
     println!(
-        "null ({NULL_CASES} effect-free cases, measured once): {q} % quantiles: posterior-predictive χ²ν {:.3}, best χ² drop {:.1} ({:.0} s)",
+        "null ({whence}): {q} % quantiles: posterior-predictive χ²ν {:.3}, best χ² drop {:.1} ({:.0} s)",
         t.base_reduced_chi2,
         t.best_drop,
         t0.elapsed().as_secs_f64()

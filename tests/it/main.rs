@@ -2,6 +2,7 @@
 mod alternatives;
 mod baseline;
 mod cli;
+mod diagnose_null;
 mod discrepancy;
 mod fuzz;
 mod http;

@@ -6,7 +6,7 @@
 #![warn(missing_docs)]
 
 use super::{Band, Observation, Thresholds, Verdict, fit, fit_and_rank, locate};
-use crate::npe::{self, Dataset, Npe, NpeError, Obs, TrainSettings};
+use crate::npe::{self, Dataset, DiagnoseNull, DiagnoseSubsetNull, Npe, NpeError, Obs, TrainSettings};
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::output::{MEASURES, feature_names};
 use crate::sim::params::{EFFECTS, N_PARAMS};
@@ -35,6 +35,8 @@ pub struct Settings {
     pub seed: u64,
     /// Thresholds measured earlier for the same base model (skips the null runs).
     pub thresholds: Option<Thresholds>,
+    /// Measure the null for this ear even when the model stores one that applies.
+    pub measure_null: bool,
     /// Set from outside to stop the workflow: checked between steps, null cases,
     /// simulation chunks and training epochs; the workflow then returns [`DiagnoseError::Cancelled`].
     pub cancel: Option<Arc<AtomicBool>>,
@@ -71,13 +73,16 @@ pub enum DiagnoseError {
     /// The least-squares base fit failed (internal).
     #[error("the base fit failed")]
     BaseFitFailed,
+    /// A null to store was asked for a feature set that is not made of whole groups.
+    #[error("a stored null needs each feature group given whole or not at all")]
+    PartialGroups,
 }
 
 impl DiagnoseError {
     /// Whether the caller's input is at fault.
     pub fn is_input(&self) -> bool {
         match self {
-            DiagnoseError::NotBaseModel | DiagnoseError::Observation { .. } => true,
+            DiagnoseError::NotBaseModel | DiagnoseError::Observation { .. } | DiagnoseError::PartialGroups => true,
             DiagnoseError::Npe(e) => e.is_input(),
             _ => false,
         }
@@ -109,6 +114,7 @@ impl Default for Settings {
             max_epochs: 300,
             seed: 0,
             thresholds: None,
+            measure_null: false,
             cancel: None,
         }
     }
@@ -155,6 +161,35 @@ pub struct EffectPosterior {
     pub q95: f64,
 }
 
+/// Where a diagnosis' alarm thresholds came from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(tag = "source", rename_all = "snake_case")]
+pub enum NullSource {
+    /// Stored in the model (`otofit calibrate --diagnose-null`), measured on `cases` ears.
+    Model {
+        /// Effect-free cases behind them.
+        cases: usize,
+    },
+    /// Measured for this ear on `cases` effect-free simulations.
+    Measured {
+        /// Effect-free cases asked for.
+        cases: usize,
+    },
+    /// Given by the caller (a benchmark measuring them once for many ears).
+    Given,
+}
+
+impl NullSource {
+    /// Where the thresholds came from, in words.
+    pub fn describe(&self) -> String {
+        match self {
+            NullSource::Model { cases } => format!("the model's null, measured on {cases} effect-free ears"),
+            NullSource::Measured { cases } => format!("measured for this ear on {cases} effect-free ears"),
+            NullSource::Given => "given by the caller".to_string(),
+        }
+    }
+}
+
 /// The outcome of one diagnosis: data only (`plot::diagnosis` draws and writes it).
 #[derive(Serialize)]
 pub struct Report {
@@ -162,6 +197,8 @@ pub struct Report {
     pub verdict: Verdict,
     /// The alarm thresholds used.
     pub thresholds: Thresholds,
+    /// Where the thresholds came from.
+    pub null: NullSource,
     /// The base model's predictive check.
     pub before: Check,
     /// The candidate effects' fits, best first.
@@ -327,6 +364,84 @@ pub const ALARM_QUANTILE: f64 = 0.975;
 /// candidate ranking; their `ALARM_QUANTILE` quantiles are the alarm thresholds.
 /// `given`: the features the observation has; the null's ears lack the same ones.
 pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, given: &[bool], s: &Settings) -> Result<Thresholds> {
+    let sims = null_simulations(model, noise, s)?;
+    let (chi, drops) = null_statistics(model, base, noise, &sims, given, s)?;
+    Ok(thresholds_of(chi, drops))
+}
+
+/// The null measured once for each feature set in `given_sets` (the same effect-free
+/// ears, each with the features outside its set removed), to be stored in the model:
+/// a diagnosis with the model's null skips the per-ear null, its slowest stage.
+pub fn measure_null(
+    model: &Model,
+    base: &Npe,
+    noise: &Noise,
+    given_sets: &[Vec<bool>],
+    s: &Settings,
+    progress: &mut dyn FnMut(usize, usize),
+) -> Result<DiagnoseNull> {
+    let sims = null_simulations(model, noise, s)?;
+    let mut subsets = Vec::with_capacity(given_sets.len());
+    for (k, given) in given_sets.iter().enumerate() {
+        progress(k, given_sets.len());
+        let groups = groups_given(base, given).ok_or(DiagnoseError::PartialGroups)?;
+        let (chi, drops) = null_statistics(model, base, noise, &sims, given, s)?;
+        let t = thresholds_of(chi, drops);
+        subsets.push(DiagnoseSubsetNull { groups, base_reduced_chi2: t.base_reduced_chi2, best_drop: t.best_drop });
+    }
+    progress(given_sets.len(), given_sets.len());
+    Ok(DiagnoseNull {
+        quantile: ALARM_QUANTILE,
+        cases: sims.len(),
+        draws: s.draws,
+        candidates: s.candidates.iter().map(|&e| EFFECTS[e].name.to_string()).collect(),
+        subsets,
+    })
+}
+
+/// The thresholds the model stores for this observation's feature groups, when they
+/// were measured with the same draws and with every candidate asked for (a best drop
+/// over more candidates is never smaller, so a superset errs toward fewer alarms).
+pub fn stored_thresholds(base: &Npe, given: &[bool], s: &Settings) -> Option<(Thresholds, usize)> {
+    let null = base.header.diagnose_null.as_ref()?;
+    let same_statistic = null.draws == s.draws && (null.quantile - ALARM_QUANTILE).abs() < 1e-12;
+    let covered = s.candidates.iter().all(|&e| null.candidates.iter().any(|c| c == EFFECTS[e].name));
+    let groups = groups_given(base, given)?;
+    let t = null.subsets.iter().find(|x| x.groups == groups).filter(|_| same_statistic && covered)?;
+    Some((
+        Thresholds { base_reduced_chi2: t.base_reduced_chi2, best_drop: t.best_drop, explained: EXPLAINED },
+        null.cases,
+    ))
+}
+
+/// The sorted names of the feature groups `given` holds, when it holds each group whole
+/// (a band-limited observation has no stored null); the empty list for a model without
+/// groups given every feature.
+pub fn groups_given(base: &Npe, given: &[bool]) -> Option<Vec<String>> {
+    let groups = &base.header.groups;
+    if groups.is_empty() {
+        return given.iter().all(|g| *g).then(Vec::new);
+    }
+    let touched = |g: &&npe::Group| g.features.iter().any(|&i| given.get(i).copied().unwrap_or(false));
+    let mut names: Vec<String> = groups.iter().filter(touched).map(|g| g.name.clone()).collect();
+    // The groups touched must be given whole: as many features as they hold.
+    let whole = groups.iter().filter(touched).map(|g| g.features.len()).sum::<usize>();
+    (whole == given.iter().filter(|g| **g).count()).then(|| {
+        names.sort();
+        names
+    })
+}
+
+/// A named effect must bring the reduced χ² at or below this.
+const EXPLAINED: f64 = 1.5;
+
+fn thresholds_of(chi: Vec<f64>, drops: Vec<f64>) -> Thresholds {
+    let quantile = |v| super::null_quantile(v, ALARM_QUANTILE);
+    Thresholds { base_reduced_chi2: quantile(chi), best_drop: quantile(drops), explained: EXPLAINED }
+}
+
+/// The null's effect-free ears: prior draws with the base noise (failed runs dropped).
+fn null_simulations(model: &Model, noise: &Noise, s: &Settings) -> Result<Vec<Vec<f64>>> {
     let design = Design::default();
     let rows = design.draw(s.seed ^ 0x4E55, 0, s.null_cases);
     let noisy = Noise { seed: s.seed ^ 0x4E55, ..noise.clone() };
@@ -334,25 +449,42 @@ pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, given: &[bool],
     // Smaller chunks than the training set's: each null row costs a full fit afterwards.
     for (k, chunk) in rows.chunks(CHUNK / 16).enumerate() {
         s.go_on()?;
-        sims.extend(run_rows(model, &design, chunk, k * (CHUNK / 16), Some(&noisy)));
+        sims.extend(run_rows(model, &design, chunk, k * (CHUNK / 16), Some(&noisy)).into_iter().filter_map(|r| r.ok()));
     }
-    let (mut chi, mut drops) = (Vec::new(), Vec::new());
-    for (k, x) in sims.into_iter().enumerate() {
-        s.go_on()?;
-        let Ok(mut x) = x else { continue };
-        x.iter_mut().zip(given).filter(|(_, g)| !**g).for_each(|(v, _)| *v = f64::NAN);
-        let obs = Observation { x, sigma: noise.std.clone() };
-        let inf = base.infer(&Obs { x: &obs.x, present: None }, s.draws, s.seed + k as u64)?;
-        s.go_on()?;
-        let c = check(model, &design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
-        chi.push(c.reduced_chi2);
-        s.go_on()?;
-        if let Some((b, ranked)) = fit_and_rank(model, &obs, std::slice::from_ref(&inf.map), &s.candidates) {
-            drops.push(ranked.first().map_or(0.0, |c| b.chi2 - c.chi2));
-        }
-    }
-    let quantile = |v| super::null_quantile(v, ALARM_QUANTILE);
-    Ok(Thresholds { base_reduced_chi2: quantile(chi), best_drop: quantile(drops), explained: 1.5 })
+    Ok(sims)
+}
+
+/// The two alarm statistics of each null ear with only `given` features: the base
+/// model's reduced χ² and, where the fits converge, the best candidate's χ² drop. Ears
+/// run in parallel, each with its own seed, so the result does not depend on threads.
+fn null_statistics(
+    model: &Model,
+    base: &Npe,
+    noise: &Noise,
+    sims: &[Vec<f64>],
+    given: &[bool],
+    s: &Settings,
+) -> Result<(Vec<f64>, Vec<f64>)> {
+    use rayon::prelude::*;
+    let design = Design::default();
+    let per_case: Vec<(f64, Option<f64>)> = sims
+        .par_iter()
+        .enumerate()
+        .map(|(k, x)| {
+            s.go_on()?;
+            let mut x = x.clone();
+            x.iter_mut().zip(given).filter(|(_, g)| !**g).for_each(|(v, _)| *v = f64::NAN);
+            let obs = Observation { x, sigma: noise.std.clone() };
+            let inf = base.infer(&Obs { x: &obs.x, present: None }, s.draws, s.seed + k as u64)?;
+            s.go_on()?;
+            let c = check(model, &design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
+            s.go_on()?;
+            let drop = fit_and_rank(model, &obs, std::slice::from_ref(&inf.map), &s.candidates)
+                .map(|(b, ranked)| ranked.first().map_or(0.0, |c| b.chi2 - c.chi2));
+            Ok((c.reduced_chi2, drop))
+        })
+        .collect::<Result<_>>()?;
+    Ok((per_case.iter().map(|c| c.0).collect(), per_case.iter().filter_map(|c| c.1).collect()))
 }
 
 /// The workflow's stages, in order, as its progress messages start.
@@ -376,11 +508,13 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     progress("check: posterior predictive");
     let base_design = Design::default();
     let before = check(model, &base_design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
-    let thresholds = match s.thresholds {
-        Some(t) => t,
-        None => {
+    let stored = if s.measure_null { None } else { stored_thresholds(base, &given, s) };
+    let (thresholds, null) = match (s.thresholds, stored) {
+        (Some(t), _) => (t, NullSource::Given),
+        (None, Some((t, cases))) => (t, NullSource::Model { cases }),
+        (None, None) => {
             progress("null distribution of the statistics");
-            null_thresholds(model, base, &noise, &given, s)?
+            (null_thresholds(model, base, &noise, &given, s)?, NullSource::Measured { cases: s.null_cases })
         }
     };
     s.go_on()?;
@@ -407,6 +541,7 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
     Ok(Report {
         verdict,
         thresholds,
+        null,
         before,
         candidates: ranked,
         named,

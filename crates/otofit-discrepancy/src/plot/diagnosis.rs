@@ -188,6 +188,7 @@ fn statistics(p: &mut Page, this: &Report) {
             vec!["reduced χ² that counts as explained".into(), "".into(), format!("≤ {:.2}", t.explained)],
         ],
     );
+    p.text(&format!("Thresholds: {}.", this.null.describe()));
     if let (Some(a), Some(e)) = (&this.after, &this.effect_posterior) {
         p.text(&format!("After adding {} and retraining: reduced χ² {:.2} → {:.2}; {} median {:.3e} {} (90 % interval {:.3e} … {:.3e}).", e.effect, this.before.reduced_chi2, a.reduced_chi2, e.effect, e.median, e.unit, e.q05, e.q95));
     }

@@ -96,6 +96,11 @@ pub struct Header {
     /// models that have not been calibrated (their fit check says so).
     #[serde(default)]
     pub fit_null: Option<FitNull>,
+    /// Null distribution of the diagnose workflow's alarm statistics, measured once on
+    /// effect-free simulations (`otofit calibrate --diagnose-null`) so that a diagnosis
+    /// need not re-measure it per ear; `None` when never measured.
+    #[serde(default)]
+    pub diagnose_null: Option<DiagnoseNull>,
 }
 
 /// The first 8 bytes as a little-endian u64's bytes (zeros past the end).
@@ -145,6 +150,9 @@ impl Header {
         }
         for p in &self.params {
             p.validate().map_err(|e| CheckpointError::field("params", e.to_string()))?;
+        }
+        if let Some(n) = &self.diagnose_null {
+            n.validate()?;
         }
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         let positive = |v: &[f64]| v.iter().all(|x| x.is_finite() && *x > 0.0);
@@ -222,6 +230,54 @@ pub struct SubsetNull {
     pub measure_chi2: f64,
     /// Threshold on the input score.
     pub input_score: f64,
+}
+
+/// The diagnose workflow's alarm thresholds, measured on effect-free simulations of the
+/// model's own simulator pushed through the same fit and candidate ranking as an ear.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DiagnoseNull {
+    /// The quantile used as threshold.
+    pub quantile: f64,
+    /// Effect-free cases behind the thresholds.
+    pub cases: usize,
+    /// Posterior draws re-simulated per case for its predictive check.
+    pub draws: usize,
+    /// The candidate effects ranked per case: the thresholds hold for these or any
+    /// subset of them (a best drop over fewer candidates is never larger).
+    pub candidates: Vec<String>,
+    /// The thresholds per set of feature groups given (names sorted).
+    pub subsets: Vec<DiagnoseSubsetNull>,
+}
+
+/// Diagnose thresholds for one set of feature groups.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DiagnoseSubsetNull {
+    /// The groups given, names sorted.
+    pub groups: Vec<String>,
+    /// Threshold on the base model's posterior-predictive reduced χ².
+    pub base_reduced_chi2: f64,
+    /// Threshold on the best candidate's χ² drop.
+    pub best_drop: f64,
+}
+
+impl DiagnoseNull {
+    /// Checks the values read from a file, naming the first at fault.
+    fn validate(&self) -> Result<(), CheckpointError> {
+        let field = |why: String| Err(CheckpointError::field("diagnose_null", why));
+        if !(self.quantile > 0.0 && self.quantile < 1.0) {
+            return field(format!("quantile {} is outside (0, 1)", self.quantile));
+        }
+        if self.cases == 0 || self.draws == 0 {
+            return field("cases and draws must be at least 1".into());
+        }
+        for s in &self.subsets {
+            // +∞ when every case failed; a best drop may be below 0 (no candidate helps).
+            if s.base_reduced_chi2.is_nan() || s.base_reduced_chi2 < 0.0 || s.best_drop.is_nan() {
+                return field(format!("thresholds of {:?} must be numbers (χ² ≥ 0)", s.groups));
+            }
+        }
+        Ok(())
+    }
 }
 
 /// How a model was trained (stored in its header).

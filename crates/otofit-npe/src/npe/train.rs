@@ -233,6 +233,7 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         members: 1,
         temperature: 1.0,
         fit_null: None,
+        diagnose_null: None,
     }
 }
 
