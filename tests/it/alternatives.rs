@@ -118,3 +118,27 @@ fn umbo_velocity_leaves_a_fixed_stapes_ambiguous_and_names_the_stapes_velocity()
     let s = a.separate_by.as_ref().unwrap();
     assert_eq!((s.measure.as_str(), s.given), ("stapes_velocity", false), "{s:?}");
 }
+
+/// A fixed malleus (its head bound to the attic wall at 1e6 N/m, every tissue value
+/// typical) with every measure sent. No tissue value of the model fixes the malleus (its
+/// ligaments lie on the rotation axis), so without the effect hypothesis the closest
+/// reading was a stapes fixation; with it, `malleus_fixation present` fits best and
+/// stapes fixation is not within the margin: the umbo velocity falls with the stapes'.
+#[test]
+fn a_fixed_malleus_is_named_by_its_effect_hypothesis_not_as_a_fixed_stapes() {
+    let (npe, model) = (npe(), Model::new(ModelConfig::default()).unwrap());
+    let mut fixed = otofit::sim::Effects::default();
+    fixed.set("malleus_fixation", 1e6).unwrap();
+    let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed: 3 };
+    let design = Design { fixed, varied: vec![] };
+    let x = run_rows(&model, &design, &[normal::centre_row()], 0, Some(&noise)).remove(0).unwrap();
+    let present = vec![true; x.len()];
+    let a = read(&npe, &x, &present);
+    let best = &a.hypotheses[0];
+    assert_eq!((best.parameter, best.direction), (Some("malleus_fixation"), "present"), "{:?}", label(&a));
+    let v = best.value.unwrap();
+    assert!((1e5..1e7).contains(&v), "fitted stiffness {v:.3e} N/m, truth 1e6: {:?}", label(&a));
+    let sal = a.hypotheses.iter().find(|h| h.parameter == Some("E_sal") && h.direction == "above").unwrap();
+    assert!(sal.delta_chi2 >= a.margin, "{:?}", label(&a));
+    assert!(a.sentence.contains("malleus fixation"), "{}", a.sentence);
+}

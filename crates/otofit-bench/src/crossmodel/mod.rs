@@ -87,12 +87,15 @@ impl Condition {
     /// differential (`otofit_npe::npe::normal::NORMAL`'s `below` / `above` texts): any one
     /// of them is the right answer, and no finding at all is the right answer for a
     /// healthy ear. Malleus fixation stiffens the malleus' suspension, which otofit splits
-    /// into ligaments and tendons (tensor tympani), so either reads as right.
+    /// into ligaments and tendons (tensor tympani), so either reads as right, as does the
+    /// differential's effect hypothesis `malleus_fixation present` (the head fixed).
     pub fn expected(self) -> &'static [(&'static str, &'static str)] {
         match self {
             Condition::Healthy => &[],
             Condition::StapesFixation => &[("E_sal", "above")],
-            Condition::MalleusFixation => &[("E_ligaments", "above"), ("E_tendons", "above")],
+            Condition::MalleusFixation => {
+                &[("E_ligaments", "above"), ("E_tendons", "above"), ("malleus_fixation", "present")]
+            }
             Condition::Discontinuity => &[("E_joints", "below")],
         }
     }
@@ -192,12 +195,14 @@ mod tests {
     }
 
     #[test]
-    fn every_expected_reading_names_a_tissue_parameter() {
+    fn every_expected_reading_names_a_tissue_parameter_or_an_effect_hypothesis() {
+        use otofit_discrepancy::discrepancy::alternatives::EFFECT_HYPOTHESES;
         let names: Vec<&str> = otofit_npe::npe::normal::NORMAL.iter().map(|r| r.name).collect();
         for c in CONDITIONS {
             for (p, dir) in c.expected() {
-                assert!(names.contains(p), "{}: {p}", c.name());
-                assert!(matches!(*dir, "below" | "above"));
+                let tissue = names.contains(p) && matches!(*dir, "below" | "above");
+                let effect = EFFECT_HYPOTHESES.iter().any(|h| h.effect == *p) && *dir == "present";
+                assert!(tissue || effect, "{}: {p} {dir}", c.name());
             }
         }
     }

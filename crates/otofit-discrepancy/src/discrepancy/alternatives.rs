@@ -16,6 +16,16 @@
 //! A side of zero width (E_ligaments' normal range starts at the prior's floor) is no
 //! hypothesis.
 //!
+//! Some conditions are no tissue value of the model: a malleus head fixed to the attic
+//! wall is 10³× stiffer than a ligament and acts off the rotation axis, where the
+//! model's mallear ligaments do not. Such a condition is an effect of the simulator's
+//! library ([`EFFECT_HYPOTHESES`]): its hypothesis holds every tissue parameter within
+//! its normal range and the effect present, in its range, and is tested with the side
+//! it competes on (a fixed malleus with `above`, beside stapes fixation). It has one
+//! free parameter more than the others (the effect's value with all seven tissue
+//! parameters bounded normal, against one of them bounded abnormal); its χ² is
+//! charged ln(n) for it, as the diagnose workflow's candidates are.
+//!
 //! # The evidence
 //!
 //! Each hypothesis is a Levenberg–Marquardt least-squares fit ([`super::fit::fit_columns`])
@@ -47,7 +57,7 @@ use crate::npe::Npe;
 use crate::npe::normal::{Differential, NORMAL, NormalRange};
 use crate::sim::batch::Design;
 use crate::sim::output::MEASURES;
-use crate::sim::params::{N_PARAMS, N_TISSUE, PARAMS, ParamSpec, Scale};
+use crate::sim::params::{EFFECTS, N_PARAMS, N_TISSUE, PARAMS, ParamSpec, Scale};
 use crate::sim::{Model, simulate};
 use faer::Mat;
 use rayon::prelude::*;
@@ -148,10 +158,34 @@ pub struct Hypothesis {
     pub delta_chi2: f64,
     /// Levenberg–Marquardt steps taken.
     pub steps: usize,
-    /// The fitted row (every parameter, natural units); not reported.
+    /// The fitted row (every parameter, natural units; an effect hypothesis' effect
+    /// last); not reported.
     #[serde(skip)]
     pub row: Vec<f64>,
+    /// The design `row` is simulated with; not reported.
+    #[serde(skip)]
+    pub design: Design,
 }
+
+/// A condition that is an effect of the simulator's library rather than a tissue value:
+/// the effect, what it is associated with, and the side of findings it competes on.
+#[derive(Clone, Copy, Debug)]
+pub struct EffectHypothesis {
+    /// The effect's name in `sim::params::EFFECTS`.
+    pub effect: &'static str,
+    /// What it is, for the answer.
+    pub associated_with: &'static str,
+    /// Tested with the `above` findings (`true`) or the `below` ones.
+    pub above: bool,
+}
+
+/// The effect hypotheses: a fixed malleus (Nakajima et al. 2005) competes with stapes
+/// fixation and a stiff drum or joint.
+pub const EFFECT_HYPOTHESES: [EffectHypothesis; 1] = [EffectHypothesis {
+    effect: "malleus_fixation",
+    associated_with: "malleus fixation (the head bound to the attic wall)",
+    above: true,
+}];
 
 /// Where and by how much the two best fits' spectra differ on one measure.
 #[derive(Clone, Debug, Serialize)]
@@ -377,6 +411,49 @@ fn hypothesis(side: Option<Side>, f: Fit) -> Hypothesis {
         delta_chi2: 0.0,
         steps: f.iterations,
         row: f.row,
+        design: Design::default(),
+    }
+}
+
+/// The least-squares fit of an effect hypothesis: every tissue parameter within its
+/// normal range, the effect in its range, started from the MAP (moved into the normal
+/// boxes) with the effect a quarter and three quarters of the way up its range.
+fn fit_effect(model: &Model, map: &[f64], obs: &Observation, effect: usize, steps: usize) -> Option<(Design, Fit)> {
+    let design = Design { varied: vec![effect], ..Design::default() };
+    let spec = EFFECTS[effect].as_param();
+    let mut cols = columns(None);
+    cols.push(spec);
+    let mut runner = model.runner();
+    let chi2 = |r: Vec<f64>| r.iter().map(|v| v * v).sum::<f64>();
+    let base = starts(map, &[], &columns(None), None).remove(0);
+    let start = [0.25, 0.75]
+        .into_iter()
+        .map(|q| base.iter().copied().chain(std::iter::once(spec.from_unit(q))).collect::<Vec<f64>>())
+        .filter_map(|s| Some((residuals(&mut runner, &design, &s, obs).map(chi2)?, s)))
+        .min_by(|a, b| a.0.total_cmp(&b.0))?
+        .1;
+    let f = fit_box(&cols, &start, steps, |row| residuals(&mut runner, &design, row, obs))?;
+    Some((design, f))
+}
+
+/// An effect hypothesis' answer: its χ² charged ln(n) for the extra parameter; "at the
+/// normal limit" when the effect ends at the weak end of its range (no effect needed).
+fn effect_hypothesis(h: &EffectHypothesis, design: Design, f: Fit) -> Hypothesis {
+    let spec = EFFECTS[design.varied[0]].as_param();
+    let v = f.row[N_PARAMS];
+    let (weak, strong) = if h.above { (spec.low, v) } else { (v, spec.high) };
+    let weak_end = position(spec.scale, weak, strong) <= LIMIT_FRACTION * position(spec.scale, spec.low, spec.high);
+    Hypothesis {
+        parameter: Some(h.effect),
+        direction: "present",
+        associated_with: h.associated_with,
+        value: Some(v),
+        at_normal_limit: weak_end,
+        chi2: f.chi2 + (f.n_features as f64).ln(),
+        delta_chi2: 0.0,
+        steps: f.iterations,
+        row: f.row,
+        design,
     }
 }
 
@@ -392,15 +469,20 @@ pub fn fit_all(
     map: &[f64],
     draws: &[Vec<f64>],
     tested: &[Side],
+    effects: &[EffectHypothesis],
     steps: usize,
 ) -> Vec<Hypothesis> {
     let x = x.iter().zip(present).map(|(&v, &p)| if p { v } else { f64::NAN }).collect();
     let obs = Observation { x, sigma: sigma(npe) };
     let all: Vec<Option<Side>> = std::iter::once(None).chain(tested.iter().copied().map(Some)).collect();
-    let mut out: Vec<Hypothesis> = all
+    let tissue = all
         .par_iter()
-        .filter_map(|&side| fit_hypothesis(model, (map, draws), &obs, side, steps).map(|f| hypothesis(side, f)))
-        .collect();
+        .filter_map(|&side| fit_hypothesis(model, (map, draws), &obs, side, steps).map(|f| hypothesis(side, f)));
+    let effect = effects.par_iter().filter_map(|h| {
+        let e = EFFECTS.iter().position(|x| x.name == h.effect)?;
+        fit_effect(model, map, &obs, e, steps).map(|(d, f)| effect_hypothesis(h, d, f))
+    });
+    let mut out: Vec<Hypothesis> = tissue.chain(effect).collect();
     out.sort_by(|a, b| a.chi2.total_cmp(&b.chi2));
     let best = out.first().map_or(0.0, |h| h.chi2);
     out.iter_mut().for_each(|h| h.delta_chi2 = h.chi2 - best);
@@ -415,11 +497,10 @@ pub fn best_two(h: &[Hypothesis]) -> Option<(&Hypothesis, &Hypothesis)> {
 }
 
 /// Every measure's separation of two parameter rows, most separating first.
-pub fn separations(model: &Model, npe: &Npe, present: &[bool], a: &[f64], b: &[f64]) -> Vec<Separation> {
+pub fn separations(model: &Model, npe: &Npe, present: &[bool], a: &Hypothesis, b: &Hypothesis) -> Vec<Separation> {
     let mut runner = model.runner();
-    let design = Design::default();
-    let sim = |row: &[f64], runner: &mut crate::sim::Runner<'_>| {
-        let (theta, fx) = design.split(row);
+    let sim = |h: &Hypothesis, runner: &mut crate::sim::Runner<'_>| {
+        let (theta, fx) = h.design.split(&h.row);
         simulate(runner, &theta, &fx).ok()
     };
     let (Some(xa), Some(xb)) = (sim(a, &mut runner), sim(b, &mut runner)) else { return vec![] };
@@ -540,7 +621,9 @@ pub fn alternatives(
     if below {
         tested.extend(sides(false));
     }
-    let hypotheses = fit_all(model, npe, x, present, map, draws, &tested, p.steps);
+    let effects: Vec<EffectHypothesis> =
+        EFFECT_HYPOTHESES.iter().filter(|h| if h.above { above } else { below }).copied().collect();
+    let hypotheses = fit_all(model, npe, x, present, map, draws, &tested, &effects, p.steps);
     let (ambiguous, pair) = match best_two(&hypotheses) {
         Some((a, b)) => (b.chi2 - a.chi2 < p.margin, Some((a, b))),
         None => (false, None),
@@ -553,7 +636,7 @@ pub fn alternatives(
             return None;
         }
     }
-    let by_measure = pair.map_or_else(Vec::new, |(a, b)| separations(model, npe, present, &a.row, &b.row));
+    let by_measure = pair.map_or_else(Vec::new, |(a, b)| separations(model, npe, present, a, b));
     let separate_by = by_measure.first().cloned();
     let sentence = sentence(&hypotheses, ambiguous, separate_by.as_ref());
     Some(Alternatives {
@@ -610,7 +693,27 @@ mod tests {
             delta_chi2: 0.0,
             steps: 0,
             row: vec![],
+            design: Design::default(),
         }
+    }
+
+    /// An effect hypothesis pays ln(n) for its extra parameter, and one whose effect ended
+    /// at the weak end of its range is "at the normal limit" (no effect needed).
+    #[test]
+    fn an_effect_hypothesis_is_charged_and_weak_at_its_range_floor() {
+        let h = EFFECT_HYPOTHESES[0];
+        let e = EFFECTS.iter().position(|x| x.name == h.effect).unwrap();
+        let at = |v: f64| {
+            let mut row: Vec<f64> = PARAMS.iter().map(|p| p.nominal).collect();
+            row.push(v);
+            let f = Fit { row, chi2: 100.0, n_features: 350, iterations: 3, u_std: vec![], jtj: vec![] };
+            effect_hypothesis(&h, Design { varied: vec![e], ..Design::default() }, f)
+        };
+        let spec = EFFECTS[e];
+        let weak = at(spec.low);
+        assert!(weak.at_normal_limit && weak.direction == "present");
+        assert!((weak.chi2 - (100.0 + 350f64.ln())).abs() < 1e-9, "{}", weak.chi2);
+        assert!(!at(spec.from_unit(0.5)).at_normal_limit);
     }
 
     #[test]
@@ -679,7 +782,7 @@ mod calibration {
                                 .unwrap();
                         let present: Vec<bool> = (0..x.len()).map(|i| !wbt || (2 * nf..5 * nf).contains(&i)).collect();
                         let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, 1000, e as u64).unwrap();
-                        let h = fit_all(model, &npe, &x, &present, &inf.map, &inf.samples, &all, STEPS);
+                        let h = fit_all(model, &npe, &x, &present, &inf.map, &inf.samples, &all, &[], STEPS);
                         let best = best_two(&h).map_or(h[0].chi2, |(a, _)| a.chi2);
                         let truth = h
                             .iter()
