@@ -118,7 +118,7 @@ pub fn metropolis(
 }
 
 /// Sample covariance (row-major d×d) of rows.
-fn covariance(rows: &[Vec<f64>], d: usize) -> Vec<f64> {
+pub(super) fn covariance(rows: &[Vec<f64>], d: usize) -> Vec<f64> {
     let n = rows.len().max(2) as f64;
     let mean: Vec<f64> = (0..d).map(|k| rows.iter().map(|r| r[k]).sum::<f64>() / n).collect();
     let mut c = vec![0.0; d * d];
@@ -133,12 +133,12 @@ fn covariance(rows: &[Vec<f64>], d: usize) -> Vec<f64> {
 }
 
 /// Lower Cholesky factor (row-major, flat) of a symmetric positive definite d×d matrix.
-fn cholesky(a: &[f64], d: usize) -> Option<Vec<f64>> {
+pub(super) fn cholesky(a: &[f64], d: usize) -> Option<Vec<f64>> {
     otofit_npe::spd::cholesky(&rows(a, d)).map(|l| l.concat())
 }
 
 /// The inverse (row-major, flat) of a symmetric positive definite d×d matrix.
-fn spd_inverse(a: &[f64], d: usize) -> Option<Vec<f64>> {
+pub(super) fn spd_inverse(a: &[f64], d: usize) -> Option<Vec<f64>> {
     otofit_npe::spd::inverse(&rows(a, d)).map(|m| m.concat())
 }
 
@@ -148,9 +148,24 @@ fn rows(a: &[f64], d: usize) -> Vec<Vec<f64>> {
 
 /// log prior density of the unbounded coordinate u (uniform position q = σ(u) in the
 /// box): ln q + ln(1 − q).
-fn log_prior_u(u: f64) -> f64 {
+pub(super) fn log_prior_u(u: f64) -> f64 {
     let q = 1.0 / (1.0 + (-u).exp());
     q.max(f64::MIN_POSITIVE).ln() + (1.0 - q).max(f64::MIN_POSITIVE).ln()
+}
+
+/// The Laplace covariance at fit `f` whose row is `mode` in unbounded coordinates:
+/// (JᵀJ + the prior's curvature q(1 − q))⁻¹, row-major d×d; the prior term keeps
+/// directions the data do not pin down at the prior's width. `None` if not invertible.
+pub(super) fn laplace(f: &Fit, mode: &[f64]) -> Option<Vec<f64>> {
+    let d = mode.len();
+    let h: Vec<f64> = (0..d * d)
+        .map(|k| {
+            let (i, j) = (k / d, k % d);
+            let q = 1.0 / (1.0 + (-mode[i]).exp());
+            f.jtj.get(k).copied().unwrap_or(0.0) + if i == j { (q * (1.0 - q)).max(1e-3) } else { 0.0 }
+        })
+        .collect();
+    spd_inverse(&h, d)
 }
 
 /// The posterior of `obs` under `model`'s Gaussian noise likelihood and the design's
@@ -166,18 +181,8 @@ pub fn sample(
     seed: u64,
 ) -> Option<Chain> {
     let cols: Vec<ParamSpec> = design.columns();
-    let d = cols.len();
     let start: Vec<f64> = cols.iter().zip(&best.row).map(|(p, &v)| to_unbounded(p, v)).collect();
-    // Proposal: the Laplace covariance (JᵀJ + the prior's curvature q(1 − q))⁻¹; the
-    // prior term keeps directions the data do not pin down at the prior's width.
-    let h: Vec<f64> = (0..d * d)
-        .map(|k| {
-            let (i, j) = (k / d, k % d);
-            let q = 1.0 / (1.0 + (-start[i]).exp());
-            best.jtj.get(k).copied().unwrap_or(0.0) + if i == j { (q * (1.0 - q)).max(1e-3) } else { 0.0 }
-        })
-        .collect();
-    let cov = spd_inverse(&h, d)?;
+    let cov = laplace(best, &start)?;
     let mut runner = model.runner();
     let to_row = |u: &[f64]| -> Vec<f64> { cols.iter().zip(u).map(|(p, &v)| from_unbounded(p, v)).collect() };
     let mut chi2_of = |u: &[f64]| -> f64 {

@@ -4,6 +4,7 @@
 
 pub mod alternatives;
 pub mod exact;
+pub mod exact_fast;
 pub mod fit;
 pub mod fitcheck;
 pub mod locate;

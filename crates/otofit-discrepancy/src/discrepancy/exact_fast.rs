@@ -1,0 +1,825 @@
+//! The likelihood's posterior within one request: several short Metropolis chains from
+//! dispersed starts, with the diagnostics that say whether they agree.
+//!
+//! [`super::exact`] runs one long chain (100,000 steps, about 10 s) from the best of
+//! sixteen least-squares fits. This runs [`Settings::chains`] chains at once, one rayon
+//! task each, under a deadline. Each chain starts at its own flow draw (the first at the
+//! flow's MAP: dispersed, as the flow is wider than the likelihood's posterior, so that
+//! the chains' agreement means something), after a Levenberg–Marquardt fit from there
+//! whose Laplace covariance makes the first proposal. The warm-up runs in rounds; after
+//! each the shared proposal (a random walk, and a Student-t independence proposal for a
+//! quarter of the steps) takes the mean and covariance of all chains' histories, and the
+//! walk's scale moves towards a 0.234 acceptance. The kept steps use the last proposal,
+//! fixed.
+//!
+//! Measured on the default model's simulated ears (docs/results/posterior.md, "Exact
+//! within the request"), the likelihood's posterior there is too curved for random-walk
+//! proposals: at a few thousand steps per chain the chains have not mixed, and the
+//! diagnostics say so (`exact: false`), which is what they are for.
+//!
+//! The diagnostics are rank-normalised split-R̂ (bulk and folded, the larger) and bulk
+//! and tail ESS over all chains (Vehtari, Gelman, Simpson, Carpenter & Bürkner 2021). The
+//! answer is called exact only when R̂ ≤ [`Settings::rhat_max`], both ESS ≥
+//! [`Settings::ess_min`] and the deadline was not hit; otherwise `exact` is false and
+//! `reason` says which failed. The numerical core ([`run_chains`], [`diagnose`]) takes a
+//! log density and knows nothing of the simulator, so it is tested on analytic targets.
+
+use super::exact::{cholesky, laplace, log_prior_u, spd_inverse};
+use super::fit::{Fit, Observation, fit_columns, from_unbounded, residuals, to_unbounded};
+use super::fitcheck::{FitCheckError, sigma, simulator_for};
+use crate::npe::{Inference, Npe};
+use crate::sim::batch::Design;
+use crate::sim::params::ParamSpec;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{ChiSquared, Distribution, StandardNormal};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::time::Instant;
+
+/// How many chains, how long, and when their answer counts as exact.
+#[derive(Clone, Debug, Serialize)]
+pub struct Settings {
+    /// Chains, each from its own dispersed start (at least 2: R̂ compares chains).
+    pub chains: usize,
+    /// Warm-up steps per chain (proposal adaptation; discarded).
+    pub warmup: usize,
+    /// Sampling steps per chain after warm-up, all kept.
+    pub steps: usize,
+    /// Levenberg–Marquardt steps from each chain's flow draw before its warm-up.
+    pub fit_steps: usize,
+    /// Largest R̂ (rank-normalised split, bulk and folded) called converged.
+    pub rhat_max: f64,
+    /// Smallest bulk and tail ESS (over all chains) called enough.
+    pub ess_min: f64,
+    /// Seed of the starts and the chains.
+    pub seed: u64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Settings { chains: 4, warmup: 400, steps: 2000, fit_steps: 50, rhat_max: 1.05, ess_min: 400.0, seed: 0 }
+    }
+}
+
+/// Chain agreement and effective sample sizes of one run.
+#[derive(Clone, Debug, Serialize)]
+pub struct Diagnostics {
+    /// Largest rank-normalised split-R̂ over the coordinates (bulk and folded).
+    pub rhat: f64,
+    /// Smallest bulk ESS over the coordinates, all chains together.
+    pub ess_bulk: f64,
+    /// Smallest tail ESS (of the 5 % and 95 % quantiles) over the coordinates.
+    pub ess_tail: f64,
+    /// Per coordinate: R̂, bulk ESS, tail ESS.
+    pub per_coordinate: Vec<[f64; 3]>,
+    /// Each chain's acceptance rate over its sampling steps.
+    pub acceptance: Vec<f64>,
+    /// Sampling steps each chain took (fewer than asked when the deadline came first).
+    pub steps: Vec<usize>,
+    /// The deadline stopped the chains.
+    pub deadline_hit: bool,
+}
+
+/// The chains' draws and whether they make an exact answer.
+#[derive(Clone, Debug)]
+pub struct Run {
+    /// Each chain's kept draws (sampling phase, every step), in the target's coordinates.
+    pub chains: Vec<Vec<Vec<f64>>>,
+    /// How they went.
+    pub diagnostics: Diagnostics,
+    /// The diagnostics passed: the draws are the target's, up to their ESS.
+    pub exact: bool,
+    /// Why not, when not.
+    pub reason: Option<String>,
+}
+
+/// Checks the clock this often (in steps).
+const CLOCK_EVERY: usize = 16;
+
+/// Degrees of freedom of the independence proposal's Student-t (heavy tails: a proposal
+/// narrower than the target in some direction still reaches it).
+const T_DOF: f64 = 5.0;
+
+/// Scale of the independence proposal against the warm-up covariance.
+const T_SCALE: f64 = 1.3;
+
+/// Share of steps that propose independently (the rest random-walk).
+const P_INDEPENDENT: f64 = 0.25;
+
+/// Warm-up rounds: after each, the proposal is re-estimated from the chains' histories.
+const ROUNDS: usize = 8;
+
+/// Where a chain starts.
+#[derive(Clone, Debug)]
+pub struct Start {
+    /// The chain's first state.
+    pub at: Vec<f64>,
+    /// A guess of the target's covariance near there (row-major d×d; e.g. the Laplace
+    /// covariance of a fit): the first proposal is the mean of the chains' guesses.
+    pub cov: Vec<f64>,
+}
+
+/// The proposal every chain shares in one phase: with probability [`P_INDEPENDENT`] a
+/// Student-t around `mean` with covariance `cov`·[`T_SCALE`]², else a Gaussian random
+/// walk with covariance `cov`·`scale`. A mixture of Metropolis–Hastings kernels that each
+/// leave the target invariant leaves it invariant.
+struct Kernel {
+    d: usize,
+    mean: Vec<f64>,
+    chol: Vec<f64>,
+    t_inv: Vec<f64>,
+    scale: f64,
+}
+
+impl Kernel {
+    fn new(mean: Vec<f64>, cov: &[f64], scale: f64) -> Option<Kernel> {
+        let d = mean.len();
+        let chol = cholesky(cov, d)?;
+        let t_inv = spd_inverse(cov, d)?.iter().map(|v| v / (T_SCALE * T_SCALE)).collect();
+        Some(Kernel { d, mean, chol, t_inv, scale })
+    }
+
+    fn log_q(&self, v: &[f64]) -> f64 {
+        let d = self.d;
+        let r: Vec<f64> = (0..d).map(|i| v[i] - self.mean[i]).collect();
+        let m: f64 = (0..d * d).map(|k| r[k / d] * self.t_inv[k] * r[k % d]).sum();
+        -0.5 * (T_DOF + d as f64) * (1.0 + m / T_DOF).ln()
+    }
+
+    /// A proposal from `x`, its log Hastings ratio and whether it was a random-walk step.
+    fn propose(&self, x: &[f64], rng: &mut ChaCha8Rng, chi: &ChiSquared<f64>) -> (Vec<f64>, f64, bool) {
+        let d = self.d;
+        let z: Vec<f64> = (0..d).map(|_| StandardNormal.sample(rng)).collect();
+        let lz = |i: usize| (0..=i).map(|j| self.chol[i * d + j] * z[j]).sum::<f64>();
+        if rng.random::<f64>() < P_INDEPENDENT {
+            let g = (chi.sample(rng) / T_DOF).sqrt().max(1e-12);
+            let y: Vec<f64> = (0..d).map(|i| self.mean[i] + T_SCALE * lz(i) / g).collect();
+            let r = self.log_q(x) - self.log_q(&y);
+            (y, r, false)
+        } else {
+            let s = self.scale.sqrt();
+            ((0..d).map(|i| x[i] + s * lz(i)).collect(), 0.0, true)
+        }
+    }
+}
+
+/// A chain between phases.
+struct State {
+    x: Vec<f64>,
+    lx: f64,
+    rng: ChaCha8Rng,
+}
+
+/// What one phase of one chain did.
+struct Leg {
+    states: Vec<Vec<f64>>,
+    accepted: usize,
+    walks: usize,
+    walked: usize,
+    stopped: bool,
+}
+
+/// `steps` steps of `kernel` from `state`, every state recorded; stops at `deadline`.
+fn advance(
+    mut log_density: impl FnMut(&[f64]) -> f64,
+    state: &mut State,
+    kernel: &Kernel,
+    steps: usize,
+    deadline: Instant,
+) -> Leg {
+    let mut leg = Leg { states: Vec::with_capacity(steps), accepted: 0, walks: 0, walked: 0, stopped: false };
+    let Ok(chi) = ChiSquared::new(T_DOF) else { return leg };
+    for step in 0..steps {
+        if step % CLOCK_EVERY == 0 && Instant::now() >= deadline {
+            leg.stopped = true;
+            break;
+        }
+        let (y, log_ratio, walk) = kernel.propose(&state.x, &mut state.rng, &chi);
+        let ly = log_density(&y);
+        let u: f64 = state.rng.random();
+        let ok = ly.is_finite() && ly - state.lx + log_ratio > u.ln();
+        if ok {
+            (state.x, state.lx) = (y, ly);
+        }
+        leg.accepted += usize::from(ok);
+        leg.walks += usize::from(walk);
+        leg.walked += usize::from(walk && ok);
+        leg.states.push(state.x.clone());
+    }
+    leg
+}
+
+/// Mean and covariance (row-major d×d) of rows.
+fn moments(rows: &[&Vec<f64>], d: usize) -> (Vec<f64>, Vec<f64>) {
+    let n = rows.len().max(2) as f64;
+    let mean: Vec<f64> = (0..d).map(|k| rows.iter().map(|r| r[k]).sum::<f64>() / rows.len().max(1) as f64).collect();
+    let mut c = vec![0.0; d * d];
+    for r in rows {
+        for i in 0..d {
+            for j in 0..d {
+                c[i * d + j] += (r[i] - mean[i]) * (r[j] - mean[j]) / (n - 1.0);
+            }
+        }
+    }
+    (mean, c)
+}
+
+/// Runs one chain per start, one rayon task each; `new_density` makes each chain its own
+/// log density (e.g. with its own simulator workspace) for each phase. Warm-up in
+/// [`ROUNDS`] rounds: after each, the shared proposal's mean and covariance become those
+/// of all chains' histories (the later half of the warm-up so far), shrunk towards the
+/// starts' mean covariance, and the random walk's scale moves towards a 0.234 acceptance.
+/// Then [`Settings::steps`] steps of the fixed kernel, all kept. The draws of all chains
+/// cut to the shortest, with their diagnostics and verdict; `None` when no chain could
+/// start or the starts' covariance is not positive definite.
+pub fn run_chains<D, F>(new_density: F, starts: &[Start], s: &Settings, deadline: Instant) -> Option<Run>
+where
+    F: Fn() -> D + Sync,
+    D: FnMut(&[f64]) -> f64,
+{
+    let d = starts.first()?.at.len();
+    let mut states: Vec<State> = starts
+        .par_iter()
+        .enumerate()
+        .filter_map(|(k, start)| {
+            let seed = s.seed.wrapping_mul(0x9e37_79b9_7f4a_7c15).wrapping_add(k as u64);
+            let lx = new_density()(&start.at);
+            lx.is_finite().then(|| State { x: start.at.clone(), lx, rng: ChaCha8Rng::seed_from_u64(seed) })
+        })
+        .collect();
+    if states.is_empty() {
+        return None;
+    }
+    let failed = starts.len() - states.len();
+    let mean_of = |f: &dyn Fn(&Start) -> f64| starts.iter().map(f).sum::<f64>() / starts.len() as f64;
+    let prior_cov: Vec<f64> = (0..d * d).map(|k| mean_of(&|st| st.cov.get(k).copied().unwrap_or(f64::NAN))).collect();
+    let centre: Vec<f64> = (0..d).map(|i| mean_of(&|st| st.at[i])).collect();
+    let base = 2.38 * 2.38 / d.max(1) as f64;
+    let mut kernel = Kernel::new(centre, &prior_cov, base)?;
+    let mut history: Vec<Vec<Vec<f64>>> = vec![vec![]; states.len()];
+    let round = s.warmup.div_ceil(ROUNDS);
+    let mut stopped = false;
+    for _ in 0..ROUNDS {
+        if round == 0 || stopped {
+            break;
+        }
+        let legs: Vec<Leg> =
+            states.par_iter_mut().map(|st| advance(new_density(), st, &kernel, round, deadline)).collect();
+        stopped = legs.iter().any(|l| l.stopped);
+        let (walks, walked) = legs.iter().fold((0, 0), |(a, b), l| (a + l.walks, b + l.walked));
+        for (h, l) in history.iter_mut().zip(legs) {
+            h.extend(l.states);
+        }
+        // The later half of the warm-up so far, every chain.
+        let rows: Vec<&Vec<f64>> = history.iter().flat_map(|h| &h[h.len() / 2..]).collect();
+        let (mean, cov) = moments(&rows, d);
+        let w = rows.len() as f64 / (rows.len() + 10 * d) as f64;
+        let cov: Vec<f64> = cov.iter().zip(&prior_cov).map(|(c, c0)| w * c + (1.0 - w) * c0).collect();
+        let rate = if walks > 0 { walked as f64 / walks as f64 } else { 0.234 };
+        let scale = (kernel.scale.ln() + 2.0 * (rate - 0.234)).clamp(base.ln() - 6.0, base.ln() + 2.0).exp();
+        kernel = Kernel::new(mean, &cov, scale).unwrap_or(Kernel { scale, ..kernel });
+    }
+    let legs: Vec<Leg> = if stopped {
+        states.iter().map(|_| Leg { states: vec![], accepted: 0, walks: 0, walked: 0, stopped: true }).collect()
+    } else {
+        states.par_iter_mut().map(|st| advance(new_density(), st, &kernel, s.steps, deadline)).collect()
+    };
+    let n = legs.iter().map(|l| l.states.len()).min().unwrap_or(0);
+    let deadline_hit = legs.iter().any(|l| l.stopped);
+    let acceptance = legs.iter().map(|l| l.accepted as f64 / l.states.len().max(1) as f64).collect();
+    let steps = legs.iter().map(|l| l.states.len()).collect();
+    let chains: Vec<Vec<Vec<f64>>> = legs.into_iter().map(|mut l| l.states.drain(..n).collect()).collect();
+    let (rhat, ess_bulk, ess_tail, per_coordinate) = diagnose(&chains);
+    let diagnostics = Diagnostics { rhat, ess_bulk, ess_tail, per_coordinate, acceptance, steps, deadline_hit };
+    let reason = verdict(&diagnostics, s, failed);
+    Some(Run { chains, exact: reason.is_none(), reason, diagnostics })
+}
+
+/// Why a run is not exact, or `None` when it is.
+fn verdict(g: &Diagnostics, s: &Settings, failed: usize) -> Option<String> {
+    let mut why = vec![];
+    if g.deadline_hit {
+        why.push(format!(
+            "the deadline stopped the chains after {} sampling steps each",
+            g.steps.iter().min().unwrap_or(&0)
+        ));
+    }
+    if failed > 0 {
+        why.push(format!("{failed} chain(s) could not start"));
+    }
+    if g.steps.len() < 2 {
+        why.push("fewer than two chains: their agreement cannot be checked".into());
+    }
+    if g.rhat.is_nan() || g.rhat > s.rhat_max {
+        why.push(format!("the chains disagree: R-hat {:.3} > {}", g.rhat, s.rhat_max));
+    }
+    let ess = g.ess_bulk.min(g.ess_tail);
+    if ess.is_nan() || ess < s.ess_min {
+        why.push(format!(
+            "too few effective draws: bulk ESS {:.0}, tail ESS {:.0} (need {:.0})",
+            g.ess_bulk, g.ess_tail, s.ess_min
+        ));
+    }
+    (!why.is_empty()).then(|| why.join("; "))
+}
+
+/// Rank-normalised split-R̂ (the larger of bulk and folded) and bulk and tail ESS of
+/// equal-length chains, the worst over the coordinates, and per coordinate [R̂, bulk ESS,
+/// tail ESS]. NaN when the chains are too short (fewer than 4 draws).
+pub fn diagnose(chains: &[Vec<Vec<f64>>]) -> (f64, f64, f64, Vec<[f64; 3]>) {
+    let n = chains.iter().map(Vec::len).min().unwrap_or(0);
+    let d = chains.first().and_then(|c| c.first()).map_or(0, Vec::len);
+    if n < 4 || d == 0 {
+        return (f64::NAN, f64::NAN, f64::NAN, vec![]);
+    }
+    let per: Vec<[f64; 3]> = (0..d)
+        .map(|k| {
+            let cols: Vec<Vec<f64>> = chains.iter().map(|c| c[..n].iter().map(|r| r[k]).collect()).collect();
+            coordinate(&cols)
+        })
+        .collect();
+    let worst = |i: usize, max: bool| {
+        per.iter().map(|p| p[i]).fold(if max { f64::NEG_INFINITY } else { f64::INFINITY }, |a, b| {
+            if a.is_nan() || b.is_nan() {
+                f64::NAN
+            } else if max {
+                a.max(b)
+            } else {
+                a.min(b)
+            }
+        })
+    };
+    (worst(0, true), worst(1, false), worst(2, false), per)
+}
+
+/// [R̂, bulk ESS, tail ESS] of one scalar over chains of equal length.
+fn coordinate(cols: &[Vec<f64>]) -> [f64; 3] {
+    let split = split_halves(cols);
+    let z = rank_normal(&split);
+    let med = {
+        let all = crate::stats::sorted(split.iter().flatten().copied().collect());
+        crate::stats::quantile_linear(&all, 0.5)
+    };
+    let folded: Vec<Vec<f64>> = split.iter().map(|c| c.iter().map(|v| (v - med).abs()).collect()).collect();
+    let rhat = rhat(&z).max(rhat(&rank_normal(&folded)));
+    let ess_bulk = ess(&z);
+    let all = crate::stats::sorted(split.iter().flatten().copied().collect());
+    let tail = [0.05, 0.95]
+        .map(|q| {
+            let t = crate::stats::quantile_linear(&all, q);
+            let ind: Vec<Vec<f64>> =
+                split.iter().map(|c| c.iter().map(|&v| if v <= t { 1.0 } else { 0.0 }).collect()).collect();
+            ess(&ind)
+        })
+        .into_iter()
+        .fold(f64::INFINITY, f64::min);
+    [rhat, ess_bulk, tail]
+}
+
+/// Each chain cut into its two halves (the middle draw of an odd chain dropped).
+fn split_halves(cols: &[Vec<f64>]) -> Vec<Vec<f64>> {
+    cols.iter()
+        .flat_map(|c| {
+            let h = c.len() / 2;
+            [c[..h].to_vec(), c[c.len() - h..].to_vec()]
+        })
+        .collect()
+}
+
+/// The draws replaced by the normal scores of their pooled ranks (Blom's offsets).
+fn rank_normal(chains: &[Vec<f64>]) -> Vec<Vec<f64>> {
+    let all: Vec<f64> = chains.iter().flatten().copied().collect();
+    let r = crate::stats::ranks(&all);
+    let total = all.len() as f64;
+    let mut it = r.into_iter().map(|r| probit((r + 1.0 - 0.375) / (total + 0.25)));
+    chains.iter().map(|c| c.iter().map(|_| it.next().unwrap_or(0.0)).collect()).collect()
+}
+
+/// Split-R̂ of chains (already split) of equal length: √(var⁺/W).
+fn rhat(chains: &[Vec<f64>]) -> f64 {
+    let (m, n) = (chains.len() as f64, chains[0].len() as f64);
+    let stats: Vec<(f64, f64)> = chains.iter().map(|c| crate::stats::mean_var_sample(c)).collect();
+    let w = stats.iter().map(|s| s.1).sum::<f64>() / m;
+    let grand = stats.iter().map(|s| s.0).sum::<f64>() / m;
+    let b = n * stats.iter().map(|s| (s.0 - grand).powi(2)).sum::<f64>() / (m - 1.0).max(1.0);
+    let var_plus = (n - 1.0) / n * w + b / n;
+    if w > 0.0 { (var_plus / w).sqrt() } else { f64::NAN }
+}
+
+/// Multi-chain ESS of chains of equal length (Geyer's initial monotone sequence on the
+/// chains' combined autocorrelation, as Stan computes it); at most the draws' count times
+/// log10 of it (antithetic chains can exceed the count, not without bound).
+fn ess(chains: &[Vec<f64>]) -> f64 {
+    let (m, n) = (chains.len(), chains[0].len());
+    let stats: Vec<(f64, f64)> = chains.iter().map(|c| crate::stats::mean_var_sample(c)).collect();
+    let w = stats.iter().map(|s| s.1).sum::<f64>() / m as f64;
+    let grand = stats.iter().map(|s| s.0).sum::<f64>() / m as f64;
+    let b_over_n = stats.iter().map(|s| (s.0 - grand).powi(2)).sum::<f64>() / (m as f64 - 1.0).max(1.0);
+    let var_plus = (n as f64 - 1.0) / n as f64 * w + b_over_n;
+    if var_plus <= 0.0 || !var_plus.is_finite() {
+        // A constant coordinate: every draw is the same, nothing to estimate.
+        return f64::NAN;
+    }
+    // Autocovariance at lag t, averaged over chains (biased estimator, divided by n).
+    let acov = |t: usize| -> f64 {
+        chains
+            .iter()
+            .zip(&stats)
+            .map(|(c, s)| (0..n - t).map(|i| (c[i] - s.0) * (c[i + t] - s.0)).sum::<f64>() / n as f64)
+            .sum::<f64>()
+            / m as f64
+    };
+    let rho = |t: usize| 1.0 - (w * (n as f64 - 1.0) / n as f64 - acov(t)) / var_plus;
+    let (mut sum, mut prev) = (0.0, f64::INFINITY);
+    let mut t = 0;
+    while t + 1 < n {
+        let mut pair = rho(t) + rho(t + 1);
+        if pair < 0.0 {
+            break;
+        }
+        pair = pair.min(prev);
+        sum += pair;
+        prev = pair;
+        t += 2;
+    }
+    let tau = (-1.0 + 2.0 * sum).max(1.0 / ((m * n) as f64).log10());
+    (m * n) as f64 / tau
+}
+
+/// Φ⁻¹(p), Acklam's rational approximation (relative error below 1.2e-9).
+fn probit(p: f64) -> f64 {
+    const A: [f64; 6] = [
+        -3.969683028665376e1,
+        2.209460984245205e2,
+        -2.759285104469687e2,
+        1.38357751867269e2,
+        -3.066479806614716e1,
+        2.506628277459239,
+    ];
+    const B: [f64; 5] =
+        [-5.447609879822406e1, 1.615858368580409e2, -1.556989798598866e2, 6.680131188771972e1, -1.328068155288572e1];
+    const C: [f64; 6] = [
+        -7.784894002430293e-3,
+        -3.223964580411365e-1,
+        -2.400758277161838,
+        -2.549732539343734,
+        4.374664141464968,
+        2.938163982698783,
+    ];
+    const D: [f64; 4] = [7.784695709041462e-3, 3.224671290700398e-1, 2.445134137142996, 3.754408661907416];
+    let p = p.clamp(1e-300, 1.0 - 1e-16);
+    let tail = |q: f64| {
+        (((((C[0] * q + C[1]) * q + C[2]) * q + C[3]) * q + C[4]) * q + C[5])
+            / ((((D[0] * q + D[1]) * q + D[2]) * q + D[3]) * q + 1.0)
+    };
+    if p < 0.02425 {
+        tail((-2.0 * p.ln()).sqrt())
+    } else if p > 1.0 - 0.02425 {
+        -tail((-2.0 * (1.0 - p).ln()).sqrt())
+    } else {
+        let q = p - 0.5;
+        let r = q * q;
+        (((((A[0] * r + A[1]) * r + A[2]) * r + A[3]) * r + A[4]) * r + A[5]) * q
+            / (((((B[0] * r + B[1]) * r + B[2]) * r + B[3]) * r + B[4]) * r + 1.0)
+    }
+}
+
+/// The likelihood's posterior of one ear from short chains: summaries, draws, diagnostics.
+#[derive(Clone, Debug, Serialize)]
+pub struct FastExact {
+    /// The diagnostics passed (and the deadline was not hit).
+    pub exact: bool,
+    /// Why it is not exact, when not.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reason: Option<String>,
+    /// Per-parameter summaries of all chains' draws; `map` is the best of the chains'
+    /// least-squares fits.
+    pub summaries: Vec<crate::npe::Summary>,
+    /// The best fit's χ² per degree of freedom.
+    pub reduced_chi2: f64,
+    /// Chains whose own fit ended far (χ² more than [`MODE_GAP`] above the best) and were
+    /// started from the best fit instead.
+    pub restarted: usize,
+    /// R̂, ESS, acceptance, steps.
+    pub diagnostics: Diagnostics,
+    /// What was run.
+    pub settings: Settings,
+    /// Wall time: fits and chains.
+    pub ms: f64,
+    /// All chains' draws (natural units, the model's parameter order).
+    #[serde(skip)]
+    pub samples: Vec<Vec<f64>>,
+}
+
+/// Longest the chains may run for one ear (fits included) in POST /infer and `otofit
+/// infer --posterior exact`; the service's deadline, when shorter, bounds it too. Past it
+/// the answer says `exact: false`.
+pub const BUDGET: std::time::Duration = std::time::Duration::from_secs(3);
+
+/// What the answer is, said beside it wherever it is reported.
+pub const NOTE: &str = "the posterior under the model's own noise likelihood, from short Metropolis chains started \
+     at dispersed flow draws: exact (up to its ESS) only when `exact` is true, i.e. the chains agree (R-hat), have \
+     enough effective draws (ESS) within the deadline, and the model fits the ear (fit.ok); narrower than the flow's; \
+     parameters[].map is the best of the chains' least-squares fits";
+
+/// A chain whose least-squares fit ends more than this χ² above the best chain's is in a
+/// local optimum of negligible mass (e^(−25) at its peak) and starts from the best fit.
+pub const MODE_GAP: f64 = 50.0;
+
+impl FastExact {
+    /// The normal-range reading of the draws, withdrawn (every parameter `unreliable`,
+    /// with the reason) when the answer is not exact.
+    pub fn reading(&self, npe: &Npe) -> Vec<crate::npe::normal::Differential> {
+        if self.samples.is_empty() {
+            return vec![];
+        }
+        let mut reading = crate::npe::normal::read(npe.params(), &self.samples);
+        if !self.exact {
+            crate::npe::normal::withdraw(&mut reading, self.reason.as_deref().unwrap_or("not exact"));
+        }
+        reading
+    }
+
+    /// Withdraws the answer because the fit check failed for reason `why`: the likelihood
+    /// is then that of a model that does not describe the ear, so it is not exact.
+    pub fn withdraw(&mut self, why: &str) {
+        let w = format!("withdrawn: the fit check failed ({why})");
+        self.exact = false;
+        self.reason = Some(self.reason.take().map_or_else(|| w.clone(), |r| format!("{w}; {r}")));
+    }
+}
+
+/// The posterior of the features `x` that are `present` under `npe`'s simulator and
+/// training noise (as [`super::fitcheck::exact`]), from [`Settings::chains`] short chains
+/// started at the flow's MAP and draws of `inf`, stopping at `deadline`.
+pub fn sample(
+    npe: &Npe,
+    x: &[f64],
+    present: &[bool],
+    inf: &Inference,
+    s: &Settings,
+    deadline: Instant,
+) -> Result<FastExact, FitCheckError> {
+    let model = simulator_for(npe)?;
+    let t0 = Instant::now();
+    let design = Design::default();
+    let cols: Vec<ParamSpec> = design.columns();
+    let x = x.iter().zip(present).map(|(&v, &p)| if p { v } else { f64::NAN }).collect();
+    let obs = Observation { x, sigma: sigma(npe) };
+    let chains = s.chains.max(2);
+    // Dispersed starts: the MAP and flow draws spread through the sample.
+    let mut seeds = vec![inf.map.clone()];
+    let step = (inf.samples.len() / chains).max(1);
+    seeds.extend(inf.samples.iter().step_by(step).take(chains - 1).cloned());
+    let fits: Vec<Option<Fit>> = seeds
+        .par_iter()
+        .map(|row| {
+            let mut runner = model.runner();
+            fit_columns(&cols, row, s.fit_steps, |r| residuals(&mut runner, &design, r, &obs))
+        })
+        .collect();
+    let best = fits
+        .iter()
+        .flatten()
+        .min_by(|a, b| a.chi2.total_cmp(&b.chi2))
+        .cloned()
+        .ok_or_else(|| FitCheckError::Inference("the simulator failed at every start".into()))?;
+    // Each chain starts at its own flow draw; the Laplace covariances of the fits make
+    // the first proposal (a fit far above the best is a local optimum of negligible mass:
+    // the best fit's instead).
+    let to_u = |row: &[f64]| -> Vec<f64> { cols.iter().zip(row).map(|(p, &v)| to_unbounded(p, v)).collect() };
+    let mut restarted = 0;
+    let starts: Vec<Start> = fits
+        .iter()
+        .zip(&seeds)
+        .filter_map(|(f, seed)| {
+            let f = match f {
+                Some(f) if f.chi2 <= best.chi2 + MODE_GAP => f,
+                _ => {
+                    restarted += 1;
+                    &best
+                }
+            };
+            let cov = laplace(f, &to_u(&f.row))?;
+            Some(Start { at: to_u(seed), cov })
+        })
+        .collect();
+    let new_density = || {
+        let mut runner = model.runner();
+        let (design, obs, cols) = (&design, &obs, &cols);
+        move |u: &[f64]| -> f64 {
+            if u.iter().any(|v| v.abs() > 30.0) {
+                return f64::NEG_INFINITY;
+            }
+            let row: Vec<f64> = cols.iter().zip(u).map(|(p, &v)| from_unbounded(p, v)).collect();
+            let chi2 =
+                residuals(&mut runner, design, &row, obs).map_or(f64::INFINITY, |r| r.iter().map(|v| v * v).sum());
+            -0.5 * chi2 + u.iter().map(|&v| log_prior_u(v)).sum::<f64>()
+        }
+    };
+    let run = run_chains(new_density, &starts, &Settings { chains, ..s.clone() }, deadline)
+        .ok_or_else(|| FitCheckError::Inference("no chain could start at its fit".into()))?;
+    let samples: Vec<Vec<f64>> =
+        run.chains.iter().flatten().map(|u| cols.iter().zip(u).map(|(p, &v)| from_unbounded(p, v)).collect()).collect();
+    Ok(FastExact {
+        exact: run.exact,
+        reason: run.reason,
+        // No draws when the deadline came during the warm-up: nothing to summarise.
+        summaries: if samples.is_empty() { vec![] } else { crate::npe::summarize(npe.params(), &samples, &best.row) },
+        reduced_chi2: best.reduced_chi2(),
+        restarted,
+        diagnostics: run.diagnostics,
+        settings: Settings { chains, ..s.clone() },
+        ms: t0.elapsed().as_secs_f64() * 1e3,
+        samples,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    fn later() -> Instant {
+        Instant::now() + Duration::from_secs(600)
+    }
+
+    /// A Gaussian N(μ, Σ) log density, Σ given by standard deviations and one correlation
+    /// between the first two coordinates.
+    fn gaussian(mu: Vec<f64>, sd: Vec<f64>, rho: f64) -> impl Fn(&[f64]) -> f64 + Sync {
+        let d = mu.len();
+        let s: Vec<f64> = (0..d * d)
+            .map(|k| {
+                let (i, j) = (k / d, k % d);
+                let r = match (i, j) {
+                    _ if i == j => 1.0,
+                    (0, 1) | (1, 0) => rho,
+                    _ => 0.0,
+                };
+                r * sd[i] * sd[j]
+            })
+            .collect();
+        let p = spd_inverse(&s, d).unwrap();
+        move |x: &[f64]| {
+            let r: Vec<f64> = (0..d).map(|i| x[i] - mu[i]).collect();
+            -0.5 * (0..d * d).map(|k| r[k / d] * p[k] * r[k % d]).sum::<f64>()
+        }
+    }
+
+    fn identity(d: usize, v: f64) -> Vec<f64> {
+        (0..d * d).map(|k| if k % (d + 1) == 0 { v } else { 0.0 }).collect()
+    }
+
+    fn column(run: &Run, k: usize) -> Vec<f64> {
+        run.chains.iter().flatten().map(|r| r[k]).collect()
+    }
+
+    #[test]
+    fn a_correlated_gaussian_is_recovered_and_called_exact() {
+        let (mu, sd) = (vec![1.0, -2.0, 0.5, 3.0], vec![0.1, 1.0, 0.3, 2.0]);
+        let target = gaussian(mu.clone(), sd.clone(), 0.8);
+        // Dispersed starts; a first proposal ten times too narrow and blind to the
+        // correlation.
+        let starts: Vec<Start> = [[-3.0, 2.0, 3.0, -3.0], [3.0, -6.0, -2.0, 8.0], [0.0; 4], [2.0; 4]]
+            .iter()
+            .map(|s| Start { at: s.to_vec(), cov: identity(4, 0.01) })
+            .collect();
+        let run = run_chains(|| &target, &starts, &Settings::default(), later()).unwrap();
+        assert!(run.exact, "{:?}", run.reason);
+        for k in 0..4 {
+            let (m, v) = crate::stats::mean_var_sample(&column(&run, k));
+            assert!((m - mu[k]).abs() < 0.1 * sd[k], "mean {k}: {m} vs {}", mu[k]);
+            assert!((v.sqrt() / sd[k] - 1.0).abs() < 0.1, "sd {k}: {} vs {}", v.sqrt(), sd[k]);
+        }
+    }
+
+    /// Two far-apart equal modes at ±10 on the first axis: the mean is 0, and a chain
+    /// in one mode never sees the other.
+    fn bimodal() -> impl Fn(&[f64]) -> f64 + Sync {
+        |x: &[f64]| {
+            let a = -0.5 * ((x[0] + 10.0).powi(2) + x[1] * x[1]);
+            let b = -0.5 * ((x[0] - 10.0).powi(2) + x[1] * x[1]);
+            a.max(b) + (1.0 + (-(a - b).abs()).exp()).ln()
+        }
+    }
+
+    #[test]
+    fn chains_in_different_modes_are_flagged_where_one_chain_alone_looks_converged() {
+        let target = bimodal();
+        let s = Settings::default();
+        let at = |x0: f64| Start { at: vec![x0, 1.0], cov: identity(2, 1.0) };
+        // One chain alone: its own split-R-hat and ESS look fine, its mean is wrong.
+        let one = |x0: f64| run_chains(|| &target, &[at(x0)], &s, later()).unwrap().chains.remove(0);
+        let left = one(-9.0);
+        let (rhat, ess, _, _) = diagnose(std::slice::from_ref(&left));
+        let m = crate::stats::mean(left.iter().map(|r| r[0]));
+        assert!(rhat < s.rhat_max && ess > 100.0, "one chain: R-hat {rhat}, ESS {ess}");
+        assert!(m < -9.0, "one chain's mean {m} (the target's is 0)");
+        // Four such chains, two in each mode: R-hat says they disagree, and the verdict
+        // names it.
+        let chains = vec![left, one(-12.0), one(11.0), one(9.0)];
+        let (rhat, ess_bulk, ess_tail, per_coordinate) = diagnose(&chains);
+        assert!(rhat > 1.5, "R-hat {rhat}");
+        let g = Diagnostics {
+            rhat,
+            ess_bulk,
+            ess_tail,
+            per_coordinate,
+            acceptance: vec![0.3; 4],
+            steps: vec![s.steps; 4],
+            deadline_hit: false,
+        };
+        assert!(verdict(&g, &s, 0).is_some_and(|r| r.contains("R-hat")), "{:?}", verdict(&g, &s, 0));
+        // Run together from dispersed starts, the chains share what they learn: they
+        // either cross between the modes (the mean near 0) or are not called exact.
+        let run = run_chains(|| &target, &[-12.0, 11.0, -8.0, 9.0].map(at), &s, later()).unwrap();
+        let m = crate::stats::mean(column(&run, 0));
+        assert!(!run.exact || m.abs() < 1.0, "called exact with mean {m} (R-hat {})", run.diagnostics.rhat);
+    }
+
+    #[test]
+    fn a_passed_deadline_stops_the_chains_and_is_not_exact() {
+        let target = gaussian(vec![0.0; 3], vec![1.0; 3], 0.0);
+        let starts: Vec<Start> = (0..4).map(|k| Start { at: vec![k as f64; 3], cov: identity(3, 1.0) }).collect();
+        let run = run_chains(|| &target, &starts, &Settings::default(), Instant::now()).unwrap();
+        assert!(!run.exact && run.diagnostics.deadline_hit);
+        assert!(run.reason.as_deref().is_some_and(|r| r.contains("deadline")), "{:?}", run.reason);
+        // A start without density or a proposal that is not positive definite: no chain.
+        let bad = [
+            Start { at: vec![f64::NAN; 3], cov: identity(3, 1.0) },
+            Start { at: vec![0.0; 3], cov: identity(3, -1.0) },
+        ];
+        assert!(run_chains(|| |x: &[f64]| -x[0].powi(2), &bad, &Settings::default(), later()).is_none());
+    }
+
+    /// AR(1) chains x_t = φ x_{t−1} + √(1 − φ²) ε_t: unit variance and ESS n(1 − φ)/(1 + φ).
+    fn ar1(phi: f64, chains: usize, n: usize, shift: f64) -> Vec<Vec<Vec<f64>>> {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        (0..chains)
+            .map(|c| {
+                let mut x: f64 = StandardNormal.sample(&mut rng);
+                (0..n)
+                    .map(|_| {
+                        let e: f64 = StandardNormal.sample(&mut rng);
+                        x = phi * x + (1.0 - phi * phi).sqrt() * e;
+                        vec![x + shift * c as f64]
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+
+    #[test]
+    fn ess_matches_an_autoregressive_chains_and_rhat_sees_shifted_chains() {
+        let (phi, m, n) = (0.9, 4, 20_000);
+        let (rhat, ess, tail, _) = diagnose(&ar1(phi, m, n, 0.0));
+        let expected = (m * n) as f64 * (1.0 - phi) / (1.0 + phi);
+        assert!((ess / expected - 1.0).abs() < 0.15, "bulk ESS {ess} vs {expected}");
+        // An indicator of an AR(1) forgets faster than the chain itself.
+        assert!(tail > 0.85 * expected && tail < (m * n) as f64, "tail ESS {tail} vs {expected}");
+        let (_, ess, tail, _) = diagnose(&ar1(0.0, m, n, 0.0));
+        assert!(ess > 0.85 * (m * n) as f64 && tail > 0.85 * (m * n) as f64, "independent draws: {ess}, {tail}");
+        assert!(rhat < 1.01, "R-hat of agreeing chains {rhat}");
+        // Chains half a standard deviation apart.
+        let (rhat, _, _, _) = diagnose(&ar1(phi, m, n, 0.5));
+        assert!(rhat > 1.05, "R-hat of shifted chains {rhat}");
+    }
+
+    #[test]
+    fn a_failed_fit_check_withdraws_an_exact_answer_and_its_reading() {
+        let g = Diagnostics {
+            rhat: 1.0,
+            ess_bulk: 1000.0,
+            ess_tail: 1000.0,
+            per_coordinate: vec![],
+            acceptance: vec![0.3; 4],
+            steps: vec![2000; 4],
+            deadline_hit: false,
+        };
+        let mut e = FastExact {
+            exact: true,
+            reason: None,
+            summaries: vec![],
+            reduced_chi2: 1.0,
+            restarted: 0,
+            diagnostics: g,
+            settings: Settings::default(),
+            ms: 1.0,
+            samples: vec![],
+        };
+        e.withdraw("χ² too large");
+        assert!(!e.exact);
+        assert_eq!(e.reason.as_deref(), Some("withdrawn: the fit check failed (χ² too large)"));
+        e.reason = Some("the chains disagree".into());
+        e.withdraw("again");
+        assert!(e.reason.as_deref().is_some_and(|r| r.starts_with("withdrawn") && r.ends_with("the chains disagree")));
+    }
+
+    #[test]
+    fn probit_inverts_the_normal_cdf() {
+        for (p, z) in [(0.5, 0.0), (0.975, 1.959_963_985), (0.05, -1.644_853_627), (1e-6, -4.753_424_309)] {
+            assert!((probit(p) - z).abs() < 1e-6, "probit({p}) = {} vs {z}", probit(p));
+        }
+    }
+}
