@@ -19,7 +19,7 @@ pub(crate) fn default_model() -> PathBuf {
 
 /// A router on a fresh data dir, removed when the returned guard is dropped (keep it for the
 /// whole test).
-async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Arc<Ctx>, TempDir) {
+pub(crate) async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Arc<Ctx>, TempDir) {
     let dir = temp_dir("http");
     let ctx = otofit::cli::serve::open(&dir, &default_model(), max_queue).await.unwrap();
     if dispatch {
@@ -28,7 +28,7 @@ async fn app(keys: Vec<[u8; 32]>, max_queue: i64, dispatch: bool) -> (Router, Ar
     (router(AppState::new(ctx.clone(), keys)), ctx, dir)
 }
 
-async fn call(
+pub(crate) async fn call(
     app: &Router,
     method: &str,
     uri: &str,

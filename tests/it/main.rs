@@ -4,6 +4,7 @@ mod baseline;
 mod cli;
 mod diagnose_null;
 mod discrepancy;
+mod exact_infer;
 mod fuzz;
 mod http;
 mod npe;

@@ -5,6 +5,7 @@
 
 use super::{AppState, Problem, json_body};
 use crate::discrepancy::alternatives::{self, Alternatives, AlternativesParams};
+use crate::discrepancy::exact_fast::{self, FastExact};
 use crate::discrepancy::fitcheck::{FitCheck, FitCheckError, MAX_REFINE_STEPS, Refined};
 use crate::npe::{Inference, Npe, NpeError, Obs, Summary};
 use axum::Json;
@@ -29,6 +30,32 @@ pub struct InferRequest {
     pub plot: Option<Plot>,
     /// Levenberg–Marquardt steps of a least-squares best fit from the MAP (0: none).
     pub refine: Option<usize>,
+    /// `flow` (the default): the flow's posterior alone; `exact`: also the likelihood's
+    /// posterior, sampled within the request (`discrepancy::exact_fast`), under `exact`.
+    pub posterior: Option<PosteriorKind>,
+}
+
+/// Which posterior POST /infer answers with.
+#[derive(Clone, Copy, Debug, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum PosteriorKind {
+    /// The flow's (amortized, calibrated, wider than the likelihood's).
+    #[default]
+    Flow,
+    /// The flow's and, under `exact`, the likelihood's own from short chains started at
+    /// the flow's draws, with their diagnostics.
+    Exact,
+}
+
+impl std::str::FromStr for PosteriorKind {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "flow" => Ok(PosteriorKind::Flow),
+            "exact" => Ok(PosteriorKind::Exact),
+            _ => Err(format!("'{s}' is not a posterior (known: flow, exact)")),
+        }
+    }
 }
 
 /// Figures POST /infer can draw into its response.
@@ -122,7 +149,7 @@ fn request(
 
 /// A `text/csv` body: the table's measurements, the rest of the request from the query
 /// (`model`, `samples`, `seed`, `return_samples`, `unit=COLUMN=UNIT`,
-/// `select=COLUMN=VALUE`, `preset`, `plot`, `refine`).
+/// `select=COLUMN=VALUE`, `preset`, `plot`, `refine`, `posterior`).
 fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest, Option<Imported>), Problem> {
     use crate::formats::long::{self, LongOptions};
     let mut req = InferRequest {
@@ -133,6 +160,7 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
         return_samples: None,
         plot: None,
         refine: None,
+        posterior: None,
     };
     let mut opts = LongOptions::default();
     let bad = |k: &str, m: String| Problem::invalid(vec![(k.to_string(), m)]);
@@ -149,11 +177,12 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
             "preset" => opts.preset = Some(v.parse().map_err(|m| bad(k, m))?),
             "plot" => req.plot = Some(v.parse().map_err(|m| bad(k, m))?),
             "refine" => req.refine = Some(v.parse().map_err(|_| bad(k, format!("'{v}' is not a count of steps")))?),
+            "posterior" => req.posterior = Some(v.parse().map_err(|m| bad(k, m))?),
             _ => {
                 return Err(bad(
                     k,
                     "unknown query parameter (known: model, samples, seed, return_samples, unit, select, preset, \
-                     plot, refine)"
+                     plot, refine, posterior)"
                         .into(),
                 ));
             }
@@ -223,14 +252,18 @@ pub async fn infer(
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
     let (plot, title) = (req.plot, format!("Posterior, model {}", row.id));
+    let exact = (req.posterior == Some(PosteriorKind::Exact))
+        .then(|| t0 + exact_fast::BUDGET.min(st.ctx.infer_gate.limits.deadline.mul_f64(0.8)));
     // Sampling, MAP and the fit check are CPU work: off the runtime threads.
-    let answer = tokio::task::spawn_blocking(move || posterior(&npe2, x, present, (n, seed, refine), plot, &title))
-        .await
-        .map_err(Problem::internal)?
-        .map_err(npe_problem)?;
+    let answer =
+        tokio::task::spawn_blocking(move || posterior(&npe2, x, present, (n, seed, refine), plot, &title, exact))
+            .await
+            .map_err(Problem::internal)?
+            .map_err(npe_problem)?;
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
-    let Answer { inf, fit, fit_ms, corner, refined, mut differential, alternatives } = answer;
+    let Answer { inf, fit, fit_ms, corner, refined, mut differential, alternatives, exact } = answer;
     let (fit, next) = fit_and_next(fit, req.model.as_deref(), &mut differential);
+    let exact = exact.map(|e| exact_doc(e, &npe, &fit));
     let verdict = crate::npe::normal::verdict(&differential, fit["ok"].as_bool());
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
     // they describe the probe's placement, not the ear, and have no normal range.
@@ -259,9 +292,13 @@ pub async fn infer(
             "map": inf.map_ms,
             "fit": fit_ms,
             "alternatives": alternatives.as_ref().map_or(0.0, |a| a.ms),
+            "exact": exact.as_ref().map_or(0.0, |e| e["ms"].as_f64().unwrap_or(0.0)),
             "total": t0.elapsed().as_secs_f64() * 1e3,
         },
     });
+    if let Some(e) = exact {
+        doc["exact"] = e;
+    }
     if let Some(a) = alternatives {
         doc["alternatives"] = json!(a);
     }
@@ -293,12 +330,15 @@ struct Answer {
     /// The competing explanations of its findings, when the fit check passed and there
     /// is a finding.
     alternatives: Option<Alternatives>,
+    /// The likelihood's posterior, when asked for (or why it could not run).
+    exact: Option<Result<FastExact, FitCheckError>>,
 }
 
 /// The posterior of features `x` (`present` marks those measured) from `n` samples of
 /// `seed`, its fit check (timed apart), with `refine` > 0 the best fit from its MAP and,
 /// with `plot`, its corner plot; the differential and, for a passed fit check with
-/// findings, their alternatives.
+/// findings, their alternatives; with an `exact` deadline, the likelihood's posterior
+/// from short chains stopped by it.
 fn posterior(
     npe: &Npe,
     x: Vec<f64>,
@@ -306,6 +346,7 @@ fn posterior(
     (n, seed, refine): (usize, u64, usize),
     plot: Option<Plot>,
     title: &str,
+    exact: Option<std::time::Instant>,
 ) -> Result<Answer, NpeError> {
     let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
     let refined = (refine > 0).then(|| crate::discrepancy::fitcheck::refine(npe, &x, &present, &inf.map, refine));
@@ -325,7 +366,35 @@ fn posterior(
         fit_ok,
         &AlternativesParams::default(),
     );
-    Ok(Answer { inf, fit: fit.map(|f| (f, x)), fit_ms, corner, refined, differential, alternatives })
+    let exact = exact.map(|deadline| {
+        let settings = exact_fast::Settings { seed, ..Default::default() };
+        exact_fast::sample(npe, &x, &present, &inf, &settings, deadline)
+    });
+    Ok(Answer { inf, fit: fit.map(|f| (f, x)), fit_ms, corner, refined, differential, alternatives, exact })
+}
+
+/// The response's `exact`: the chains' summaries (tissue and geometry apart, as the
+/// flow's), their diagnostics, and their normal-range reading, withdrawn when the fit
+/// check failed (then `exact` is false: the likelihood is that of a model that does not
+/// describe the ear) or when the diagnostics failed.
+fn exact_doc(e: Result<FastExact, FitCheckError>, npe: &Npe, fit: &serde_json::Value) -> serde_json::Value {
+    let mut e = match e {
+        Ok(e) => e,
+        Err(err) => return json!({ "exact": false, "reason": err.to_string(), "ms": 0.0 }),
+    };
+    if fit["ok"].as_bool() == Some(false) {
+        e.withdraw(fit["reason"].as_str().unwrap_or("the model does not fit these measurements"));
+    }
+    let reading = e.reading(npe);
+    let (geometry, tissue): (Vec<_>, Vec<_>) =
+        e.summaries.iter().partition(|s| crate::sim::params::is_geometry(&s.name));
+    let mut doc = json!(e);
+    doc["parameters"] = json!(tissue);
+    doc["geometry"] = json!(geometry);
+    doc.as_object_mut().map(|o| o.remove("summaries"));
+    doc["differential"] = json!(reading);
+    doc["note"] = json!(exact_fast::NOTE);
+    doc
 }
 
 /// The response's `fit` and, when the fit check fails, its `next` step (a diagnose job
