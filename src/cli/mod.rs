@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod bench;
 mod bench_c2st;
+mod bench_exact;
 mod bench_fit;
 mod bench_scale;
 pub mod calibrate;

@@ -8,6 +8,7 @@
 
 pub mod c2st;
 pub mod crossmodel;
+pub mod exact_fast;
 pub mod glm;
 pub mod mcmc;
 pub mod posterior;

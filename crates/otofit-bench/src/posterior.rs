@@ -397,7 +397,7 @@ pub struct Report {
 
 /// `n` of `draws` (all if fewer), evenly spaced, as scale coordinates of `params` (the
 /// C2ST's inputs: the chain's draws are correlated, so thinned rather than taken in a row).
-fn tissue_coords(params: &[Param], draws: &[Vec<f64>], n: usize) -> Vec<Vec<f64>> {
+pub fn tissue_coords(params: &[Param], draws: &[Vec<f64>], n: usize) -> Vec<Vec<f64>> {
     let m = n.min(draws.len());
     (0..m)
         .map(|i| &draws[i * draws.len() / m])

@@ -1,0 +1,247 @@
+//! The short chains of POST /infer's exact posterior (`discrepancy::exact_fast`) on
+//! held-out simulated ears: `otofit bench exact`.
+//!
+//! The ears, their noise and their scoring are those of [`crate::posterior`] (half prior
+//! draws, half near the model's degeneracies; 1× test–retest noise). On every ear: the
+//! short chains' 50 % and 90 % coverage of the truth per tissue parameter, their
+//! diagnostics (R-hat, ESS, `exact`) and wall time. On the first `reference` ears also
+//! the long chain (`discrepancy::exact`, 100,000 steps by default) and the C2ST between
+//! its draws and the short chains' over the tissue parameters: the short chains sample
+//! the same posterior when it is near 0.5.
+
+use crate::c2st::{self, C2stParams};
+use crate::posterior::{C2ST_DRAWS, FLOW_SAMPLES, ParamScore, Pooled, ears, pool, score, tissue_coords};
+use anyhow::{Result, bail};
+use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
+use otofit_discrepancy::discrepancy::exact_fast::{self, Settings};
+use otofit_discrepancy::discrepancy::fitcheck::{exact, simulator_for};
+use otofit_npe::npe::{Npe, Obs};
+use otofit_npe::stats;
+use otofit_sim::N_TISSUE;
+use otofit_sim::batch::{Design, Noise, default_noise_std, run_rows};
+use serde::Serialize;
+use std::fmt::Write;
+use std::time::Instant;
+
+/// How big a run is.
+#[derive(Clone, Debug)]
+pub struct FastParams {
+    /// Held-out ears scored for coverage.
+    pub ears: usize,
+    /// Of those, the first this many also get the long chain and a C2ST.
+    pub reference: usize,
+    /// Long-chain steps.
+    pub steps: usize,
+    /// Seed of the ears, their noise, the flow's draws and the chains.
+    pub seed: u64,
+}
+
+impl FastParams {
+    /// Refuses sizes the benchmark cannot run, naming the CLI's argument.
+    pub fn check(&self) -> Result<()> {
+        if !(1..=crate::posterior::MAX_EARS).contains(&self.ears) {
+            bail!("--ears must be 1..={} (got {})", crate::posterior::MAX_EARS, self.ears);
+        }
+        if self.reference > self.ears {
+            bail!("--reference must be 0..=--ears ({}) (got {})", self.ears, self.reference);
+        }
+        if !(crate::posterior::MIN_STEPS..=MAX_STEPS).contains(&self.steps) {
+            bail!("--steps must be {}..={MAX_STEPS} (got {})", crate::posterior::MIN_STEPS, self.steps);
+        }
+        Ok(())
+    }
+}
+
+/// A scored ear, or the index of one that could not be scored and why.
+pub type EarOutcome = Result<FastEar, (usize, String)>;
+
+/// One ear's outcome.
+#[derive(Clone, Debug, Serialize)]
+pub struct FastEar {
+    /// Its index.
+    pub ear: usize,
+    /// `prior` or the recipe's name.
+    pub kind: &'static str,
+    /// The flow (`flow`) and the short chains (`exact`) on each tissue parameter.
+    pub params: Vec<ParamScore>,
+    /// The short chains' verdict.
+    pub exact: bool,
+    /// Why not exact, when not.
+    pub reason: Option<String>,
+    /// Largest R-hat over the parameters.
+    pub rhat: f64,
+    /// Smallest bulk ESS.
+    pub ess_bulk: f64,
+    /// Smallest tail ESS.
+    pub ess_tail: f64,
+    /// Wall time of the short chains (fits included).
+    pub seconds: f64,
+    /// C2ST between the short chains' and the long chain's draws (reference ears).
+    pub c2st: Option<f64>,
+    /// The same for the flow's draws against the long chain.
+    pub c2st_flow: Option<f64>,
+    /// Wall time of the long chain.
+    pub long_seconds: Option<f64>,
+}
+
+/// A whole run.
+#[derive(Clone, Debug, Serialize)]
+pub struct FastReport {
+    /// The ears asked for, the reference ears, the long chain's steps, the seed.
+    pub ears: usize,
+    /// Ears with the long chain.
+    pub reference: usize,
+    /// Long-chain steps.
+    pub steps: usize,
+    /// The seed.
+    pub seed: u64,
+    /// The short chains' settings.
+    pub settings: Settings,
+    /// Pooled over all scored ears and tissue parameters (`exact_*`: the short chains).
+    pub all: Pooled,
+    /// The same over the ears called exact.
+    pub called_exact: Pooled,
+    /// Ears called exact.
+    pub exact_ears: usize,
+    /// Median C2ST short chains against the long chain, over the reference ears.
+    pub c2st_median: f64,
+    /// Median C2ST of the flow against the long chain.
+    pub c2st_flow_median: f64,
+    /// Median and largest wall time of the short chains.
+    pub seconds_median: f64,
+    /// Largest wall time of the short chains.
+    pub seconds_max: f64,
+    /// Every scored ear.
+    pub per_ear: Vec<FastEar>,
+    /// Ears that could not be scored, and why.
+    pub skipped: Vec<(usize, String)>,
+}
+
+fn c2st_of(npe: &Npe, a: &[Vec<f64>], b: &[Vec<f64>], seed: u64) -> f64 {
+    let tissue = &npe.params()[..N_TISSUE];
+    let m = C2ST_DRAWS.min(a.len()).min(b.len());
+    c2st::c2st(
+        &tissue_coords(tissue, a, m),
+        &tissue_coords(tissue, b, m),
+        &C2stParams { seed, ..C2stParams::default() },
+    )
+}
+
+fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p: &FastParams) -> Result<FastEar> {
+    let seed = p.seed.wrapping_add(i as u64);
+    let present = vec![true; x.len()];
+    let inf = npe.infer(&Obs { x, present: Some(&present) }, FLOW_SAMPLES, seed)?;
+    let t = Instant::now();
+    let settings = Settings { seed, ..Settings::default() };
+    let fast = exact_fast::sample(npe, x, &present, &inf, &settings, Instant::now() + exact_fast::BUDGET)?;
+    let seconds = t.elapsed().as_secs_f64();
+    let tissue = &npe.params()[..N_TISSUE];
+    let (mut c2st, mut c2st_flow, mut long_seconds) = (None, None, None);
+    if i < p.reference {
+        let t = Instant::now();
+        let long = exact(npe, x, &present, &inf, p.steps, seed)?;
+        long_seconds = Some(t.elapsed().as_secs_f64());
+        c2st = Some(c2st_of(npe, &long.chain.samples, &fast.samples, seed));
+        c2st_flow = Some(c2st_of(npe, &long.chain.samples, &inf.samples, seed));
+    }
+    let g = &fast.diagnostics;
+    Ok(FastEar {
+        ear: i,
+        kind,
+        params: score(tissue, truth, &inf.samples, &fast.samples),
+        exact: fast.exact,
+        reason: fast.reason.clone(),
+        rhat: g.rhat,
+        ess_bulk: g.ess_bulk,
+        ess_tail: g.ess_tail,
+        seconds,
+        c2st,
+        c2st_flow,
+        long_seconds,
+    })
+}
+
+fn median(v: Vec<f64>) -> f64 {
+    stats::median_upper(&stats::sorted(v))
+}
+
+/// Simulates the ears of `p`, reads each with the flow and the short chains (and the
+/// long chain on the reference ears), one ear after the other, and pools the scores.
+pub fn run(npe: &Npe, p: &FastParams, progress: &mut dyn FnMut(&EarOutcome)) -> Result<FastReport> {
+    p.check()?;
+    let model = simulator_for(npe)?;
+    let held = ears(p.ears, p.seed);
+    let rows: Vec<Vec<f64>> = held.iter().map(|e| e.row.clone()).collect();
+    let noise = Noise { std: default_noise_std(model), scale: 1.0, seed: p.seed };
+    let xs = run_rows(model, &Design::default(), &rows, 0, Some(&noise));
+    let (mut per_ear, mut skipped) = (vec![], vec![]);
+    for (i, (ear, x)) in held.iter().zip(xs).enumerate() {
+        let outcome = x
+            .map_err(anyhow::Error::from)
+            .and_then(|x| one_ear(npe, i, ear.kind, &ear.row, &x, p))
+            .map_err(|e| (i, format!("{e:#}")));
+        progress(&outcome);
+        match outcome {
+            Ok(r) => per_ear.push(r),
+            Err(s) => skipped.push(s),
+        }
+    }
+    let exact_ears: Vec<&FastEar> = per_ear.iter().filter(|e| e.exact).collect();
+    let seconds: Vec<f64> = per_ear.iter().map(|e| e.seconds).collect();
+    Ok(FastReport {
+        ears: p.ears,
+        reference: p.reference,
+        steps: p.steps,
+        seed: p.seed,
+        settings: Settings::default(),
+        all: pool(per_ear.iter().flat_map(|e| &e.params)),
+        called_exact: pool(exact_ears.iter().flat_map(|e| &e.params)),
+        exact_ears: exact_ears.len(),
+        c2st_median: median(per_ear.iter().filter_map(|e| e.c2st).collect()),
+        c2st_flow_median: median(per_ear.iter().filter_map(|e| e.c2st_flow).collect()),
+        seconds_median: median(seconds.clone()),
+        seconds_max: seconds.iter().copied().fold(f64::NAN, f64::max),
+        per_ear,
+        skipped,
+    })
+}
+
+/// The report as text: coverage, agreement, diagnostics, time, against the targets.
+pub fn table(r: &FastReport) -> String {
+    let mut s = String::new();
+    let scored = r.per_ear.len();
+    let _ = writeln!(
+        s,
+        "{scored} of {} ears scored ({} skipped), seed {}; {} chains × ({} warm-up + {} steps); {} reference ears \
+         with a {}-step chain",
+        r.ears,
+        r.skipped.len(),
+        r.seed,
+        r.settings.chains,
+        r.settings.warmup,
+        r.settings.steps,
+        r.reference,
+        r.steps
+    );
+    let _ = writeln!(s, "\n| ears | pairs | 50 % coverage | 90 % coverage (target 0.87–0.93) | flow 90 % coverage |");
+    let _ = writeln!(s, "|---|---|---|---|---|");
+    for (name, q) in [("all", &r.all), ("called exact", &r.called_exact)] {
+        let _ = writeln!(
+            s,
+            "| {name} | {} | {:.3} | {:.3} | {:.3} |",
+            q.pairs, q.exact_cover50, q.exact_cover90, q.flow_cover90
+        );
+    }
+    let _ = writeln!(
+        s,
+        "\ncalled exact: {} of {scored}; median C2ST short chains vs long chain {:.3} (target ≤ 0.6), flow vs long \
+         chain {:.3}; short chains' wall time median {:.2} s, max {:.2} s",
+        r.exact_ears, r.c2st_median, r.c2st_flow_median, r.seconds_median, r.seconds_max
+    );
+    let mut reasons: Vec<&str> = r.per_ear.iter().filter_map(|e| e.reason.as_deref()).collect();
+    reasons.sort_unstable();
+    for why in reasons.iter().take(10) {
+        let _ = writeln!(s, "not exact: {why}");
+    }
+    s
+}
