@@ -456,7 +456,8 @@ fn null_simulations(model: &Model, noise: &Noise, s: &Settings) -> Result<Vec<Ve
 
 /// The two alarm statistics of each null ear with only `given` features: the base
 /// model's reduced χ² and, where the fits converge, the best candidate's χ² drop. Ears
-/// run in parallel, each with its own seed, so the result does not depend on threads.
+/// run one after another (each fit spreads its candidates over the cores): a cancel then
+/// waits for one ear's fits, not for one per core.
 fn null_statistics(
     model: &Model,
     base: &Npe,
@@ -465,10 +466,9 @@ fn null_statistics(
     given: &[bool],
     s: &Settings,
 ) -> Result<(Vec<f64>, Vec<f64>)> {
-    use rayon::prelude::*;
     let design = Design::default();
     let per_case: Vec<(f64, Option<f64>)> = sims
-        .par_iter()
+        .iter()
         .enumerate()
         .map(|(k, x)| {
             s.go_on()?;
