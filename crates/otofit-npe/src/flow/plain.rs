@@ -1059,13 +1059,13 @@ impl Bound<'_> {
 
     /// One coupling transform on u [d × n] (after its permutation), forward or inverse;
     /// adds each sample's log |f'| to `logdet`. The conditioner runs in f32 when sampling
-    /// (`inverse`).
-    fn couple(&self, t: usize, u: &mut [f64], n: usize, inverse: bool, logdet: &mut [f64]) {
+    /// (`inverse`) unless `wide`.
+    fn couple(&self, t: usize, u: &mut [f64], n: usize, inverse: bool, wide: bool, logdet: &mut [f64]) {
         let cfg = &self.flow.cfg;
         let d = cfg.dim;
         let dc = d / 2;
         let untouched = u.chunks_exact(d).flat_map(|c| c[..dc].iter().copied());
-        let raw = if inverse {
+        let raw = if inverse && !wide {
             let a: Vec<f32> = untouched.map(|v| v as f32).collect();
             self.narrow(t).raw(dc, cfg.blocks, &a, n, None, true).into_iter().map(f64::from).collect()
         } else {
@@ -1077,6 +1077,17 @@ impl Bound<'_> {
     /// Standard-normal draws z (n rows of d, row-major) → points v (same layout) and
     /// log q(v), in one inverse pass.
     pub fn sample(&self, z: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        self.inverse(z, false)
+    }
+
+    /// As [`Self::sample`] with every conditioner in f64: slower, but the exact inverse of
+    /// [`Self::base`] (to rounding), so that log q is the log-density of the map's own
+    /// output, smooth in z (`npe::LatentMap` differentiates through it).
+    pub fn sample_wide(&self, z: &[f64]) -> (Vec<f64>, Vec<f64>) {
+        self.inverse(z, true)
+    }
+
+    fn inverse(&self, z: &[f64], wide: bool) -> (Vec<f64>, Vec<f64>) {
         let cfg = &self.flow.cfg;
         let d = cfg.dim;
         let n = z.len() / d;
@@ -1088,7 +1099,7 @@ impl Bound<'_> {
                 a.apply(&mut u, true);
                 logdet.iter_mut().for_each(|l| *l += a.logdet);
             }
-            self.couple(t, &mut u, n, true, &mut logdet);
+            self.couple(t, &mut u, n, true, wide, &mut logdet);
             permute(&mut u, &cfg.permutations[t], true);
         }
         let lp = tz.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c, self.temperature) + ld).collect();
@@ -1097,6 +1108,12 @@ impl Bound<'_> {
 
     /// log q(v) for points v (n rows of d, row-major; the flow's standardised space).
     pub fn log_prob(&self, v: &[f64]) -> Vec<f64> {
+        self.base(v).1
+    }
+
+    /// Points v (n rows of d, row-major) → the standard-normal draws z that
+    /// [`Self::sample`] maps to them (the inverse of the sampling map) and log q(v).
+    pub fn base(&self, v: &[f64]) -> (Vec<f64>, Vec<f64>) {
         let cfg = &self.flow.cfg;
         let d = cfg.dim;
         let n = v.len() / d;
@@ -1104,13 +1121,14 @@ impl Bound<'_> {
         let mut u = v.to_vec();
         for t in 0..cfg.transforms {
             permute(&mut u, &cfg.permutations[t], false);
-            self.couple(t, &mut u, n, false, &mut logdet);
+            self.couple(t, &mut u, n, false, true, &mut logdet);
             if let Some(a) = self.flow.lu.get(t) {
                 a.apply(&mut u, false);
                 logdet.iter_mut().for_each(|l| *l += a.logdet);
             }
         }
-        u.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c, self.temperature) + ld).collect()
+        let lp = u.chunks_exact(d).zip(&logdet).map(|(c, ld)| log_normal(c, self.temperature) + ld).collect();
+        (u.iter().map(|v| v / self.temperature).collect(), lp)
     }
 }
 
