@@ -147,7 +147,8 @@ pub(super) fn bench_settings(model: &Model, base: &crate::npe::Npe, seed: u64) -
     let (t, whence) = match stored_thresholds(base, &all, &s).filter(|(_, cases)| *cases >= NULL_CASES) {
         Some((t, cases)) => (t, format!("the model's, {cases} effect-free cases")),
         None => {
-            (null_thresholds(model, base, &noise, &all, &s)?, format!("{NULL_CASES} effect-free cases, measured once"))
+            let (t, cases) = null_thresholds(model, base, &noise, &all, &s)?;
+            (t, format!("{cases} effect-free cases, measured once"))
         }
     };
     s.thresholds = Some(t);

@@ -8,7 +8,7 @@
 
 use super::workflow::check_present;
 use super::{Band, Observation, null_quantile};
-use crate::npe::{FitNull, Inference, Npe, Obs, SubsetNull};
+use crate::npe::{self, FitNull, Inference, Npe, Obs, SubsetNull};
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::output::feature_names;
 use crate::sim::{Model, ModelConfig, PARAMS};
@@ -144,9 +144,9 @@ fn statistics(
 }
 
 /// Names of the feature groups with at least one feature present, sorted.
-fn present_groups(npe: &Npe, present: &[bool]) -> Vec<String> {
-    let mut g: Vec<String> =
-        npe.header.groups.iter().filter(|g| g.features.iter().any(|&i| present[i])).map(|g| g.name.clone()).collect();
+pub(crate) fn present_groups(npe: &Npe, present: &[bool]) -> Vec<String> {
+    let touched = |g: &&npe::Group| g.features.iter().any(|&i| present.get(i).copied().unwrap_or(false));
+    let mut g: Vec<String> = npe.header.groups.iter().filter(touched).map(|g| g.name.clone()).collect();
     g.sort();
     g
 }

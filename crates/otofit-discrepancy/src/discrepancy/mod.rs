@@ -18,6 +18,7 @@ use crate::sim::Model;
 use crate::sim::batch::Design;
 use crate::sim::params::{EFFECTS, N_PARAMS};
 use serde::Serialize;
+use std::sync::atomic::{AtomicBool, Ordering};
 
 /// Nearest-rank `q` quantile of a null sample; +∞ for an empty sample.
 pub(crate) fn null_quantile(v: Vec<f64>, q: f64) -> f64 {
@@ -59,8 +60,14 @@ impl Candidate {
     }
 }
 
+/// Whether `stop` (a cancel flag) is set.
+fn stopped(stop: Option<&AtomicBool>) -> bool {
+    stop.is_some_and(|s| s.load(Ordering::Relaxed))
+}
+
 /// Fits the base design extended by each candidate effect, starting from `base_row`
-/// (the base model's MAP or best fit); best first.
+/// (the base model's MAP or best fit); best first. Once `stop` is set, the candidates
+/// not yet started are skipped (a cancel waits for the fits in flight only).
 pub fn rank_candidates(
     model: &Model,
     base: &Design,
@@ -68,11 +75,15 @@ pub fn rank_candidates(
     base_chi2: f64,
     obs: &Observation,
     candidates: &[usize],
+    stop: Option<&AtomicBool>,
 ) -> Vec<Candidate> {
     use rayon::prelude::*;
     let mut out: Vec<Candidate> = candidates
         .par_iter()
         .filter_map(|&e| {
+            if stopped(stop) {
+                return None;
+            }
             let mut design = base.clone();
             design.varied.push(e);
             let spec = EFFECTS[e].as_param();
@@ -111,26 +122,39 @@ pub fn rank_candidates(
 /// The base fit and the ranked candidates, made consistent: a candidate's fit also moves
 /// the base parameters, so the base model is refitted from each candidate's base part
 /// and the best base fit kept. Without this the χ² drop would credit the effect with
-/// what was only a better optimum of the base model.
+/// what was only a better optimum of the base model. `None` when the base fit fails or
+/// `stop` was set (checked between fits, so a cancel does not wait for every candidate).
 pub fn fit_and_rank(
     model: &Model,
     obs: &Observation,
     base_starts: &[Vec<f64>],
     candidates: &[usize],
+    stop: Option<&AtomicBool>,
 ) -> Option<(Fit, Vec<Candidate>)> {
     use rayon::prelude::*;
     let design = Design::default();
     let mut base = fit(model, &design, base_starts, obs, 60)?;
+    let rank = |base: &Fit| {
+        let ranked = rank_candidates(model, &design, &base.row, base.chi2, obs, candidates, stop);
+        (!stopped(stop)).then_some(ranked)
+    };
     for _round in 0..2 {
-        let ranked = rank_candidates(model, &design, &base.row, base.chi2, obs, candidates);
-        let refits: Vec<Fit> =
-            ranked.par_iter().filter_map(|c| fit(model, &design, &[c.fit.row[BASE].to_vec()], obs, 60)).collect();
+        let ranked = rank(&base)?;
+        let refits: Vec<Fit> = ranked
+            .par_iter()
+            .filter_map(
+                |c| if stopped(stop) { None } else { fit(model, &design, &[c.fit.row[BASE].to_vec()], obs, 60) },
+            )
+            .collect();
+        if stopped(stop) {
+            return None;
+        }
         match refits.into_iter().min_by(|a, b| a.chi2.total_cmp(&b.chi2)) {
             Some(better) if better.chi2 < base.chi2 - 1e-6 * base.chi2 => base = better,
             _ => return Some((base, ranked)),
         }
     }
-    let ranked = rank_candidates(model, &design, &base.row, base.chi2, obs, candidates);
+    let ranked = rank(&base)?;
     Some((base, ranked))
 }
 
@@ -173,3 +197,31 @@ pub fn verdict(base_reduced_chi2: f64, ranked: &[Candidate], base_chi2: f64, t: 
 
 /// Index range of the base parameters in a row.
 pub const BASE: std::ops::Range<usize> = 0..N_PARAMS;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::ModelConfig;
+    use crate::sim::batch::{Noise, default_noise_std, run_rows};
+
+    /// A cancel set before the candidates are fitted stops the ranking: no candidate is
+    /// fitted and `fit_and_rank` answers `None` (the caller reports the cancel), so a
+    /// cancelled diagnose does not wait for every candidate's fit.
+    #[test]
+    fn a_set_stop_flag_fits_no_candidate() {
+        let model = Model::new(ModelConfig::default()).unwrap();
+        let design = Design::default();
+        let row = design.draw(3, 0, 1);
+        let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed: 5 };
+        let x = run_rows(&model, &design, &row, 0, Some(&noise)).remove(0).unwrap();
+        let obs = Observation { x, sigma: noise.std.clone() };
+        let all: Vec<usize> = (0..EFFECTS.len()).collect();
+        let stop = AtomicBool::new(true);
+        let ranked = rank_candidates(&model, &design, &row[0], 1.0, &obs, &all, Some(&stop));
+        assert!(ranked.is_empty(), "{} candidates fitted after the stop", ranked.len());
+        assert!(fit_and_rank(&model, &obs, &row, &[0], Some(&stop)).is_none());
+        // Not stopped, the same call ranks its candidate.
+        let (_, ranked) = fit_and_rank(&model, &obs, &row, &[0], None).unwrap();
+        assert_eq!(ranked.len(), 1);
+    }
+}

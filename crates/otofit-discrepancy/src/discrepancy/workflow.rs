@@ -5,6 +5,7 @@
 
 #![warn(missing_docs)]
 
+use super::fitcheck::present_groups;
 use super::{Band, Observation, Thresholds, Verdict, fit, fit_and_rank, locate};
 use crate::npe::{self, Dataset, DiagnoseNull, DiagnoseSubsetNull, Npe, NpeError, Obs, TrainSettings};
 use crate::sim::batch::{Design, Noise, run_rows};
@@ -363,10 +364,17 @@ pub const ALARM_QUANTILE: f64 = 0.975;
 /// The null: effect-free simulations from the prior, pushed through the same fit and
 /// candidate ranking; their `ALARM_QUANTILE` quantiles are the alarm thresholds.
 /// `given`: the features the observation has; the null's ears lack the same ones.
-pub fn null_thresholds(model: &Model, base: &Npe, noise: &Noise, given: &[bool], s: &Settings) -> Result<Thresholds> {
+/// Also returns how many ears the null holds (those that simulated).
+pub fn null_thresholds(
+    model: &Model,
+    base: &Npe,
+    noise: &Noise,
+    given: &[bool],
+    s: &Settings,
+) -> Result<(Thresholds, usize)> {
     let sims = null_simulations(model, noise, s)?;
     let (chi, drops) = null_statistics(model, base, noise, &sims, given, s)?;
-    Ok(thresholds_of(chi, drops))
+    Ok((thresholds_of(chi, drops), sims.len()))
 }
 
 /// The null measured once for each feature set in `given_sets` (the same effect-free
@@ -422,14 +430,10 @@ pub fn groups_given(base: &Npe, given: &[bool]) -> Option<Vec<String>> {
     if groups.is_empty() {
         return given.iter().all(|g| *g).then(Vec::new);
     }
-    let touched = |g: &&npe::Group| g.features.iter().any(|&i| given.get(i).copied().unwrap_or(false));
-    let mut names: Vec<String> = groups.iter().filter(touched).map(|g| g.name.clone()).collect();
+    let names = present_groups(base, given);
     // The groups touched must be given whole: as many features as they hold.
-    let whole = groups.iter().filter(touched).map(|g| g.features.len()).sum::<usize>();
-    (whole == given.iter().filter(|g| **g).count()).then(|| {
-        names.sort();
-        names
-    })
+    let whole: usize = groups.iter().filter(|g| names.contains(&g.name)).map(|g| g.features.len()).sum();
+    (whole == given.iter().filter(|g| **g).count()).then_some(names)
 }
 
 /// A named effect must bring the reduced χ² at or below this.
@@ -479,7 +483,7 @@ fn null_statistics(
             s.go_on()?;
             let c = check(model, &design, &inf.samples[..s.draws.min(inf.samples.len())], &inf.map, &obs)?;
             s.go_on()?;
-            let drop = fit_and_rank(model, &obs, std::slice::from_ref(&inf.map), &s.candidates)
+            let drop = fit_and_rank(model, &obs, std::slice::from_ref(&inf.map), &s.candidates, s.cancel.as_deref())
                 .map(|(b, ranked)| ranked.first().map_or(0.0, |c| b.chi2 - c.chi2));
             Ok((c.reduced_chi2, drop))
         })
@@ -514,14 +518,15 @@ pub fn diagnose(model: &Model, base: &Npe, x: &[f64], s: &Settings, progress: &m
         (None, Some((t, cases))) => (t, NullSource::Model { cases }),
         (None, None) => {
             progress("null distribution of the statistics");
-            (null_thresholds(model, base, &noise, &given, s)?, NullSource::Measured { cases: s.null_cases })
+            let (t, cases) = null_thresholds(model, base, &noise, &given, s)?;
+            (t, NullSource::Measured { cases })
         }
     };
     s.go_on()?;
     progress("name: fitting candidate effects");
     let median: Vec<f64> = inf.summaries.iter().map(|p| p.median).collect();
-    let (base_fit, ranked) =
-        fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates).ok_or(DiagnoseError::BaseFitFailed)?;
+    let (base_fit, ranked) = fit_and_rank(model, &obs, &[inf.map.clone(), median], &s.candidates, s.cancel.as_deref())
+        .ok_or_else(|| if s.cancelled() { DiagnoseError::Cancelled } else { DiagnoseError::BaseFitFailed })?;
     // Alarm: either statistic beyond its null quantile. Candidate: the best effect if its
     // χ² drop beats both the BIC penalty and the null quantile of the best drop.
     s.go_on()?;
