@@ -1386,6 +1386,27 @@ fn flow_number(line: &str, key: &str) -> f64 {
     rest.split([',', ' ', '}']).next().unwrap().parse().unwrap_or_else(|e| panic!("{key} in {line}: {e}"))
 }
 
+/// The measurement units the contract enumerates are exactly those the server reads, so
+/// a schema-valid unit is never refused and none the server reads is left out.
+#[test]
+fn measurement_units_in_the_contract_are_the_servers() {
+    use otofit::measurements::{IMPEDANCE_UNITS, PHASE_UNITS, VELOCITY_UNITS};
+    let names = |units: &[(&[&str], Option<f64>)]| -> Vec<String> {
+        units.iter().flat_map(|(n, _)| n.iter().map(|s| s.to_string())).collect()
+    };
+    let enumerated = |schema: &str, field: &str| -> Vec<String> {
+        let l = property_line(schema, field);
+        let list = l.split_once("enum: [").unwrap_or_else(|| panic!("{schema}.{field} has no enum")).1;
+        list.split(']').next().unwrap().split(", ").map(|s| s.trim_matches('"').to_string()).collect()
+    };
+    assert_eq!(enumerated("VelocityCurve", "magnitude_unit"), names(&VELOCITY_UNITS));
+    assert_eq!(enumerated("ImpedanceCurve", "magnitude_unit"), names(&IMPEDANCE_UNITS));
+    let phases: Vec<String> = PHASE_UNITS.iter().map(|(n, _)| n.to_string()).collect();
+    for schema in ["VelocityCurve", "ImpedanceCurve"] {
+        assert_eq!(enumerated(schema, "phase_unit"), phases, "{schema}");
+    }
+}
+
 /// The line of property `field` of component schema `schema`.
 fn property_line(schema: &str, field: &str) -> &'static str {
     let key = format!("        {field}: ");

@@ -140,7 +140,7 @@ async fn two_tenants_cannot_see_each_other(app: &Router, ctx: &Arc<Ctx>, backend
     infer["model"] = json!("ma");
     infer["samples"] = json!(10);
     let (status, p) = send(app, b, "POST", "/infer", Some(infer.clone())).await;
-    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::UNPROCESSABLE_ENTITY, Some("model")), "{p}");
+    assert_eq!((status, p["errors"][0]["field"].as_str()), (StatusCode::NOT_FOUND, Some("model")), "{p}");
     assert_eq!(send(app, a, "POST", "/infer", Some(infer)).await.0, StatusCode::OK, "{backend}");
 
     // The admin sees alpha's job, but not the measurement in its params.

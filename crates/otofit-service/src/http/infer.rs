@@ -196,7 +196,8 @@ fn csv_request(query: &[(String, String)], body: &[u8]) -> Result<(InferRequest,
 }
 
 /// The model a request names (one its tenant may see) or the default model, loaded off the
-/// runtime threads.
+/// runtime threads. An id that names no model the client may see is a 404 naming the
+/// field, as GET /models/{id} and a job's `params.model` answer.
 pub(super) async fn model_for(
     st: &AppState,
     who: &super::Principal,
@@ -205,7 +206,7 @@ pub(super) async fn model_for(
     let row = match model {
         Some(id) => super::resources::visible_model(st, who, id)
             .await?
-            .ok_or_else(|| Problem::invalid(vec![("model".into(), format!("no model '{id}'"))]))?,
+            .ok_or_else(|| super::field_problem(StatusCode::NOT_FOUND, "model", format!("no model '{id}'")))?,
         None => st
             .ctx
             .store

@@ -238,6 +238,13 @@ impl Problem {
     }
 }
 
+/// A problem with `status` about one field of the request, named in `errors`.
+pub(crate) fn field_problem(status: StatusCode, field: &str, message: String) -> Problem {
+    let mut p = Problem::new(status, format!("{field}: {message}"));
+    p.errors = vec![FieldProblem { field: field.into(), message }];
+    p
+}
+
 impl IntoResponse for Problem {
     fn into_response(self) -> Response {
         let status = StatusCode::from_u16(self.status).unwrap_or(StatusCode::INTERNAL_SERVER_ERROR);

@@ -178,11 +178,11 @@ pub async fn create_job(
             Some(j) if j.kind == "simulate" && j.state == "succeeded" => {}
             Some(j) if j.kind == "simulate" => {
                 let message = format!("dataset '{}' is not ready (job {})", p.dataset, j.state);
-                return Err(field_problem(StatusCode::CONFLICT, "params.dataset", message));
+                return Err(super::field_problem(StatusCode::CONFLICT, "params.dataset", message));
             }
             _ => {
                 let message = format!("no dataset '{}' (a succeeded simulate job's id)", p.dataset);
-                return Err(field_problem(StatusCode::NOT_FOUND, "params.dataset", message));
+                return Err(super::field_problem(StatusCode::NOT_FOUND, "params.dataset", message));
             }
         },
         JobSpec::Diagnose(p) => model_takes(&st, &who, p.model.as_deref(), p.x.len()).await?,
@@ -227,13 +227,6 @@ pub async fn create_job(
     Ok(r)
 }
 
-/// A problem with `status` naming one field of the request (a 4xx other than 422).
-fn field_problem(status: StatusCode, field: &str, message: String) -> Problem {
-    let mut p = Problem::new(status, format!("{field}: {message}"));
-    p.errors = vec![super::FieldProblem { field: field.into(), message }];
-    p
-}
-
 /// A diagnose or exact job's model (`params.model`, else the default) must be registered
 /// (else a 404) and take as many features as `params.x` has (else a 422): both answered
 /// now, not when the job runs.
@@ -242,7 +235,7 @@ async fn model_takes(st: &AppState, who: &Principal, model: Option<&str>, n: usi
     let field = if model.is_some() { "params.model" } else { "params" };
     // An id that names no model (for this client) is a 404, as GET /models/{id} answers.
     if visible_model(st, who, &id).await?.is_none() {
-        return Err(field_problem(StatusCode::NOT_FOUND, field, format!("model '{id}' is not registered")));
+        return Err(super::field_problem(StatusCode::NOT_FOUND, field, format!("model '{id}' is not registered")));
     }
     let ctx = st.ctx.clone();
     let id2 = id.clone();
