@@ -63,6 +63,7 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
         _ => None,
     };
     let fit = fit.map_or_else(|e| serde_json::json!({ "ok": null, "reason": e.to_string() }), |f| serde_json::json!(f));
+    let diagnostics = within_chain(&ex.chain.samples);
     r.still_ours(ctx)?;
     Ok(serde_json::json!({
         "model": id,
@@ -70,6 +71,42 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
         "flow": inf.summaries,
         "differential": ex.reading(&npe, withdrawn.as_deref()),
         "exact": ex,
+        "diagnostics": diagnostics,
         "note": crate::discrepancy::fitcheck::EXACT_NOTE,
     }))
+}
+
+/// Consecutive segments the long chain's draws are cut into for its diagnostics.
+const SEGMENTS: usize = 4;
+
+/// The within-chain split diagnostic of the one long chain: its (thinned) draws cut into
+/// [`SEGMENTS`] consecutive segments and read as that many chains by
+/// `exact_fast::diagnose` (rank-normalised split-R-hat, bulk and tail ESS, the worst over
+/// the parameters). It sees a chain that has not settled — a drift, a slow excursion —
+/// not a mode the one chain never visited.
+fn within_chain(draws: &[Vec<f64>]) -> serde_json::Value {
+    let per = draws.len() / SEGMENTS;
+    let parts: Vec<Vec<Vec<f64>>> = draws.chunks_exact(per.max(1)).take(SEGMENTS).map(<[_]>::to_vec).collect();
+    let (rhat, ess_bulk, ess_tail, _) = crate::discrepancy::exact_fast::diagnose(&parts);
+    serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "segments": SEGMENTS, "draws": per * SEGMENTS })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_chain_that_drifts_is_flagged_by_its_segments() {
+        // Draws alternating ±1 (one coordinate) around a level that climbs from 0 to 6:
+        // the segments disagree. A sequence that repeats every 1,000 draws (each segment
+        // the same values) does not.
+        let drift: Vec<Vec<f64>> =
+            (0..4000).map(|t| vec![6.0 * t as f64 / 4000.0 + if t % 2 == 0 { 1.0 } else { -1.0 }]).collect();
+        let d = within_chain(&drift);
+        assert!(d["rhat"].as_f64().unwrap() > 1.5, "{d}");
+        assert_eq!((d["segments"].as_u64(), d["draws"].as_u64()), (Some(4), Some(4000)), "{d}");
+        let flat: Vec<Vec<f64>> = (0..4000).map(|t| vec![((t * 7919) % 1000) as f64]).collect();
+        let d = within_chain(&flat);
+        assert!(d["rhat"].as_f64().unwrap() < 1.05, "{d}");
+    }
 }
