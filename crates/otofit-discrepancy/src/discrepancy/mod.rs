@@ -61,7 +61,7 @@ impl Candidate {
 }
 
 /// Whether `stop` (a cancel flag) is set.
-fn stopped(stop: Option<&AtomicBool>) -> bool {
+pub(crate) fn stopped(stop: Option<&AtomicBool>) -> bool {
     stop.is_some_and(|s| s.load(Ordering::Relaxed))
 }
 
@@ -142,9 +142,8 @@ pub fn fit_and_rank(
         let ranked = rank(&base)?;
         let refits: Vec<Fit> = ranked
             .par_iter()
-            .filter_map(
-                |c| if stopped(stop) { None } else { fit(model, &design, &[c.fit.row[BASE].to_vec()], obs, 60) },
-            )
+            .filter(|_| !stopped(stop))
+            .filter_map(|c| fit(model, &design, &[c.fit.row[BASE].to_vec()], obs, 60))
             .collect();
         if stopped(stop) {
             return None;

@@ -15,7 +15,7 @@ use crate::sim::{Model, SimError};
 use crate::stats;
 use serde::Serialize;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::AtomicBool;
 
 /// How to run the workflow.
 #[derive(Clone, Debug)]
@@ -95,7 +95,7 @@ pub type Result<T, E = DiagnoseError> = std::result::Result<T, E>;
 
 impl Settings {
     fn cancelled(&self) -> bool {
-        self.cancel.as_ref().is_some_and(|c| c.load(Ordering::Relaxed))
+        super::stopped(self.cancel.as_deref())
     }
 
     /// `Err(Cancelled)` once cancellation was requested.
