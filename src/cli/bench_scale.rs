@@ -1,6 +1,8 @@
 //! `otofit bench scale`: dataset generation and training at 1, 2, 4, … threads up to the
 //! machine's cores, with the speed-up and the efficiency (speed-up per thread) of each.
-//! A benchmark, not a test: run it on a quiet machine, its numbers are only as good.
+//! The training time is the median of the epochs' wall times (each with its validation
+//! pass); with `--data` only the training on that dataset is timed. A benchmark, not a
+//! test: run it on a quiet machine, its numbers are only as good.
 
 use crate::dataset::{self, DatasetRun, Format, Rows};
 use crate::npe::{self, TrainSettings};
@@ -19,9 +21,14 @@ pub struct ScaleArgs {
     /// Rows of the training table (the first rows of the simulated one).
     #[arg(long, default_value_t = 5_000)]
     pub train_rows: usize,
-    /// Training epochs timed at each thread count (batch 200, the default recipe).
+    /// Training epochs timed at each thread count (batch 200, the default recipe); the
+    /// median epoch is reported.
     #[arg(long, default_value_t = 3)]
     pub epochs: usize,
+    /// Time the training only, on this dataset folder (its first --train-rows rows),
+    /// without simulating.
+    #[arg(long)]
+    pub data: Option<std::path::PathBuf>,
     /// The most threads tried (default: the machine's cores).
     #[arg(long)]
     pub max_threads: Option<usize>,
@@ -43,12 +50,47 @@ impl Drop for Scratch {
     }
 }
 
-/// One thread count's times, seconds.
+/// One thread count's times, seconds (simulation: `None` with `--data`).
 struct Times {
     threads: usize,
-    csv: f64,
-    npy: f64,
+    csv: Option<f64>,
+    npy: Option<f64>,
+    /// The median epoch.
     epoch: f64,
+    /// Every epoch, in order.
+    epochs: Vec<f64>,
+}
+
+/// The 1, 5 and 15 min load averages (empty where /proc has none).
+fn load_average() -> String {
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    load.split_whitespace().take(3).collect::<Vec<_>>().join(" ")
+}
+
+/// The median of `v` (the mean of the middle two for an even count).
+fn median(v: &[f64]) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let n = s.len();
+    if n == 0 { f64::NAN } else { 0.5 * (s[(n - 1) / 2] + s[n / 2]) }
+}
+
+/// Trains on the first `rows` rows of `ds` for `epochs` epochs (no early stop) on the
+/// current thread pool; each epoch's wall time.
+fn train_epochs(mut ds: npe::Dataset, rows: usize, epochs: usize) -> Result<Vec<f64>> {
+    if rows > ds.theta.len() {
+        bail!("--train-rows {rows} is more than the dataset's {} usable rows", ds.theta.len());
+    }
+    ds.theta.truncate(rows);
+    ds.x.truncate(rows);
+    let settings = TrainSettings { max_epochs: epochs, patience: epochs + 1, ..TrainSettings::default() };
+    let mut times = Vec::with_capacity(epochs);
+    npe::train(&ds, &settings, &mut |r| {
+        times.push(r.seconds);
+        true
+    })
+    .context("training")?;
+    Ok(times)
 }
 
 pub fn run(args: ScaleArgs) -> Result<()> {
@@ -57,8 +99,20 @@ pub fn run(args: ScaleArgs) -> Result<()> {
     if !(1..=1024).contains(&max) {
         bail!("--max-threads must be 1..=1024, got {max}");
     }
-    if args.rows == 0 || args.train_rows == 0 || args.train_rows > args.rows || args.epochs == 0 {
+    let simulated = args.data.is_none();
+    if args.rows == 0 || args.train_rows == 0 || (simulated && args.train_rows > args.rows) || args.epochs == 0 {
         bail!("--rows, --train-rows (≤ --rows) and --epochs must be positive");
+    }
+    let load = load_average();
+    match &args.data {
+        Some(_) => println!(
+            "{cores} cores; load average {load}; training only, on {} rows for {} epochs",
+            args.train_rows, args.epochs
+        ),
+        None => println!(
+            "{cores} cores; load average {load}; {} rows simulated and written, training on {} rows for {} epochs",
+            args.rows, args.train_rows, args.epochs
+        ),
     }
     let config = ModelConfig::default();
     let preset = config.preset;
@@ -67,18 +121,15 @@ pub fn run(args: ScaleArgs) -> Result<()> {
     let noise = Noise { std: batch::default_noise_std(&model), scale: 1.0, seed: 0 };
     let rows = Rows::Prior { n: args.rows, seed: 0 };
     let scratch = Scratch(std::env::temp_dir().join(format!("otofit-bench-scale-{}", std::process::id())));
-    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
-    println!(
-        "{cores} cores; load average {}; {} rows simulated and written, training on {} rows for {} epochs",
-        load.split_whitespace().take(3).collect::<Vec<_>>().join(" "),
-        args.rows,
-        args.train_rows,
-        args.epochs
-    );
     let mut table = Vec::new();
     for threads in thread_counts(max) {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build()?;
         let t = pool.install(|| -> Result<Times> {
+            if let Some(dir) = &args.data {
+                let ds = npe::Dataset::load(dir).with_context(|| format!("reading {}", dir.display()))?;
+                let epochs = train_epochs(ds, args.train_rows, args.epochs)?;
+                return Ok(Times { threads, csv: None, npy: None, epoch: median(&epochs), epochs });
+            }
             let mut secs = [0.0; 2];
             for (i, format) in [Format::Csv, Format::Npy].into_iter().enumerate() {
                 let dir = scratch.0.join(format!("{threads}-{format:?}"));
@@ -87,44 +138,47 @@ pub fn run(args: ScaleArgs) -> Result<()> {
                 dataset::simulate_to_dir(&run, &dir, &mut |_, _| true)?;
                 secs[i] = t0.elapsed().as_secs_f64();
             }
-            let mut ds = npe::Dataset::load(&scratch.0.join(format!("{threads}-Npy")))?;
-            ds.theta.truncate(args.train_rows);
-            ds.x.truncate(args.train_rows);
-            let settings =
-                TrainSettings { max_epochs: args.epochs, patience: args.epochs + 1, ..TrainSettings::default() };
-            let t0 = Instant::now();
-            npe::train(&ds, &settings, &mut |_| true).context("training")?;
-            let epoch = t0.elapsed().as_secs_f64() / args.epochs as f64;
+            let ds = npe::Dataset::load(&scratch.0.join(format!("{threads}-Npy")))?;
+            let epochs = train_epochs(ds, args.train_rows, args.epochs)?;
             for f in ["Csv", "Npy"] {
                 std::fs::remove_dir_all(scratch.0.join(format!("{threads}-{f}")))?;
             }
-            Ok(Times { threads, csv: secs[0], npy: secs[1], epoch })
+            Ok(Times { threads, csv: Some(secs[0]), npy: Some(secs[1]), epoch: median(&epochs), epochs })
         })?;
+        let each: Vec<String> = t.epochs.iter().map(|e| format!("{e:.2}")).collect();
+        let simulated = match (t.csv, t.npy) {
+            (Some(c), Some(n)) => format!(
+                "simulate+CSV {c:.2} s ({:.0} rows/s), simulate+npy {n:.2} s ({:.0} rows/s), ",
+                args.rows as f64 / c,
+                args.rows as f64 / n
+            ),
+            _ => String::new(),
+        };
         println!(
-            "{:>3} threads: simulate+CSV {:.2} s ({:.0} rows/s), simulate+npy {:.2} s ({:.0} rows/s), training {:.2} s/epoch",
+            "{:>3} threads: {simulated}training {:.2} s/epoch (median; epochs {} s)",
             t.threads,
-            t.csv,
-            args.rows as f64 / t.csv,
-            t.npy,
-            args.rows as f64 / t.npy,
-            t.epoch
+            t.epoch,
+            each.join(", ")
         );
         table.push(t);
     }
     let one = &table[0];
+    let ratio = |base: Option<f64>, now: Option<f64>, per: f64| match (base, now) {
+        (Some(b), Some(n)) => format!("{:>5.2}× ({:>3.0} %)", b / n, 100.0 * b / n / per),
+        _ => "    –".into(),
+    };
     println!("\nthreads | simulate+CSV speed-up (efficiency) | simulate+npy | training epoch");
     for t in &table {
-        let ratio = |base: f64, now: f64| base / now;
-        let (c, n, e) = (ratio(one.csv, t.csv), ratio(one.npy, t.npy), ratio(one.epoch, t.epoch));
         let per = t.threads as f64;
         println!(
-            "{:>7} | {c:>5.2}× ({:>3.0} %) | {n:>5.2}× ({:>3.0} %) | {e:>5.2}× ({:>3.0} %)",
+            "{:>7} | {} | {} | {}",
             t.threads,
-            100.0 * c / per,
-            100.0 * n / per,
-            100.0 * e / per
+            ratio(one.csv, t.csv, per),
+            ratio(one.npy, t.npy, per),
+            ratio(Some(one.epoch), Some(t.epoch), per)
         );
     }
+    println!("load average at the end {}", load_average());
     Ok(())
 }
 
@@ -138,5 +192,12 @@ mod tests {
         assert_eq!(thread_counts(2), [1, 2]);
         assert_eq!(thread_counts(6), [1, 2, 4, 6]);
         assert_eq!(thread_counts(16), [1, 2, 4, 8, 16]);
+    }
+
+    #[test]
+    fn the_median_epoch_is_the_middle_one() {
+        assert_eq!(median(&[3.0, 1.0, 2.0]), 2.0);
+        assert_eq!(median(&[4.0, 1.0, 3.0, 2.0]), 2.5);
+        assert!(median(&[]).is_nan());
     }
 }

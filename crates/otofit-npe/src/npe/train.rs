@@ -254,6 +254,9 @@ impl Batcher<'_> {
         let band_cut_max = h.band_cut_max;
         let mut v = Vec::with_capacity(rows.len() * d);
         let mut inp = Vec::with_capacity(rows.len() * h.flow.inputs);
+        // The noise's standard deviation per feature, and a row's standard normal draws.
+        let noise: Vec<f64> = ds.noise_std.iter().map(|sd| s.noise_scale * sd).collect();
+        let mut e = vec![0.0f64; f];
         for &i in rows {
             v.extend((0..d).map(|k| ((self.u_rows[i][k] - h.u_mean[k]) / h.u_std[k]) as f32));
             // Each group kept with probability 1/2, at least one kept.
@@ -263,10 +266,11 @@ impl Batcher<'_> {
                 keep[j] = true;
             }
             let start = inp.len();
-            for k in 0..f {
-                let e: f64 = StandardNormal.sample(rng);
-                inp.push(((ds.x[i][k] + s.noise_scale * ds.noise_std[k] * e - h.x_mean[k]) / h.x_std[k]) as f32);
-            }
+            // Drawn first, in the features' order, then applied in one pass that the
+            // compiler vectorises (the draw runs beside Adam's step: `batch_step`).
+            e.iter_mut().for_each(|e| *e = StandardNormal.sample(rng));
+            let row = ds.x[i].iter().zip(&noise).zip(&e).zip(&h.x_mean).zip(&h.x_std);
+            inp.extend(row.map(|((((x, sd), e), mean), std)| ((x + sd * e - mean) / std) as f32));
             let mut here = vec![true; f];
             for (g, &on) in self.groups.iter().zip(&keep) {
                 // A kept group loses the ends of its band with probability 1/2.
@@ -299,65 +303,158 @@ fn loss_of(flow: &Flow, cfg: &FlowConfig, v: Vec<f32>, inp: Vec<f32>, b: usize, 
     flow.log_prob(cfg, vt, ctx).mean().neg()
 }
 
-/// A batch's mean loss and its gradient; `None` if the loss is not finite. A batch of
-/// [`SPLIT_ROWS`] or more is split into [`parts`] contiguous parts whose gradients are
-/// taken on as many threads, each part after the first through a copy of the flow with
-/// its own autodiff graph (burn locks a graph while it runs backward), and added
-/// weighted by their rows: the batch's gradient up to rounding.
-pub(crate) fn batch_gradient(
-    flow: &Flow,
+/// Rows of a batch (or of a part of one): standardised θ, the network's input, the count.
+type Rows = (Vec<f32>, Vec<f32>, usize);
+
+/// A mean loss and its gradient.
+type Gradient = (f64, GradientsParams);
+
+/// One part's mean loss and gradient through `flow`; `None` if the loss is not finite.
+fn part_gradient(flow: &Flow, cfg: &FlowConfig, device: &Device, (v, inp, b): Rows) -> Option<Gradient> {
+    let loss = loss_of(flow, cfg, v, inp, b, device);
+    let l = scalar(loss.clone());
+    l.is_finite().then(|| (l, GradientsParams::from_grads(loss.backward(), flow)))
+}
+
+/// A batch's mean loss and gradient (`None` if a part's loss is not finite), handed to
+/// `then` with the flow on the calling thread.
+///
+/// A batch of [`SPLIT_ROWS`] or more rows is cut into [`parts`] contiguous parts whose
+/// gradients are added weighted by their rows, in the parts' order: the batch's gradient
+/// up to rounding. Without `helpers` (one thread) the parts run one after the other
+/// through the flow. With them, the first part runs on the calling thread through the
+/// flow and part j + 1 on helper j, all at once, through the helper's copy of the
+/// weights with an autodiff graph of its own (burn locks a graph while it runs
+/// backward); with `draw_next`, the last helper then draws that batch of the epoch,
+/// beside the calling thread's adding and `then` (Adam's step). One and two threads
+/// split alike, so they give the same numbers.
+fn batch_step<T>(
+    flow: Flow,
     cfg: &FlowConfig,
     device: &Device,
-    v: Vec<f32>,
-    inp: Vec<f32>,
-    b: usize,
-) -> Option<(f64, GradientsParams)> {
-    let one = |f: &Flow, v: Vec<f32>, inp: Vec<f32>, b: usize| {
-        let loss = loss_of(f, cfg, v, inp, b, device);
-        let l = scalar(loss.clone());
-        l.is_finite().then(|| (l, GradientsParams::from_grads(loss.backward(), f)))
-    };
-    let threads = rayon::current_num_threads();
+    (v, inp, b): Rows,
+    threads: usize,
+    helpers: Option<(&Helpers, Option<usize>)>,
+    then: impl FnOnce(Flow, Option<Gradient>) -> T,
+) -> T {
     let k = parts(b, threads);
-    if k == 1 {
-        return one(flow, v, inp, b);
-    }
     // Part i holds rows i·b/k .. (i+1)·b/k; split off from the end, the first stays.
     let bounds: Vec<usize> = (0..=k).map(|i| i * b / k).collect();
     let (mut v, mut inp) = (v, inp);
-    let mut rest: Vec<(Vec<f32>, Vec<f32>, usize)> = (1..k)
+    let mut rest: Vec<Rows> = (1..k)
         .rev()
         .map(|i| (v.split_off(bounds[i] * cfg.dim), inp.split_off(bounds[i] * cfg.inputs), bounds[i + 1] - bounds[i]))
         .collect();
     rest.reverse();
-    let twins: Vec<Flow> = (1..k).map(|_| flow.valid().train()).collect();
-    let one = &one;
-    // One after the other where the process was given one thread (`--threads 1`): the
-    // same numbers as two threads, since [`parts`] gives both the same split.
-    let results: Vec<Option<(f64, GradientsParams)>> = if threads > 1 {
-        std::thread::scope(|s| {
-            let others: Vec<_> =
-                twins.iter().zip(rest).map(|(t, (v, i, n))| s.spawn(move || one(t, v, i, n))).collect();
-            let first = one(flow, v, inp, bounds[1]);
-            std::iter::once(first).chain(others.into_iter().map(|h| h.join().ok().flatten())).collect()
-        })
-    } else {
-        let first = one(flow, v, inp, bounds[1]);
-        std::iter::once(first).chain(twins.iter().zip(rest).map(|(t, (v, i, n))| one(t, v, i, n))).collect()
+    let first = (v, inp, bounds[1]);
+    let results: Vec<Option<Gradient>> = match helpers {
+        None => std::iter::once(first).chain(rest).map(|p| part_gradient(&flow, cfg, device, p)).collect(),
+        Some((h, draw_next)) => {
+            assert!(rest.len() <= h.jobs.len(), "a helper for each part after the first");
+            let others = rest.len();
+            for (j, part) in rest.into_iter().enumerate() {
+                h.send(j, Job::Part(j, flow.valid(), part));
+            }
+            if let Some(i) = draw_next {
+                h.send(h.jobs.len() - 1, Job::Draw(i));
+            }
+            let mut results = vec![part_gradient(&flow, cfg, device, first)];
+            results.resize_with(k, || None);
+            for (j, got) in h.grads.iter().take(others) {
+                results[j + 1] = got;
+            }
+            results
+        }
     };
-    let (losses, mut grads): (Vec<f64>, Vec<GradientsParams>) = results.into_iter().collect::<Option<_>>()?;
-    let weights: Vec<f64> = bounds.windows(2).map(|w| (w[1] - w[0]) as f64 / b as f64).collect();
-    let loss = losses.iter().zip(&weights).fold(0.0, |acc, (l, w)| acc + w * l);
-    let mut merge = MergeGrads { parts: &mut grads, weights: &weights, out: GradientsParams::new() };
-    flow.visit(&mut merge);
-    Some((loss, merge.out))
+    let got = (|| {
+        let (losses, mut grads): (Vec<f64>, Vec<GradientsParams>) = results.into_iter().collect::<Option<_>>()?;
+        let weights: Vec<f64> = bounds.windows(2).map(|w| (w[1] - w[0]) as f64 / b as f64).collect();
+        let loss = losses.iter().zip(&weights).fold(0.0, |acc, (l, w)| acc + w * l);
+        let mut merge = MergeGrads { parts: &mut grads, weights: &weights, out: GradientsParams::new() };
+        flow.visit(&mut merge);
+        Some((loss, merge.out))
+    })();
+    then(flow, got)
 }
 
-/// Batches of this many rows or more are split over threads ([`batch_gradient`]).
+/// Work for a helper thread ([`Helpers`]).
+enum Job {
+    /// Part j + 1 of the batch under way, through a copy of these weights (the flow
+    /// without autodiff: the helper gives its copy an autodiff graph of its own).
+    Part(usize, Flow, Rows),
+    /// Draw the epoch's batch i (the last helper only).
+    Draw(usize),
+}
+
+/// Threads beside the calling thread for one epoch of a training on more than one thread,
+/// so that no thread is started per batch: helper j takes part j + 1 of each split batch,
+/// and the last helper also draws the batches. They end when this is dropped (their
+/// scope joins them).
+struct Helpers {
+    jobs: Vec<std::sync::mpsc::Sender<Job>>,
+    /// Parts' gradients as they finish: (j, gradient of part j + 1).
+    grads: std::sync::mpsc::Receiver<(usize, Option<Gradient>)>,
+    /// The batches drawn, in the order asked for.
+    drawn: std::sync::mpsc::Receiver<Rows>,
+}
+
+impl Helpers {
+    /// `n` helpers in scope `s`; the last draws batch i with `draw(i)`.
+    fn start<'scope>(
+        s: &'scope std::thread::Scope<'scope, '_>,
+        n: usize,
+        cfg: &'scope FlowConfig,
+        device: &'scope Device,
+        draw: impl FnMut(usize) -> Rows + Send + 'scope,
+    ) -> Helpers {
+        use std::sync::mpsc::channel;
+        let (grads_tx, grads) = channel();
+        let (drawn_tx, drawn) = channel();
+        // Only the drawer holds the sender of the batches drawn: if it stops, the calling
+        // thread hears so instead of waiting.
+        let mut drawer = Some((draw, drawn_tx));
+        let jobs = (0..n)
+            .map(|j| {
+                let (tx, rx) = channel::<Job>();
+                let grads_tx = grads_tx.clone();
+                let mut drawer = if j + 1 == n { drawer.take() } else { None };
+                s.spawn(move || {
+                    for job in rx {
+                        // A send fails only once the calling thread has stopped listening.
+                        match job {
+                            Job::Part(j, weights, part) => {
+                                // A part that panics counts as a bad batch (skipped), as its
+                                // loss would.
+                                let got = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                                    part_gradient(&weights.train(), cfg, device, part)
+                                }));
+                                let _ = grads_tx.send((j, got.ok().flatten()));
+                            }
+                            Job::Draw(i) => {
+                                let (draw, drawn) = drawer.as_mut().expect("the last helper draws");
+                                let _ = drawn.send(draw(i));
+                            }
+                        }
+                    }
+                });
+                tx
+            })
+            .collect();
+        Helpers { jobs, grads, drawn }
+    }
+
+    /// Hands helper `j` a job; one that has stopped (it panicked) is reported when its
+    /// scope joins it.
+    fn send(&self, j: usize, job: Job) {
+        let _ = self.jobs[j].send(job);
+    }
+}
+
+/// Batches of this many rows or more are split over threads ([`batch_step`]).
 pub const SPLIT_ROWS: usize = 128;
 
 /// The fewest rows of a part of a split batch: smaller parts cost more in copies of the
-/// flow and thread starts than their gradients save.
+/// flow and hand-overs between threads than their gradients save.
 pub const MIN_PART_ROWS: usize = 64;
 
 /// How many parts a batch of `b` rows is split into on `threads` threads: one below
@@ -489,27 +586,64 @@ impl Run<'_> {
         rng: &mut ChaCha8Rng,
     ) -> (Flow, f64) {
         order.shuffle(rng);
+        let threads = rayon::current_num_threads();
+        let batches: Vec<&[usize]> = order.chunks(self.s.batch).collect();
+        let draw = |i: usize, rng: &mut ChaCha8Rng| {
+            let (v, inp) = self.batcher.batch(batches[i], rng);
+            (v, inp, batches[i].len())
+        };
         let (mut sum, mut count) = (0.0, 0);
-        for rows in order.chunks(self.s.batch) {
-            let (v, inp) = self.batcher.batch(rows, rng);
-            let Some((l, grads)) = batch_gradient(&flow, self.cfg, &self.device, v, inp, rows.len()) else {
-                continue; // a rare bad batch: skip rather than poison the weights
-            };
-            sum += l * rows.len() as f64;
-            count += rows.len();
-            flow = opt.step(lr, flow, grads);
+        let mut step = |flow: Flow, got: Option<Gradient>, rows: usize| match got {
+            Some((l, grads)) => {
+                sum += l * rows as f64;
+                count += rows;
+                opt.step(lr, flow, grads)
+            }
+            None => flow, // a rare bad batch: skip rather than poison the weights
+        };
+        let (cfg, device) = (self.cfg, &self.device);
+        if threads == 1 {
+            for i in 0..batches.len() {
+                let batch = draw(i, rng);
+                let rows = batch.2;
+                flow = batch_step(flow, cfg, device, batch, threads, None, |f, got| step(f, got, rows));
+            }
+        } else if let Some(first) = batches.first().map(|_| draw(0, rng)) {
+            // Batch i + 1 is drawn while batch i's gradients are added and Adam steps: the
+            // generator draws the batches in the same order as one after the other.
+            flow = std::thread::scope(|s| {
+                let n = (parts(self.s.batch, threads) - 1).max(1);
+                let helpers = Helpers::start(s, n, cfg, device, |i| draw(i, &mut *rng));
+                let mut batch = first;
+                for i in 1..=batches.len() {
+                    let rows = batch.2;
+                    let next = (i < batches.len()).then_some(i);
+                    flow = batch_step(flow, cfg, device, batch, threads, Some((&helpers, next)), |f, got| {
+                        step(f, got, rows)
+                    });
+                    // None after the last batch, or if the drawer panicked (the scope then
+                    // passes its panic on).
+                    let Some(Ok(drawn)) = next.map(|_| helpers.drawn.recv()) else { break };
+                    batch = drawn;
+                }
+                flow
+            });
         }
         (flow, sum / count.max(1) as f64)
     }
 
-    /// Validation loss of the current weights (without autodiff).
+    /// Validation loss of the current weights (without autodiff). The batches' losses are
+    /// taken on the thread pool and added in the batches' order: the same bits for any
+    /// number of threads.
     fn validate(&self, valid: &Flow) -> f64 {
+        use rayon::prelude::*;
         let plain = Device::flex();
-        let mut vsum = 0.0;
-        for (v, inp, b) in &self.val_batches {
-            vsum += scalar(loss_of(valid, self.cfg, v.clone(), inp.clone(), *b, &plain)) * *b as f64;
-        }
-        vsum / self.n_val as f64
+        let losses: Vec<f64> = self
+            .val_batches
+            .par_iter()
+            .map(|(v, inp, b)| scalar(loss_of(valid, self.cfg, v.clone(), inp.clone(), *b, &plain)) * *b as f64)
+            .collect();
+        losses.iter().fold(0.0, |sum, l| sum + l) / self.n_val as f64
     }
 
     /// Ensemble member `member` before its first epoch: weights from its own seed, batches
@@ -1137,8 +1271,19 @@ mod tests {
         let mut losses = vec![];
         for threads in [1, 2, 3, 5] {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-            let (split_loss, split) =
-                pool.install(|| batch_gradient(&flow, &cfg, &device, v.clone(), inp.clone(), b)).unwrap();
+            let (split_loss, split) = pool
+                .install(|| {
+                    let batch = (v.clone(), inp.clone(), b);
+                    let flow = flow.clone();
+                    if threads == 1 {
+                        return batch_step(flow, &cfg, &device, batch, 1, None, |_, got| got);
+                    }
+                    std::thread::scope(|s| {
+                        let helpers = Helpers::start(s, threads - 1, &cfg, &device, |_| unreachable!("no draws"));
+                        batch_step(flow, &cfg, &device, batch, threads, Some((&helpers, None)), |_, got| got)
+                    })
+                })
+                .unwrap();
             let close = (split_loss - whole_loss).abs() < 1e-5 * whole_loss.abs().max(1.0);
             assert!(close, "{threads} threads: {split_loss} vs {whole_loss}");
             let mut cmp = Compare { a: &whole, b: &split, worst: 0.0, count: 0 };
@@ -1148,6 +1293,175 @@ mod tests {
             losses.push(split_loss);
         }
         assert_eq!(losses[0].to_bits(), losses[1].to_bits(), "one and two threads split alike");
+    }
+
+    /// Every weight of a flow, parameter by parameter.
+    struct Weights(Vec<f32>);
+
+    impl burn::module::ModuleVisitor for Weights {
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            self.0.extend(param.val().try_into_vec_as::<f32>().unwrap());
+        }
+    }
+
+    fn weights(flow: &Flow) -> Vec<f32> {
+        let mut w = Weights(vec![]);
+        flow.visit(&mut w);
+        w.0
+    }
+
+    /// `n` rows of x = (θ0 + θ1, θ0 − θ1, θ0 θ1 / 4) with θ uniform on [−2, 2]², noisy.
+    fn toy(n: usize) -> Dataset {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let theta: Vec<Vec<f64>> =
+            (0..n).map(|_| vec![rng.random_range(-2.0..2.0), rng.random_range(-2.0..2.0)]).collect();
+        let param = |name: &str| super::super::Param {
+            name: name.into(),
+            unit: "1".into(),
+            scale: super::super::Scale::Linear,
+            low: -2.0,
+            high: 2.0,
+        };
+        Dataset {
+            params: vec![param("p"), param("q")],
+            feature_names: vec!["s".into(), "d".into(), "m".into()],
+            frequencies_hz: vec![],
+            groups: vec![],
+            noise_std: vec![0.2; 3],
+            x: theta.iter().map(|t| vec![t[0] + t[1], t[0] - t[1], t[0] * t[1] / 4.0]).collect(),
+            theta,
+            skipped: 0,
+        }
+    }
+
+    /// `f` given the training run `train_checkpointed` sets up for `ds` and `s`.
+    fn with_run<R>(ds: &Dataset, s: &TrainSettings, f: impl FnOnce(&Run) -> R) -> R {
+        let (idx, n_val, _) = seeded_split(ds.theta.len(), s.val_fraction, s.seed);
+        let (val_idx, train_idx) = idx.split_at(n_val);
+        let u_rows = u_rows(ds, s.theta_map);
+        let header = standardise(ds, s, &u_rows, train_idx, n_val);
+        let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &[] };
+        let val_batches = validation_batches(&batcher, val_idx, s.seed);
+        let cfg = &header.flow;
+        f(&Run { s, cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() })
+    }
+
+    fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+        rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap().install(f)
+    }
+
+    /// Two epochs (batches of 200, 200, 200 and an unsplit 30) on 1, 2 and 3 threads
+    /// give the weights, the mean losses and the batch stream's position of the same
+    /// epochs run as before batches were drawn ahead: shuffle, then each batch drawn,
+    /// its gradient taken and Adam's step, one after the other. One and two threads give
+    /// the same bits.
+    #[test]
+    fn an_epoch_draws_its_batches_in_the_order_of_one_after_the_other() {
+        let ds = toy(700);
+        let s = TrainSettings { embedding: false, seed: 3, ..Default::default() };
+        with_run(&ds, &s, |run| {
+            let fresh = || run.fresh(0, ChaCha8Rng::seed_from_u64(9));
+            let reference = |threads: usize| {
+                on_threads(threads, || {
+                    let mut m = fresh();
+                    let mut losses = vec![];
+                    for _ in 0..2 {
+                        m.order.shuffle(&mut m.rng);
+                        let (mut sum, mut count) = (0.0, 0);
+                        for rows in m.order.chunks(s.batch) {
+                            let (v, inp) = run.batcher.batch(rows, &mut m.rng);
+                            let step = |flow, got: Option<Gradient>| {
+                                let (l, grads) = got.unwrap();
+                                sum += l * rows.len() as f64;
+                                count += rows.len();
+                                m.opt.step(s.lr, flow, grads)
+                            };
+                            let batch = (v, inp, rows.len());
+                            m.flow = batch_step(m.flow, run.cfg, &run.device, batch, threads, None, step);
+                        }
+                        losses.push(sum / count as f64);
+                    }
+                    (weights(&m.flow), losses, m.rng.get_word_pos())
+                })
+            };
+            let epochs = |threads: usize| {
+                on_threads(threads, || {
+                    let mut m = fresh();
+                    let mut losses = vec![];
+                    for _ in 0..2 {
+                        let loss;
+                        (m.flow, loss) = run.epoch(m.flow, &mut m.opt, s.lr, &mut m.order, &mut m.rng);
+                        losses.push(loss);
+                    }
+                    (weights(&m.flow), losses, m.rng.get_word_pos())
+                })
+            };
+            let one = reference(1);
+            assert!(one.0.iter().all(|w| w.is_finite()) && one.1.iter().all(|l| l.is_finite()));
+            assert!(epochs(1) == one, "1 thread");
+            assert!(epochs(2) == one, "2 threads");
+            assert!(epochs(3) == reference(3), "3 threads");
+        });
+    }
+
+    /// The validation loss is the batches' losses added in order, whatever the threads:
+    /// the same bits on 1, 2, 3 and 4 threads as a plain loop (7 batches: 6 of 1000, one
+    /// of 500).
+    #[test]
+    fn the_validation_loss_is_the_same_on_any_number_of_threads() {
+        let ds = toy(13_000);
+        let s = TrainSettings { embedding: true, val_fraction: 0.5, ..Default::default() };
+        with_run(&ds, &s, |run| {
+            assert_eq!(
+                run.val_batches.iter().map(|b| b.2).collect::<Vec<_>>(),
+                [1000, 1000, 1000, 1000, 1000, 1000, 500]
+            );
+            let valid = new_flow(run.cfg, &Device::flex(), Some(4));
+            let mut sum = 0.0;
+            for (v, inp, b) in &run.val_batches {
+                sum += scalar(loss_of(&valid, run.cfg, v.clone(), inp.clone(), *b, &Device::flex())) * *b as f64;
+            }
+            let plain = sum / run.n_val as f64;
+            assert!(plain.is_finite());
+            for threads in [1, 2, 3, 4] {
+                let got = on_threads(threads, || run.validate(&valid));
+                assert_eq!(got.to_bits(), plain.to_bits(), "{threads} threads: {got} vs {plain}");
+            }
+        });
+    }
+
+    /// A drawer that panics is heard by the calling thread (no batch comes, rather than a
+    /// wait for ever), with a helper beside it, and the scope passes the panic on.
+    #[test]
+    fn a_helper_that_panics_while_drawing_is_not_waited_for() {
+        use std::sync::mpsc::RecvTimeoutError;
+        let (cfg, device) = (FlowConfig::new(2, 3, false), Device::flex().autodiff());
+        let heard = std::cell::Cell::new(None);
+        let got = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            std::thread::scope(|s| {
+                let helpers = Helpers::start(s, 2, &cfg, &device, |_| panic!("a failed draw"));
+                helpers.send(1, Job::Draw(0));
+                heard.set(helpers.drawn.recv_timeout(Duration::from_secs(20)).err());
+            })
+        }));
+        assert_eq!(heard.get(), Some(RecvTimeoutError::Disconnected));
+        assert!(got.is_err(), "the scope passes the panic on");
+    }
+
+    /// A whole training (3 epochs, validation and best weights) gives the same model on
+    /// one and on two threads, and again on two.
+    #[test]
+    fn one_and_two_threads_train_the_same_model() {
+        let ds = toy(700);
+        let s = TrainSettings { embedding: true, max_epochs: 3, seed: 5, ..Default::default() };
+        let trained = |threads| {
+            let m = on_threads(threads, || train(&ds, &s, &mut |_| true)).unwrap();
+            let draws = m.sample(&super::super::Obs { x: &[0.5, -0.3, 0.1], present: None }, 50, 2).unwrap();
+            (m.header.training.best_val_loss.to_bits(), m.header.training.best_epoch, draws)
+        };
+        let one = trained(1);
+        assert!(trained(2) == one, "two threads differ from one");
+        assert!(trained(2) == one, "two threads differ from themselves");
     }
 
     /// Weights of another flow, or bytes that are no record, are a typed refusal that
