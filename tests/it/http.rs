@@ -746,6 +746,66 @@ async fn diagnose_models_are_registered_ids_never_paths() {
     }
 }
 
+/// Everything logged from now on, by any thread of this process, as plain text.
+fn capture_logs() -> Arc<std::sync::Mutex<Vec<u8>>> {
+    #[derive(Clone)]
+    struct Sink(Arc<std::sync::Mutex<Vec<u8>>>);
+    impl std::io::Write for Sink {
+        fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+            self.0.lock().unwrap().extend_from_slice(b);
+            Ok(b.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+    let buf = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let sink = Sink(buf.clone());
+    let sub = tracing_subscriber::fmt().with_ansi(false).with_writer(move || sink.clone()).finish();
+    tracing::subscriber::set_global_default(sub).expect("no other test of this process sets a global subscriber");
+    buf
+}
+
+/// A job that fails for the server's own reason (its dataset's folder cannot be created:
+/// a file is in the way) shows what failed and no path at all; the cause, with the path,
+/// goes to the server log with the job's id.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_side_failure_names_no_path_and_its_cause_is_logged() {
+    let logs = capture_logs();
+    let (app, ctx, _dir) = app(vec![], 8, false).await;
+    let dir = ctx.dataset_dir("blocked");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("parts"), "in the way").unwrap();
+    assert!(ctx.store.insert_job_within("blocked", "simulate", &json!({"n": 20}), 1, 8).await.unwrap());
+    tokio::spawn(jobs::dispatcher(ctx.clone()));
+    let mut job = Value::Null;
+    for _ in 0..300 {
+        job = call(&app, "GET", "/jobs/blocked", None).await.2;
+        if job["state"] == "failed" {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(100)).await;
+    }
+    assert_eq!(job["state"], "failed", "{job}");
+    let err = job["error"].as_str().unwrap();
+    assert_eq!(err, "the dataset's folder could not be created", "{job}");
+    assert!(!err.contains('/') && !err.contains("DATA_DIR") && !err.contains("parts"), "{err}");
+    // The log line of the failure: the job's id, the public message and the cause.
+    let line =
+        |text: &str| text.lines().find(|l| l.contains("job failed") && l.contains("job=blocked")).map(str::to_string);
+    let mut logged = None;
+    for _ in 0..50 {
+        logged = line(&String::from_utf8_lossy(&logs.lock().unwrap()));
+        if logged.is_some() {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let logged = logged.expect("the failure is logged with the job's id");
+    let parts = dir.join("parts").display().to_string();
+    assert!(logged.contains("ERROR") && logged.contains(err) && logged.contains(&parts), "{logged}");
+}
+
 /// A running diagnose stops within 30 s of its cancel, in whichever step it is
 /// (the null runs, or simulating and training the extended model), and writes nothing after.
 /// Alone it stops in ~1 s; a 5 s bound flaked on a loaded host, and a diagnose that ignores

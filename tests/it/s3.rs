@@ -262,3 +262,57 @@ fn a_server_with_another_data_directory_serves_what_a_worker_stored_in_s3() {
     drop(procs);
     let _ = (std::fs::remove_dir_all(&a), std::fs::remove_dir_all(&b), std::fs::remove_dir_all(&c));
 }
+
+/// The object store refuses a succeeded job's files (the bucket does not exist): the job
+/// fails telling what failed and no path, key or URL of the store; `serve`'s log holds the
+/// cause, with the object's key, under the job's id.
+#[test]
+fn an_object_store_failure_names_no_key_and_its_cause_is_logged() {
+    let Some(moto) = start_moto() else { return };
+    let (data, logs) = (temp_dir("s3fail"), temp_dir("s3log"));
+    let log = logs.join("serve.log");
+    let port = free_port();
+    let model = crate::http::default_model();
+    let serve = otofit(&moto, &["serve", "--data-dir", data.to_str().unwrap(), "--workers", "1", "--log-json"])
+        .args(["--addr", &format!("127.0.0.1:{port}"), "--default-model", model.to_str().unwrap()])
+        .stdout(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let _procs = Procs(vec![serve]);
+    let t0 = Instant::now();
+    while raw(port, "GET", "/health", b"").is_none() {
+        assert!(t0.elapsed() < Duration::from_secs(30), "serve did not start");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (status, j) = json_of(port, "POST", "/jobs", Some(&json!({"kind": "simulate", "params": {"n": 20}})));
+    assert_eq!(status, 202, "{j}");
+    let id = j["id"].as_str().unwrap().to_string();
+    // The first attempt's error shows while the job waits for its retry (10 s).
+    let t0 = Instant::now();
+    let job = loop {
+        let (_, j) = json_of(port, "GET", &format!("/jobs/{id}"), None);
+        if j["error"].is_string() || t0.elapsed() > Duration::from_secs(60) {
+            break j;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let err = job["error"].as_str().unwrap_or_else(|| panic!("the job fails: {job}"));
+    assert_eq!(err, "the job's files could not be stored in the artifact store", "{job}");
+    assert!(!err.contains('/') && !err.contains("otofit-test") && !err.contains("127.0.0.1"), "{err}");
+    // serve's log (JSON lines): the failure under the job's id, with the store's cause.
+    let t0 = Instant::now();
+    let line = loop {
+        let text = std::fs::read_to_string(&log).unwrap();
+        let found = text
+            .lines()
+            .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+            .find(|l| l["fields"]["message"] == "job failed" && l["fields"]["job"] == json!(id));
+        if found.is_some() || t0.elapsed() > Duration::from_secs(10) {
+            break found.unwrap_or_else(|| panic!("no failure of {id} in the log:\n{text}"));
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let cause = line["fields"]["cause"].as_str().unwrap_or_default();
+    assert_eq!((line["level"].as_str(), line["fields"]["error"].as_str()), (Some("ERROR"), Some(err)), "{line}");
+    assert!(cause.contains(&format!("datasets/{id}/")), "the cause names the object's key: {line}");
+}

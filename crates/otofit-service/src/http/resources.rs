@@ -242,7 +242,12 @@ async fn model_takes(st: &AppState, who: &Principal, model: Option<&str>, n: usi
     let npe = tokio::task::spawn_blocking(move || jobs::registered_model(&ctx, &id2))
         .await
         .map_err(Problem::internal)?
-        .map_err(|e| Problem::invalid(vec![(field.into(), format!("{e:#}"))]))?;
+        .map_err(|e| {
+            if let Some(cause) = e.cause() {
+                tracing::error!(model = %id, error = %format!("{cause:#}"), "model cannot be loaded");
+            }
+            Problem::invalid(vec![(field.into(), e.to_string())])
+        })?;
     let want = npe.header.feature_names.len();
     if n != want {
         return Err(Problem::invalid(vec![(

@@ -3,10 +3,9 @@
 //! figures and the extended model.
 
 use super::spec::{FieldError, effect_names, in_range, model_and_observation};
-use super::{Ctx, Reporter, Stopped, limits, registered_model};
+use super::{Ctx, JobContext, JobError, Reporter, Stopped, limits, registered_model};
 use crate::sim::params::{EFFECTS, Effects};
 use crate::sim::{Model, ModelConfig};
-use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 use std::sync::atomic::Ordering;
 
@@ -75,12 +74,19 @@ impl DiagnoseParams {
     }
 }
 
-pub(super) fn execute(ctx: &Ctx, job_id: &str, p: &DiagnoseParams, r: &Reporter) -> Result<serde_json::Value> {
+pub(super) fn execute(
+    ctx: &Ctx,
+    job_id: &str,
+    p: &DiagnoseParams,
+    r: &Reporter,
+) -> Result<serde_json::Value, JobError> {
+    use crate::discrepancy::DiagnoseError;
     use crate::discrepancy::workflow::{Settings, diagnose};
     let id = p.model_id();
     let base = registered_model(ctx, id)?;
     if p.x.len() != base.header.feature_names.len() {
-        bail!("params.x has {} values; model '{id}' has {} features", p.x.len(), base.header.feature_names.len());
+        let n = base.header.feature_names.len();
+        return Err(JobError::client(format!("params.x has {} values; model '{id}' has {n} features", p.x.len())));
     }
     let candidates = match &p.candidates {
         Some(c) => c.iter().filter_map(|n| Effects::index(n)).collect(),
@@ -96,19 +102,26 @@ pub(super) fn execute(ctx: &Ctx, job_id: &str, p: &DiagnoseParams, r: &Reporter)
         cancel: Some(r.cancel.clone()),
         ..Settings::default()
     };
-    let model = Model::new(ModelConfig::default())?;
+    let model = Model::new(ModelConfig::default()).internal("the simulator could not be set up")?;
     let x: Vec<f64> = p.x.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
     let report = diagnose(&model, &base, &x, &s, &mut |m| {
         let k = crate::discrepancy::workflow::stage_of(m);
         let _ = r.report(k as f64 / crate::discrepancy::workflow::STAGES.len() as f64, m.to_string());
     })
     .map_err(|e| match e {
-        crate::discrepancy::DiagnoseError::Cancelled => Stopped.into(),
-        e => anyhow::Error::from(e),
+        DiagnoseError::Cancelled => Stopped.into(),
+        DiagnoseError::Npe(e) => {
+            JobError::npe(e, "the extended model's training data", "the posterior estimator failed")
+        }
+        // The observation or the base model does not fit the workflow.
+        e if e.is_input() => JobError::client(e.to_string()),
+        // A failed step (the MAP's simulation, the base fit): its message names the step,
+        // its source says why.
+        e => JobError::internal(e.to_string(), e),
     })?;
     // Fencing: a job cancelled or interrupted meanwhile writes no report and no model.
     if r.cancel.load(Ordering::Relaxed) {
-        bail!(Stopped);
+        return Err(Stopped.into());
     }
     r.still_ours(ctx)?;
     let links = crate::plot::diagnosis::Links {
@@ -116,5 +129,6 @@ pub(super) fn execute(ctx: &Ctx, job_id: &str, p: &DiagnoseParams, r: &Reporter)
         model: (ctx.data_dir.join("models").join(format!("{job_id}.otofit")), format!("/models/{job_id}")),
         page: Some(format!("/jobs/{job_id}/files/report.html")),
     };
-    Ok(crate::plot::diagnosis::write_report(&ctx.data_dir.join("reports").join(job_id), &report, &links)?)
+    crate::plot::diagnosis::write_report(&ctx.data_dir.join("reports").join(job_id), &report, &links)
+        .internal("the report or the extended model could not be written")
 }

@@ -3,9 +3,8 @@
 //! observation, so it runs on the job queue, not in POST /infer.
 
 use super::spec::{FieldError, in_range, model_and_observation};
-use super::{Ctx, Reporter, limits, registered_model};
+use super::{Ctx, JobError, Reporter, limits, registered_model};
 use crate::npe::Obs;
-use anyhow::{Result, bail};
 use serde::{Deserialize, Serialize};
 
 /// The params of an exact job.
@@ -45,19 +44,27 @@ impl ExactParams {
     }
 }
 
-pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_json::Value> {
+pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_json::Value, JobError> {
+    use crate::discrepancy::fitcheck::FitCheckError;
     let id = p.model_id();
     let npe = registered_model(ctx, id)?;
     if p.x.len() != npe.header.feature_names.len() {
-        bail!("params.x has {} values; model '{id}' has {} features", p.x.len(), npe.header.feature_names.len());
+        let n = npe.header.feature_names.len();
+        return Err(JobError::client(format!("params.x has {} values; model '{id}' has {n} features", p.x.len())));
     }
     let x: Vec<f64> = p.x.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
     let present: Vec<bool> = p.x.iter().map(Option::is_some).collect();
     r.report(0.0, "the flow's posterior and the fit check".into());
-    let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, 1000, p.seed)?;
+    let inf = npe
+        .infer(&Obs { x: &x, present: Some(&present) }, 1000, p.seed)
+        .map_err(|e| JobError::npe(e, &format!("model '{id}'"), "the flow's posterior could not be computed"))?;
     let fit = crate::discrepancy::fitcheck::fit_check(&npe, &x, &present, &inf);
     r.report(0.05, format!("least-squares fits, then {} chain steps", p.steps));
-    let ex = crate::discrepancy::fitcheck::exact(&npe, &x, &present, &inf, p.steps, p.seed)?;
+    let ex = crate::discrepancy::fitcheck::exact(&npe, &x, &present, &inf, p.steps, p.seed).map_err(|e| match e {
+        FitCheckError::Simulator(_) => JobError::internal("the simulator could not be built", e),
+        // Not otofit's model, or a chain that cannot start on this observation.
+        e => JobError::client(e.to_string()),
+    })?;
     let withdrawn = match &fit {
         Ok(f) if f.ok == Some(false) => Some(f.reason.clone().unwrap_or_default()),
         _ => None,

@@ -15,6 +15,7 @@
 //! holds the bounds the CLI shares.
 
 mod diagnose;
+mod error;
 mod exact;
 pub mod limits;
 mod resimulate;
@@ -23,6 +24,7 @@ mod spec;
 mod train;
 
 pub use diagnose::DiagnoseParams;
+pub use error::{JobContext, JobError};
 pub use exact::ExactParams;
 pub use limits::MAX_ROWS;
 pub use resimulate::ResimulateParams;
@@ -32,7 +34,7 @@ pub use train::TrainParams;
 
 use crate::npe::Npe;
 use crate::store::{JobRow, JobState, Store};
-use anyhow::{Context, Result, anyhow, bail};
+use anyhow::{Result, anyhow};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -221,16 +223,16 @@ impl Reporter {
     /// Renews the lease (blocking; called from the job's thread) right before results are
     /// written: `Err(LeaseLost)` if the job is no longer this worker's, so nothing is
     /// written. After a renewal no other worker can claim the job for a whole lease.
-    fn still_ours(&self, ctx: &Ctx) -> Result<()> {
+    fn still_ours(&self, ctx: &Ctx) -> Result<(), JobError> {
         let (id, token) = (&self.claim.0, &self.claim.1);
         let renewed = tokio::runtime::Handle::current().block_on(ctx.store.heartbeat(id, token, ctx.lease));
         match renewed {
             Ok(true) => Ok(()),
             Ok(false) => {
                 self.cancel.store(true, Ordering::Relaxed);
-                bail!(LeaseLost)
+                Err(LeaseLost.into())
             }
-            Err(e) => Err(anyhow!(e).context("renewing the lease before writing results")),
+            Err(e) => Err(JobError::internal("the job's lease could not be renewed before writing its results", e)),
         }
     }
 }
@@ -246,7 +248,7 @@ pub struct LeaseLost;
 
 impl JobSpec {
     /// Runs the job `id`'s CPU work (on a blocking thread). Returns its result document.
-    fn execute(&self, ctx: &Ctx, id: &str, r: &Reporter) -> Result<serde_json::Value> {
+    fn execute(&self, ctx: &Ctx, id: &str, r: &Reporter) -> Result<serde_json::Value, JobError> {
         match self {
             JobSpec::Simulate(p) => simulate::execute(ctx, id, p, r),
             JobSpec::Train(p) => train::execute(ctx, id, p, r),
@@ -258,41 +260,16 @@ impl JobSpec {
 }
 
 /// A model by its id, looked up in the store (never a path built from the id). Errors
-/// name the id, not the file: job errors are shown to clients.
-pub fn registered_model(ctx: &Ctx, id: &str) -> Result<Arc<Npe>> {
-    let unknown = || anyhow!("model '{id}' is not registered");
+/// name the id; why a registered model cannot be loaded (its file) is the cause.
+pub fn registered_model(ctx: &Ctx, id: &str) -> Result<Arc<Npe>, JobError> {
+    let unknown = || JobError::client(format!("model '{id}' is not registered"));
     if !is_plain_id(id) {
         return Err(unknown());
     }
     let rt = tokio::runtime::Handle::current();
     let row = rt.block_on(ctx.store.model(id))?.ok_or_else(unknown)?;
-    ctx.loaded(&row.id, Path::new(&row.path)).map_err(|e| {
-        tracing::error!(model = %id, error = %format!("{e:#}"), "model cannot be loaded");
-        anyhow!("model '{id}' cannot be loaded (the server log says why)")
-    })
-}
-
-/// An error message for clients: the server's own directories replaced by names.
-fn scrub(ctx: &Ctx, msg: &str) -> String {
-    let mut out = msg.to_string();
-    let mut dirs: Vec<(PathBuf, &str)> = vec![];
-    if ctx.data_dir.is_absolute() {
-        dirs.push((ctx.data_dir.clone(), "DATA_DIR"));
-    }
-    if let Ok(d) = std::fs::canonicalize(&ctx.data_dir) {
-        dirs.push((d, "DATA_DIR"));
-    }
-    if let Ok(d) = std::env::current_dir() {
-        dirs.push((d, "."));
-    }
-    dirs.sort_by_key(|(d, _)| std::cmp::Reverse(d.as_os_str().len()));
-    for (d, name) in dirs {
-        let d = d.display().to_string();
-        if d.len() > 1 {
-            out = out.replace(&d, name);
-        }
-    }
-    out
+    ctx.loaded(&row.id, Path::new(&row.path))
+        .internal(format!("model '{id}' cannot be loaded (the server log says why)"))
 }
 
 /// Longest lease of a chunk claim (see [`Ctx::chunk_lease`]).
@@ -413,16 +390,17 @@ fn start(
     id: String,
     spec: Result<JobSpec, serde_json::Error>,
     reporter: Reporter,
-) -> tokio::task::JoinHandle<Result<serde_json::Value>> {
+) -> tokio::task::JoinHandle<Result<serde_json::Value, JobError>> {
     tokio::task::spawn_blocking(move || {
-        let spec = spec.map_err(|e| anyhow!("the job's stored params do not read: {e}"))?;
+        // serde's message names the params' fields and their place in the JSON.
+        let spec = spec.map_err(|e| JobError::client(format!("the job's stored params do not read: {e}")))?;
         if let JobSpec::Train(p) = &spec
             && ctx.artifacts.is_remote()
         {
             for f in crate::dataset::FILES {
                 ctx.artifacts
                     .fetch_blocking(&crate::artifacts::dataset_key(&p.dataset, f))
-                    .with_context(|| format!("fetching dataset '{}' from the artifact store", p.dataset))?;
+                    .internal(format!("dataset '{}' could not be fetched from the artifact store", p.dataset))?;
             }
         }
         spec.execute(&ctx, &id, &reporter)
@@ -438,9 +416,9 @@ async fn supervise(
     token: &str,
     cancel: &AtomicBool,
     mut rx: tokio::sync::mpsc::UnboundedReceiver<(f64, String)>,
-    mut handle: tokio::task::JoinHandle<Result<serde_json::Value>>,
+    mut handle: tokio::task::JoinHandle<Result<serde_json::Value, JobError>>,
     renew: &mut tokio::time::Interval,
-) -> (std::result::Result<Result<serde_json::Value>, tokio::task::JoinError>, bool) {
+) -> (Result<Result<serde_json::Value, JobError>, tokio::task::JoinError>, bool) {
     // Intervals, not sleeps inside select!: progress messages must not starve the checks.
     let mut check = tokio::time::interval(Duration::from_millis(300));
     let mut lost = false;
@@ -479,17 +457,19 @@ async fn settle(
     ctx: &Ctx,
     job: &JobRow,
     token: &str,
-    result: std::result::Result<Result<serde_json::Value>, tokio::task::JoinError>,
+    result: Result<Result<serde_json::Value, JobError>, tokio::task::JoinError>,
     stop: Stop,
     leaves: Leaves,
     renew: &mut tokio::time::Interval,
-) -> (&'static str, std::result::Result<bool, sqlx::Error>) {
+) -> (&'static str, Result<bool, sqlx::Error>) {
     let store = &ctx.store;
     let id = job.id.as_str();
-    // A failed attempt with attempts left goes back to the queue after a backoff.
+    // A failed attempt with attempts left goes back to the queue after a backoff. The job's
+    // row keeps the public message; the cause goes to the log.
     let backoff = ctx.retry.after(job.attempts);
-    let fail = |msg: String| async move {
-        match store.fail_or_retry(id, token, &msg, backoff).await {
+    let fail = |e: JobError| async move {
+        e.log(id);
+        match store.fail_or_retry(id, token, e.public(), backoff).await {
             Ok(Some(state)) if state == "queued" => {
                 tracing::warn!(job = %id, attempt = job.attempts, retry_in_s = backoff.as_secs_f64(), "job failed; retried after a backoff");
                 ("retried", Ok(true))
@@ -502,7 +482,7 @@ async fn settle(
     match result {
         _ if stop.lost => ("lease_lost", Ok(false)),
         Ok(Err(e)) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
-        Err(e) => fail(format!("worker panicked: {e}")).await,
+        Err(e) => fail(JobError::internal("the job's worker panicked", e)).await,
         // Interrupted by shutdown: back to the queue, the attempt not counted.
         Ok(_) if stop.cancelled && stop.shutting_down => ("requeued", store.requeue(id, token).await),
         // A cancelled training still returns its best weights: a result, kept, under the
@@ -514,7 +494,7 @@ async fn settle(
                 (state.as_str(), store.finish(id, token, state, None, Some(&doc)).await)
             }
             Err(e) if e.is::<LeaseLost>() => ("lease_lost", Ok(false)),
-            Err(e) => fail(scrub(ctx, &format!("{e:#}"))).await,
+            Err(e) => fail(e).await,
         },
         Ok(Err(e)) if stop.cancelled || e.is::<Stopped>() => {
             if leaves.dataset {
@@ -522,7 +502,7 @@ async fn settle(
             }
             ("cancelled", store.finish(id, token, JobState::Cancelled, None, None).await)
         }
-        Ok(Err(e)) => fail(scrub(ctx, &format!("{e:#}"))).await,
+        Ok(Err(e)) => fail(e).await,
     }
 }
 
@@ -564,7 +544,7 @@ async fn clean_up(ctx: &Ctx, job: &JobRow, token: &str, label: &str, owned: bool
 
 /// Stores a succeeded job's files in the object store (nothing to do for local
 /// artifacts), renewing the job's lease meanwhile: `Err(LeaseLost)` if it is lost.
-async fn put_outputs(ctx: &Ctx, id: &str, token: &str, renew: &mut tokio::time::Interval) -> Result<()> {
+async fn put_outputs(ctx: &Ctx, id: &str, token: &str, renew: &mut tokio::time::Interval) -> Result<(), JobError> {
     if !ctx.artifacts.is_remote() {
         return Ok(());
     }
@@ -573,13 +553,13 @@ async fn put_outputs(ctx: &Ctx, id: &str, token: &str, renew: &mut tokio::time::
     loop {
         tokio::select! {
             res = &mut up => {
-                let keys = res.context("storing the job's files")?;
+                let keys = res.internal("the job's files could not be stored in the artifact store")?;
                 tracing::info!(job = %id, files = keys.len(), store = %ctx.artifacts.describe(), "job's files stored");
                 return Ok(());
             }
             _ = renew.tick() => if let Ok(false) = ctx.store.heartbeat(id, token, ctx.lease).await {
                 ctx.metrics.lease_lost();
-                bail!(LeaseLost);
+                return Err(LeaseLost.into());
             },
         }
     }

@@ -3,12 +3,12 @@
 //! row and measure.
 
 use super::spec::{FieldError, effects_of, theta_values, with_geometry};
-use super::{Ctx, Reporter, limits};
+use super::{Ctx, JobContext, JobError, Reporter, limits};
 use crate::sim::batch::{Design, run_rows};
 use crate::sim::output::feature_names;
 use crate::sim::params::{N_PARAMS, N_TISSUE, PARAMS};
 use crate::sim::{Model, ModelConfig};
-use anyhow::Result;
+use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
@@ -60,9 +60,9 @@ impl ResimulateParams {
     }
 }
 
-pub(super) fn execute(ctx: &Ctx, id: &str, p: &ResimulateParams, r: &Reporter) -> Result<serde_json::Value> {
+pub(super) fn execute(ctx: &Ctx, id: &str, p: &ResimulateParams, r: &Reporter) -> Result<serde_json::Value, JobError> {
     let design = Design { fixed: effects_of(&p.effects, &mut vec![]), varied: vec![] };
-    let model = Model::new(ModelConfig::default())?;
+    let model = Model::new(ModelConfig::default()).internal("the simulator could not be set up")?;
     let theta = with_geometry(&p.theta, 0);
     let out = run_rows(&model, &design, &theta, 0, None);
     let x: Vec<serde_json::Value> = out
@@ -79,9 +79,10 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &ResimulateParams, r: &Reporter) -
     let page = crate::plot::resimulation(model.frequencies(), &theta, &ok, p.observation.as_deref());
     r.still_ours(ctx)?;
     let dir = ctx.data_dir.join("reports").join(id);
-    std::fs::create_dir_all(&dir)?;
-    std::fs::write(dir.join("spectra.svg"), &page.svg)?;
-    std::fs::write(dir.join("report.html"), &page.html)?;
+    let written = std::fs::create_dir_all(&dir)
+        .and_then(|()| std::fs::write(dir.join("spectra.svg"), &page.svg))
+        .and_then(|()| std::fs::write(dir.join("report.html"), &page.html));
+    written.with_context(|| format!("writing {}", dir.display())).internal("the report could not be written")?;
     let files = |n: &str| format!("/jobs/{id}/files/{n}");
     Ok(serde_json::json!({
         "features": feature_names(model.frequencies()),

@@ -5,13 +5,13 @@
 //! staging folder and moved into place after a fresh renewal of its lease.
 
 use super::spec::{FieldError, effects_of, non_negative, theta_values, with_geometry};
-use super::{Ctx, JobSpec, Reporter, Stopped, limits};
+use super::{Ctx, JobContext, JobError, JobSpec, Reporter, Stopped, limits};
 use crate::dataset::{self, Rows};
 use crate::sim::batch::{Design, Noise, default_noise_std};
 use crate::sim::params::{Effects, N_PARAMS, N_TISSUE};
 use crate::sim::{Model, ModelConfig};
 use crate::store::{ChunkClaim, ChunkRow};
-use anyhow::{Context, Result};
+use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -90,10 +90,10 @@ struct Setup {
 }
 
 impl Setup {
-    fn of(p: &SimulateParams) -> Result<Setup> {
+    fn of(p: &SimulateParams) -> Result<Setup, JobError> {
         let mut design = Design { fixed: effects_of(&p.effects, &mut vec![]), varied: vec![] };
         design.varied = p.vary.iter().filter_map(|v| Effects::index(v)).collect();
-        let model = Model::new(ModelConfig::default())?;
+        let model = Model::new(ModelConfig::default()).internal("the simulator could not be set up")?;
         let noise = Noise { std: default_noise_std(&model), scale: p.noise_scale, seed: p.seed };
         let rows = match &p.theta {
             Some(t) => Rows::Given(with_geometry(t, design.varied.len())),
@@ -126,13 +126,15 @@ pub fn chunk_plan(n: usize, chunk_rows: usize) -> Vec<(usize, usize)> {
 /// attempt's staging folder. Chunks finished by an earlier attempt, or by a worker that
 /// died after writing its part, are not run again: the job resumes from them, and its
 /// dataset is the same bytes as an uninterrupted run (every row has its own streams).
-pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> Result<serde_json::Value> {
+pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> Result<serde_json::Value, JobError> {
     let setup = Setup::of(p)?;
     let n = setup.rows.len();
     let rt = tokio::runtime::Handle::current();
     let dir = ctx.dataset_dir(id);
     let parts = dir.join(dataset::PARTS);
-    std::fs::create_dir_all(&parts).with_context(|| format!("creating {}", parts.display()))?;
+    std::fs::create_dir_all(&parts)
+        .with_context(|| format!("creating {}", parts.display()))
+        .internal("the dataset's folder could not be created")?;
     let mut chunks = rt.block_on(ctx.store.plan_chunks(id, &chunk_plan(n, ctx.chunk_rows)))?;
     // A part counts only if it holds the chunk's rows (not those of another plan's chunk).
     let finished =
@@ -186,7 +188,8 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
         setup.rows.seed(),
     );
     let staging = staging_dir(&dir, &r.claim.1);
-    dataset::merge_parts(&parts, chunks.len(), n, &staging, &mut meta)?;
+    dataset::merge_parts(&parts, chunks.len(), n, &staging, &mut meta)
+        .internal("the dataset's chunks could not be joined")?;
     r.still_ours(ctx)?;
     publish_dataset(&staging, &dir)?;
     // The parts are in the dataset now: gone before the job is marked done, so that no
@@ -227,7 +230,7 @@ fn run_chunk(
     parts: &Path,
     claim: &ChunkClaim,
     progress: &mut dyn FnMut(usize) -> bool,
-) -> Result<()> {
+) -> Result<(), JobError> {
     let rt = tokio::runtime::Handle::current();
     let c = &claim.chunk;
     ctx.metrics.chunk_run();
@@ -247,12 +250,10 @@ fn run_chunk(
             Ok(())
         }
         Err(dataset::DatasetError::Cancelled(_)) => Err(Stopped.into()),
-        Err(e) => Err(anyhow::Error::from(e).context(format!(
-            "chunk {} (rows {}..{})",
-            c.idx,
-            c.first_row,
-            c.first_row + c.n_rows
-        ))),
+        Err(e) => Err(JobError::internal(
+            format!("chunk {} (rows {}..{}) could not be simulated", c.idx, c.first_row, c.first_row + c.n_rows),
+            e,
+        )),
     }
 }
 
@@ -280,11 +281,11 @@ pub(super) async fn help(ctx: Arc<Ctx>, claim: ChunkClaim) {
     let c = claim.chunk.clone();
     let stop = Arc::new(AtomicBool::new(false));
     let (c2, s2) = (ctx.clone(), stop.clone());
-    let mut work = tokio::task::spawn_blocking(move || -> Result<()> {
+    let mut work = tokio::task::spawn_blocking(move || -> Result<(), JobError> {
         let rt = tokio::runtime::Handle::current();
-        let job = rt.block_on(c2.store.job(&claim.chunk.job_id))?.context("the job is gone")?;
-        let JobSpec::Simulate(p) = JobSpec::of(&job).map_err(|e| anyhow::anyhow!("{e}"))? else {
-            anyhow::bail!("not a simulate job")
+        let job = rt.block_on(c2.store.job(&claim.chunk.job_id))?.ok_or_else(|| JobError::client("the job is gone"))?;
+        let JobSpec::Simulate(p) = JobSpec::of(&job).internal("the job's stored params do not read")? else {
+            return Err(JobError::client("not a simulate job"));
         };
         let setup = Setup::of(&p)?;
         let parts = c2.dataset_dir(&job.id).join(dataset::PARTS);
@@ -306,7 +307,10 @@ pub(super) async fn help(ctx: Arc<Ctx>, claim: ChunkClaim) {
     match res {
         Ok(Ok(())) => tracing::info!(chunk = %c.id, rows = c.n_rows, "chunk of another worker's job done"),
         Ok(Err(e)) if e.is::<Stopped>() => tracing::info!(chunk = %c.id, "chunk stopped and given back"),
-        Ok(Err(e)) => tracing::warn!(chunk = %c.id, error = %format!("{e:#}"), "chunk failed and given back"),
+        Ok(Err(e)) => {
+            let cause = e.cause().map(|c| format!("{c:#}"));
+            tracing::warn!(chunk = %c.id, error = %e, cause = ?cause, "chunk failed and given back")
+        }
         Err(e) => tracing::error!(chunk = %c.id, error = %e, "chunk panicked"),
     }
     // The job may have ended (cancelled, failed) while this chunk ran: its worker removed
@@ -344,13 +348,15 @@ pub(super) async fn clear_cancelled(ctx: &Ctx, id: &str, token: &str) {
 /// Moves a finished simulate attempt's files from its staging folder into `dir`;
 /// meta.json goes last; if a move fails, the files moved before it are taken away again,
 /// so that a failed job leaves no half dataset.
-fn publish_dataset(staging: &Path, dir: &Path) -> Result<()> {
+fn publish_dataset(staging: &Path, dir: &Path) -> Result<(), JobError> {
     for (i, name) in dataset::FILES.iter().enumerate() {
-        if let Err(e) = std::fs::rename(staging.join(name), dir.join(name)) {
+        let (from, to) = (staging.join(name), dir.join(name));
+        if let Err(e) = std::fs::rename(&from, &to) {
             for moved in &dataset::FILES[..i] {
                 let _ = std::fs::remove_file(dir.join(moved));
             }
-            return Err(anyhow::Error::from(e).context(format!("moving {name} into place")));
+            let cause = anyhow::Error::from(e).context(format!("moving {} to {}", from.display(), to.display()));
+            return Err(JobError::internal(format!("the dataset's {name} could not be moved into place"), cause));
         }
     }
     let _ = std::fs::remove_dir(staging);

@@ -7,9 +7,9 @@
 //! ends (succeeded, cancelled, failed on its last attempt).
 
 use super::spec::{FieldError, in_range, non_negative, plain_id};
-use super::{Ctx, LeaseLost, Reporter, Stopped, limits};
+use super::{Ctx, JobContext, JobError, LeaseLost, Reporter, Stopped, limits};
 use crate::npe::{self, Checkpointing, Dataset, TrainSettings};
-use anyhow::{Context, Result, bail};
+use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::Ordering;
@@ -65,7 +65,7 @@ fn checkpoint_path(data_dir: &Path, id: &str) -> PathBuf {
     data_dir.join(CHECKPOINTS).join(format!("{id}.ckpt"))
 }
 
-pub(super) fn execute(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_json::Value> {
+pub(super) fn execute(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_json::Value, JobError> {
     let rt = tokio::runtime::Handle::current();
     let removed = remove_ended_checkpoints(ctx);
     if removed > 0 {
@@ -83,9 +83,10 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Res
     res
 }
 
-fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_json::Value> {
+fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_json::Value, JobError> {
     let dir = ctx.dataset_dir(&p.dataset);
-    let ds = Dataset::load(&dir).with_context(|| format!("dataset '{}'", p.dataset))?;
+    let subject = format!("dataset '{}'", p.dataset);
+    let ds = Dataset::load(&dir).map_err(|e| JobError::npe(e, &subject, format!("{subject} could not be read")))?;
     let s = TrainSettings {
         noise_scale: p.noise_scale,
         seed: p.seed,
@@ -96,7 +97,10 @@ fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_jso
     };
     // At least every 30 s: the most training time a killed job loses.
     let checkpoint = Checkpointing::new(checkpoint_path(&ctx.data_dir, id), &r.claim.1[..r.claim.1.len().min(16)]);
-    std::fs::create_dir_all(ctx.data_dir.join(CHECKPOINTS)).context("creating the checkpoint folder")?;
+    let folder = ctx.data_dir.join(CHECKPOINTS);
+    std::fs::create_dir_all(&folder)
+        .with_context(|| format!("creating {}", folder.display()))
+        .internal("the checkpoint folder could not be created")?;
     // Progress over all members (each may stop early, so this is a lower bound).
     let max = (s.max_epochs * s.ensemble) as f64;
     let trained = npe::train_checkpointed(&ds, &s, Some(&checkpoint), &mut |e| {
@@ -104,18 +108,21 @@ fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_jso
             (e.member * s.max_epochs + e.epoch) as f64 / max,
             format!("member {} epoch {} val loss {:.4}", e.member, e.epoch, e.val_loss),
         )
-    })?;
+    })
+    .map_err(|e| JobError::npe(e, &subject, format!("training on {subject} failed")))?;
     if trained.resumed_from_epoch > 0 {
         tracing::info!(job = %id, epochs = trained.resumed_from_epoch, "training resumed from its checkpoint");
     }
     if ctx.shutdown.load(Ordering::Relaxed) {
-        bail!(Stopped);
+        return Err(Stopped.into());
     }
     r.still_ours(ctx)?;
     let models = ctx.data_dir.join("models");
-    std::fs::create_dir_all(&models)?;
+    std::fs::create_dir_all(&models)
+        .with_context(|| format!("creating {}", models.display()))
+        .internal("the models folder could not be created")?;
     let model = trained.model;
-    model.save(&models.join(format!("{id}.otofit")))?;
+    model.save(&models.join(format!("{id}.otofit"))).internal("the trained model could not be saved")?;
     // The model is written: the job ends now (succeeded), its checkpoint is garbage.
     npe::remove_checkpoint(&checkpoint.path);
     Ok(serde_json::json!({
