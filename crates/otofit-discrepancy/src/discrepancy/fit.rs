@@ -141,11 +141,19 @@ pub fn fit_columns(
     Some(Fit { row: to_row(&u), chi2: c, n_features: r.len(), iterations, u_std, jtj })
 }
 
-/// Levenberg–Marquardt's damped step, up to ten tries: solves (JᵀJ + λ·diag JᵀJ) s = −Jᵀr
-/// (the diagonal floored at 1e-9), makes a trial point of s with `to_trial`, and keeps the
-/// first whose χ² is below `c`. λ falls by 3 on a success (not below 1e-7) and grows by 4
-/// on a failure. The point, its residuals and its χ²; `None` after ten failures. Shared
-/// by the unbounded fit here and the box fit of the alternatives.
+/// Levenberg–Marquardt's damped step, up to ten tries: solves (JᵀJ + λ·D) s = −Jᵀr, D the
+/// diagonal of JᵀJ floored at [`DAMPING_FLOOR`] of its largest entry, makes a trial point
+/// of s with `to_trial`, and keeps the first whose χ² is below `c`. λ falls by 3 on a
+/// success (not below 1e-7) and grows by 4 on a failure. The point, its residuals and its
+/// χ²; `None` after ten failures. Shared by the unbounded fit here and the box fit of the
+/// alternatives.
+/// Floor of the damping diagonal, relative to its largest entry. Without a relative floor a
+/// direction the residuals barely see at this point (JᵀJ's entry ~1e-12 against ~1e8) is
+/// damped by almost nothing: its step, Jᵀr over a near-zero entry, throws that parameter to
+/// the edge of its box, every try fails however large λ grows in ten tries, and the fit
+/// stops where it started (seen from most starts of a strong perforation's fit).
+const DAMPING_FLOOR: f64 = 1e-9;
+
 pub(super) fn damped_step(
     jtj: &Mat<f64>,
     jtr: &[f64],
@@ -155,8 +163,10 @@ pub(super) fn damped_step(
     mut residuals: impl FnMut(&[f64]) -> Option<Vec<f64>>,
 ) -> Option<(Vec<f64>, Vec<f64>, f64)> {
     let n = jtr.len();
+    let top = (0..n).map(|i| jtj[(i, i)]).fold(0.0_f64, f64::max);
+    let floor = (DAMPING_FLOOR * top).max(1e-9);
     for _ in 0..10 {
-        let a = Mat::from_fn(n, n, |i, j| jtj[(i, j)] + if i == j { *lambda * jtj[(i, i)].max(1e-9) } else { 0.0 });
+        let a = Mat::from_fn(n, n, |i, j| jtj[(i, j)] + if i == j { *lambda * jtj[(i, i)].max(floor) } else { 0.0 });
         let rhs = Mat::from_fn(n, 1, |i, _| -jtr[i]);
         let trial = to_trial(&a.partial_piv_lu().solve(&rhs));
         match residuals(&trial) {
@@ -175,6 +185,29 @@ pub(super) fn damped_step(
 mod tests {
     use super::*;
     use crate::sim::params::PARAMS;
+
+    #[test]
+    fn a_direction_the_residuals_barely_see_does_not_stall_the_fit() {
+        // r₀ pins u₀ at 1 steeply; r₁ hardly sees u₁ at the start (slope 1e-6) but grows
+        // fast away from it. Damped by its own ~1e-12 entry, the u₁ step reaches the box
+        // edge at every λ of ten tries and the fit never moves u₀.
+        let col = ParamSpec {
+            name: "a",
+            unit: "",
+            scale: crate::sim::params::Scale::Linear,
+            low: -1.0,
+            high: 1.0,
+            nominal: 0.0,
+        };
+        let cols = [col, ParamSpec { name: "b", ..col }];
+        let f = fit_columns(&cols, &[0.0, 0.0], 100, |row| {
+            let u: Vec<f64> = cols.iter().zip(row).map(|(p, &v)| to_unbounded(p, v)).collect();
+            Some(vec![1e4 * (u[0] - 1.0), 30.0 + 1e-6 * u[1] + 1e3 * u[1].powi(4)])
+        })
+        .unwrap();
+        let u0 = to_unbounded(&cols[0], f.row[0]);
+        assert!((u0 - 1.0).abs() < 1e-4, "u₀ {u0} after {} steps, χ² {}", f.iterations, f.chi2);
+    }
 
     #[test]
     fn unbounded_map_round_trips_inside_the_box() {
