@@ -153,6 +153,13 @@ pub enum BenchWhat {
         /// Seed of the cases, the null and the fits.
         #[arg(long, default_value_t = 1)]
         seed: u64,
+        /// `all` or a comma-separated list of the effects hidden in turn (every effect
+        /// stays a candidate).
+        #[arg(long, default_value = "all")]
+        effects: String,
+        /// Skip timing one full diagnosis with its retrain (about five minutes).
+        #[arg(long)]
+        no_full: bool,
     },
 }
 
@@ -167,7 +174,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
         }
         BenchWhat::Exact(a) => super::bench_exact::run(a),
         BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
-        BenchWhat::Discrepancy { cases, clean, seed } => super::diagnose::bench(cases, clean, seed),
+        BenchWhat::Discrepancy { cases, clean, seed, effects, no_full } => {
+            super::diagnose::bench(cases, clean, seed, &effects, !no_full)
+        }
         BenchWhat::Crossmodel { ears, out, model, seed, samples, measures, diagnose } => {
             crossmodel(ears, &out, &model, seed, samples, &measures)?;
             if diagnose { crossmodel_misfits(ears, &out, &model, seed, samples) } else { Ok(()) }
