@@ -1,12 +1,12 @@
-//! `--drum`, `--drum-loss` and `--incus-lateral`: the eardrum and chain variants of
-//! docs/simulator.md ("The v2 eardrum", "A transmission-line drum", "The incus across
-//! the stapes axis"), for reports only (`simulate --explain`,
+//! `--drum`, `--drum-loss`, `--incus-lateral` and `--joint-pads`: the eardrum and chain
+//! variants of docs/simulator.md ("The v2 eardrum", "A transmission-line drum", "The
+//! incus across the stapes axis", "Joint pads as incompressible layers"), for reports only (`simulate --explain`,
 //! `study reference`, `bench sim`). Datasets and
 //! models always use the default drum (v8: the anatomical FE drum): a model trained on a
 //! variant would be fit-checked against the default simulator.
 
 use crate::sim::line_drum::LineTuning;
-use crate::sim::{DrumLoss, DrumShape, Geometry, ModelConfig, PARAMS, Theta};
+use crate::sim::{DrumLoss, DrumShape, Geometry, JointPads, ModelConfig, PARAMS, Theta};
 use anyhow::{Result, bail};
 use clap::{Args, ValueEnum};
 
@@ -33,6 +33,20 @@ pub struct DrumOpts {
     /// to the ground, as in every model so far.
     #[arg(long)]
     pub incus_lateral: bool,
+    /// The joints' cartilage as thin incompressible layers between bone faces, stiffer in
+    /// compression and tilting than E·A/t by the bonded-layer shape factor (an
+    /// experiment: docs/results/simulator.md, "Joint pads as incompressible layers"):
+    /// `confined` (both joints), `imj` (the incudomallear joint only) or `unconfined`
+    /// (E·A/t, every ear so far).
+    #[arg(long, value_enum)]
+    pub joint_pads: Option<JointPadsArg>,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+pub enum JointPadsArg {
+    Unconfined,
+    Confined,
+    Imj,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -45,7 +59,7 @@ pub enum DrumArg {
 
 impl DrumOpts {
     pub fn is_set(&self) -> bool {
-        self.drum.is_some() || self.drum_loss.is_some() || self.incus_lateral
+        self.drum.is_some() || self.drum_loss.is_some() || self.incus_lateral || self.joint_pads.is_some()
     }
 
     /// Extra least-squares starts for this drum (`study reference`): the drum's own
@@ -82,6 +96,11 @@ impl DrumOpts {
             Some(DrumArg::Anatomical) | None => {}
         }
         config.geometry.incus_lateral = self.incus_lateral;
+        config.geometry.confine_joint_pads(match self.joint_pads {
+            None | Some(JointPadsArg::Unconfined) => JointPads::Unconfined,
+            Some(JointPadsArg::Confined) => JointPads::Confined,
+            Some(JointPadsArg::Imj) => JointPads::ImjConfined,
+        });
         if let Some(text) = &self.drum_loss {
             config.geometry.tm_loss = match text.as_str() {
                 "rayleigh" => DrumLoss::Rayleigh,

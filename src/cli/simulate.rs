@@ -168,7 +168,7 @@ pub fn run(args: SimulateArgs) -> Result<()> {
     };
     // Datasets are always the default model's simulator (cli::drum says why).
     if !args.explain && args.drum.is_set() {
-        bail!("--drum, --drum-loss and --incus-lateral only apply with --explain");
+        bail!("--drum, --drum-loss, --incus-lateral and --joint-pads only apply with --explain");
     }
     let mut config = ModelConfig { preset: args.preset.into(), ..ModelConfig::default() };
     args.drum.apply(&mut config)?;

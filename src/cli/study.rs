@@ -157,7 +157,7 @@ fn check_args(a: &StudyArgs) -> Result<()> {
         bail!("--refine only applies to `study validate`");
     }
     if a.drum.is_set() && !matches!(a.name, StudyName::Reference) {
-        bail!("--drum, --drum-loss and --incus-lateral only apply to `study reference`");
+        bail!("--drum, --drum-loss, --incus-lateral and --joint-pads only apply to `study reference`");
     }
     Ok(())
 }

@@ -26,7 +26,8 @@ pub mod system;
 pub mod tri_shell;
 
 pub use model::{
-    DrumLoss, DrumShape, Geometry, Model, ModelConfig, PowerBalance, Preset, Response, Runner, SimError, log_grid,
+    DrumLoss, DrumShape, Geometry, JointPad, JointPads, Model, ModelConfig, PowerBalance, Preset, Response, Runner,
+    SimError, log_grid,
 };
 pub use params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, N_TISSUE, PARAMS, Theta};
 

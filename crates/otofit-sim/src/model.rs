@@ -163,6 +163,19 @@ impl Geometry {
         }
     }
 
+    /// Gives the chosen joints the bonded-layer stiffening of [`JointPad`] (an
+    /// experiment, `--joint-pads`: docs/results/simulator.md, "Joint pads as
+    /// incompressible layers"). Every ear so far uses the unconfined E·A/t.
+    pub fn confine_joint_pads(&mut self, pads: JointPads) {
+        if matches!(pads, JointPads::Confined | JointPads::ImjConfined) {
+            self.g_imj *= IMJ_PAD.compression_factor();
+            self.g_imj_rot *= IMJ_PAD.tilt_factor();
+        }
+        if pads == JointPads::Confined {
+            self.g_isj *= ISJ_PAD.compression_factor();
+        }
+    }
+
     /// The v1–v5 ear: the axisymmetric FE drum with Rayleigh loss and the chain's
     /// notes-based masses and ligament geometry (`--drum axisymmetric`; the FE drum's
     /// closed-form tests use it).
@@ -173,10 +186,11 @@ impl Geometry {
         let (a_aml, l_aml) = (0.45e-6, 1.25e-3);
         let (a_pil, l_pil) = (0.40e-6, 0.5e-3);
         let torsion = |a: f64, l: f64| shear * a * a / (2.0 * PI) / l; // G·J/L per E, J = A²/2π
-        // Joints: k = E·A/t. IMJ A = 2.5 mm², t = 62.5 µm and ISJ A = 0.6 mm², t = 60 µm,
-        // so the IMJ is 4× stiffer per unit E (simulator.md); rotation E·I/t, I = A·R²/4.
-        let (a_imj, t_imj) = (2.5e-6, 62.5e-6);
-        let r_imj = (a_imj / PI).sqrt();
+        // Joints: k = E·A/t (the unconfined pad; `anatomical` adds the bonded layer's
+        // shape factor), so the IMJ is 4× stiffer per unit E than the ISJ; rotation
+        // E·I/t, I = A·R²/4.
+        let (a_imj, t_imj) = (IMJ_PAD.area, IMJ_PAD.thickness);
+        let r_imj = IMJ_PAD.radius();
         // SAL in piston shear k = G·P·d/w (notes §1.6), perimeter 7.2 mm, width 0.1 mm and
         // depth 0.155 mm chosen so E = 0.2 MPa gives 750 N/m (target 500–1000 N/m).
         let g_sal = shear * 7.2e-3 * 0.155e-3 / 0.1e-3;
@@ -215,8 +229,8 @@ impl Geometry {
             g_stapedius: 0.13e-6 / 1.75e-3,
             g_imj: a_imj / t_imj,
             g_imj_rot: a_imj * r_imj * r_imj / (4.0 * t_imj),
-            g_isj: 0.6e-6 / 60e-6,
-            g_isj_shear: shear * 0.6e-6 / 60e-6,
+            g_isj: ISJ_PAD.area / ISJ_PAD.thickness,
+            g_isj_shear: shear * ISJ_PAD.area / ISJ_PAD.thickness,
             incus_lateral: false,
             g_pil_lateral: a_pil / l_pil,
             g_imj_lateral: shear * a_imj / t_imj,
@@ -224,6 +238,66 @@ impl Geometry {
             g_sal_rock: g_sal * half_fp * half_fp / 3.0,
         }
     }
+}
+
+/// The incudomallear joint's cartilage pad: 2.5 mm² of facet, 62.5 µm of cartilage and
+/// synovial space between the bones (notes §1.4).
+pub const IMJ_PAD: JointPad = JointPad { area: 2.5e-6, thickness: 62.5e-6 };
+/// The incudostapedial joint's pad: 0.6 mm², 60 µm (notes §1.4).
+pub const ISJ_PAD: JointPad = JointPad { area: 0.6e-6, thickness: 60e-6 };
+
+/// A joint as a thin circular layer of soft tissue between two bone faces.
+///
+/// Why the shape factor: at sound frequencies the cartilage has no time to drain, so it
+/// deforms at constant volume (Poisson ratio 0.5; Mow et al. 1980, J Biomech Eng
+/// 102:73). A thin layer of an incompressible solid held between two faces cannot
+/// thin without flowing outwards against its faces, so it is far stiffer in compression
+/// and tilting than E·A/t: E(1 + 2S²) in compression and E(1 + 2S²/3) in tilting, with
+/// the shape factor S = R/(2t), the loaded area over the free edge area (Gent & Lindley
+/// 1959, Proc Inst Mech Eng 173:111; Gent & Meinecke 1970, Polym Eng Sci 10:48). Shear is
+/// at constant volume already and keeps G·A/t. The limit holds while the stiffened
+/// modulus stays well below the tissue's bulk modulus (about 2.2 GPa, water's; Duck
+/// 1990, Physical Properties of Tissue): E_joints up to about 20 MPa for the
+/// incudomallear joint, whose pad is by then rigid against the chain's other springs.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct JointPad {
+    /// Facet area, m².
+    pub area: f64,
+    /// Tissue thickness between the bones, m.
+    pub thickness: f64,
+}
+
+impl JointPad {
+    /// The radius of the circle of the pad's area, m.
+    pub fn radius(&self) -> f64 {
+        (self.area / PI).sqrt()
+    }
+
+    /// Loaded area over free edge area: πR² / (2πR·t).
+    pub fn shape_factor(&self) -> f64 {
+        self.radius() / (2.0 * self.thickness)
+    }
+
+    /// Compression stiffness over the unconfined E·A/t.
+    pub fn compression_factor(&self) -> f64 {
+        1.0 + 2.0 * self.shape_factor().powi(2)
+    }
+
+    /// Tilting stiffness over the unconfined E·I/t.
+    pub fn tilt_factor(&self) -> f64 {
+        1.0 + 2.0 / 3.0 * self.shape_factor().powi(2)
+    }
+}
+
+/// Which joint pads carry [`JointPad`]'s stiffening.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum JointPads {
+    /// E·A/t for both joints (every ear so far).
+    Unconfined,
+    /// Both joints confined.
+    Confined,
+    /// The incudomallear joint confined, the incudostapedial joint not.
+    ImjConfined,
 }
 
 /// The eardrum's loss model.
