@@ -7,12 +7,13 @@ use super::{AppState, Problem, json_body};
 use crate::discrepancy::alternatives::{self, Alternatives, AlternativesParams};
 use crate::discrepancy::exact_fast::{self, FastExact};
 use crate::discrepancy::fitcheck::{FitCheck, FitCheckError, MAX_REFINE_STEPS, Refined};
+use crate::npe::normal::{Differential, Verdict};
 use crate::npe::{Inference, Npe, NpeError, Obs, Summary};
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Query, State};
 use axum::http::{HeaderMap, StatusCode};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_json::json;
 use std::sync::Arc;
 
@@ -236,7 +237,7 @@ pub async fn infer(
     Query(query): Query<Vec<(String, String)>>,
     headers: HeaderMap,
     body: Bytes,
-) -> Result<Json<serde_json::Value>, Problem> {
+) -> Result<Json<InferResponse>, Problem> {
     let t0 = std::time::Instant::now();
     let (req, csv) = request(&headers, &query, &body)?;
     let n = req.samples.unwrap_or(1000);
@@ -269,51 +270,164 @@ pub async fn infer(
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
     // they describe the probe's placement, not the ear, and have no normal range.
     let (geometry, tissue): (Vec<_>, Vec<_>) =
-        inf.summaries.iter().partition(|s| crate::sim::params::is_geometry(&s.name));
-    let mut doc = json!({
-        "verdict": verdict,
-        "model": row.id,
-        "fit": fit,
-        "parameters": tissue,
-        "differential": differential,
-        "differential_note": "per parameter: the posterior probability below / within / above the normal range; a reading only where the posterior is informative and puts ≥ 0.8 within or ≥ 0.95 below or above, else undetermined; unreliable for every parameter when the fit check fails. Information, not a diagnosis",
-        "map": inf.map,
-        "inputs": {
-            "used": used,
-            "interpolated": true,
-            "note": "each measure was interpolated linearly in log-frequency onto the model grid (magnitudes as log10, phases unwrapped)",
-            "grid_hz": npe.header.frequencies_hz,
-            "band_hz": band_hz,
-            "format": if csv.is_some() { "csv" } else { "json" },
+        inf.summaries.into_iter().partition(|s| crate::sim::params::is_geometry(&s.name));
+    let timing_ms = Timing {
+        sample: inf.sample_ms,
+        map: inf.map_ms,
+        fit: fit_ms,
+        alternatives: alternatives.as_ref().map_or(0.0, |a| a.ms),
+        exact: exact.as_ref().map_or(0.0, |e| e["ms"].as_f64().unwrap_or(0.0)),
+        total: t0.elapsed().as_secs_f64() * 1e3,
+    };
+    let samples = req.return_samples.unwrap_or(true).then_some(inf.samples);
+    Ok(Json(InferResponse {
+        verdict,
+        model: row.id,
+        fit,
+        parameters: tissue,
+        differential,
+        differential_note: DIFFERENTIAL_NOTE,
+        map: inf.map,
+        inputs: Inputs {
+            used,
+            interpolated: true,
+            note: INTERPOLATION_NOTE,
+            grid_hz: npe.header.frequencies_hz.clone(),
+            band_hz,
+            format: if csv.is_some() { "csv" } else { "json" },
+            notes: csv.map(|imp| imp.notes),
         },
-        "samples_count": n,
-        "seed": seed,
-        "timing_ms": {
-            "sample": inf.sample_ms,
-            "map": inf.map_ms,
-            "fit": fit_ms,
-            "alternatives": alternatives.as_ref().map_or(0.0, |a| a.ms),
-            "exact": exact.as_ref().map_or(0.0, |e| e["ms"].as_f64().unwrap_or(0.0)),
-            "total": t0.elapsed().as_secs_f64() * 1e3,
-        },
-    });
-    if let Some(e) = exact {
-        doc["exact"] = e;
-    }
-    if let Some(a) = alternatives {
-        doc["alternatives"] = json!(a);
-    }
-    if !next.is_null() {
-        doc["next"] = next;
-    }
-    if let Some(imp) = &csv {
-        doc["inputs"]["notes"] = json!(imp.notes);
-    }
-    if let Some(r) = refined {
-        doc["refined"] = r.map_or_else(|e| json!({ "reason": e.to_string() }), |r| json!(r));
-    }
-    add_optional(&mut doc, &geometry, corner, req.return_samples.unwrap_or(true).then_some((&npe, &inf)));
-    Ok(Json(doc))
+        samples_count: n,
+        seed,
+        timing_ms,
+        exact,
+        alternatives,
+        next,
+        refined: refined.map(|r| r.map_or_else(|e| RefinedDoc::Failed { reason: e.to_string() }, RefinedDoc::Fit)),
+        geometry_note: (!geometry.is_empty()).then_some(GEOMETRY_NOTE),
+        geometry,
+        figures: corner.map(|svg| Figures { corner: Figure { media_type: "image/svg+xml", svg } }),
+        sample_columns: samples.is_some().then(|| npe.params().iter().map(|p| p.name.clone()).collect()),
+        samples,
+    }))
+}
+
+/// The response's `differential_note`.
+const DIFFERENTIAL_NOTE: &str = "per parameter: the posterior probability below / within / above the normal range; a reading only where the posterior is informative and puts ≥ 0.8 within or ≥ 0.95 below or above, else undetermined; unreliable for every parameter when the fit check fails. Information, not a diagnosis";
+/// The response's `inputs.note`.
+const INTERPOLATION_NOTE: &str = "each measure was interpolated linearly in log-frequency onto the model grid (magnitudes as log10, phases unwrapped)";
+/// The response's `geometry_note`.
+const GEOMETRY_NOTE: &str = "measurement geometry inferred with the tissue (path from the impedance plane to the eardrum, canal \
+     cross-section, V/P microphone distance): nuisances that keep the tissue posterior unbiased, not findings";
+
+/// The answer of POST /infer: openapi.yaml's InferResponse. The optional parts are
+/// left out, not null, when absent.
+#[derive(Serialize)]
+pub struct InferResponse {
+    /// The answer in one line.
+    pub verdict: Verdict,
+    /// The model's id.
+    pub model: String,
+    /// The fit check, or `ok` null and why it could not run.
+    pub fit: serde_json::Value,
+    /// Posterior summaries of the tissue parameters.
+    pub parameters: Vec<Summary>,
+    /// The normal-range reading of each tissue parameter.
+    pub differential: Vec<Differential>,
+    pub differential_note: &'static str,
+    /// The MAP, natural units, in the model's parameter order.
+    pub map: Vec<f64>,
+    /// What the measurements gave and how they were read.
+    pub inputs: Inputs,
+    pub samples_count: usize,
+    pub seed: u64,
+    pub timing_ms: Timing,
+    /// The likelihood's posterior (`posterior: exact`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub exact: Option<serde_json::Value>,
+    /// The competing explanations of the findings.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub alternatives: Option<Alternatives>,
+    /// The job to post when the fit check fails.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub next: Option<NextStep>,
+    /// The least-squares best fit from the MAP (`refine` > 0).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub refined: Option<RefinedDoc>,
+    /// Posterior summaries of the measurement-geometry nuisances (models that have them).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub geometry: Vec<Summary>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub geometry_note: Option<&'static str>,
+    /// The figures `plot` asked for.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub figures: Option<Figures>,
+    /// The posterior draws, natural units (`return_samples`, the default).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub samples: Option<Vec<Vec<f64>>>,
+    /// The parameter of each column of `samples`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sample_columns: Option<Vec<String>>,
+}
+
+/// The response's `inputs`: the features used and how the measurements were read.
+#[derive(Serialize)]
+pub struct Inputs {
+    /// The feature blocks the measurements gave.
+    pub used: Vec<&'static str>,
+    pub interpolated: bool,
+    pub note: &'static str,
+    /// The model's frequency grid, Hz.
+    pub grid_hz: Vec<f64>,
+    /// Per feature block: the first and last model-grid frequency given.
+    pub band_hz: serde_json::Map<String, serde_json::Value>,
+    /// The body's format: `json` or `csv`.
+    pub format: &'static str,
+    /// What reading a text/csv table did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub notes: Option<Vec<String>>,
+}
+
+/// The response's `timing_ms`: each stage's milliseconds.
+#[derive(Serialize)]
+pub struct Timing {
+    pub sample: f64,
+    pub map: f64,
+    pub fit: f64,
+    pub alternatives: f64,
+    pub exact: f64,
+    pub total: f64,
+}
+
+/// The response's `next`: the request to make when the fit check fails.
+#[derive(Serialize)]
+pub struct NextStep {
+    pub why: &'static str,
+    pub method: &'static str,
+    pub path: &'static str,
+    /// The body to post (a diagnose job on these features).
+    pub body: serde_json::Value,
+}
+
+/// The response's `refined`: the best fit, or why it could not run.
+#[derive(Serialize)]
+#[serde(untagged)]
+pub enum RefinedDoc {
+    Fit(Refined),
+    Failed { reason: String },
+}
+
+/// The response's `figures`.
+#[derive(Serialize)]
+pub struct Figures {
+    pub corner: Figure,
+}
+
+/// A figure and its media type.
+#[derive(Serialize)]
+pub struct Figure {
+    pub media_type: &'static str,
+    pub svg: String,
 }
 
 /// What the blocking part of POST /infer computes.
@@ -405,8 +519,8 @@ fn fit_and_next(
     fit: Result<(FitCheck, Vec<f64>), FitCheckError>,
     model: Option<&str>,
     differential: &mut [crate::npe::normal::Differential],
-) -> (serde_json::Value, serde_json::Value) {
-    let mut next = serde_json::Value::Null;
+) -> (serde_json::Value, Option<NextStep>) {
+    let mut next = None;
     let fit = match fit {
         Ok((f, x)) => {
             if f.ok == Some(false) {
@@ -417,38 +531,18 @@ fn fit_and_next(
                 if let Some(m) = model {
                     params["model"] = json!(m);
                 }
-                next = json!({ "why": "look for the physical effect the model is missing", "method": "POST", "path": "/jobs" });
-                next["body"] = json!({ "kind": "diagnose", "params": params });
+                next = Some(NextStep {
+                    why: "look for the physical effect the model is missing",
+                    method: "POST",
+                    path: "/jobs",
+                    body: json!({ "kind": "diagnose", "params": params }),
+                });
             }
             json!(f)
         }
         Err(e) => json!({ "ok": null, "reason": e.to_string() }),
     };
     (fit, next)
-}
-
-/// The response's parts that are there only sometimes: the measurement geometry, the
-/// corner plot, and the samples (with `samples`: the model and its inference).
-fn add_optional(
-    doc: &mut serde_json::Value,
-    geometry: &[&Summary],
-    corner: Option<String>,
-    samples: Option<(&Npe, &Inference)>,
-) {
-    if !geometry.is_empty() {
-        doc["geometry"] = json!(geometry);
-        doc["geometry_note"] = json!(
-            "measurement geometry inferred with the tissue (path from the impedance plane to the eardrum, canal \
-             cross-section, V/P microphone distance): nuisances that keep the tissue posterior unbiased, not findings"
-        );
-    }
-    if let Some(svg) = corner {
-        doc["figures"] = json!({ "corner": { "media_type": "image/svg+xml", "svg": svg } });
-    }
-    if let Some((npe, inf)) = samples {
-        doc["samples"] = json!(inf.samples);
-        doc["sample_columns"] = json!(npe.params().iter().map(|p| &p.name).collect::<Vec<_>>());
-    }
 }
 
 #[cfg(test)]

@@ -2,15 +2,12 @@
 //! same measurements as POST /infer), e.g. to compare candidate ears or to check a
 //! posterior against a known truth.
 
-use super::{AppState, Problem, json_body};
+use super::{AppState, JsonBody, Problem};
 use crate::measurements::Measurements;
 use crate::npe::Obs;
 use axum::Json;
-use axum::body::Bytes;
 use axum::extract::State;
-use axum::http::HeaderMap;
-use serde::Deserialize;
-use serde_json::json;
+use serde::{Deserialize, Serialize};
 
 /// Parameter sets per request: each costs one flow pass, far less than a sample.
 pub const MAX_THETA: usize = 10_000;
@@ -27,10 +24,8 @@ pub struct LogProbRequest {
 pub async fn log_prob(
     State(st): State<AppState>,
     axum::Extension(who): axum::Extension<super::Principal>,
-    headers: HeaderMap,
-    body: Bytes,
-) -> Result<Json<serde_json::Value>, Problem> {
-    let req: LogProbRequest = json_body(&headers, &body)?;
+    JsonBody(req): JsonBody<LogProbRequest>,
+) -> Result<Json<LogProbResponse>, Problem> {
     if req.theta.is_empty() || req.theta.len() > MAX_THETA {
         return Err(Problem::invalid(vec![("theta".into(), format!("needs 1..={MAX_THETA} rows"))]));
     }
@@ -67,11 +62,31 @@ pub async fn log_prob(
     let outside: Vec<usize> = (0..theta.len()).filter(|&i| !inside(&theta[i])).collect();
     let values: Vec<Option<f64>> =
         lp.iter().enumerate().map(|(i, v)| (!outside.contains(&i) && v.is_finite()).then_some(*v)).collect();
-    Ok(Json(json!({
-        "model": row.id,
-        "columns": npe.params().iter().map(|p| &p.name).collect::<Vec<_>>(),
-        "inputs": { "used": used },
-        "log_prob": values,
-        "outside_prior": outside,
-    })))
+    Ok(Json(LogProbResponse {
+        model: row.id,
+        columns: npe.params().iter().map(|p| p.name.clone()).collect(),
+        inputs: UsedInputs { used },
+        log_prob: values,
+        outside_prior: outside,
+    }))
+}
+
+/// The answer of POST /log_prob.
+#[derive(Serialize)]
+pub struct LogProbResponse {
+    /// The model's id.
+    pub model: String,
+    /// The parameter of each column of `theta`.
+    pub columns: Vec<String>,
+    pub inputs: UsedInputs,
+    /// Each row's log density; null outside the prior box (or not finite).
+    pub log_prob: Vec<Option<f64>>,
+    /// The rows outside the prior box.
+    pub outside_prior: Vec<usize>,
+}
+
+/// The response's `inputs`: the feature blocks the measurements gave.
+#[derive(Serialize)]
+pub struct UsedInputs {
+    pub used: Vec<&'static str>,
 }

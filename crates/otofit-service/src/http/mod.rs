@@ -5,6 +5,8 @@
 pub mod auth;
 pub use auth::{Principal, host_allowed};
 pub mod conn;
+mod extract;
+pub use extract::{JsonBody, json_body};
 mod infer;
 mod log_prob;
 pub use crate::gate::{BODY_DEADLINE, InferGate, InferLimits, UPLOADS_PER_ADDRESS};
@@ -251,30 +253,6 @@ impl IntoResponse for Problem {
         let mut r = (status, serde_json::to_string(&self).unwrap_or_default()).into_response();
         r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/problem+json"));
         r
-    }
-}
-
-/// Parses a JSON body, answering 415 for another content type and 400/422 for bad JSON.
-pub fn json_body<T: serde::de::DeserializeOwned>(headers: &axum::http::HeaderMap, body: &[u8]) -> Result<T, Problem> {
-    let ct = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("");
-    // The media type exactly (any case), parameters such as charset allowed.
-    let media = ct.split(';').next().unwrap_or("").trim();
-    if !media.eq_ignore_ascii_case("application/json") {
-        return Err(Problem::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, "send Content-Type: application/json"));
-    }
-    // axum's Json: serde_path_to_error inside, and nothing but whitespace after the value.
-    match axum::Json::<T>::from_bytes(body) {
-        Ok(axum::Json(value)) => Ok(value),
-        Err(axum::extract::rejection::JsonRejection::JsonDataError(e)) => {
-            // The field's JSON path: a missing one's is its parent's path and its name.
-            let (field, message) = crate::jobs::field_error("", &e.body_text());
-            Err(Problem::invalid(vec![(if field.is_empty() { "body".into() } else { field }, message)]))
-        }
-        Err(e) => {
-            let text = e.body_text();
-            let detail = text.split_once(": ").map_or(text.as_str(), |(_, rest)| rest);
-            Err(Problem::new(StatusCode::BAD_REQUEST, format!("malformed JSON: {detail}")))
-        }
     }
 }
 

@@ -1,14 +1,13 @@
 //! Health, models, jobs and datasets.
 
-use super::{AppState, Principal, Problem, json_body};
+use super::{AppState, JsonBody, Principal, Problem};
 use crate::jobs::{self, JobSpec};
-use crate::store::{Admission, JobState, QueueBounds};
-use axum::body::Bytes;
+use crate::store::{Admission, JobRow, JobState, QueueBounds};
 use axum::extract::{Path, Query, State};
-use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::{Extension, Json};
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_json::json;
 
 pub async fn health() -> Json<serde_json::Value> {
@@ -148,28 +147,53 @@ pub struct NewJob {
 /// (an admin of another tenant sees the job without them, listed under `redacted`).
 const MEASUREMENT_PARAMS: [&str; 2] = ["x", "observation"];
 
-fn job_doc(j: &crate::store::JobRow, who: &Principal) -> serde_json::Value {
-    let mut d = serde_json::to_value(j).unwrap_or_default();
-    if j.tenant != who.tenant
-        && let Some(params) = d["params"].as_object_mut()
+/// A job as served (openapi.yaml's Job): the stored row, without another tenant's
+/// measurements, and its links.
+#[derive(Serialize)]
+pub struct JobDoc {
+    /// The job as stored (its fields at the top level).
+    #[serde(flatten)]
+    pub job: JobRow,
+    /// The params removed because they hold another tenant's measurements.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub redacted: Vec<String>,
+    pub links: JobLinks,
+}
+
+/// A job's `links`.
+#[derive(Serialize)]
+pub struct JobLinks {
+    /// The job itself.
+    #[serde(rename = "self")]
+    pub this: String,
+    /// Where to post to cancel it.
+    pub cancel: String,
+}
+
+/// The answer of GET /jobs.
+#[derive(Serialize)]
+pub struct JobList {
+    pub jobs: Vec<JobDoc>,
+}
+
+/// `job` as `who` sees it.
+fn job_doc(mut job: JobRow, who: &Principal) -> JobDoc {
+    let mut redacted = vec![];
+    if job.tenant != who.tenant
+        && let Some(params) = job.params.as_object_mut()
     {
-        let gone: Vec<String> =
+        redacted =
             MEASUREMENT_PARAMS.iter().filter(|k| params.remove(**k).is_some()).map(|k| format!("params.{k}")).collect();
-        if !gone.is_empty() {
-            d["redacted"] = json!(gone);
-        }
     }
-    d["links"] = json!({ "self": format!("/jobs/{}", j.id), "cancel": format!("/jobs/{}/cancel", j.id) });
-    d
+    let links = JobLinks { this: format!("/jobs/{}", job.id), cancel: format!("/jobs/{}/cancel", job.id) };
+    JobDoc { job, redacted, links }
 }
 
 pub async fn create_job(
     State(st): State<AppState>,
     Extension(who): Extension<Principal>,
-    headers: HeaderMap,
-    body: Bytes,
+    JsonBody(req): JsonBody<NewJob>,
 ) -> Result<Response, Problem> {
-    let req: NewJob = json_body(&headers, &body)?;
     let spec = JobSpec::parse(&req.kind, &req.params).map_err(Problem::invalid)?;
     match &spec {
         // As GET /datasets/{id}: no such dataset (for this client) is a 404, one whose
@@ -222,7 +246,7 @@ pub async fn create_job(
     tracing::info!(job = %id, kind = spec.kind(), tenant = %who.tenant, "job queued");
     let job =
         st.ctx.store.job(&id).await.map_err(Problem::internal)?.ok_or_else(|| Problem::internal("job vanished"))?;
-    let mut r = (StatusCode::ACCEPTED, Json(job_doc(&job, &who))).into_response();
+    let mut r = (StatusCode::ACCEPTED, Json(job_doc(job, &who))).into_response();
     r.headers_mut().insert(header::LOCATION, HeaderValue::from_str(&format!("/jobs/{id}")).map_err(Problem::internal)?);
     Ok(r)
 }
@@ -308,7 +332,7 @@ pub async fn list_jobs(
     State(st): State<AppState>,
     Extension(who): Extension<Principal>,
     StrictQuery(q): StrictQuery<JobQuery>,
-) -> Result<Json<serde_json::Value>, Problem> {
+) -> Result<Json<JobList>, Problem> {
     if let Some(s) = &q.state
         && JobState::parse(s).is_none()
     {
@@ -320,14 +344,14 @@ pub async fn list_jobs(
         return Err(Problem::invalid(vec![("limit".into(), format!("must be 1..=1000, got {limit}"))]));
     }
     let rows = st.ctx.store.jobs(q.state.as_deref(), limit, who.scope()).await.map_err(Problem::internal)?;
-    Ok(Json(json!({ "jobs": rows.iter().map(|j| job_doc(j, &who)).collect::<Vec<_>>() })))
+    Ok(Json(JobList { jobs: rows.into_iter().map(|j| job_doc(j, &who)).collect() }))
 }
 
 pub async fn get_job(
     State(st): State<AppState>,
     Extension(who): Extension<Principal>,
     Path(id): Path<String>,
-) -> Result<Json<serde_json::Value>, Problem> {
+) -> Result<Json<JobDoc>, Problem> {
     match visible_job(&st, &who, &id).await? {
         Some(mut j) => {
             // A running simulate job's chunks finish on any worker; its own worker writes
@@ -340,7 +364,7 @@ pub async fn get_job(
                     (j.progress, j.message) = (p, message);
                 }
             }
-            Ok(Json(job_doc(&j, &who)))
+            Ok(Json(job_doc(j, &who)))
         }
         None => Err(Problem::new(StatusCode::NOT_FOUND, format!("no job '{id}'"))),
     }
@@ -364,7 +388,7 @@ pub async fn cancel_job(
                 .await
                 .map_err(Problem::internal)?
                 .ok_or_else(|| Problem::internal("job vanished"))?;
-            Ok((StatusCode::ACCEPTED, Json(job_doc(&j, &who))).into_response())
+            Ok((StatusCode::ACCEPTED, Json(job_doc(j, &who))).into_response())
         }
     }
 }

@@ -87,6 +87,31 @@ impl JobSpec {
         }
     }
 
+    /// The row of this job as queued, every other field set (for tests).
+    #[cfg(test)]
+    pub(crate) fn queued(&self) -> JobRow {
+        JobRow {
+            id: "j".into(),
+            tenant: "t".into(),
+            kind: self.kind().into(),
+            state: crate::store::JobState::Queued,
+            params: self.params(),
+            progress: 0.0,
+            message: String::new(),
+            attempts: 0,
+            max_attempts: 3,
+            cancel_requested: false,
+            error: None,
+            result: None,
+            created_at: String::new(),
+            started_at: None,
+            finished_at: None,
+            retry_at: None,
+            lease_token: None,
+            worker: None,
+        }
+    }
+
     /// The params as stored: every default written out, so a job shows what it runs with.
     pub fn params(&self) -> serde_json::Value {
         let mut v = serde_json::to_value(self).unwrap_or_default();
@@ -98,34 +123,45 @@ impl JobSpec {
 /// (`params.theta[0][1]`, `params.bogus` for an unknown or missing one).
 fn parse<T: serde::de::DeserializeOwned>(params: &serde_json::Value) -> Result<T, Vec<FieldError>> {
     let bytes = serde_json::to_vec(params).map_err(|e| vec![("params".to_string(), e.to_string())])?;
-    // axum's Json tracks the path (serde_path_to_error): "…target type: theta[0][1]: invalid type: …".
-    axum::Json::<T>::from_bytes(&bytes).map(|j| j.0).map_err(|r| vec![field_error("params", &r.body_text())])
+    // Read from text, as a posted body is: serde_json words a number it cannot take from
+    // its text (`1e+300`), where a `Value` would write it out in full.
+    serde_path_to_error::deserialize(&mut serde_json::Deserializer::from_slice(&bytes))
+        .map_err(|e| vec![field_error("params", &e)])
 }
 
-/// (field, message) from the text of an axum Json data rejection, the field's path under
-/// `root` (which may be empty).
-pub fn field_error(root: &str, text: &str) -> FieldError {
-    let text = text.split_once(": ").map_or(text, |(_, rest)| rest);
-    let (path, message) = match text.split_once(": ") {
-        Some((p, m)) if !p.contains(' ') => (p, m),
-        _ => ("", text),
-    };
+/// (field, message) of a JSON error: the field's path under `root` (which may be empty)
+/// from the segments serde was at, and serde's message without its position.
+pub fn field_error(root: &str, e: &serde_path_to_error::Error<serde_json::Error>) -> FieldError {
+    use serde_path_to_error::Segment;
     let mut field = root.to_string();
-    if !path.is_empty() && path != "." {
-        field += if path.starts_with('[') || field.is_empty() { "" } else { "." };
-        field += path;
+    // A key that is not a string has no name: a path of nothing else names no field.
+    if !e.path().iter().all(|s| matches!(s, Segment::Unknown)) {
+        for segment in e.path() {
+            match segment {
+                Segment::Seq { index } => field += &format!("[{index}]"),
+                Segment::Map { key } | Segment::Enum { variant: key } => child(&mut field, key),
+                Segment::Unknown => child(&mut field, "?"),
+            }
+        }
     }
-    let named = message.strip_prefix("unknown field `").or_else(|| message.strip_prefix("missing field `"));
-    // An unknown field's path ends with it already; a missing one's is its parent.
-    if let Some(name) = named.and_then(|r| r.split('`').next())
-        && !field.ends_with(&format!(".{name}"))
-        && field != name
-    {
-        field = format!("{field}.{name}");
+    let inner = e.inner();
+    let text = inner.to_string();
+    let position = format!(" at line {} column {}", inner.line(), inner.column());
+    let message = text.strip_suffix(&position).unwrap_or(&text).to_string();
+    // An unknown field's path ends with its key; a missing one's is its parent, and serde
+    // names the field only in its message (`missing field `x``).
+    if let Some(name) = message.strip_prefix("missing field `").and_then(|r| r.strip_suffix('`')) {
+        child(&mut field, name);
     }
-    // The position is in a re-serialised copy of params: no use to the client.
-    let message = message.split(" at line ").next().unwrap_or(message);
-    (field, message.to_string())
+    (field, message)
+}
+
+/// `field` made the path of its member `name`.
+fn child(field: &mut String, name: &str) {
+    if !field.is_empty() {
+        field.push('.');
+    }
+    field.push_str(name);
 }
 
 /// `errs` gets `field`'s problem when `v` is outside `range` (see `limits`).
@@ -253,29 +289,6 @@ mod tests {
     use super::*;
     use serde_json::json;
 
-    fn stored(spec: &JobSpec) -> JobRow {
-        JobRow {
-            id: "j".into(),
-            tenant: "t".into(),
-            kind: spec.kind().into(),
-            state: crate::store::JobState::Queued,
-            params: spec.params(),
-            progress: 0.0,
-            message: String::new(),
-            attempts: 0,
-            max_attempts: 3,
-            cancel_requested: false,
-            error: None,
-            result: None,
-            created_at: String::new(),
-            started_at: None,
-            finished_at: None,
-            retry_at: None,
-            lease_token: None,
-            worker: None,
-        }
-    }
-
     #[test]
     fn a_job_is_stored_with_its_defaults_and_read_back_as_the_same_spec() {
         let spec = JobSpec::parse("train", &json!({"dataset": "d1"})).unwrap();
@@ -284,7 +297,7 @@ mod tests {
             params,
             json!({"dataset": "d1", "noise_scale": 1.0, "seed": 0, "max_epochs": 300, "mask_groups": false, "ensemble": 1})
         );
-        let back = JobSpec::of(&stored(&spec)).unwrap();
+        let back = JobSpec::of(&spec.queued()).unwrap();
         assert_eq!((back.kind(), back.params()), ("train", params));
         // Absent options stay absent (no `"model": null`, no `"theta": null`).
         let d = JobSpec::parse("diagnose", &json!({"x": [1.0, 2.0]})).unwrap().params();
@@ -292,7 +305,7 @@ mod tests {
         assert_eq!(d["null_cases"], 40);
         let s = JobSpec::parse("simulate", &json!({"n": 5})).unwrap().params();
         assert!(s.get("theta").is_none() && s["n"] == 5, "{s}");
-        let back = JobSpec::of(&stored(&JobSpec::parse("simulate", &json!({"n": 5})).unwrap())).unwrap();
+        let back = JobSpec::of(&JobSpec::parse("simulate", &json!({"n": 5})).unwrap().queued()).unwrap();
         assert!(matches!(back, JobSpec::Simulate(SimulateParams { n: Some(5), .. })));
     }
 
@@ -315,6 +328,49 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A bad param is named by the path serde was at, under `params`; a missing one by
+    /// its parent's path and its name. Keys and values are the client's text, whatever
+    /// they hold.
+    #[test]
+    fn params_that_do_not_parse_are_named_by_their_json_path() {
+        for (kind, params, field, message) in [
+            ("train", json!({}), "params.dataset", "missing field `dataset`"),
+            ("train", json!(null), "params", "invalid type: null, expected struct TrainParams"),
+            (
+                "simulate",
+                json!({"theta": [[1.0, "a"]]}),
+                "params.theta[0][1]",
+                "invalid type: string \"a\", expected f64",
+            ),
+            (
+                "simulate",
+                json!({"effects": {"a: b": "x"}}),
+                "params.effects.a: b",
+                "invalid type: string \"x\", expected f64",
+            ),
+            ("exact", json!([[1.0]]), "params[0]", "invalid type: sequence, expected a string"),
+            // A number serde_json cannot take is worded from its text, as in a posted body.
+            (
+                "train",
+                json!({"dataset": "d", "ensemble": 1e300}),
+                "params.ensemble",
+                "invalid type: floating point `1e+300`, expected usize",
+            ),
+            (
+                "train",
+                json!({"dataset": "d", "seed": "x at line 3"}),
+                "params.seed",
+                "invalid type: string \"x at line 3\", expected u64",
+            ),
+        ] {
+            let e = JobSpec::parse(kind, &params).unwrap_err();
+            assert_eq!(e, [(field.to_string(), message.to_string())], "{kind} {params}");
+        }
+        let e = JobSpec::parse("simulate", &json!({"n": 1, "n ": 2})).unwrap_err();
+        assert_eq!(e[0].0, "params.n ");
+        assert!(e[0].1.starts_with("unknown field `n `, expected one of `n`, `seed`"), "{e:?}");
     }
 
     #[test]
