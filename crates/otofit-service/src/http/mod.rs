@@ -1,6 +1,7 @@
 //! The HTTP API (axum): a thin layer over `npe`, `jobs` and `store`. Errors are RFC 9457
 //! problem details; validation errors name the field. openapi.yaml is the contract and
-//! `ROUTES` the list a test checks it against.
+//! `ROUTES` the list a test checks it against; the `contract` tests check the request and
+//! response structs against its schemas.
 
 pub mod auth;
 pub use auth::{Principal, host_allowed};
@@ -11,6 +12,8 @@ mod infer;
 mod log_prob;
 pub use crate::gate::{BODY_DEADLINE, InferGate, InferLimits, UPLOADS_PER_ADDRESS};
 pub use crate::metrics;
+#[cfg(test)]
+mod contract;
 mod resources;
 
 use crate::jobs::Ctx;
