@@ -396,6 +396,9 @@ pub fn run(args: ServeArgs) -> Result<()> {
             tracing::warn!(addr = %args.addr, "listening beyond loopback without API keys");
         }
         let dispatchers: Vec<_> = (0..args.workers).map(|_| tokio::spawn(jobs::dispatcher(ctx.clone()))).collect();
+        if args.workers > 0 {
+            tokio::spawn(jobs::wake_on_announced_work(ctx.clone()));
+        }
         let app = http::router(AppState::new(ctx.clone(), keys).with_allowed_hosts(allowed_hosts));
         let inner = tokio::net::TcpListener::bind(args.addr)
             .await

@@ -76,6 +76,9 @@ pub fn run(args: WorkerArgs) -> Result<()> {
             tracing::info!(%addr, "serving /metrics");
         }
         let dispatchers: Vec<_> = (0..args.concurrency).map(|_| tokio::spawn(jobs::dispatcher(ctx.clone()))).collect();
+        if args.concurrency > 0 {
+            tokio::spawn(jobs::wake_on_announced_work(ctx.clone()));
+        }
         shutdown_signal().await;
         tracing::info!("shutting down: no new jobs; the running ones stop at their next check");
         if !stop_dispatchers(&ctx, dispatchers).await {

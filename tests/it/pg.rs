@@ -738,3 +738,29 @@ async fn both_migration_trees_end_in_the_same_schema() {
     }
     assert_eq!(lite_indexes, pg_indexes, "indexes");
 }
+
+/// A job queued through one store, or chunks planned, wakes the listening dispatchers of
+/// another process at once (PostgreSQL NOTIFY), instead of at their next poll.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn queued_work_wakes_the_listeners_of_other_processes() {
+    let Some(url) = fresh_database().await else { return };
+    let here = Store::connect(&Database::Postgres(url.clone())).await.unwrap();
+    let there = Store::connect(&Database::Postgres(url)).await.unwrap();
+    let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let listener = tokio::spawn(async move { there.listen_for_work(move || tx.send(()).unwrap()).await });
+    // The listener is up once an announcement gets through.
+    let t0 = Instant::now();
+    while !matches!(rx.try_recv(), Ok(())) {
+        assert!(t0.elapsed() < Duration::from_secs(10), "no announcement got through");
+        here.announce_work().await.unwrap();
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    while rx.try_recv().is_ok() {}
+    assert!(here.insert_job_within("j1", "simulate", &json!({"n": 10}), 3, 100).await.unwrap());
+    let wait = Duration::from_secs(10);
+    assert!(tokio::time::timeout(wait, rx.recv()).await.is_ok(), "a queued job woke nobody");
+    here.plan_chunks("j1", &[(0, 5), (5, 5)]).await.unwrap();
+    assert!(tokio::time::timeout(wait, rx.recv()).await.is_ok(), "planned chunks woke nobody");
+    listener.abort();
+}

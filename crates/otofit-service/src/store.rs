@@ -102,6 +102,9 @@ mod chunks;
 mod keys;
 mod relabel;
 
+/// The PostgreSQL channel on which processes announce work ([`Store::announce_work`]).
+pub const WORK_CHANNEL: &str = "otofit_work";
+
 /// The SQLite schema's migrations.
 static SQLITE_MIGRATIONS: sqlx::migrate::Migrator = sqlx::migrate!("../../migrations");
 /// The PostgreSQL schema's migrations (the same tables, its own types).
@@ -489,6 +492,40 @@ impl Store {
         Ok(on_pool!(self, p => sqlx::query(SQL).fetch_optional(p).await?.as_ref().map(model_from).transpose()?))
     }
 
+    /// Tells the dispatchers of other processes that there is work to claim (a job queued,
+    /// chunks planned or given back): a PostgreSQL NOTIFY on [`WORK_CHANNEL`], which
+    /// [`Store::listen_for_work`] turns into a wake-up. With SQLite every dispatcher is in
+    /// this process and `Ctx::notify` reaches them; nothing is sent.
+    pub async fn announce_work(&self) -> Result<(), sqlx::Error> {
+        if let Pool::Postgres(pool) = &self.pool {
+            sqlx::query("SELECT pg_notify($1, '')").bind(WORK_CHANNEL).execute(pool).await?;
+        }
+        Ok(())
+    }
+
+    /// Calls `wake` each time a process announces work, for as long as the process runs
+    /// (PostgreSQL LISTEN on its own connection, which sqlx re-opens if it drops). Idle
+    /// dispatchers then start on new work at once instead of at their next poll. Returns
+    /// at once with SQLite.
+    pub async fn listen_for_work(&self, wake: impl Fn()) {
+        let Pool::Postgres(pool) = &self.pool else { return };
+        loop {
+            let listening = async {
+                let mut listener = sqlx::postgres::PgListener::connect_with(pool).await?;
+                listener.listen(WORK_CHANNEL).await?;
+                loop {
+                    listener.recv().await?;
+                    wake();
+                }
+            };
+            let res: Result<(), sqlx::Error> = listening.await;
+            if let Err(e) = res {
+                tracing::warn!(error = %e, "listening for work failed; polling meanwhile");
+            }
+            tokio::time::sleep(std::time::Duration::from_secs(1)).await;
+        }
+    }
+
     /// Queues a job if fewer than `limit` jobs are queued or running. The count and the
     /// insert are one statement; SQLite takes the write lock before it reads, and with
     /// PostgreSQL the statement runs under a transaction-scoped advisory lock (READ
@@ -548,6 +585,11 @@ impl Store {
                 // A statement of its own after the lock: its snapshot sees every insert
                 // committed by the lock's previous holder.
                 let n = insert!().execute(&mut *tx).await?.rows_affected();
+                if n == 1 {
+                    // Delivered at the commit: the listening dispatchers of other
+                    // processes see the job as soon as it can be claimed.
+                    sqlx::query("SELECT pg_notify($1, '')").bind(WORK_CHANNEL).execute(&mut *tx).await?;
+                }
                 tx.commit().await?;
                 n
             }

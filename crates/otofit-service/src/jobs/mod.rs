@@ -281,6 +281,13 @@ pub const CHUNK_LEASE: Duration = Duration::from_secs(6);
 /// second. Each look is a few indexed queries.
 const IDLE_POLL: Duration = Duration::from_millis(250);
 
+/// Wakes this process' idle dispatchers whenever another process announces work
+/// (PostgreSQL; a no-op with SQLite, whose dispatchers all share `ctx.notify`). Spawn it
+/// once per process beside the dispatchers; it runs until the process ends.
+pub async fn wake_on_announced_work(ctx: Arc<Ctx>) {
+    ctx.store.listen_for_work(|| ctx.notify.notify_waiters()).await
+}
+
 /// The dispatcher: takes back jobs whose lease expired, claims and runs jobs until
 /// shutdown; with no job queued it helps with a chunk of a running simulate job (any
 /// worker's). Any number of dispatchers, in any number of processes, may share a store.

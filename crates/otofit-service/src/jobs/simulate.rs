@@ -175,8 +175,10 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
                     res => res?,
                 }
             }
-            // Every chunk left is held by another worker: wait for its part.
-            None => std::thread::sleep(Duration::from_millis(200)),
+            // Every chunk left is held by another worker: wait for its part (a short
+            // poll: at the job's end this wait is the whole job's, and it costs two
+            // small queries).
+            None => std::thread::sleep(Duration::from_millis(50)),
         }
         chunks = rt.block_on(ctx.store.chunks(id))?;
     }

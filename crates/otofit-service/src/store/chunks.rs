@@ -99,6 +99,8 @@ impl Store {
                 tx.commit().await?
             });
         }
+        // Queued chunks, new or left by an earlier attempt: idle workers elsewhere may help.
+        self.announce_work().await?;
         self.chunks(job).await
     }
 
@@ -175,6 +177,9 @@ impl Store {
             .execute(p)
             .await?
             .rows_affected());
+        if n == 1 && !done {
+            self.announce_work().await?;
+        }
         Ok(n == 1)
     }
 
