@@ -1,5 +1,6 @@
 //! The discrepancy workflow on data with a hidden effect (small settings for CI; the
-//! rates are measured by `otofit bench discrepancy`).
+//! rates are measured by `otofit bench discrepancy`). Each diagnosis trains a small model
+//! (70–190 s on two cores), so these are the slow tier, which `.ci/run` runs.
 
 use otofit::discrepancy::Verdict;
 use otofit::discrepancy::workflow::{Settings, diagnose};
@@ -41,6 +42,7 @@ fn settings(candidates: Vec<usize>) -> Settings {
 }
 
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, Some(("probe_leak", 3e-4)), 5);
@@ -70,6 +72,7 @@ fn names_a_hidden_probe_leak_estimates_it_and_closes_the_gap() {
 /// stays out of every statistic, the null lacks it too, and the extended model is trained
 /// on the measures given.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_probe_leak_without_umbo_velocity() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let mut x = observation(&model, Some(("probe_leak", 3e-4)), 5);
@@ -88,6 +91,7 @@ fn names_a_hidden_probe_leak_without_umbo_velocity() {
 /// largest value, so an effect-free ear alarms about 1 time in 13 per statistic; this test
 /// uses the workflow's default 40 (a 5 % false-alarm budget, `ALARM_QUANTILE`).
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn stays_quiet_without_an_effect() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, None, 6);
@@ -179,6 +183,7 @@ fn the_likelihoods_posterior_covers_the_truth_and_is_narrower_than_the_flows() {
 /// larger shunt (2e5) is absorbed by the tissue values instead (a low cochlear load,
 /// which the differential associates with a third window): docs/results/discrepancy.md.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_third_window_among_every_effect() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, Some(("third_window", 1e6)), 5);
@@ -192,6 +197,7 @@ fn names_a_hidden_third_window_among_every_effect() {
 /// A hidden perforation (0.5 mm radius) is named among every effect of the library, its
 /// radius estimated, and the gap closed: the ear does not fit without it.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_perforation_and_closes_the_gap() {
     let model = Model::new(ModelConfig::default()).unwrap();
     let x = observation(&model, Some(("perforation", 0.5e-3)), 5);
@@ -237,6 +243,7 @@ fn assert_named(r: &otofit::discrepancy::workflow::Report, effect: &str, factor:
 /// Fluid filling 30 % of the air space (Ravicz et al. 2004's partial fills): 18 dB less
 /// umbo velocity at 4–8 kHz, which no tissue value makes.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_effusion_and_closes_the_gap() {
     let r = diagnose_hidden("effusion", 0.3);
     assert_named(&r, "effusion", 5.0);
@@ -245,6 +252,7 @@ fn names_a_hidden_effusion_and_closes_the_gap() {
 /// A middle-ear underpressure of −150 daPa: the drum and the suspension 17× stiffer
 /// without more loss.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_static_pressure() {
     let r = diagnose_hidden("pressure", -1500.0);
     assert_named(&r, "pressure", 2.0);
@@ -255,6 +263,7 @@ fn names_a_hidden_static_pressure() {
 /// leads every other candidate's by far (252 against 7); the CI-sized extended model brings
 /// χ²ν to 0.98–1.10 (two runs), not to the noise.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_mastoid() {
     let r = diagnose_hidden("mastoid", 0.9);
     assert_named(&r, "mastoid", 1.0);
@@ -264,6 +273,7 @@ fn names_a_hidden_mastoid() {
 /// already comes close (χ²ν 2.0: a soft E_joints takes part of it), so the gap closes by
 /// about 4× to the noise, not by the 5× of a leak.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_isj_discontinuity_and_closes_the_gap() {
     let r = diagnose_hidden("isj_discontinuity", 1e-3);
     assert_named(&r, "isj_discontinuity", 2.0);
@@ -275,6 +285,7 @@ fn names_a_hidden_isj_discontinuity_and_closes_the_gap() {
 /// mallear ligaments, on the rotation axis, cannot), but the fixation's χ² drop leads every
 /// other candidate's by far (47 against the mastoid's 4) and the gap closes to χ²ν 0.43.
 #[test]
+#[cfg_attr(not(feature = "slow-tests"), ignore = "slow tier: `cargo test --features slow-tests`, run by .ci/run")]
 fn names_a_hidden_malleus_fixation_and_closes_the_gap() {
     let r = diagnose_hidden("malleus_fixation", 1e6);
     assert_named(&r, "malleus_fixation", 2.0);
