@@ -182,36 +182,11 @@ impl Affine {
     }
 }
 
-/// The inverse of a small invertible matrix by Gauss–Jordan elimination with partial
-/// pivoting (an LU layer's W = L U is well conditioned: its U diagonal is ≥ 1e-3).
+/// The inverse of a small invertible matrix, through faer's LU with partial pivoting (an
+/// LU layer's W = L U is well conditioned: its U diagonal is ≥ 1e-3).
 fn invert(w: &Mat<f64>) -> Mat<f64> {
-    let d = w.nrows();
-    let mut a = w.clone();
-    let mut inv = Mat::<f64>::identity(d, d);
-    for c in 0..d {
-        let p = (c..d).max_by(|&i, &j| a[(i, c)].abs().total_cmp(&a[(j, c)].abs())).unwrap_or(c);
-        for k in 0..d {
-            let (x, y) = (a[(c, k)], a[(p, k)]);
-            (a[(c, k)], a[(p, k)]) = (y, x);
-            let (x, y) = (inv[(c, k)], inv[(p, k)]);
-            (inv[(c, k)], inv[(p, k)]) = (y, x);
-        }
-        let pivot = a[(c, c)];
-        for k in 0..d {
-            a[(c, k)] /= pivot;
-            inv[(c, k)] /= pivot;
-        }
-        for r in (0..d).filter(|&r| r != c) {
-            let f = a[(r, c)];
-            if f != 0.0 {
-                for k in 0..d {
-                    a[(r, k)] -= f * a[(c, k)];
-                    inv[(r, k)] -= f * inv[(c, k)];
-                }
-            }
-        }
-    }
-    inv
+    use faer::linalg::solvers::Solve;
+    w.partial_piv_lu().solve(Mat::<f64>::identity(w.nrows(), w.nrows()))
 }
 
 /// The flow's weights and architecture.
