@@ -240,10 +240,12 @@ impl Geometry {
     }
 }
 
-/// The incudomallear joint's cartilage pad: 2.5 mm² of facet, 62.5 µm of cartilage and
-/// synovial space between the bones (notes §1.4).
+/// The incudomallear joint's cartilage pad: 2.5 mm² of facet (notes §1.4: 2–3 mm²) and
+/// 62.5 µm between the bones, the v1 ear's value, below the notes' 0.1–0.2 mm for gap
+/// and cartilage together (at 0.1 mm the shape factor's gains are ×41 and ×14, not ×103
+/// and ×35: docs/results/simulator.md, "Joint pads as incompressible layers").
 pub const IMJ_PAD: JointPad = JointPad { area: 2.5e-6, thickness: 62.5e-6 };
-/// The incudostapedial joint's pad: 0.6 mm², 60 µm (notes §1.4).
+/// The incudostapedial joint's pad: 0.6 mm², 60 µm (notes §1.4: 0.4–0.8 mm², 0.05–0.1 mm).
 pub const ISJ_PAD: JointPad = JointPad { area: 0.6e-6, thickness: 60e-6 };
 
 /// A joint as a thin circular layer of soft tissue between two bone faces.
