@@ -25,6 +25,14 @@ pub struct TrainArgs {
     /// noise model, e.g. reference/std.csv.
     #[arg(long)]
     pub noise_table: Option<PathBuf>,
+    /// A smooth model error added beside the noise: its standard deviation in multiples
+    /// of each feature's 1× noise (0: the simulator taken as exact). For ears the
+    /// simulator does not make exactly, e.g. real ones (docs/results/crossmodel.md).
+    #[arg(long, default_value_t = 0.0, value_name = "K")]
+    pub model_error: f64,
+    /// The model error's correlation length across frequency, octaves.
+    #[arg(long, default_value_t = 1.0, value_name = "OCTAVES")]
+    pub model_error_octaves: f64,
     /// Seed of the initial weights, the batches and the training noise.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -88,6 +96,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
     let settings = TrainSettings {
         embedding: matches!(args.embedding, Embedding::Mlp),
         noise_scale: args.noise_scale,
+        model_error: (args.model_error != 0.0)
+            .then_some(npe::ModelError { scale: args.model_error, octaves: args.model_error_octaves }),
         seed: args.seed,
         max_epochs: args.max_epochs,
         patience: args.patience,

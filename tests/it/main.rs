@@ -7,6 +7,7 @@ mod discrepancy;
 mod exact_infer;
 mod fuzz;
 mod http;
+mod model_error;
 mod npe;
 mod pg;
 mod physics;

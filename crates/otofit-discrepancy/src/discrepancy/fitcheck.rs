@@ -221,14 +221,20 @@ pub fn fit_check(npe: &Npe, x: &[f64], present: &[bool], inf: &Inference) -> Res
 }
 
 /// Measures the null on `cases` fresh prior draws simulated with the model's training
-/// noise (held out by construction: seeds the training never used), every feature given.
+/// noise and model error (held out by construction: seeds the training never used),
+/// every feature given.
 pub fn null(npe: &Npe, cases: usize, seed: u64) -> Result<FitNull, FitCheckError> {
     let model = simulator_for(npe)?;
     let design = Design::default();
     let rows = design.draw(seed ^ 0x00F1_7C4E, 0, cases);
     let noise = Noise { std: npe.header.noise_std.clone(), scale: sigma_scale(npe), seed: seed ^ 0x00F1_7C4E };
-    let sims: Vec<Vec<f64>> =
+    let mut sims: Vec<Vec<f64>> =
         run_rows(model, &design, &rows, 0, Some(&noise)).into_iter().filter_map(|r| r.ok()).collect();
+    // The model error the model was trained with, if any: its ears are the simulator's
+    // plus that discrepancy, and the null is what such ears score.
+    for (k, x) in sims.iter_mut().enumerate() {
+        npe.add_model_error(x, seed, k).map_err(|e| FitCheckError::Inference(e.to_string()))?;
+    }
     if sims.len() < cases / 2 {
         return Err(FitCheckError::Inference("most null cases failed to simulate".into()));
     }

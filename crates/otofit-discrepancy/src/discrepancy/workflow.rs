@@ -388,7 +388,11 @@ pub fn measure_null(
     s: &Settings,
     progress: &mut dyn FnMut(usize, usize),
 ) -> Result<DiagnoseNull> {
-    let sims = null_simulations(model, noise, s)?;
+    let mut sims = null_simulations(model, noise, s)?;
+    // With the model error the base model was trained with, if any: what its ears are.
+    for (k, x) in sims.iter_mut().enumerate() {
+        base.add_model_error(x, s.seed, k)?;
+    }
     let mut subsets = Vec::with_capacity(given_sets.len());
     for (k, given) in given_sets.iter().enumerate() {
         progress(k, given_sets.len());

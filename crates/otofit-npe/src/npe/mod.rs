@@ -7,12 +7,14 @@
 pub mod calibrate;
 pub mod data;
 mod error;
+pub mod model_error;
 pub mod normal;
 pub mod prior;
 mod train;
 
 pub use data::{Dataset, Group};
 pub use error::{CheckpointError, NpeError, ObservationError};
+pub use model_error::ModelError;
 pub use prior::{Param, Scale};
 pub use train::{
     CHECKPOINT_COST_SHARE, Checkpointing, EpochReport, TrainSettings, Trained, checkpoint_epochs, remove_checkpoint,
@@ -81,6 +83,10 @@ pub struct Header {
     pub noise_std: Vec<f64>,
     /// The multiple of `noise_std` the model was trained with.
     pub noise_scale: f64,
+    /// The smooth simulator-to-ear discrepancy added to the training inputs beside the
+    /// noise (`None`: the simulator taken as exact).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_error: Option<ModelError>,
     /// The flow's architecture.
     pub flow: FlowConfig,
     /// How training went.
@@ -153,6 +159,10 @@ impl Header {
         }
         if let Some(n) = &self.diagnose_null {
             n.validate()?;
+        }
+        if let Some(me) = &self.model_error {
+            me.sampler(&self.frequencies_hz, &self.noise_std)
+                .map_err(|e| CheckpointError::field("model_error", e.to_string()))?;
         }
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         let positive = |v: &[f64]| v.iter().all(|x| x.is_finite() && *x > 0.0);
@@ -454,6 +464,16 @@ impl Npe {
         let flows: Vec<Flow> = records.into_iter().map(|r| Flow::new(&header.flow, &device).load_record(r)).collect();
         let plains = flows.iter().map(|f| f.plain(&header.flow)).collect();
         Npe { header, flows, plains }
+    }
+
+    /// `x` (a simulation) plus row `row`'s draw of the model error the model was trained
+    /// with, so that held-out checks see the inputs the training saw; unchanged without one.
+    pub fn add_model_error(&self, x: &mut [f64], seed: u64, row: usize) -> Result<()> {
+        let h = &self.header;
+        if let Some(me) = &h.model_error {
+            me.sampler(&h.frequencies_hz, &h.noise_std)?.add_for_row(x, seed, row);
+        }
+        Ok(())
     }
 
     /// The prior box, one per parameter.

@@ -4,7 +4,8 @@
 //! (`train_checkpointed`) the training saves its whole state as it goes and a new run of
 //! the same training resumes from it, ending with the same weights as an uninterrupted run.
 
-use super::{Dataset, FORMAT_VERSION, Header, Npe, NpeError, Result, ThetaMap, TrainingSummary};
+use super::model_error::Discrepancy;
+use super::{Dataset, FORMAT_VERSION, Header, ModelError, Npe, NpeError, Result, ThetaMap, TrainingSummary};
 use crate::flow::{Flow, FlowConfig};
 use crate::stats;
 use burn::grad_clipping::GradientClippingConfig;
@@ -30,6 +31,8 @@ pub struct TrainSettings {
     pub embedding: bool,
     /// Training noise = the dataset's 1× noise model × this.
     pub noise_scale: f64,
+    /// A smooth simulator-to-ear discrepancy added beside the noise (`None`: none).
+    pub model_error: Option<ModelError>,
     /// Seed of the split, the batches, the noise and the weights.
     pub seed: u64,
     /// Epochs at most, per member.
@@ -81,6 +84,7 @@ impl Default for TrainSettings {
         TrainSettings {
             embedding: true,
             noise_scale: 1.0,
+            model_error: None,
             seed: 0,
             max_epochs: 300,
             patience: 20,
@@ -166,6 +170,9 @@ fn check(ds: &Dataset, s: &TrainSettings) -> Result<()> {
     {
         return Err(NpeError::table("the dataset", "rows, features and noise disagree in width"));
     }
+    if let Some(me) = &s.model_error {
+        me.sampler(&ds.frequencies_hz, &ds.noise_std)?;
+    }
     Ok(())
 }
 
@@ -201,7 +208,8 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
     for k in 0..f {
         let (m, sd) = mean_std(&train_x, k);
         x_mean.push(m);
-        x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2)).sqrt().max(1e-9));
+        let me = s.model_error.map_or(0.0, |m| m.scale * ds.noise_std[k]);
+        x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2) + me * me).sqrt().max(1e-9));
     }
     let flags = if s.mask_groups { ds.groups.len() } else { 0 } + if s.mask_bands { f } else { 0 };
     let cfg = FlowConfig {
@@ -228,6 +236,7 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         u_std,
         noise_std: ds.noise_std.clone(),
         noise_scale: s.noise_scale,
+        model_error: s.model_error,
         flow: cfg,
         training: TrainingSummary { seed: s.seed, train_rows: train_idx.len(), val_rows: n_val, ..Default::default() },
         members: 1,
@@ -235,6 +244,11 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         fit_null: None,
         diagnose_null: None,
     }
+}
+
+/// The header's model-error sampler, if it has one.
+fn discrepancy(h: &Header) -> Result<Option<Discrepancy>> {
+    h.model_error.map(|m| m.sampler(&h.frequencies_hz, &h.noise_std)).transpose()
 }
 
 /// Builds batches: v (standardised u) and the network input with fresh noise and masks.
@@ -245,6 +259,8 @@ struct Batcher<'a> {
     u_rows: &'a [Vec<f64>],
     /// The groups masked at random (none without `mask_groups`).
     groups: &'a [super::Group],
+    /// The model-error sampler (none without `model_error`).
+    discrepancy: Option<Discrepancy>,
 }
 
 impl Batcher<'_> {
@@ -269,7 +285,15 @@ impl Batcher<'_> {
             // Drawn first, in the features' order, then applied in one pass that the
             // compiler vectorises (the draw runs beside Adam's step: `batch_step`).
             e.iter_mut().for_each(|e| *e = StandardNormal.sample(rng));
-            let row = ds.x[i].iter().zip(&noise).zip(&e).zip(&h.x_mean).zip(&h.x_std);
+            let x = match &self.discrepancy {
+                Some(d) => {
+                    let mut x = ds.x[i].clone();
+                    d.add(&mut x, rng);
+                    std::borrow::Cow::Owned(x)
+                }
+                None => std::borrow::Cow::Borrowed(&ds.x[i]),
+            };
+            let row = x.iter().zip(&noise).zip(&e).zip(&h.x_mean).zip(&h.x_std);
             inp.extend(row.map(|((((x, sd), e), mean), std)| ((x + sd * e - mean) / std) as f32));
             let mut here = vec![true; f];
             for (g, &on) in self.groups.iter().zip(&keep) {
@@ -1162,7 +1186,8 @@ pub fn train_checkpointed(
     let cfg = header.flow.clone();
     let header = reread(&header)?;
     let groups = if s.mask_groups { ds.groups.clone() } else { vec![] };
-    let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &groups };
+    let discrepancy = discrepancy(&header)?;
+    let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &groups, discrepancy };
     let val_batches = validation_batches(&batcher, val_idx, s.seed);
     let run = Run { s, cfg: &cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() };
     let mut saver = checkpoint.map(|c| Saver::new(c, fingerprint(s, &header), start));
@@ -1340,7 +1365,8 @@ mod tests {
         let (val_idx, train_idx) = idx.split_at(n_val);
         let u_rows = u_rows(ds, s.theta_map);
         let header = standardise(ds, s, &u_rows, train_idx, n_val);
-        let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &[] };
+        let discrepancy = discrepancy(&header).unwrap();
+        let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &[], discrepancy };
         let val_batches = validation_batches(&batcher, val_idx, s.seed);
         let cfg = &header.flow;
         f(&Run { s, cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() })
