@@ -121,6 +121,11 @@ pub struct HuddeEngel {
 }
 
 impl HuddeEngel {
+    /// The cochlea's mechanical resistance at the footplate, N·s/m (w_C).
+    pub fn cochlear_resistance(&self) -> f64 {
+        self.w_c
+    }
+
     /// Hudde & Engel's adult values.
     pub fn published() -> HuddeEngel {
         HuddeEngel {

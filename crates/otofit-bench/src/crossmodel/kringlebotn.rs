@@ -93,6 +93,13 @@ pub struct Kringlebotn {
 }
 
 impl Kringlebotn {
+    /// The mechanical resistance the stapes meets, N·s/m: R_c through the transformer and
+    /// the lever, R_c·(A_TM·r_MI)². An upper bound of the cochlea's own: Kringlebotn's R_c
+    /// also holds the stapes' and annular ligament's losses.
+    pub fn cochlear_resistance(&self) -> f64 {
+        self.rc * (AREA_TM * LEVER).powi(2)
+    }
+
     /// Kringlebotn 1988's published values.
     pub fn published() -> Kringlebotn {
         Kringlebotn {
