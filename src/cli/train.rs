@@ -33,6 +33,10 @@ pub struct TrainArgs {
     /// The model error's correlation length across frequency, octaves.
     #[arg(long, default_value_t = 1.0, value_name = "OCTAVES")]
     pub model_error_octaves: f64,
+    /// Draw each row's model-error size uniformly from 0 to K (the flow can then stay
+    /// sharp for ears the simulator reproduces).
+    #[arg(long, requires = "model_error")]
+    pub model_error_varying: bool,
     /// Seed of the initial weights, the batches and the training noise.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -96,8 +100,11 @@ pub fn run(args: TrainArgs) -> Result<()> {
     let settings = TrainSettings {
         embedding: matches!(args.embedding, Embedding::Mlp),
         noise_scale: args.noise_scale,
-        model_error: (args.model_error != 0.0)
-            .then_some(npe::ModelError { scale: args.model_error, octaves: args.model_error_octaves }),
+        model_error: (args.model_error != 0.0).then_some(npe::ModelError {
+            scale: args.model_error,
+            octaves: args.model_error_octaves,
+            varying: args.model_error_varying,
+        }),
         seed: args.seed,
         max_epochs: args.max_epochs,
         patience: args.patience,

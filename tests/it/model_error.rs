@@ -11,7 +11,7 @@ use rand_distr::{Distribution, StandardNormal};
 
 const SIGMA: f64 = 0.2;
 const N: usize = 8;
-const ME: ModelError = ModelError { scale: 2.0, octaves: 1.0 };
+const ME: ModelError = ModelError { scale: 2.0, octaves: 1.0, varying: false };
 
 fn grid() -> Vec<f64> {
     (0..N).map(|i| 250.0 * 32f64.powf(i as f64 / (N - 1) as f64)).collect()

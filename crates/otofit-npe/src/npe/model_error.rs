@@ -26,6 +26,11 @@ pub struct ModelError {
     pub scale: f64,
     /// Correlation length across frequency, octaves.
     pub octaves: f64,
+    /// Each row's size drawn uniformly from [0, `scale`] instead of `scale` itself: ears
+    /// the simulator makes well and ears it makes badly both in the training, so the
+    /// flow can stay sharp where the data show no discrepancy.
+    #[serde(default)]
+    pub varying: bool,
 }
 
 impl ModelError {
@@ -68,7 +73,13 @@ impl ModelError {
             .collect();
         let chol = spd::cholesky(&k).ok_or_else(|| NpeError::settings("model-error", "kernel not factorisable"))?;
         let sd = noise_std.iter().map(|s| self.scale * s).collect();
-        Ok(Discrepancy { chol, sd })
+        Ok(Discrepancy { chol, sd, varying: self.varying })
+    }
+
+    /// The variance of the term relative to `scale`² (1, or 1/3 when varying: E[u²] for
+    /// u uniform on [0, 1]).
+    pub fn variance_share(&self) -> f64 {
+        if self.varying { 1.0 / 3.0 } else { 1.0 }
     }
 }
 
@@ -79,6 +90,8 @@ pub struct Discrepancy {
     chol: Vec<Vec<f64>>,
     /// Standard deviation per feature.
     sd: Vec<f64>,
+    /// A size per row (see [`ModelError::varying`]).
+    varying: bool,
 }
 
 impl Discrepancy {
@@ -91,11 +104,12 @@ impl Discrepancy {
     pub fn add<R: Rng>(&self, x: &mut [f64], rng: &mut R) {
         let n = self.chol.len();
         let mut z = vec![0.0; n];
+        let size = if self.varying { rng.random::<f64>() } else { 1.0 };
         for (block, sd) in x.chunks_mut(n).zip(self.sd.chunks(n)) {
             z.iter_mut().for_each(|v| *v = StandardNormal.sample(rng));
             for (i, (x, s)) in block.iter_mut().zip(sd).enumerate() {
                 let d: f64 = self.chol[i][..=i].iter().zip(&z).map(|(l, z)| l * z).sum();
-                *x += s * d;
+                *x += size * s * d;
             }
         }
     }
@@ -123,7 +137,7 @@ mod tests {
     fn draws_have_the_stated_covariance() {
         let f = grid(12);
         let noise: Vec<f64> = (0..24).map(|k| 0.05 + 0.01 * (k % 12) as f64).collect();
-        let me = ModelError { scale: 2.0, octaves: 1.0 };
+        let me = ModelError { scale: 2.0, octaves: 1.0, varying: false };
         let d = me.sampler(&f, &noise).unwrap();
         let reps = 40_000;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
@@ -152,9 +166,30 @@ mod tests {
         }
     }
 
+    /// With a size per row the variance is a third (E[u²], u uniform on [0, 1]) and the
+    /// draws are no longer Gaussian: their kurtosis is E[u⁴]/E[u²]² · 3 = 27/5.
+    #[test]
+    fn a_varying_size_has_a_third_of_the_variance_and_heavy_tails() {
+        let me = ModelError { scale: 3.0, octaves: 1.0, varying: true };
+        assert!((me.variance_share() - 1.0 / 3.0).abs() < 1e-12);
+        let d = me.sampler(&grid(4), &[0.1; 4]).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let (mut m2, mut m4, reps) = (0.0, 0.0, 200_000);
+        for _ in 0..reps {
+            let mut x = vec![0.0; 4];
+            d.add(&mut x, &mut rng);
+            m2 += x[0] * x[0];
+            m4 += x[0].powi(4);
+        }
+        let (m2, m4) = (m2 / reps as f64, m4 / reps as f64);
+        let want = 0.09 / 3.0;
+        assert!((m2 / want - 1.0).abs() < 0.02, "variance {m2} against {want}");
+        assert!((m4 / (m2 * m2) - 5.4).abs() < 0.3, "kurtosis {}", m4 / (m2 * m2));
+    }
+
     #[test]
     fn a_row_draw_is_reproducible_and_rows_differ() {
-        let d = ModelError { scale: 1.0, octaves: 0.5 }.sampler(&grid(8), &[0.1; 16]).unwrap();
+        let d = ModelError { scale: 1.0, octaves: 0.5, varying: false }.sampler(&grid(8), &[0.1; 16]).unwrap();
         let draw = |row| {
             let mut x = vec![0.0; 16];
             d.add_for_row(&mut x, 9, row);
@@ -170,7 +205,7 @@ mod tests {
             Err(NpeError::Settings { field, .. }) => field,
             other => panic!("accepted: {other:?}"),
         };
-        let ok = ModelError { scale: 1.0, octaves: 1.0 };
+        let ok = ModelError { scale: 1.0, octaves: 1.0, varying: false };
         assert_eq!(bad(ModelError { scale: -1.0, ..ok }, &grid(8), &[0.1; 16]), "model-error");
         assert_eq!(bad(ModelError { scale: f64::NAN, ..ok }, &grid(8), &[0.1; 16]), "model-error");
         assert_eq!(bad(ModelError { octaves: 0.0, ..ok }, &grid(8), &[0.1; 16]), "model-error-octaves");

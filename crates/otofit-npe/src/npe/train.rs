@@ -208,8 +208,8 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
     for k in 0..f {
         let (m, sd) = mean_std(&train_x, k);
         x_mean.push(m);
-        let me = s.model_error.map_or(0.0, |m| m.scale * ds.noise_std[k]);
-        x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2) + me * me).sqrt().max(1e-9));
+        let me = s.model_error.map_or(0.0, |m| (m.scale * ds.noise_std[k]).powi(2) * m.variance_share());
+        x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2) + me).sqrt().max(1e-9));
     }
     let flags = if s.mask_groups { ds.groups.len() } else { 0 } + if s.mask_bands { f } else { 0 };
     let cfg = FlowConfig {
