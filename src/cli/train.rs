@@ -37,6 +37,12 @@ pub struct TrainArgs {
     /// sharp for ears the simulator reproduces).
     #[arg(long, requires = "model_error")]
     pub model_error_varying: bool,
+    /// Hidden width of the flow's conditioners and embedding layers, 4..=512.
+    #[arg(long, default_value_t = 50)]
+    pub hidden: usize,
+    /// Coupling transforms of the flow, 1..=16.
+    #[arg(long, default_value_t = 5)]
+    pub transforms: usize,
     /// Seed of the initial weights, the batches and the training noise.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -106,6 +112,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
             varying: args.model_error_varying,
         }),
         seed: args.seed,
+        hidden: args.hidden,
+        transforms: args.transforms,
         max_epochs: args.max_epochs,
         patience: args.patience,
         mask_groups: args.mask_groups,

@@ -339,3 +339,25 @@ fn c2st_smoke_gaussian_mixture() {
     assert!(flow < 0.7, "C2ST {flow}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `--hidden` and `--transforms` size the flow (conditioners, embedding, permutations),
+/// and sizes it cannot build are refused by name before training.
+#[test]
+fn the_flow_is_sized_by_the_settings() {
+    let ds = linear_gaussian(200, 4);
+    let s = TrainSettings { max_epochs: 1, hidden: 16, transforms: 3, ..TrainSettings::default() };
+    let m = npe::train(&ds, &s, &mut |_| true).unwrap();
+    let f = &m.header.flow;
+    assert_eq!((f.hidden, f.transforms, f.permutations.len()), (16, 3, 3));
+    assert_eq!(f.embedding, vec![16, 16, 16]);
+    for (field, bad) in [
+        ("hidden", TrainSettings { hidden: 2, ..s.clone() }),
+        ("transforms", TrainSettings { transforms: 0, ..s.clone() }),
+    ] {
+        match npe::train(&ds, &bad, &mut |_| true) {
+            Err(npe::NpeError::Settings { field: got, .. }) => assert_eq!(got, field),
+            Err(e) => panic!("{field}: another error: {e}"),
+            Ok(_) => panic!("{field}: trained"),
+        }
+    }
+}

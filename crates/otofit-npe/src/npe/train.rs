@@ -77,6 +77,10 @@ pub struct TrainSettings {
     /// Flows trained from different seeds and averaged as an equal-weight mixture
     /// (wider, better-calibrated joint posteriors; K× the training time).
     pub ensemble: usize,
+    /// Hidden width of the conditioners and of each embedding layer (the default 50).
+    pub hidden: usize,
+    /// Coupling transforms (the default 5).
+    pub transforms: usize,
 }
 
 impl Default for TrainSettings {
@@ -105,6 +109,8 @@ impl Default for TrainSettings {
             lr_drops: 0,
             lr_cosine: false,
             ensemble: 1,
+            hidden: 50,
+            transforms: 5,
         }
     }
 }
@@ -145,6 +151,12 @@ fn check(ds: &Dataset, s: &TrainSettings) -> Result<()> {
             "mask-bands",
             "--mask-bands needs --mask-groups and a frequency grid (meta.json frequencies_hz) of at least 8 points",
         ));
+    }
+    if !(4..=512).contains(&s.hidden) {
+        return Err(NpeError::settings("hidden", format!("--hidden must be 4..=512 (got {})", s.hidden)));
+    }
+    if !(1..=16).contains(&s.transforms) {
+        return Err(NpeError::settings("transforms", format!("--transforms must be 1..=16 (got {})", s.transforms)));
     }
     if s.batch == 0 {
         return Err(NpeError::settings("batch", "--batch must be at least 1"));
@@ -212,12 +224,17 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         x_std.push((sd * sd + (s.noise_scale * ds.noise_std[k]).powi(2) + me).sqrt().max(1e-9));
     }
     let flags = if s.mask_groups { ds.groups.len() } else { 0 } + if s.mask_bands { f } else { 0 };
+    let base = FlowConfig::new(d, f + flags, s.embedding);
     let cfg = FlowConfig {
         bound: s.tail_bound,
         blocks: s.blocks,
         lu: s.lu,
         scaled_bins: s.scaled_bins,
-        ..FlowConfig::new(d, f + flags, s.embedding)
+        hidden: s.hidden,
+        transforms: s.transforms,
+        permutations: crate::flow::permutations(d, s.transforms),
+        embedding: base.embedding.iter().map(|_| s.hidden).collect(),
+        ..base
     };
     Header {
         format_version: FORMAT_VERSION,
