@@ -86,12 +86,10 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         scale: model.header.noise_scale,
         seed: args.seed,
     };
+    let mut rows: Vec<(Vec<f64>, Vec<f64>)> =
+        ds.theta.iter().zip(&ds.x).take(args.n).enumerate().map(|(i, (t, x))| (t.clone(), noise.apply(x, i))).collect();
     // And the model error it was trained with, if any: the inputs its training saw.
-    let rows = ds.theta.iter().zip(&ds.x).take(args.n).enumerate().map(|(i, (t, x))| {
-        let mut x = noise.apply(x, i);
-        model.add_model_error(&mut x, args.seed, i).map(|()| (t.clone(), x))
-    });
-    let rows: Vec<(Vec<f64>, Vec<f64>)> = rows.collect::<Result<_, _>>()?;
+    model.add_model_error(rows.iter_mut().map(|(_, x)| x), args.seed)?;
     if args.tune {
         let tuning = tune_temperature(&mut model, &rows, args.samples, args.seed, 0.01)?;
         eprintln!(

@@ -232,9 +232,7 @@ pub fn null(npe: &Npe, cases: usize, seed: u64) -> Result<FitNull, FitCheckError
         run_rows(model, &design, &rows, 0, Some(&noise)).into_iter().filter_map(|r| r.ok()).collect();
     // The model error the model was trained with, if any: its ears are the simulator's
     // plus that discrepancy, and the null is what such ears score.
-    for (k, x) in sims.iter_mut().enumerate() {
-        npe.add_model_error(x, seed, k).map_err(|e| FitCheckError::Inference(e.to_string()))?;
-    }
+    npe.add_model_error(&mut sims, seed).map_err(|e| FitCheckError::Inference(e.to_string()))?;
     if sims.len() < cases / 2 {
         return Err(FitCheckError::Inference("most null cases failed to simulate".into()));
     }

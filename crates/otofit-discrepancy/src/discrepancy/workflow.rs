@@ -390,9 +390,7 @@ pub fn measure_null(
 ) -> Result<DiagnoseNull> {
     let mut sims = null_simulations(model, noise, s)?;
     // With the model error the base model was trained with, if any: what its ears are.
-    for (k, x) in sims.iter_mut().enumerate() {
-        base.add_model_error(x, s.seed, k)?;
-    }
+    base.add_model_error(&mut sims, s.seed)?;
     let mut subsets = Vec::with_capacity(given_sets.len());
     for (k, given) in given_sets.iter().enumerate() {
         progress(k, given_sets.len());

@@ -126,6 +126,11 @@ fn length_prefixed(b: &[u8]) -> Option<(&[u8], &[u8])> {
 }
 
 impl Header {
+    /// The sampler of the model error the model was trained with, if any.
+    pub fn model_error_sampler(&self) -> Result<Option<model_error::Discrepancy>> {
+        self.model_error.map(|m| m.sampler(&self.frequencies_hz, &self.noise_std)).transpose()
+    }
+
     /// Checks every field read from a file against what the code can use, naming the
     /// first field at fault.
     pub fn validate(&self) -> Result<(), CheckpointError> {
@@ -160,10 +165,7 @@ impl Header {
         if let Some(n) = &self.diagnose_null {
             n.validate()?;
         }
-        if let Some(me) = &self.model_error {
-            me.sampler(&self.frequencies_hz, &self.noise_std)
-                .map_err(|e| CheckpointError::field("model_error", e.to_string()))?;
-        }
+        self.model_error_sampler().map_err(|e| CheckpointError::field("model_error", e.to_string()))?;
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         let positive = |v: &[f64]| v.iter().all(|x| x.is_finite() && *x > 0.0);
         let checks: [(bool, &'static str, &str); 8] = [
@@ -466,12 +468,12 @@ impl Npe {
         Npe { header, flows, plains }
     }
 
-    /// `x` (a simulation) plus row `row`'s draw of the model error the model was trained
-    /// with, so that held-out checks see the inputs the training saw; unchanged without one.
-    pub fn add_model_error(&self, x: &mut [f64], seed: u64, row: usize) -> Result<()> {
-        let h = &self.header;
-        if let Some(me) = &h.model_error {
-            me.sampler(&h.frequencies_hz, &h.noise_std)?.add_for_row(x, seed, row);
+    /// Adds to each simulation in `xs` (row k: the k-th) its draw of the model error the
+    /// model was trained with, so that held-out checks see the inputs the training saw;
+    /// unchanged without one.
+    pub fn add_model_error<'a>(&self, xs: impl IntoIterator<Item = &'a mut Vec<f64>>, seed: u64) -> Result<()> {
+        if let Some(d) = self.header.model_error_sampler()? {
+            xs.into_iter().enumerate().for_each(|(row, x)| d.add_for_row(x, seed, row));
         }
         Ok(())
     }

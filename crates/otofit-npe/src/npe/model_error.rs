@@ -37,10 +37,13 @@ impl ModelError {
     /// Refuses sizes that cannot be drawn, naming the setting.
     pub fn check(&self) -> Result<()> {
         if !(self.scale.is_finite() && (0.0..=MAX_SCALE).contains(&self.scale)) {
-            return Err(NpeError::settings("model-error", format!("must be 0..={MAX_SCALE} (got {})", self.scale)));
+            return Err(NpeError::settings(
+                "model-error",
+                format!("--model-error must be 0..={MAX_SCALE} (got {})", self.scale),
+            ));
         }
         if !(self.octaves.is_finite() && self.octaves > 0.01 && self.octaves <= 10.0) {
-            let why = format!("must be in (0.01, 10] octaves (got {})", self.octaves);
+            let why = format!("--model-error-octaves must be in (0.01, 10] (got {})", self.octaves);
             return Err(NpeError::settings("model-error-octaves", why));
         }
         Ok(())
@@ -52,11 +55,11 @@ impl ModelError {
         self.check()?;
         let n = frequencies_hz.len();
         if n == 0 || noise_std.is_empty() || !noise_std.len().is_multiple_of(n) {
-            let why = "a model error needs a frequency grid (meta.json frequencies_hz) that divides the features";
+            let why = "--model-error needs a frequency grid (meta.json frequencies_hz) that divides the features";
             return Err(NpeError::settings("model-error", why));
         }
         if frequencies_hz.iter().any(|f| !(f.is_finite() && *f > 0.0)) {
-            return Err(NpeError::settings("model-error", "the frequency grid must be finite and > 0"));
+            return Err(NpeError::settings("model-error", "--model-error needs a frequency grid finite and > 0"));
         }
         let l2: Vec<f64> = frequencies_hz.iter().map(|f| f.log2()).collect();
         // A small nugget keeps the factorisation defined on dense grids (the kernel's
@@ -71,7 +74,9 @@ impl ModelError {
                     .collect()
             })
             .collect();
-        let chol = spd::cholesky(&k).ok_or_else(|| NpeError::settings("model-error", "kernel not factorisable"))?;
+        let chol = spd::cholesky(&k).ok_or_else(|| {
+            NpeError::settings("model-error", "--model-error's kernel cannot be factorised on this grid")
+        })?;
         let sd = noise_std.iter().map(|s| self.scale * s).collect();
         Ok(Discrepancy { chol, sd, varying: self.varying })
     }

@@ -263,11 +263,6 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
     }
 }
 
-/// The header's model-error sampler, if it has one.
-fn discrepancy(h: &Header) -> Result<Option<Discrepancy>> {
-    h.model_error.map(|m| m.sampler(&h.frequencies_hz, &h.noise_std)).transpose()
-}
-
 /// Builds batches: v (standardised u) and the network input with fresh noise and masks.
 struct Batcher<'a> {
     ds: &'a Dataset,
@@ -1203,7 +1198,7 @@ pub fn train_checkpointed(
     let cfg = header.flow.clone();
     let header = reread(&header)?;
     let groups = if s.mask_groups { ds.groups.clone() } else { vec![] };
-    let discrepancy = discrepancy(&header)?;
+    let discrepancy = header.model_error_sampler()?;
     let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &groups, discrepancy };
     let val_batches = validation_batches(&batcher, val_idx, s.seed);
     let run = Run { s, cfg: &cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() };
@@ -1382,7 +1377,7 @@ mod tests {
         let (val_idx, train_idx) = idx.split_at(n_val);
         let u_rows = u_rows(ds, s.theta_map);
         let header = standardise(ds, s, &u_rows, train_idx, n_val);
-        let discrepancy = discrepancy(&header).unwrap();
+        let discrepancy = header.model_error_sampler().unwrap();
         let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &[], discrepancy };
         let val_batches = validation_batches(&batcher, val_idx, s.seed);
         let cfg = &header.flow;
