@@ -12,7 +12,8 @@ use std::path::PathBuf;
 #[derive(Args, Debug)]
 pub struct C2stArgs {
     /// Tasks, comma-separated (two_moons, gaussian_linear_uniform, slcp, gaussian_mixture,
-    /// bernoulli_glm).
+    /// bernoulli_glm; and, to confirm a recipe on tasks it was not chosen on,
+    /// gaussian_linear, slcp_distractors, bernoulli_glm_raw, with their sibling's recipe).
     #[arg(long, default_value = "two_moons,gaussian_linear_uniform,slcp,gaussian_mixture,bernoulli_glm")]
     pub tasks: String,
     /// Training simulations per task.

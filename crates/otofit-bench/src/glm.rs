@@ -13,7 +13,7 @@
 //!   sbibm draws its own from numpy with seed 42, so the numbers differ).
 //! - Simulator: y_t ~ Bernoulli(σ((Xθ)_t)); the observation is the sufficient statistic
 //!   x = Xᵀy (the spike count and the 9 spike-triggered stimulus sums; sbibm computes the
-//!   same numbers by a convolution).
+//!   same numbers by a convolution), or y itself for `bernoulli_glm_raw`.
 //!
 //! Since p(y | θ) depends on y only through x, the likelihood of x is
 //! exp(θᵀx − Σ_t log(1 + e^{(Xθ)_t})) up to a factor free of θ, and the posterior is
@@ -127,14 +127,24 @@ impl Glm {
         self.design.iter().map(|r| r.iter().zip(theta).map(|(a, b)| a * b).sum()).collect()
     }
 
-    /// x = Xᵀy for spikes y_t ~ Bernoulli(σ((Xθ)_t)).
+    /// x = Xᵀy for spikes y_t ~ Bernoulli(σ((Xθ)_t)): the statistic of
+    /// [`Self::simulate_raw`]'s outcomes, so both tasks see the same spikes for a generator.
     pub fn simulate(&self, theta: &[f64], rng: &mut ChaCha8Rng) -> Vec<f64> {
+        self.statistic(&self.simulate_raw(theta, rng))
+    }
+
+    /// The spikes y_t ~ Bernoulli(σ((Xθ)_t)) themselves, 1 or 0 per bin (the raw task's x).
+    pub fn simulate_raw(&self, theta: &[f64], rng: &mut ChaCha8Rng) -> Vec<f64> {
+        self.psi(theta).into_iter().map(|p| if rng.random::<f64>() < sigmoid(p) { 1.0 } else { 0.0 }).collect()
+    }
+
+    /// The sufficient statistic Xᵀy of spikes y (the spike count and the spike-triggered
+    /// stimulus sums), summed bin by bin.
+    pub fn statistic(&self, y: &[f64]) -> Vec<f64> {
         let mut x = vec![0.0; DIM];
-        for (row, p) in self.design.iter().zip(self.psi(theta)) {
-            if rng.random::<f64>() < sigmoid(p) {
-                for k in 0..DIM {
-                    x[k] += row[k];
-                }
+        for (row, v) in self.design.iter().zip(y) {
+            for k in 0..DIM {
+                x[k] += v * row[k];
             }
         }
         x

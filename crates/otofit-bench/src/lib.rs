@@ -127,7 +127,8 @@ pub fn sbi_nsf_settings() -> TrainSettings {
 /// fixed epoch budget and a rate decayed by a half cosine instead of early stopping (at a
 /// constant rate the tasks need more epochs than the time targets allow: docs/npe.md,
 /// measured 2026-11); the 2-D tasks and SLCP with big batches. The GLM keeps sbi's recipe.
-/// The best validation epoch is kept.
+/// The best validation epoch is kept. The confirmation tasks ([`tasks::CONFIRMATION`]) take
+/// their sibling's recipe unchanged: they check it, nothing was chosen on them.
 pub fn recipe(task: Task) -> TrainSettings {
     let (epochs, batch, lr) = match task {
         // 220 and 120, not 160 and 90: with the host spline pass the shorter
@@ -136,11 +137,11 @@ pub fn recipe(task: Task) -> TrainSettings {
         Task::TwoMoons => (220, 1000, 3e-3),
         Task::GaussianMixture => (120, 1000, 3e-3),
         // SLCP with sbi's recipe: 195 epochs, 62.6 s; this budget 25 s, C2ST no worse.
-        Task::Slcp => (100, 1000, 3e-3),
+        Task::Slcp | Task::SlcpDistractors => (100, 1000, 3e-3),
         // Early stopping ran seeds 1-2 to 62 and 69 epochs (25-26 s); 30 epochs at sbi's
         // batch and twice its rate score as well in 16-18 s (docs/results/npe.md).
-        Task::GaussianLinearUniform => (30, 200, 1e-3),
-        Task::BernoulliGlm => return sbi_nsf_settings(),
+        Task::GaussianLinearUniform | Task::GaussianLinear => (30, 200, 1e-3),
+        Task::BernoulliGlm | Task::BernoulliGlmRaw => return sbi_nsf_settings(),
     };
     TrainSettings { batch, lr, lr_cosine: true, max_epochs: epochs, patience: epochs, ..sbi_nsf_settings() }
 }
