@@ -85,6 +85,10 @@ pub struct C2stArgs {
     /// Decay the learning rate by a half cosine to 0 at the last epoch: true or false.
     #[arg(long)]
     pub lr_cosine: Option<bool>,
+    /// At the patience limit anneal instead of stopping: a half cosine to 0 over
+    /// max(patience, this × epochs so far) epochs (0: stop).
+    #[arg(long)]
+    pub lr_anneal: Option<f64>,
     /// Share of the simulations held out for validation (early stopping).
     #[arg(long)]
     pub val_fraction: Option<f64>,
@@ -234,6 +238,7 @@ fn settings(a: &C2stArgs, task: Task) -> TrainSettings {
         patience: a.patience.unwrap_or(d.patience),
         max_epochs: a.max_epochs.unwrap_or(d.max_epochs),
         lr_cosine: a.lr_cosine.unwrap_or(d.lr_cosine),
+        lr_anneal: a.lr_anneal.unwrap_or(d.lr_anneal),
         val_fraction: a.val_fraction.unwrap_or(d.val_fraction),
         scaled_bins: a.scaled_bins.unwrap_or(d.scaled_bins),
         adam_eps: a.adam_eps.unwrap_or(d.adam_eps),

@@ -74,6 +74,12 @@ pub struct TrainSettings {
     pub lr_drops: usize,
     /// The rate also follows a half cosine from its value down to 0 at `max_epochs`.
     pub lr_cosine: bool,
+    /// 0: stop at the patience limit. Above 0: at the limit, anneal instead — the rate
+    /// follows a half cosine down to 0 over max(patience, this × the epochs so far)
+    /// epochs (within `max_epochs`), and the training ends there. A long run at a
+    /// constant rate finds the basin; the anneal settles into it, which the best epoch of
+    /// a constant rate does not (the 2-D benchmark tasks: docs/results/npe.md).
+    pub lr_anneal: f64,
     /// Flows trained from different seeds and averaged as an equal-weight mixture
     /// (wider, better-calibrated joint posteriors; K× the training time).
     pub ensemble: usize,
@@ -108,6 +114,7 @@ impl Default for TrainSettings {
             lr_plateau: 8,
             lr_drops: 0,
             lr_cosine: false,
+            lr_anneal: 0.0,
             ensemble: 1,
             hidden: 50,
             transforms: 5,
@@ -553,6 +560,8 @@ struct MemberRun {
     last_drop: usize,
     /// Drops by 10 so far.
     drops: usize,
+    /// The anneal once begun: the epoch before its first, and its length.
+    anneal: Option<(usize, usize)>,
     best_val_loss: f64,
     best_epoch: usize,
     /// The best weights (without autodiff), once an epoch gave a finite validation loss.
@@ -697,6 +706,7 @@ impl Run<'_> {
             last_change: 0,
             last_drop: 0,
             drops: 0,
+            anneal: None,
             best_val_loss: f64::INFINITY,
             best_epoch: 0,
             record: None,
@@ -720,8 +730,12 @@ impl Run<'_> {
             m.epoch += 1;
             let epoch = m.epoch;
             let train_loss;
-            let cosine = (std::f64::consts::PI * (epoch - 1) as f64 / s.max_epochs as f64).cos();
-            let lr = if s.lr_cosine { m.lr * 0.5 * (1.0 + cosine) } else { m.lr };
+            let half_cosine =
+                |done: usize, len: usize| 0.5 * (1.0 + (std::f64::consts::PI * done as f64 / len as f64).cos());
+            let mut lr = if s.lr_cosine { m.lr * half_cosine(epoch - 1, s.max_epochs) } else { m.lr };
+            if let Some((start, len)) = m.anneal {
+                lr *= half_cosine(epoch - 1 - start, len);
+            }
             (m.flow, train_loss) = self.epoch(m.flow, &mut m.opt, lr, &mut m.order, &mut m.rng);
             let valid = m.flow.valid();
             let val_loss = self.validate(&valid);
@@ -729,13 +743,20 @@ impl Run<'_> {
                 (m.best_val_loss, m.best_epoch, m.record) = (val_loss, epoch, Some(valid.into_record()));
             }
             end.done = epoch == s.max_epochs;
-            if s.lr_plateau > 0 && epoch - m.best_epoch.max(m.last_change) >= s.lr_plateau {
+            if let Some((start, len)) = m.anneal {
+                end.done |= epoch >= start + len;
+            } else if s.lr_plateau > 0 && epoch - m.best_epoch.max(m.last_change) >= s.lr_plateau {
                 m.lr *= 0.5;
                 m.last_change = epoch;
             }
-            if epoch - m.best_epoch.max(m.last_drop) >= s.patience {
+            if m.anneal.is_none() && epoch - m.best_epoch.max(m.last_drop) >= s.patience {
                 if m.drops == s.lr_drops {
-                    end.done = true;
+                    let len = s.patience.max((s.lr_anneal * epoch as f64).ceil() as usize).min(s.max_epochs - epoch);
+                    if s.lr_anneal > 0.0 && len > 0 {
+                        m.anneal = Some((epoch, len));
+                    } else {
+                        end.done = true;
+                    }
                 } else {
                     m.drops += 1;
                     m.lr *= 0.1;
@@ -869,6 +890,9 @@ struct MemberState {
     last_change: usize,
     last_drop: usize,
     drops: usize,
+    /// Absent in checkpoints written before annealing existed (none had begun).
+    #[serde(default)]
+    anneal: Option<(usize, usize)>,
     best_val_loss_bits: u64,
     best_epoch: usize,
     order: Vec<usize>,
@@ -1018,6 +1042,7 @@ impl Saver<'_> {
                     last_change: m.last_change,
                     last_drop: m.last_drop,
                     drops: m.drops,
+                    anneal: m.anneal,
                     best_val_loss_bits: m.best_val_loss.to_bits(),
                     best_epoch: m.best_epoch,
                     order: m.order.clone(),
@@ -1128,6 +1153,7 @@ impl Saver<'_> {
             last_change: st.last_change,
             last_drop: st.last_drop,
             drops: st.drops,
+            anneal: st.anneal,
             best_val_loss: f64::from_bits(st.best_val_loss_bits),
             best_epoch: st.best_epoch,
             record: best.first().map(|b| record_from(b, cfg)).transpose()?,
