@@ -33,7 +33,7 @@ pub struct DiagnoseArgs {
     #[arg(long, default_value_t = 10_000)]
     pub train_rows: usize,
     /// Epochs of the extended model's training (1..=5000, as a diagnose job).
-    #[arg(long, default_value_t = 300)]
+    #[arg(long, default_value_t = 1000)]
     pub max_epochs: usize,
     /// Effect-free simulations for the null distribution of the statistics, when it is
     /// measured for this ear (the model stores none for these measures, or --measure-null).

@@ -46,12 +46,17 @@ pub struct TrainArgs {
     /// Seed of the initial weights, the batches and the training noise.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Epochs at most, 1..=5000 (early stopping may end sooner: --patience).
-    #[arg(long, default_value_t = 300)]
+    /// Epochs at most, 1..=5000 (the default recipe ends sooner: --patience).
+    #[arg(long, default_value_t = 1000)]
     pub max_epochs: usize,
-    /// Stop when the validation loss has not improved for this many epochs.
-    #[arg(long, default_value_t = 20)]
+    /// Epochs without a better validation loss before the rate is annealed to 0 over half
+    /// the epochs so far, which ends the training (docs/design/npe.md, "One default recipe").
+    #[arg(long, default_value_t = 10)]
     pub patience: usize,
+    /// `default` (one recipe for every table: docs/design/npe.md, "One default recipe") or `v8`,
+    /// the recipe the shipped v8 model was trained with (models/README.md).
+    #[arg(long, value_enum, default_value = "default")]
+    pub recipe: Recipe,
     /// Drop whole feature groups at random so one network answers any subset.
     #[arg(long)]
     pub mask_groups: bool,
@@ -68,6 +73,15 @@ pub struct TrainArgs {
     /// the same as an uninterrupted run's. FILE is removed once the model is written.
     #[arg(long, value_name = "FILE")]
     pub checkpoint: Option<PathBuf>,
+}
+
+/// The training recipe (--recipe).
+#[derive(Clone, Copy, Debug, ValueEnum)]
+// Explained in the flag's help, as `Embedding`'s values are.
+#[allow(missing_docs)]
+pub enum Recipe {
+    Default,
+    V8,
 }
 
 /// The summary network in front of the flow (--embedding).
@@ -119,7 +133,10 @@ pub fn run(args: TrainArgs) -> Result<()> {
         mask_groups: args.mask_groups,
         mask_bands: args.mask_bands,
         ensemble: args.ensemble,
-        ..TrainSettings::default()
+        ..match args.recipe {
+            Recipe::Default => TrainSettings::default(),
+            Recipe::V8 => TrainSettings::v8(),
+        }
     };
     let checkpoint =
         args.checkpoint.as_ref().map(|path| npe::Checkpointing::new(path.clone(), &std::process::id().to_string()));

@@ -227,9 +227,10 @@ fn checkpoints_round_trip_and_bad_files_are_refused() {
 fn bad_training_and_calibration_settings_are_named_errors() {
     let ds = linear_gaussian(100, 3);
     let s = TrainSettings { embedding: false, max_epochs: 1, ..Default::default() };
-    // batch 0 once panicked in `chunks(0)`.
-    let e = npe::train(&ds, &TrainSettings { batch: 0, ..s.clone() }, &mut |_| true).err().unwrap();
-    assert!(matches!(e, npe::NpeError::Settings { field: "batch", .. }) && e.is_input(), "{e:?}");
+    let e = npe::train(&ds, &TrainSettings { lr: -1.0, ..s.clone() }, &mut |_| true).err().unwrap();
+    assert!(matches!(e, npe::NpeError::Settings { field: "lr", .. }) && e.is_input(), "{e:?}");
+    let e = npe::train(&ds, &TrainSettings { lr_anneal: f64::NAN, ..s.clone() }, &mut |_| true).err().unwrap();
+    assert!(matches!(e, npe::NpeError::Settings { field: "lr-anneal", .. }), "{e:?}");
     let e = npe::train(&ds, &TrainSettings { val_fraction: 1.0, ..s.clone() }, &mut |_| true).err().unwrap();
     assert!(matches!(e, npe::NpeError::Settings { field: "val-fraction", .. }), "{e:?}");
     let e = npe::train(&linear_gaussian(10, 3), &s, &mut |_| true).err().unwrap();
@@ -360,4 +361,40 @@ fn the_flow_is_sized_by_the_settings() {
             Ok(_) => panic!("{field}: trained"),
         }
     }
+}
+
+/// At the patience limit the default recipe anneals instead of stopping: the training
+/// goes on for max(patience, ½ × the epochs so far) epochs and ends there; without the
+/// anneal it ends at the limit.
+#[test]
+fn the_anneal_runs_half_the_epochs_so_far_after_the_patience_limit() {
+    let ds = linear_gaussian(400, 2);
+    let run = |lr_anneal| {
+        let s = TrainSettings { embedding: false, patience: 3, seed: 5, lr_anneal, ..Default::default() };
+        let mut v = Vec::new();
+        npe::train(&ds, &s, &mut |r| {
+            v.push(r.val_loss);
+            true
+        })
+        .unwrap();
+        v
+    };
+    // The first epoch at which `patience` epochs have passed without a better loss.
+    let limit = |v: &[f64]| {
+        let (mut best, mut at) = (f64::INFINITY, 0);
+        for (k, &l) in v.iter().enumerate() {
+            if l < best {
+                (best, at) = (l, k + 1);
+            }
+            if k + 1 - at >= 3 {
+                return k + 1;
+            }
+        }
+        panic!("the patience limit was never reached in {} epochs", v.len());
+    };
+    let (stopped, annealed) = (run(0.0), run(0.5));
+    let t = limit(&stopped);
+    assert_eq!(stopped.len(), t);
+    assert_eq!(limit(&annealed), t, "the same epochs until the limit");
+    assert_eq!(annealed.len(), t + 3usize.max(t.div_ceil(2)));
 }

@@ -102,48 +102,32 @@ pub fn write_table(task: Task, n: usize, seed: u64, dir: &Path) -> Result<()> {
 }
 
 /// sbi 0.27's NSF (`density_estimator="nsf"` with its defaults, read in sbi's
-/// `build_nsf` and nflows) in otofit's settings: no embedding (the z-scored x goes
-/// straight to the conditioners), conditioners of two residual blocks gated by the
-/// context, an LU layer after each coupling, raw bin widths and heights over √hidden,
-/// Adam's ε 1e-8 and a constant rate; the rest (5 couplings, 50 hidden, 10 bins, bound 3,
-/// batch 200, rate 5e-4, patience 20, a tenth for validation, gradient norm clipped at
-/// 5) is `otofit train`'s too, except that sbi clips the whole gradient's norm and burn
-/// each tensor's, and sbi alternates even/odd coupling masks where otofit rotates its
-/// permutations. On the same simulations and split it reaches sbi's own validation loss
-/// (docs/npe.md).
+/// `build_nsf` and nflows) and its training (`train()`'s defaults) in otofit's settings: no
+/// embedding (the z-scored x goes straight to the conditioners), conditioners of two
+/// residual blocks gated by the context, an LU layer after each coupling, raw bin widths
+/// and heights over √hidden, Adam's ε 1e-8, 5 couplings, 50 hidden, 10 bins, bound 3,
+/// batch 200 at a constant rate 5e-4, early stopping with patience 20, a tenth for
+/// validation, gradient norm clipped at 5 — except that sbi clips the whole gradient's
+/// norm and burn each tensor's, and sbi alternates even/odd coupling masks where otofit
+/// rotates its permutations. On the same simulations and split it reaches sbi's own
+/// validation loss (docs/npe.md). The comparison for the default recipe.
 pub fn sbi_nsf_settings() -> TrainSettings {
     TrainSettings {
         embedding: false,
-        blocks: 2,
-        lu: true,
-        scaled_bins: true,
-        adam_eps: 1e-8,
-        lr_plateau: 0,
+        batch: 200,
+        lr: 5e-4,
+        patience: 20,
+        max_epochs: 1000,
+        lr_anneal: 0.0,
         ..TrainSettings::default()
     }
 }
 
-/// The benchmark's recipe for `task`: sbi's NSF ([`sbi_nsf_settings`]), trained with a
-/// fixed epoch budget and a rate decayed by a half cosine instead of early stopping (at a
-/// constant rate the tasks need more epochs than the time targets allow: docs/npe.md,
-/// measured 2026-11); the 2-D tasks and SLCP with big batches. The GLM keeps sbi's recipe.
-/// The best validation epoch is kept. The confirmation tasks ([`tasks::CONFIRMATION`]) take
-/// their sibling's recipe unchanged: they check it, nothing was chosen on them.
-pub fn recipe(task: Task) -> TrainSettings {
-    let (epochs, batch, lr) = match task {
-        // 220 and 120, not 160 and 90: with the host spline pass the shorter
-        // budgets gave three-seed means of 0.567 and 0.565 by the benchmark's rule, these
-        // 0.557 and 0.559 (docs/npe.md).
-        Task::TwoMoons => (220, 1000, 3e-3),
-        Task::GaussianMixture => (120, 1000, 3e-3),
-        // SLCP with sbi's recipe: 195 epochs, 62.6 s; this budget 25 s, C2ST no worse.
-        Task::Slcp | Task::SlcpDistractors => (100, 1000, 3e-3),
-        // Early stopping ran seeds 1-2 to 62 and 69 epochs (25-26 s); 30 epochs at sbi's
-        // batch and twice its rate score as well in 16-18 s (docs/results/npe.md).
-        Task::GaussianLinearUniform | Task::GaussianLinear => (30, 200, 1e-3),
-        Task::BernoulliGlm | Task::BernoulliGlmRaw => return sbi_nsf_settings(),
-    };
-    TrainSettings { batch, lr, lr_cosine: true, max_epochs: epochs, patience: epochs, ..sbi_nsf_settings() }
+/// `otofit train`'s defaults as the benchmark runs them: the default recipe
+/// ([`TrainSettings::default`]) without the embedding network, which is for spectra
+/// (`otofit train --embedding none`).
+pub fn default_settings() -> TrainSettings {
+    TrainSettings { embedding: false, ..TrainSettings::default() }
 }
 
 /// The task's fixed observation `k` (1-based): x simulated at a prior draw of seed k.

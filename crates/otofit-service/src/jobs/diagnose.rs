@@ -29,7 +29,8 @@ pub struct DiagnoseParams {
     /// Size of the extended model's training set (default 10,000).
     #[serde(default = "rows")]
     pub train_rows: usize,
-    /// Epochs at most of the extended model's training (default 300).
+    /// Epochs at most of the extended model's training (default 1000; the default recipe
+    /// ends sooner).
     #[serde(default = "super::train::epochs")]
     pub max_epochs: usize,
     /// Effect-free simulations for the null distribution of the statistics (default 40).

@@ -295,7 +295,7 @@ mod tests {
         let params = spec.params();
         assert_eq!(
             params,
-            json!({"dataset": "d1", "noise_scale": 1.0, "seed": 0, "max_epochs": 300, "mask_groups": false, "ensemble": 1})
+            json!({"dataset": "d1", "noise_scale": 1.0, "seed": 0, "max_epochs": 1000, "mask_groups": false, "ensemble": 1})
         );
         let back = JobSpec::of(&spec.queued()).unwrap();
         assert_eq!((back.kind(), back.params()), ("train", params));

@@ -26,7 +26,7 @@ pub struct TrainParams {
     /// Seed of the initial weights and the batch order.
     #[serde(default)]
     pub seed: u64,
-    /// Most epochs to train (default 300; early stopping may end sooner).
+    /// Most epochs to train (default 1000; the default recipe ends sooner).
     #[serde(default = "epochs")]
     pub max_epochs: usize,
     /// Train with group masks so that the model accepts any subset of measure groups.
@@ -45,7 +45,7 @@ fn one() -> f64 {
 }
 /// Default epochs of a training (train and diagnose jobs).
 pub(super) fn epochs() -> usize {
-    300
+    1000
 }
 
 impl TrainParams {
