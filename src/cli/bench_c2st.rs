@@ -104,6 +104,12 @@ pub struct C2stArgs {
     /// Flows trained from different seeds, sampled as an equal-weight mixture.
     #[arg(long)]
     pub ensemble: Option<usize>,
+    /// Hidden units of each conditioner layer (`otofit train --hidden`).
+    #[arg(long)]
+    pub hidden: Option<usize>,
+    /// Coupling transforms of the flow (`otofit train --transforms`).
+    #[arg(long)]
+    pub transforms: Option<usize>,
     /// Train nothing: write each task's training table, validation split, observations and
     /// reference draws into DIR/<task>/ for another trainer (see `--score-samples`).
     #[arg(long, value_name = "DIR", conflicts_with = "score_samples")]
@@ -242,6 +248,8 @@ fn settings(a: &C2stArgs) -> TrainSettings {
         clip: a.clip.unwrap_or(d.clip),
         weight_decay: a.weight_decay.unwrap_or(d.weight_decay),
         ensemble: a.ensemble.unwrap_or(d.ensemble),
+        hidden: a.hidden.unwrap_or(d.hidden),
+        transforms: a.transforms.unwrap_or(d.transforms),
         ..d.clone()
     }
 }
