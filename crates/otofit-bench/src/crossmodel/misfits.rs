@@ -83,7 +83,7 @@ impl MisfitRow {
     /// Counts one misfit ear's diagnosis: the predictive check's reduced χ² `before`, and
     /// the reduced χ² of the base model's best fit and of the best candidate's.
     fn tally(&mut self, verdict: Verdict, named: Option<&'static str>, before: f64, fits: Option<(f64, f64)>) {
-        let (base_fit, best_after) = (fits.map(|f| f.0), fits.map(|f| f.1));
+        let (base_fit, best_after) = fits.unzip();
         let closed = named.and(fits).map(|(b, a)| (b - a) / (b - 1.0).max(f64::EPSILON));
         match verdict {
             Verdict::Unexplained => self.unexplained += 1,
@@ -142,18 +142,22 @@ pub fn table(rows: &[MisfitRow]) -> String {
         "| model | condition | misfits diagnosed | named, closes ≥ 50 % of the gap | named, closes less | unexplained | no discrepancy | named but worse | effects named | median share of the gap closed (named) | median χ²ν: check / base fit / best candidate |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for r in rows {
-        let mut closed: Vec<f64> = r.per_ear.iter().filter_map(|e| e.closed).collect();
-        closed.sort_by(f64::total_cmp);
-        let median =
-            closed.get(closed.len().saturating_sub(1) / 2).map_or("–".into(), |c| format!("{:.0} %", 100.0 * c));
-        let named_total: usize = r.named.values().sum();
-        let names: Vec<String> = r.named.iter().map(|(n, k)| format!("{n} {k}")).collect();
-        let mid = |f: &dyn Fn(&MisfitEar) -> Option<f64>| {
+        // The lower median over the ears that have the value; "–" when none has.
+        let mid = |f: &dyn Fn(&MisfitEar) -> Option<f64>, show: &dyn Fn(f64) -> String| {
             let mut v: Vec<f64> = r.per_ear.iter().filter_map(f).collect();
             v.sort_by(f64::total_cmp);
-            v.get(v.len().saturating_sub(1) / 2).map_or("–".into(), |m| format!("{m:.1}"))
+            v.get(v.len().saturating_sub(1) / 2).map_or("–".into(), |&m| show(m))
         };
-        let chi2 = format!("{} / {} / {}", mid(&|e| Some(e.before)), mid(&|e| e.base_fit), mid(&|e| e.best_after));
+        let median = mid(&|e| e.closed, &|c| format!("{:.0} %", 100.0 * c));
+        let one = |m: f64| format!("{m:.1}");
+        let chi2 = format!(
+            "{} / {} / {}",
+            mid(&|e| Some(e.before), &one),
+            mid(&|e| e.base_fit, &one),
+            mid(&|e| e.best_after, &one)
+        );
+        let named_total: usize = r.named.values().sum();
+        let names: Vec<String> = r.named.iter().map(|(n, k)| format!("{n} {k}")).collect();
         s.push_str(&format!(
             "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {median} | {chi2} |\n",
             r.model.name(),
