@@ -139,6 +139,32 @@ pub enum BenchWhat {
         #[arg(long, default_value = "models/default.otofit")]
         model: std::path::PathBuf,
     },
+    /// The readings on the model's own simulated ears: for each tissue parameter and side
+    /// of its normal range, ears with that one value outside the range (the rest inside),
+    /// and healthy ears: how often the pathology is read on its side (sensitivity, also by
+    /// distance beyond the limit) and how often a healthy value is read abnormal
+    /// (specificity); table on stdout, readings.md and readings.json in --out.
+    Readings {
+        /// Noisy ears per group (healthy, and each parameter below or above its range).
+        #[arg(long, default_value_t = 50)]
+        ears: usize,
+        /// Folder for readings.md (the table) and readings.json (every ear).
+        #[arg(long)]
+        out: std::path::PathBuf,
+        /// The model that reads the ears (its simulator and noise make them).
+        #[arg(long, default_value = "models/default.otofit")]
+        model: std::path::PathBuf,
+        /// Seed of the ears, their noise and the posterior draws.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Feature groups given, comma-separated (e.g. impedance,absorbance: WBT alone); all if empty.
+        #[arg(long, default_value = "")]
+        measures: String,
+        /// Read the likelihood's own posterior (a Metropolis chain of this many steps per
+        /// ear, 100000..=200000, about 9 s each) instead of the flow's.
+        #[arg(long)]
+        exact: Option<usize>,
+    },
     /// Scaling with threads: dataset generation (CSV and .npy) and training epoch time at
     /// 1, 2, 4, … threads up to the cores, with speed-up and efficiency.
     Scale(super::bench_scale::ScaleArgs),
@@ -183,6 +209,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
         }
         BenchWhat::C2st(a) => super::bench_c2st::run(*a),
         BenchWhat::Scale(a) => super::bench_scale::run(a),
+        BenchWhat::Readings { ears, out, model, seed, measures, exact } => {
+            readings(ears, &out, &model, seed, &measures, exact)
+        }
         BenchWhat::Posterior { ears, seed, steps, out, model } => posterior(ears, seed, steps, out.as_deref(), &model),
     }
 }
@@ -280,6 +309,47 @@ fn crossmodel(
         "results": results,
     });
     std::fs::write(out.join("crossmodel.json"), serde_json::to_vec_pretty(&doc)?)?;
+    Ok(())
+}
+
+/// `otofit bench readings`: the table on stdout and in `out`/readings.md, every ear in
+/// `out`/readings.json.
+fn readings(
+    ears: usize,
+    out: &std::path::Path,
+    model: &std::path::Path,
+    seed: u64,
+    measures: &str,
+    exact_steps: Option<usize>,
+) -> Result<()> {
+    use crate::bench::readings::{self, ReadingsParams};
+    use anyhow::Context;
+    let npe = crate::npe::Npe::load(model)?;
+    let measures_list: Vec<String> =
+        measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
+    let p = ReadingsParams { ears, seed, measures: measures_list, exact_steps };
+    let t = Instant::now();
+    let results = readings::run(&npe, &p, &mut |r| {
+        eprintln!("{}: {:.0} % ({:.0} s)", r.group, 100.0 * r.rate, t.elapsed().as_secs_f64())
+    })?;
+    std::fs::create_dir_all(out).with_context(|| format!("--out {}: cannot create it", out.display()))?;
+    let given = if measures.is_empty() { "all" } else { measures };
+    let table = readings::table(&results);
+    let posterior = exact_steps.map_or("the flow's".to_string(), |s| format!("the likelihood's ({s}-step chains)"));
+    println!("measures given: {given}; posterior: {posterior}");
+    print!("{table}");
+    std::fs::write(out.join("readings.md"), format!("measures given: {given}; posterior: {posterior}\n\n{table}"))?;
+    let doc = serde_json::json!({
+        "model": model.display().to_string(),
+        "ears": ears,
+        "seed": seed,
+        "samples": readings::SAMPLES,
+        "exact_steps": exact_steps,
+        "measures": given,
+        "seconds": t.elapsed().as_secs_f64(),
+        "groups": results,
+    });
+    std::fs::write(out.join("readings.json"), serde_json::to_vec_pretty(&doc)?)?;
     Ok(())
 }
 

@@ -4,7 +4,8 @@
 //! reference posterior draws with a classifier two-sample test (C2ST); and the cross-model
 //! suite (`crossmodel`): ears from published middle-ear models otofit does not contain,
 //! read by the shipped posterior and its fit check; and the shipped posterior against the
-//! likelihood's own on held-out simulated ears (`posterior`).
+//! likelihood's own on held-out simulated ears (`posterior`); and how often the readings
+//! find a simulated pathology and stay silent on a healthy ear (`readings`).
 
 pub mod c2st;
 pub mod crossmodel;
@@ -12,6 +13,7 @@ pub mod exact_fast;
 pub mod glm;
 pub mod mcmc;
 pub mod posterior;
+pub mod readings;
 pub mod tasks;
 
 // The layer below, under the names the modules use for it (`crate::npe::…`).
