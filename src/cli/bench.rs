@@ -186,6 +186,10 @@ pub enum BenchWhat {
         /// Skip timing one full diagnosis with its retrain (about five minutes).
         #[arg(long)]
         no_full: bool,
+        /// Folder for cases.json: every hidden case (its parameters, the effect's size and
+        /// signature, the verdict, χ²ν before and after); none if absent.
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
     },
 }
 
@@ -200,8 +204,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
         }
         BenchWhat::Exact(a) => super::bench_exact::run(a),
         BenchWhat::Fit { model, cases, seed, measures } => super::bench_fit::run(&model, cases, seed, &measures),
-        BenchWhat::Discrepancy { cases, clean, seed, effects, no_full } => {
-            super::diagnose::bench(cases, clean, seed, &effects, !no_full)
+        BenchWhat::Discrepancy { cases, clean, seed, effects, no_full, out } => {
+            super::diagnose::bench(cases, clean, seed, &effects, !no_full, out.as_deref())
         }
         BenchWhat::Crossmodel { ears, out, model, seed, samples, measures, diagnose } => {
             crossmodel(ears, &out, &model, seed, samples, &measures)?;

@@ -7,7 +7,7 @@ use crate::sim::params::{EFFECTS, N_EFFECTS, N_PARAMS};
 use crate::sim::{Model, ModelConfig};
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 /// Arguments of `otofit diagnose`.
@@ -118,9 +118,13 @@ fn effect_list(flag: &str, value: &str) -> Result<Vec<usize>> {
 /// per case), false alarms on effect-free cases, and the wall time of one full diagnosis
 /// with the retrain.
 /// `effects` (`all` or names) are the effects hidden in turn; every effect stays a
-/// candidate. `full`: also time one full diagnosis with its retrain.
-pub fn bench(cases: usize, clean: usize, seed: u64, effects: &str, full: bool) -> Result<()> {
+/// candidate. `full`: also time one full diagnosis with its retrain. `out`: a folder for
+/// cases.json, every hidden case.
+pub fn bench(cases: usize, clean: usize, seed: u64, effects: &str, full: bool, out: Option<&Path>) -> Result<()> {
     let hidden = effect_list("--effects", effects)?;
+    if let Some(dir) = out {
+        std::fs::create_dir_all(dir).with_context(|| format!("--out {}: cannot create it", dir.display()))?;
+    }
     let model = Model::new(ModelConfig::default())?;
     let base = crate::npe::Npe::load(std::path::Path::new("models/default.otofit"))?;
     let noise = Noise { std: default_noise_std(&model), scale: 1.0, seed };
@@ -133,8 +137,14 @@ pub fn bench(cases: usize, clean: usize, seed: u64, effects: &str, full: bool) -
         "{:<18} {:>5} {:>8} {:>7} {:>11} {:>10} {:>9} {:>9}  named % by fifth of the range (weakest first), detection limit, other verdicts",
         "effect", "cases", "named %", "visible", "named vis %", "cover90 %", "χ²ν base", "χ²ν fit"
     );
+    let mut records = vec![];
     for e in hidden {
-        effect_rates(&draw, &base, &s, e, cases)?;
+        records.extend(effect_rates(&draw, &base, &s, e, cases)?);
+    }
+    if let Some(dir) = out {
+        let names: Vec<&str> = crate::sim::PARAMS.iter().map(|p| p.name).collect();
+        let doc = serde_json::json!({ "seed": seed, "params": names, "visible": VISIBLE, "cases": records });
+        std::fs::write(dir.join("cases.json"), serde_json::to_vec_pretty(&doc)?)?;
     }
     if full {
         full_diagnosis(&draw, &base, seed)?;
@@ -175,6 +185,8 @@ struct Case {
     x: Vec<f64>,
     truth: Option<f64>,
     strength: f64,
+    /// The ear's parameters (design column order).
+    row: Vec<f64>,
 }
 
 /// Draws the benchmark's cases from the default model.
@@ -209,7 +221,7 @@ impl Cases<'_> {
             }
             None => 0.0,
         };
-        Some(Case { x, truth: hidden.map(|_| r[N_PARAMS]), strength })
+        Some(Case { x, truth: hidden.map(|_| r[N_PARAMS]), strength, row: r[..N_PARAMS].to_vec() })
     }
 }
 
@@ -233,17 +245,35 @@ fn false_alarms(draw: &Cases, base: &crate::npe::Npe, s: &Settings, clean: usize
 /// One row of the table: how often effect `e`, hidden, is named (overall, when its
 /// signature is visible above the noise, and in each fifth of its range by size), its
 /// detection limit, how often its 90 % interval covers the truth, and what the other
-/// cases were called instead.
-fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, cases: usize) -> Result<()> {
+/// cases were called instead. Returns one record per case.
+fn effect_rates(
+    draw: &Cases,
+    base: &crate::npe::Npe,
+    s: &Settings,
+    e: usize,
+    cases: usize,
+) -> Result<Vec<serde_json::Value>> {
     let effect = &EFFECTS[e];
     let (mut n, mut named, mut vis, mut named_vis, mut covered) = (0, 0, 0, 0, 0);
     let (mut before, mut after) = (Vec::new(), Vec::new());
     let mut bins = [(0usize, 0usize); SIZE_BINS];
     let mut other: std::collections::BTreeMap<String, usize> = Default::default();
     let spec = effect.as_param();
+    let mut records = vec![];
     for i in 0..cases {
-        let Some(Case { x, truth, strength }) = draw.draw(e * 1000 + i, Some(e)) else { continue };
+        let Some(Case { x, truth, strength, row }) = draw.draw(e * 1000 + i, Some(e)) else { continue };
         let r = diagnose(draw.model, base, &x, s, &mut |_| {})?;
+        records.push(serde_json::json!({
+            "effect": effect.name,
+            "case": i,
+            "size": truth,
+            "signature": strength,
+            "params": row,
+            "verdict": format!("{:?}", r.verdict),
+            "named": r.named,
+            "reduced_chi2_before": r.before.reduced_chi2,
+            "reduced_chi2_after": r.candidates.first().map(|c| c.reduced_chi2),
+        }));
         n += 1;
         let visible = strength > VISIBLE;
         vis += usize::from(visible);
@@ -293,7 +323,7 @@ fn effect_rates(draw: &Cases, base: &crate::npe::Npe, s: &Settings, e: usize, ca
         per_bin.join("/"),
         other
     );
-    Ok(())
+    Ok(records)
 }
 
 /// Whether `effect` grows toward the low end of its range (its off value lies above it).
