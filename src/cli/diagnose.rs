@@ -367,15 +367,10 @@ fn tissue_reads(row: &[f64], finding: &str) -> bool {
 /// The findings (`NAME below|above`) of the answer `otofit infer` gives for `x` with every
 /// measure: none when the fit check withdraws the readings.
 fn shipped_findings(base: &crate::npe::Npe, x: &[f64], seed: u64) -> Result<Vec<String>> {
-    use crate::npe::normal;
     let present = vec![true; x.len()];
     let inf = base.infer(&crate::npe::Obs { x, present: Some(&present) }, 1000, seed)?;
-    let mut d = normal::read(base.params(), &inf.samples);
-    let fit = crate::discrepancy::fitcheck::fit_check(base, x, &present, &inf)?;
-    if fit.ok == Some(false) {
-        normal::withdraw(&mut d, "misfit");
-    }
-    Ok(normal::verdict(&d, fit.ok).findings)
+    let (d, fit) = crate::discrepancy::fitcheck::checked_reading(base, x, &present, &inf, &inf.samples);
+    Ok(crate::npe::normal::verdict(&d, fit?.ok).findings)
 }
 
 /// Whether `effect` grows toward the low end of its range (its off value lies above it).

@@ -286,16 +286,10 @@ pub fn run(args: InferArgs) -> Result<()> {
             let svg = super::study::corner(&model, &inf.samples, None, &inf.map, &title);
             std::fs::write(dir.join(format!("corner_{}.svg", r + 1)), svg)?;
         }
-        let mut differential = crate::npe::normal::read(model.params(), &inf.samples);
-        let mut withdrawn = None;
-        let fit = match crate::discrepancy::fitcheck::fit_check(&model, x, present, &inf) {
-            Ok(f) => {
-                if f.ok == Some(false) {
-                    withdrawn = Some(f.reason.clone().unwrap_or_default());
-                    crate::npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
-                }
-                serde_json::json!(f)
-            }
+        let (differential, fit) = crate::discrepancy::fitcheck::checked_reading(&model, x, present, &inf, &inf.samples);
+        let withdrawn = fit.as_ref().ok().filter(|f| f.ok == Some(false)).map(|f| f.reason.clone().unwrap_or_default());
+        let fit = match fit {
+            Ok(f) => serde_json::json!(f),
             Err(e) => serde_json::json!({ "ok": null, "reason": e.to_string() }),
         };
         // The competing explanations of a shipped finding, as POST /infer gives them.

@@ -580,15 +580,10 @@ fn reference_fit(
         .collect();
     let mean_over = |v: &[f64]| measured.iter().map(|&m| v[m].abs()).sum::<f64>() / measured.len().max(1) as f64;
     let (mean_abs, best_abs) = (mean_over(&map_rho), mean_over(&best_rho));
-    let mut differential = npe::normal::read(npe.params(), &inf.samples);
     // The fit check every inference carries (with the model's training noise, as a
     // request would get it; the check above uses the ear's own test-retest STD).
-    let fit = crate::discrepancy::fitcheck::fit_check(npe, &r.x, &vec![true; r.x.len()], &inf);
-    if let Ok(f) = &fit
-        && f.ok == Some(false)
-    {
-        npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
-    }
+    let (differential, fit) =
+        crate::discrepancy::fitcheck::checked_reading(npe, &r.x, &vec![true; r.x.len()], &inf, &inf.samples);
     Ok(ReferenceFit {
         r,
         inf,

@@ -22,8 +22,8 @@
 
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::{MAX_STEPS, MIN_STEPS};
-use otofit_discrepancy::discrepancy::fitcheck::{exact, fit_check, simulator_for};
-use otofit_npe::npe::normal::{self, NORMAL};
+use otofit_discrepancy::discrepancy::fitcheck::{checked_reading, exact, simulator_for};
+use otofit_npe::npe::normal::NORMAL;
 use otofit_npe::npe::{Npe, Obs};
 use otofit_sim::batch::{Design, Noise, default_noise_std, run_rows};
 use otofit_sim::params::{ParamSpec, Scale};
@@ -311,14 +311,12 @@ pub struct ReadingsParams {
 /// Reads one ear as `otofit infer` does (`--exact`: from the chain's draws).
 fn read(npe: &Npe, truth: Vec<f64>, x: &[f64], present: &[bool], seed: u64, p: &ReadingsParams) -> Result<EarReading> {
     let inf = npe.infer(&Obs { x, present: Some(present) }, SAMPLES, seed)?;
-    let mut d = match p.exact_steps {
-        Some(steps) => normal::read(npe.params(), &exact(npe, x, present, &inf, steps, seed)?.chain.samples),
-        None => normal::read(npe.params(), &inf.samples),
+    let chain = match p.exact_steps {
+        Some(steps) => Some(exact(npe, x, present, &inf, steps, seed)?.chain.samples),
+        None => None,
     };
-    let fit = fit_check(npe, x, present, &inf)?;
-    if fit.ok == Some(false) {
-        normal::withdraw(&mut d, fit.reason.as_deref().unwrap_or_default());
-    }
+    let (d, fit) = checked_reading(npe, x, present, &inf, chain.as_ref().unwrap_or(&inf.samples));
+    let fit = fit?;
     let of = |k: usize| d.iter().find(|r| r.name == PARAMS[k].name);
     let readings = (0..N_TISSUE).map(|k| of(k).map_or("none", |r| r.reading)).collect();
     let p_outside = (0..N_TISSUE).map(|k| of(k).map_or([f64::NAN; 2], |r| [r.p_below, r.p_above])).collect();

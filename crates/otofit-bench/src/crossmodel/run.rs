@@ -21,7 +21,7 @@ use super::kringlebotn::Kringlebotn;
 use super::{CONDITIONS, Condition, EarModel, Geometry, features, training_air};
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::alternatives::{AlternativesParams, alternatives};
-use otofit_discrepancy::discrepancy::fitcheck::fit_check;
+use otofit_discrepancy::discrepancy::fitcheck::checked_reading;
 use otofit_npe::npe::normal::{self, Differential};
 use otofit_npe::npe::{Npe, Obs};
 use otofit_sim::batch::Noise;
@@ -240,15 +240,15 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
         return Ok(ear);
     }
     let inf = npe.infer(&Obs { x, present: Some(present) }, samples, seed)?;
-    let mut differential = normal::read(npe.params(), &inf.samples);
-    ear.findings_raw = findings(&differential);
-    match fit_check(npe, x, present, &inf) {
+    // What the draws say before a failed fit check withdraws it.
+    ear.findings_raw = findings(&normal::read(npe.params(), &inf.samples));
+    let (differential, fit) = checked_reading(npe, x, present, &inf, &inf.samples);
+    match fit {
         Ok(f) => {
             ear.fit_ok = f.ok;
             ear.reduced_chi2 = Some(f.reduced_chi2);
             if f.ok == Some(false) {
-                ear.fit_reason = f.reason.clone();
-                normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
+                ear.fit_reason = f.reason;
             }
         }
         Err(e) => ear.fit_reason = Some(e.to_string()),

@@ -168,6 +168,26 @@ fn thresholds(npe: &Npe, present: &[bool]) -> Option<SubsetNull> {
     }
 }
 
+/// The reading `otofit infer` gives: `draws` (the flow's, or an exact chain's) read
+/// against the normal ranges, and the fit check of the inference; a failed check
+/// withdraws every reading (`unreliable`, with the check's reason).
+pub fn checked_reading(
+    npe: &Npe,
+    x: &[f64],
+    present: &[bool],
+    inf: &Inference,
+    draws: &[Vec<f64>],
+) -> (Vec<npe::normal::Differential>, Result<FitCheck, FitCheckError>) {
+    let mut differential = npe::normal::read(npe.params(), draws);
+    let fit = fit_check(npe, x, present, inf);
+    if let Ok(f) = &fit
+        && f.ok == Some(false)
+    {
+        npe::normal::withdraw(&mut differential, f.reason.as_deref().unwrap_or_default());
+    }
+    (differential, fit)
+}
+
 /// Checks one inference against the model's null.
 pub fn fit_check(npe: &Npe, x: &[f64], present: &[bool], inf: &Inference) -> Result<FitCheck, FitCheckError> {
     let model = simulator_for(npe)?;
@@ -413,4 +433,40 @@ pub fn refine(npe: &Npe, x: &[f64], present: &[bool], map: &[f64], steps: usize)
         steps: best.iterations,
         ms: t0.elapsed().as_secs_f64() * 1e3,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An ear the shipped model makes keeps its readings; the same ear with a ripple of
+    /// a few noise STDs no tissue value makes has every reading withdrawn, with the
+    /// check's own reason.
+    #[test]
+    fn a_failed_fit_check_withdraws_every_reading() {
+        let npe =
+            Npe::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit")).unwrap();
+        let model = simulator_for(&npe).unwrap();
+        let rows = Design::default().draw(3, 0, 1);
+        let noise = Noise { std: npe.header.noise_std.clone(), scale: 1.0, seed: 5 };
+        let ear = run_rows(model, &Design::default(), &rows, 0, Some(&noise)).remove(0).unwrap();
+        let rippled: Vec<f64> =
+            ear.iter().zip(&noise.std).enumerate().map(|(i, (v, s))| v + 4.0 * s * (i as f64 * 0.7).sin()).collect();
+        let present = vec![true; ear.len()];
+        let mut seen = vec![];
+        for x in [&ear, &rippled] {
+            let inf = npe.infer(&Obs { x, present: Some(&present) }, 1000, 1).unwrap();
+            let (d, fit) = checked_reading(&npe, x, &present, &inf, &inf.samples);
+            let fit = fit.unwrap();
+            let withdrawn = d.iter().filter(|r| r.reading == "unreliable").count();
+            if fit.ok == Some(false) {
+                assert_eq!(withdrawn, d.len(), "a misfit leaves readings: {d:?}");
+                assert!(d.iter().all(|r| r.reason == fit.reason), "{d:?}");
+            } else {
+                assert_eq!(withdrawn, 0, "a fitting ear lost readings: {d:?}");
+            }
+            seen.push(fit.ok);
+        }
+        assert_eq!(seen, [Some(true), Some(false)], "the shipped ear must fit and the rippled one must not");
+    }
 }
