@@ -382,11 +382,11 @@ fn grows_downward(effect: &crate::sim::params::EffectSpec) -> bool {
 /// first, that the naming rate is reported by.
 const SIZE_BINS: usize = 5;
 
-/// The detection limit's bin: the smallest bin from which every larger bin (each with
-/// cases) names the effect in ≥ 90 % of its cases; `None` when even the largest does not.
+/// The detection limit's bin: the smallest bin from which every larger bin with cases
+/// names the effect in ≥ 90 % of them, with at least ten cases from it up (the readings
+/// benchmark's rule); `None` when no bin qualifies.
 fn detection_limit(bins: &[(usize, usize)]) -> Option<usize> {
-    let ok = |&(k, m): &(usize, usize)| k > 0 && 10 * m >= 9 * k;
-    (0..bins.len()).find(|&b| bins[b..].iter().all(ok))
+    otofit_bench::readings::detectable_from(bins)
 }
 
 /// One full diagnosis, retrain included, at full size: the wall time a user waits.
@@ -458,6 +458,9 @@ mod tests {
         assert_eq!(detection_limit(&[(4, 0), (4, 1), (4, 4), (4, 4), (4, 4)]), Some(2));
         assert_eq!(detection_limit(&[(10, 9), (10, 10), (10, 8), (10, 10), (10, 10)]), Some(3));
         assert_eq!(detection_limit(&[(4, 4), (4, 4), (4, 4), (4, 4), (4, 3)]), None);
-        assert_eq!(detection_limit(&[(4, 4), (0, 0), (4, 4)]), Some(2), "a bin without cases proves nothing");
+        assert_eq!(detection_limit(&[(6, 6), (0, 0), (6, 6)]), Some(0), "a bin without cases proves nothing");
+        // One named case, or a handful, is not a limit.
+        assert_eq!(detection_limit(&[(0, 0), (0, 0), (0, 0), (0, 0), (1, 1)]), None);
+        assert_eq!(detection_limit(&[(0, 0), (0, 0), (0, 0), (4, 4), (5, 5)]), None);
     }
 }
