@@ -9,7 +9,7 @@ use crate::npe::normal::{Differential, NORMAL, read};
 use crate::npe::{Npe, Obs};
 use crate::sim::batch::{Design, Noise, run_rows};
 use crate::sim::{EFFECTS, Effects, PARAMS};
-use anyhow::{Result, bail};
+use anyhow::{Result, anyhow, bail};
 use serde_json::json;
 use std::path::Path;
 
@@ -106,14 +106,8 @@ pub fn run(model: &Path, cases: usize, seed: u64, measures: &str) -> Result<()> 
 
 /// Which features are given: those of the named groups, or all.
 fn present(npe: &Npe, measures: &str) -> Result<Vec<bool>> {
-    let mut present = vec![measures.is_empty(); npe.header.feature_names.len()];
-    for name in measures.split(',').filter(|m| !m.is_empty()) {
-        let Some(g) = npe.header.groups.iter().find(|g| g.name == name.trim()) else {
-            let known: Vec<&str> = npe.header.groups.iter().map(|g| g.name.as_str()).collect();
-            bail!("--measures: unknown group '{name}' (known: {})", known.join(", "));
-        };
-        g.features.iter().for_each(|&i| present[i] = true);
-    }
+    let names: Vec<&str> = measures.split(',').filter(|m| !m.is_empty()).collect();
+    let present = npe.header.features_of_groups(&names).map_err(|e| anyhow!("--measures: {e}"))?;
     if !measures.is_empty() {
         println!("measures given: {measures}");
     }

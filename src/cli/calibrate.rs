@@ -184,12 +184,6 @@ fn given_set(model: &Npe, groups: &str) -> Result<Vec<bool>> {
     if groups.trim() == "all" {
         return Ok(vec![true; f]);
     }
-    let mut given = vec![false; f];
-    for name in groups.split(',').map(str::trim) {
-        let known = || model.header.groups.iter().map(|g| g.name.as_str()).collect::<Vec<_>>().join(", ");
-        let g = model.header.groups.iter().find(|g| g.name == name);
-        let g = g.with_context(|| format!("unknown feature group '{name}' (the model's: {})", known()))?;
-        g.features.iter().for_each(|&i| given[i] = true);
-    }
-    Ok(given)
+    let names: Vec<&str> = groups.split(',').collect();
+    Ok(model.header.features_of_groups(&names)?)
 }

@@ -20,7 +20,7 @@
 //! of `otofit infer --exact`, about 9 s per ear) instead of the flow's: the sensitivity
 //! the data themselves allow, against which the flow's is measured.
 
-use anyhow::{Result, bail};
+use anyhow::{Result, anyhow, bail};
 use otofit_discrepancy::discrepancy::exact::{MAX_STEPS, MIN_STEPS};
 use otofit_discrepancy::discrepancy::fitcheck::{checked_reading, exact, simulator_for};
 use otofit_npe::npe::normal::NORMAL;
@@ -335,14 +335,7 @@ pub fn run(npe: &Npe, p: &ReadingsParams, progress: &mut dyn FnMut(&GroupResult)
         bail!("the model's first parameters are not otofit's seven tissue parameters: no readings to score");
     }
     let model = simulator_for(npe)?;
-    let mut present = vec![p.measures.is_empty(); npe.header.feature_names.len()];
-    for name in &p.measures {
-        let Some(g) = npe.header.groups.iter().find(|g| &g.name == name) else {
-            let known: Vec<&str> = npe.header.groups.iter().map(|g| g.name.as_str()).collect();
-            bail!("--measures: unknown feature group '{name}' (known: {})", known.join(", "));
-        };
-        g.features.iter().for_each(|&i| present[i] = true);
-    }
+    let present = npe.header.features_of_groups(&p.measures).map_err(|e| anyhow!("--measures: {e}"))?;
     let noise = Noise { std: default_noise_std(model), scale: 1.0, seed: p.seed };
     let mut out = vec![];
     for (g, group) in groups().iter().enumerate() {

@@ -19,7 +19,7 @@
 use super::hudde_engel::HuddeEngel;
 use super::kringlebotn::Kringlebotn;
 use super::{CONDITIONS, Condition, EarModel, Geometry, features, training_air};
-use anyhow::{Result, bail};
+use anyhow::{Result, anyhow, bail};
 use otofit_discrepancy::discrepancy::alternatives::{AlternativesParams, alternatives};
 use otofit_discrepancy::discrepancy::fitcheck::checked_reading;
 use otofit_npe::npe::normal::{self, Differential};
@@ -295,14 +295,7 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
     if npe.header.feature_names != output::feature_names(&freqs) {
         bail!("the model's features are not otofit's seven measures on its grid: no cross-model ears for it");
     }
-    let mut present = vec![p.groups.is_empty(); freqs.len() * output::N_MEASURES];
-    for name in &p.groups {
-        let Some(g) = npe.header.groups.iter().find(|g| &g.name == name) else {
-            let known: Vec<&str> = npe.header.groups.iter().map(|g| g.name.as_str()).collect();
-            bail!("unknown feature group '{name}' (known: {})", known.join(", "));
-        };
-        g.features.iter().for_each(|&i| present[i] = true);
-    }
+    let present = npe.header.features_of_groups(&p.groups).map_err(|e| anyhow!("--measures: {e}"))?;
     let mut out = vec![];
     let cases = MODELS.iter().flat_map(|&m| CONDITIONS.iter().map(move |&c| (m, c)));
     for (case, (model, condition)) in cases.enumerate() {

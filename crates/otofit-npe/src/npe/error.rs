@@ -110,6 +110,14 @@ pub enum ObservationError {
         /// Parameters of the model.
         expected: usize,
     },
+    /// A measure named that is none of the model's feature groups.
+    #[error("unknown feature group '{name}' (the model's: {known})")]
+    UnknownGroup {
+        /// The name given.
+        name: String,
+        /// The model's groups, comma-separated.
+        known: String,
+    },
     /// A group's present features are not one band.
     #[error("group '{group}': the measured frequencies must form one contiguous band")]
     NotContiguous {

@@ -126,6 +126,20 @@ fn length_prefixed(b: &[u8]) -> Option<(&[u8], &[u8])> {
 }
 
 impl Header {
+    /// The features given when the named feature groups are measured (every feature when
+    /// `names` is empty); a name that is not one of the model's groups is refused by name.
+    pub fn features_of_groups<S: AsRef<str>>(&self, names: &[S]) -> Result<Vec<bool>, ObservationError> {
+        let mut given = vec![names.is_empty(); self.feature_names.len()];
+        for name in names.iter().map(|n| n.as_ref().trim()) {
+            let Some(g) = self.groups.iter().find(|g| g.name == name) else {
+                let known: Vec<&str> = self.groups.iter().map(|g| g.name.as_str()).collect();
+                return Err(ObservationError::UnknownGroup { name: name.to_string(), known: known.join(", ") });
+            };
+            g.features.iter().for_each(|&i| given[i] = true);
+        }
+        Ok(given)
+    }
+
     /// The sampler of the model error the model was trained with, if any.
     pub fn model_error_sampler(&self) -> Result<Option<model_error::Discrepancy>> {
         self.model_error.map(|m| m.sampler(&self.frequencies_hz, &self.noise_std)).transpose()
@@ -956,6 +970,26 @@ mod tests {
         }
         assert!(out.len() >= 4, "{} of 7 points inside the box", out.len());
         out
+    }
+
+    /// Named groups give exactly their features, none gives all, and an unknown name is
+    /// refused with the model's groups listed.
+    #[test]
+    fn measures_named_by_group_give_their_features() {
+        let h = model().header;
+        let names: Vec<&str> = h.groups.iter().map(|g| g.name.as_str()).collect();
+        assert!(h.features_of_groups::<&str>(&[]).unwrap().iter().all(|&g| g));
+        let given = h.features_of_groups(&[names[1], names[2]]).unwrap();
+        for (i, &g) in given.iter().enumerate() {
+            let member = h.groups[1..=2].iter().any(|grp| grp.features.contains(&i));
+            assert_eq!(g, member, "feature {i} ({})", h.feature_names[i]);
+        }
+        assert_eq!(
+            h.features_of_groups(&[format!(" {} ", names[0])]).unwrap().iter().filter(|&&g| g).count(),
+            h.groups[0].features.len()
+        );
+        let e = h.features_of_groups(&["tympanogram"]).unwrap_err().to_string();
+        assert!(e.contains("'tympanogram'") && names.iter().all(|n| e.contains(n)), "{e}");
     }
 
     fn latent_of(npe: &Npe) -> LatentMap<'_> {
