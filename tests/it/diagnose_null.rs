@@ -47,6 +47,7 @@ fn unreachable_null(groups: Vec<String>, candidates: Vec<String>) -> DiagnoseNul
         draws: 100,
         candidates,
         subsets: vec![DiagnoseSubsetNull { groups, base_reduced_chi2: 1e12, best_drop: 1e12 }],
+        fit_version: otofit::discrepancy::CANDIDATE_FIT_VERSION,
     }
 }
 
@@ -101,6 +102,14 @@ fn a_diagnosis_uses_the_models_null_only_where_it_applies() {
 
     // Other draws per case: a different statistic, measured.
     assert_eq!(run(&model, &npe, &x, &Settings { draws: 60, ..settings() }).0.null, NullSource::Measured { cases: 5 });
+
+    // Thresholds of another candidate fit, or of one not recorded: measured.
+    for v in [0, otofit::discrepancy::CANDIDATE_FIT_VERSION - 1] {
+        let mut old = base();
+        old.header.diagnose_null =
+            Some(DiagnoseNull { fit_version: v, ..unreachable_null(all_groups(&npe), names.clone()) });
+        assert_eq!(run(&model, &old, &x, &settings()).0.null, NullSource::Measured { cases: 5 }, "fit version {v}");
+    }
 
     // WBT alone while the model stores only the full set: measured.
     let mut wbt = x.clone();

@@ -65,6 +65,12 @@ pub(crate) fn stopped(stop: Option<&AtomicBool>) -> bool {
     stop.is_some_and(|s| s.load(Ordering::Relaxed))
 }
 
+/// Version of the candidate fit ([`rank_candidates`]), stored with a measured diagnose
+/// null: raise it whenever a change to the fit (its starts, steps or damping) can change
+/// the χ² it reaches, so that thresholds measured with the old fit are no longer used.
+/// 1: six starts; 2: nine, with the cavity at its prior box's centre.
+pub const CANDIDATE_FIT_VERSION: u32 = 2;
+
 /// Fits the base design extended by each candidate effect, starting from `base_row`
 /// (the base model's MAP or best fit); best first. Once `stop` is set, the candidates
 /// not yet started are skipped (a cancel waits for the fits in flight only).

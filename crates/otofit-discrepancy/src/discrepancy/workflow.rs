@@ -406,15 +406,19 @@ pub fn measure_null(
         draws: s.draws,
         candidates: s.candidates.iter().map(|&e| EFFECTS[e].name.to_string()).collect(),
         subsets,
+        fit_version: super::CANDIDATE_FIT_VERSION,
     })
 }
 
 /// The thresholds the model stores for this observation's feature groups, when they
-/// were measured with the same draws and with every candidate asked for (a best drop
-/// over more candidates is never smaller, so a superset errs toward fewer alarms).
+/// were measured with the same draws, the same candidate fit and with every candidate
+/// asked for (a best drop over more candidates is never smaller, so a superset errs
+/// toward fewer alarms).
 pub fn stored_thresholds(base: &Npe, given: &[bool], s: &Settings) -> Option<(Thresholds, usize)> {
     let null = base.header.diagnose_null.as_ref()?;
-    let same_statistic = null.draws == s.draws && (null.quantile - ALARM_QUANTILE).abs() < 1e-12;
+    let same_statistic = null.draws == s.draws
+        && (null.quantile - ALARM_QUANTILE).abs() < 1e-12
+        && null.fit_version == super::CANDIDATE_FIT_VERSION;
     let covered = s.candidates.iter().all(|&e| null.candidates.iter().any(|c| c == EFFECTS[e].name));
     let groups = groups_given(base, given)?;
     let t = null.subsets.iter().find(|x| x.groups == groups).filter(|_| same_statistic && covered)?;

@@ -273,6 +273,10 @@ pub struct DiagnoseNull {
     pub candidates: Vec<String>,
     /// The thresholds per set of feature groups given (names sorted).
     pub subsets: Vec<DiagnoseSubsetNull>,
+    /// Version of the candidate fit the thresholds were measured with (0: not recorded).
+    /// A better fit moves the best drop, so a diagnosis uses only a null of its own fit.
+    #[serde(default)]
+    pub fit_version: u32,
 }
 
 /// Diagnose thresholds for one set of feature groups.
