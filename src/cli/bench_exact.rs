@@ -41,7 +41,7 @@ pub fn run(a: ExactArgs) -> Result<()> {
     let t = Instant::now();
     let report = exact_fast::run(&npe, &p, &mut |outcome| match outcome {
         Ok(e) => eprintln!(
-            "ear {} ({}): {:.2} s, exact {}, R-hat {:.3}, ESS {:.0}/{:.0}{}{} ({:.0} s)",
+            "ear {} ({}): {:.2} s, exact {}, R-hat {:.3}, ESS {:.0}/{:.0}{}{}{} ({:.0} s)",
             e.ear,
             e.kind,
             e.seconds,
@@ -51,6 +51,7 @@ pub fn run(a: ExactArgs) -> Result<()> {
             e.ess_tail,
             e.c2st.map_or(String::new(), |c| format!(", C2ST {c:.3}")),
             e.c2st_flow.map_or(String::new(), |c| format!(" (flow {c:.3})")),
+            e.long_rhat.map_or(String::new(), |r| format!(", long chain's R-hat {r:.3}")),
             t.elapsed().as_secs_f64()
         ),
         Err((i, why)) => eprintln!("ear {i}: skipped: {why}"),

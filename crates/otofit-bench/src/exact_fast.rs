@@ -10,7 +10,9 @@
 //! the same posterior when it is near 0.5.
 
 use crate::c2st::{self, C2stParams};
-use crate::posterior::{C2ST_DRAWS, FLOW_SAMPLES, ParamScore, Pooled, ears, pool, score, tissue_coords};
+use crate::posterior::{
+    C2ST_DRAWS, FLOW_SAMPLES, Marginal, ParamScore, Pooled, ears, marginals, pool, score, tissue_coords,
+};
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
 use otofit_discrepancy::discrepancy::exact_fast::{self, Settings};
@@ -82,6 +84,43 @@ pub struct FastEar {
     pub c2st_flow: Option<f64>,
     /// Wall time of the long chain.
     pub long_seconds: Option<f64>,
+    /// The long chain's own scores per tissue parameter (reference ears): the reference is
+    /// one chain from one start, so it is checked against the truth too.
+    pub long: Option<Vec<Marginal>>,
+    /// The long chain's within-chain R-hat (its draws in 4 consecutive segments, as the
+    /// `exact` job reports it).
+    pub long_rhat: Option<f64>,
+}
+
+/// The long chain against the short chains on the reference ears, pooled over (ear,
+/// tissue parameter) pairs.
+#[derive(Clone, Debug, Serialize)]
+pub struct LongChain {
+    /// Pairs pooled.
+    pub pairs: usize,
+    /// Fraction whose long-chain 50 % interval holds the truth.
+    pub cover50: f64,
+    /// Fraction whose long-chain 90 % interval holds the truth.
+    pub cover90: f64,
+    /// The short chains' 90 % coverage on the same pairs.
+    pub short_cover90: f64,
+    /// Median of the short chains' 90 % width over the long chain's.
+    pub width_ratio_median: f64,
+}
+
+/// Pools the reference ears' long-chain scores beside the short chains'.
+fn pool_long(per_ear: &[FastEar]) -> LongChain {
+    let pairs: Vec<(&Marginal, &ParamScore)> =
+        per_ear.iter().filter_map(|e| e.long.as_ref().map(|l| l.iter().zip(&e.params))).flatten().collect();
+    let n = pairs.len().max(1) as f64;
+    let share = |f: &dyn Fn(&(&Marginal, &ParamScore)) -> bool| pairs.iter().filter(|p| f(p)).count() as f64 / n;
+    LongChain {
+        pairs: pairs.len(),
+        cover50: share(&|(l, _)| l.in50),
+        cover90: share(&|(l, _)| l.in90),
+        short_cover90: share(&|(_, s)| s.exact.in90),
+        width_ratio_median: median(pairs.iter().map(|(l, s)| s.exact.width90 / l.width90).collect()),
+    }
 }
 
 /// A whole run.
@@ -107,6 +146,8 @@ pub struct FastReport {
     pub c2st_median: f64,
     /// Median C2ST of the flow against the long chain.
     pub c2st_flow_median: f64,
+    /// The long chain's own coverage and the short chains' width against it.
+    pub long: LongChain,
     /// Median and largest wall time of the short chains.
     pub seconds_median: f64,
     /// Largest wall time of the short chains.
@@ -136,13 +177,15 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
     let fast = exact_fast::sample(npe, x, &present, &inf, &settings, Instant::now() + exact_fast::BUDGET)?;
     let seconds = t.elapsed().as_secs_f64();
     let tissue = &npe.params()[..N_TISSUE];
-    let (mut c2st, mut c2st_flow, mut long_seconds) = (None, None, None);
+    let (mut c2st, mut c2st_flow, mut long_seconds, mut long_scores, mut long_rhat) = (None, None, None, None, None);
     if i < p.reference {
         let t = Instant::now();
         let long = exact(npe, x, &present, &inf, p.steps, seed)?;
         long_seconds = Some(t.elapsed().as_secs_f64());
         c2st = Some(c2st_of(npe, &long.chain.samples, &fast.samples, seed));
         c2st_flow = Some(c2st_of(npe, &long.chain.samples, &inf.samples, seed));
+        long_scores = Some(marginals(tissue, truth, &long.chain.samples));
+        long_rhat = Some(exact_fast::within_chain(&long.chain.samples, 4).0);
     }
     let g = &fast.diagnostics;
     Ok(FastEar {
@@ -158,6 +201,8 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
         c2st,
         c2st_flow,
         long_seconds,
+        long: long_scores,
+        long_rhat,
     })
 }
 
@@ -199,6 +244,7 @@ pub fn run(npe: &Npe, p: &FastParams, progress: &mut dyn FnMut(&EarOutcome)) -> 
         exact_ears: exact_ears.len(),
         c2st_median: median(per_ear.iter().filter_map(|e| e.c2st).collect()),
         c2st_flow_median: median(per_ear.iter().filter_map(|e| e.c2st_flow).collect()),
+        long: pool_long(&per_ear),
         seconds_median: median(seconds.clone()),
         seconds_max: seconds.iter().copied().fold(f64::NAN, f64::max),
         per_ear,
@@ -238,10 +284,65 @@ pub fn table(r: &FastReport) -> String {
          chain {:.3}; short chains' wall time median {:.2} s, max {:.2} s",
         r.exact_ears, r.c2st_median, r.c2st_flow_median, r.seconds_median, r.seconds_max
     );
+    let l = &r.long;
+    if l.pairs > 0 {
+        let _ = writeln!(
+            s,
+            "long chain on the {} reference pairs: 50 % coverage {:.3}, 90 % coverage {:.3} (short chains {:.3}); \
+             short/long 90 % width, median {:.2}",
+            l.pairs, l.cover50, l.cover90, l.short_cover90, l.width_ratio_median
+        );
+    }
     let mut reasons: Vec<&str> = r.per_ear.iter().filter_map(|e| e.reason.as_deref()).collect();
     reasons.sort_unstable();
     for why in reasons.iter().take(10) {
         let _ = writeln!(s, "not exact: {why}");
     }
     s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn marginal(in90: bool, width90: f64) -> Marginal {
+        Marginal { in50: false, in90, width90, reading: "within", confident_wrong: false }
+    }
+
+    fn ear(long: Option<Vec<Marginal>>, short: Vec<Marginal>) -> FastEar {
+        let params = short
+            .into_iter()
+            .map(|m| ParamScore { name: "p".into(), truth: 1.0, flow: m.clone(), exact: m, width_ratio: 1.0 })
+            .collect();
+        FastEar {
+            ear: 0,
+            kind: "prior",
+            params,
+            exact: false,
+            reason: None,
+            rhat: 1.0,
+            ess_bulk: 1.0,
+            ess_tail: 1.0,
+            seconds: 0.0,
+            c2st: None,
+            c2st_flow: None,
+            long_seconds: None,
+            long: long.clone(),
+            long_rhat: None,
+        }
+    }
+
+    /// The long chain is scored on the reference ears only, pair by pair against the short
+    /// chains of the same ear: a reference chain narrower than the short chains and missing
+    /// a truth they hold shows as lower coverage and a width ratio above 1.
+    #[test]
+    fn the_long_chain_is_pooled_over_the_reference_ears_only() {
+        let reference =
+            ear(Some(vec![marginal(true, 1.0), marginal(false, 0.5)]), vec![marginal(true, 1.0), marginal(true, 1.5)]);
+        let other = ear(None, vec![marginal(false, 9.0), marginal(false, 9.0)]);
+        let l = pool_long(&[reference, other]);
+        assert_eq!(l.pairs, 2);
+        assert_eq!((l.cover90, l.short_cover90), (0.5, 1.0));
+        assert!((l.width_ratio_median - 3.0).abs() < 1e-12, "{}", l.width_ratio_median);
+    }
 }

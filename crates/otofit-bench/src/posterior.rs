@@ -235,6 +235,12 @@ fn marginal(p: &Param, k: usize, truth: f64, draws: &[Vec<f64>], readings: &[Dif
     }
 }
 
+/// Each parameter of `params` in `draws` against `truth` (one method alone).
+pub fn marginals(params: &[Param], truth: &[f64], draws: &[Vec<f64>]) -> Vec<Marginal> {
+    let readings = normal::read(params, draws);
+    params.iter().enumerate().map(|(k, p)| marginal(p, k, truth[k], draws, &readings)).collect()
+}
+
 /// Scores the flow's and the chain's draws (rows in `params` order, natural units) of one
 /// ear against its `truth`, for every parameter in `params`.
 pub fn score(params: &[Param], truth: &[f64], flow: &[Vec<f64>], exact: &[Vec<f64>]) -> Vec<ParamScore> {

@@ -362,6 +362,17 @@ where
     Some(Run { chains, images, exact: reason.is_none(), reason, diagnostics })
 }
 
+/// The within-chain split diagnostic of one long chain: its draws cut into `segments`
+/// consecutive segments read as that many chains by [`diagnose`]; (R̂, bulk ESS, tail ESS,
+/// draws used). It sees a chain that has not settled — a drift, a slow excursion — not a
+/// mode the one chain never visited.
+pub fn within_chain(draws: &[Vec<f64>], segments: usize) -> (f64, f64, f64, usize) {
+    let per = draws.len() / segments.max(1);
+    let parts: Vec<Vec<Vec<f64>>> = draws.chunks_exact(per.max(1)).take(segments).map(<[_]>::to_vec).collect();
+    let (rhat, ess_bulk, ess_tail, _) = diagnose(&parts);
+    (rhat, ess_bulk, ess_tail, per * segments)
+}
+
 /// Why a run is not exact, or `None` when it is.
 fn verdict(g: &Diagnostics, s: &Settings, failed: usize) -> Option<String> {
     let mut why = vec![];

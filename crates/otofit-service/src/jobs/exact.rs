@@ -86,16 +86,12 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
 /// Consecutive segments the long chain's draws are cut into for its diagnostics.
 const SEGMENTS: usize = 4;
 
-/// The within-chain split diagnostic of the one long chain: its (thinned) draws cut into
-/// [`SEGMENTS`] consecutive segments and read as that many chains by
-/// `exact_fast::diagnose` (rank-normalised split-R-hat, bulk and tail ESS, the worst over
-/// the parameters). It sees a chain that has not settled — a drift, a slow excursion —
-/// not a mode the one chain never visited.
+/// The within-chain split diagnostic of the one long chain (`exact_fast::within_chain`:
+/// its thinned draws cut into [`SEGMENTS`] consecutive segments read as that many chains;
+/// rank-normalised split-R-hat, bulk and tail ESS, the worst over the parameters).
 fn within_chain(draws: &[Vec<f64>]) -> serde_json::Value {
-    let per = draws.len() / SEGMENTS;
-    let parts: Vec<Vec<Vec<f64>>> = draws.chunks_exact(per.max(1)).take(SEGMENTS).map(<[_]>::to_vec).collect();
-    let (rhat, ess_bulk, ess_tail, _) = crate::discrepancy::exact_fast::diagnose(&parts);
-    serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "segments": SEGMENTS, "draws": per * SEGMENTS })
+    let (rhat, ess_bulk, ess_tail, n) = crate::discrepancy::exact_fast::within_chain(draws, SEGMENTS);
+    serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "segments": SEGMENTS, "draws": n })
 }
 
 #[cfg(test)]
