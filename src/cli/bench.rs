@@ -240,13 +240,14 @@ fn posterior(
     let t = Instant::now();
     let report = posterior::run(&npe, &p, &mut |outcome| match outcome {
         Ok(e) => eprintln!(
-            "ear {} ({}): flow {:.2} s, exact {:.1} s, C2ST {:.3}, acceptance {:.2} ({:.0} s)",
+            "ear {} ({}): flow {:.2} s, exact {:.1} s, C2ST {:.3}, acceptance {:.2}, chain's R-hat {:.3} ({:.0} s)",
             e.ear,
             e.kind,
             e.flow_seconds,
             e.exact_seconds,
             e.c2st,
             e.acceptance,
+            e.chain_rhat,
             t.elapsed().as_secs_f64()
         ),
         Err(s) => eprintln!("ear {} ({}): skipped: {}", s.ear, s.kind, s.reason),

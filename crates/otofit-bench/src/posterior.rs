@@ -24,6 +24,7 @@
 use crate::c2st::{self, C2stParams};
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
+use otofit_discrepancy::discrepancy::exact_fast::within_chain;
 use otofit_discrepancy::discrepancy::fitcheck::{exact, simulator_for};
 use otofit_npe::npe::normal::{self, Differential};
 use otofit_npe::npe::prior::space;
@@ -334,7 +335,16 @@ pub struct EarResult {
     pub chi2_start: f64,
     /// Median χ² over the chain's draws.
     pub chi2_median: f64,
+    /// The chain's within-chain R-hat (its draws in [`SEGMENTS`] consecutive segments, as
+    /// the `exact` job reports it): above [`SETTLED_RHAT`] the reference has not settled.
+    pub chain_rhat: f64,
 }
+
+/// Consecutive segments of the chain read as chains for its R-hat (the `exact` job's).
+pub const SEGMENTS: usize = 4;
+
+/// Largest within-chain R-hat of a chain counted as settled (the short chains' threshold).
+pub const SETTLED_RHAT: f64 = 1.05;
 
 /// An ear that could not be scored, and why.
 #[derive(Clone, Debug, Serialize)]
@@ -441,6 +451,7 @@ fn one_ear(npe: &Npe, i: usize, ear: &Ear, x: &[f64], p: &PosteriorParams) -> Re
         chain_draws: chain.len(),
         chi2_start: ex.chain.chi2_start,
         chi2_median: ex.chain.chi2_median,
+        chain_rhat: within_chain(chain, SEGMENTS).0,
     })
 }
 
@@ -466,7 +477,15 @@ pub fn summarize(per_ear: &[EarResult]) -> (Vec<ParamSummary>, Vec<GroupSummary>
         .collect();
     let all: Vec<&EarResult> = per_ear.iter().collect();
     let (prior, degenerate): (Vec<&EarResult>, Vec<&EarResult>) = all.iter().partition(|e| e.kind == "prior");
-    let groups = vec![group("all", &all), group("prior", &prior), group("degeneracy", &degenerate)];
+    // The reference's own diagnostic: widths against a chain that has not settled say
+    // little, so the settled ears are pooled apart too.
+    let settled: Vec<&EarResult> = all.iter().copied().filter(|e| e.chain_rhat <= SETTLED_RHAT).collect();
+    let groups = vec![
+        group("all", &all),
+        group("prior", &prior),
+        group("degeneracy", &degenerate),
+        group("chain settled", &settled),
+    ];
     (per_param, groups)
 }
 
@@ -669,6 +688,7 @@ mod tests {
                     chain_draws: chain.len(),
                     chi2_start: 0.0,
                     chi2_median: 0.0,
+                    chain_rhat: if i % 4 == 0 { 1.2 } else { 1.0 },
                 }
             })
             .collect();
@@ -692,7 +712,7 @@ mod tests {
         assert!((width - 2.0 * 1.6449).abs() < 0.05, "the log parameter's 90 % width in log10 units: {width}");
         assert_eq!(
             groups.iter().map(|g| (g.group, g.ears)).collect::<Vec<_>>(),
-            [("all", 101), ("prior", 51), ("degeneracy", 50)]
+            [("all", 101), ("prior", 51), ("degeneracy", 50), ("chain settled", 75)]
         );
         assert_eq!(groups[0].c2st_median, 50.0);
         assert_eq!(groups[0].pooled.pairs, 202);
