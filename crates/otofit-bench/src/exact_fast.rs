@@ -16,7 +16,7 @@ use crate::posterior::{
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
 use otofit_discrepancy::discrepancy::exact_fast::{self, Settings};
-use otofit_discrepancy::discrepancy::fitcheck::{exact, simulator_for};
+use otofit_discrepancy::discrepancy::fitcheck::{CHAIN_SEGMENTS, exact, simulator_for};
 use otofit_npe::npe::{Npe, Obs};
 use otofit_npe::stats;
 use otofit_sim::N_TISSUE;
@@ -185,7 +185,7 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
         c2st = Some(c2st_of(npe, &long.chain.samples, &fast.samples, seed));
         c2st_flow = Some(c2st_of(npe, &long.chain.samples, &inf.samples, seed));
         long_scores = Some(marginals(tissue, truth, &long.chain.samples));
-        long_rhat = Some(exact_fast::within_chain(&long.chain.samples, 4).0);
+        long_rhat = Some(exact_fast::within_chain(&long.chain.samples, CHAIN_SEGMENTS).0);
     }
     let g = &fast.diagnostics;
     Ok(FastEar {

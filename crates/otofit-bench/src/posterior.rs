@@ -25,7 +25,7 @@ use crate::c2st::{self, C2stParams};
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
 use otofit_discrepancy::discrepancy::exact_fast::within_chain;
-use otofit_discrepancy::discrepancy::fitcheck::{exact, simulator_for};
+use otofit_discrepancy::discrepancy::fitcheck::{CHAIN_SEGMENTS, SETTLED_RHAT, exact, simulator_for};
 use otofit_npe::npe::normal::{self, Differential};
 use otofit_npe::npe::prior::space;
 use otofit_npe::npe::{Npe, Obs, Param};
@@ -335,16 +335,11 @@ pub struct EarResult {
     pub chi2_start: f64,
     /// Median χ² over the chain's draws.
     pub chi2_median: f64,
-    /// The chain's within-chain R-hat (its draws in [`SEGMENTS`] consecutive segments, as
-    /// the `exact` job reports it): above [`SETTLED_RHAT`] the reference has not settled.
+    /// The chain's within-chain R-hat (its draws in `CHAIN_SEGMENTS` consecutive segments,
+    /// as the `exact` job reports it): above `SETTLED_RHAT` the reference has not settled
+    /// and its reading is withdrawn.
     pub chain_rhat: f64,
 }
-
-/// Consecutive segments of the chain read as chains for its R-hat (the `exact` job's).
-pub const SEGMENTS: usize = 4;
-
-/// Largest within-chain R-hat of a chain counted as settled (the short chains' threshold).
-pub const SETTLED_RHAT: f64 = 1.05;
 
 /// An ear that could not be scored, and why.
 #[derive(Clone, Debug, Serialize)]
@@ -451,7 +446,7 @@ fn one_ear(npe: &Npe, i: usize, ear: &Ear, x: &[f64], p: &PosteriorParams) -> Re
         chain_draws: chain.len(),
         chi2_start: ex.chain.chi2_start,
         chi2_median: ex.chain.chi2_median,
-        chain_rhat: within_chain(chain, SEGMENTS).0,
+        chain_rhat: within_chain(chain, CHAIN_SEGMENTS).0,
     })
 }
 

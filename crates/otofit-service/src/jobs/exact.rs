@@ -83,15 +83,13 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
     }))
 }
 
-/// Consecutive segments the long chain's draws are cut into for its diagnostics.
-const SEGMENTS: usize = 4;
-
 /// The within-chain split diagnostic of the one long chain (`exact_fast::within_chain`:
-/// its thinned draws cut into [`SEGMENTS`] consecutive segments read as that many chains;
+/// its thinned draws cut into `fitcheck::CHAIN_SEGMENTS` consecutive segments read as that many chains;
 /// rank-normalised split-R-hat, bulk and tail ESS, the worst over the parameters).
 fn within_chain(draws: &[Vec<f64>]) -> serde_json::Value {
-    let (rhat, ess_bulk, ess_tail, n) = crate::discrepancy::exact_fast::within_chain(draws, SEGMENTS);
-    serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "segments": SEGMENTS, "draws": n })
+    use crate::discrepancy::fitcheck::CHAIN_SEGMENTS;
+    let (rhat, ess_bulk, ess_tail, n) = crate::discrepancy::exact_fast::within_chain(draws, CHAIN_SEGMENTS);
+    serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "segments": CHAIN_SEGMENTS, "draws": n })
 }
 
 #[cfg(test)]
