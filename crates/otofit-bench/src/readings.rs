@@ -308,14 +308,16 @@ pub struct ReadingsParams {
     pub exact_steps: Option<usize>,
 }
 
-/// Reads one ear as `otofit infer` does (`--exact`: from the chain's draws).
+/// Reads one ear as `otofit infer` does (`--exact`: from the chain's draws, withdrawn
+/// when the chain has not settled).
 fn read(npe: &Npe, truth: Vec<f64>, x: &[f64], present: &[bool], seed: u64, p: &ReadingsParams) -> Result<EarReading> {
     let inf = npe.infer(&Obs { x, present: Some(present) }, SAMPLES, seed)?;
-    let chain = match p.exact_steps {
-        Some(steps) => Some(exact(npe, x, present, &inf, steps, seed)?.chain.samples),
-        None => None,
-    };
-    let (d, fit) = checked_reading(npe, x, present, &inf, chain.as_ref().unwrap_or(&inf.samples));
+    let chain = p.exact_steps.map(|steps| exact(npe, x, present, &inf, steps, seed)).transpose()?;
+    let (mut d, fit) =
+        checked_reading(npe, x, present, &inf, chain.as_ref().map_or(&inf.samples, |c| &c.chain.samples));
+    if let Some(why) = chain.as_ref().and_then(|c| c.unsettled()) {
+        otofit_npe::npe::normal::withdraw(&mut d, &why);
+    }
     let fit = fit?;
     let of = |k: usize| d.iter().find(|r| r.name == PARAMS[k].name);
     let readings = (0..N_TISSUE).map(|k| of(k).map_or("none", |r| r.reading)).collect();
