@@ -327,7 +327,7 @@ mod tests {
             c2st: None,
             c2st_flow: None,
             long_seconds: None,
-            long: long.clone(),
+            long,
             long_rhat: None,
         }
     }

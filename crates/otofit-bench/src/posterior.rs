@@ -335,9 +335,10 @@ pub struct EarResult {
     pub chi2_start: f64,
     /// Median χ² over the chain's draws.
     pub chi2_median: f64,
-    /// The chain's within-chain R-hat (its draws in `CHAIN_SEGMENTS` consecutive segments,
-    /// as the `exact` job reports it): above `SETTLED_RHAT` the reference has not settled
-    /// and its reading is withdrawn.
+    /// The chain's within-chain R-hat over all its coordinates (its draws in
+    /// `CHAIN_SEGMENTS` consecutive segments, as the `exact` job's `diagnostics` report
+    /// it): above `SETTLED_RHAT` the reference has not settled. The reading's own rule
+    /// (`ExactPosterior::unsettled`) judges the seven tissue coordinates alone.
     pub chain_rhat: f64,
 }
 
