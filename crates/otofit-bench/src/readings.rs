@@ -315,10 +315,12 @@ fn read(npe: &Npe, truth: Vec<f64>, x: &[f64], present: &[bool], seed: u64, p: &
     let chain = p.exact_steps.map(|steps| exact(npe, x, present, &inf, steps, seed)).transpose()?;
     let (mut d, fit) =
         checked_reading(npe, x, present, &inf, chain.as_ref().map_or(&inf.samples, |c| &c.chain.samples));
-    if let Some(why) = chain.as_ref().and_then(|c| c.unsettled()) {
-        otofit_npe::npe::normal::withdraw(&mut d, &why);
-    }
     let fit = fit?;
+    if let Some(c) = &chain {
+        // The exact job's reading: the fit check's withdrawal and the unsettled parameters'.
+        let misfit = (fit.ok == Some(false)).then(|| fit.reason.clone().unwrap_or_default());
+        d = c.reading(npe, misfit.as_deref());
+    }
     let of = |k: usize| d.iter().find(|r| r.name == PARAMS[k].name);
     let readings = (0..N_TISSUE).map(|k| of(k).map_or("none", |r| r.reading)).collect();
     let p_outside = (0..N_TISSUE).map(|k| of(k).map_or([f64::NAN; 2], |r| [r.p_below, r.p_above])).collect();

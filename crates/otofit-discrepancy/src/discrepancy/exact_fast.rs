@@ -367,10 +367,21 @@ where
 /// draws used). It sees a chain that has not settled — a drift, a slow excursion — not a
 /// mode the one chain never visited.
 pub fn within_chain(draws: &[Vec<f64>], segments: usize) -> (f64, f64, f64, usize) {
+    let (rhat, ess_bulk, ess_tail, _) = diagnose(&cut(draws, segments));
     let per = draws.len() / segments.max(1);
-    let parts: Vec<Vec<Vec<f64>>> = draws.chunks_exact(per.max(1)).take(segments).map(<[_]>::to_vec).collect();
-    let (rhat, ess_bulk, ess_tail, _) = diagnose(&parts);
     (rhat, ess_bulk, ess_tail, per * segments)
+}
+
+/// [`within_chain`]'s R̂ per coordinate: one coordinate that has not settled leaves the
+/// others' marginals readable, and a reading reads marginals.
+pub fn within_chain_rhats(draws: &[Vec<f64>], segments: usize) -> Vec<f64> {
+    diagnose(&cut(draws, segments)).3.iter().map(|c| c[0]).collect()
+}
+
+/// `draws` cut into `segments` consecutive equal parts (the remainder dropped).
+fn cut(draws: &[Vec<f64>], segments: usize) -> Vec<Vec<Vec<f64>>> {
+    let per = draws.len() / segments.max(1);
+    draws.chunks_exact(per.max(1)).take(segments).map(<[_]>::to_vec).collect()
 }
 
 /// Why a run is not exact, or `None` when it is.

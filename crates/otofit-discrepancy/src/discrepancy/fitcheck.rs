@@ -363,35 +363,47 @@ pub const CHAIN_SEGMENTS: usize = 4;
 pub const SETTLED_RHAT: f64 = 1.05;
 
 impl ExactPosterior {
-    /// Why the chain's draws cannot be read although they exist: the within-chain R-hat
-    /// (the draws in [`CHAIN_SEGMENTS`] consecutive segments read as chains) of the tissue
-    /// parameters — the coordinates the reading reads; a nuisance still wandering does not
-    /// move their marginals' reading — above [`SETTLED_RHAT`], or not a number (a
-    /// coordinate that never moved). `None` when they settled. Measured on the default
-    /// model, about half the chains had not (docs/results/posterior.md, readings.md).
-    pub fn unsettled(&self) -> Option<String> {
+    /// Why each tissue parameter's draws (design order) cannot be read although they
+    /// exist: its within-chain R-hat (the draws in [`CHAIN_SEGMENTS`] consecutive
+    /// segments read as chains) above [`SETTLED_RHAT`], or not a number (it never moved);
+    /// `None` where it settled. Judged per parameter because a reading reads marginals:
+    /// one parameter still wandering along a ridge leaves another's settled marginal
+    /// readable, and where the wandering moves that marginal too its own R-hat says so.
+    /// Measured on the default model, about half the chains had some tissue parameter
+    /// unsettled at 100,000 steps (docs/results/posterior.md, readings.md).
+    pub fn unsettled(&self) -> Vec<Option<String>> {
         let tissue: Vec<Vec<f64>> =
             self.chain.samples.iter().map(|d| d.iter().take(crate::sim::params::N_TISSUE).copied().collect()).collect();
-        let (rhat, ..) = super::exact_fast::within_chain(&tissue, CHAIN_SEGMENTS);
-        (rhat.is_nan() || rhat > SETTLED_RHAT).then(|| {
-            format!(
-                "the chain has not settled: within-chain R-hat of the tissue parameters {rhat:.3} > {SETTLED_RHAT} (run \
-                 it longer or with another seed)"
-            )
-        })
+        let rhats = super::exact_fast::within_chain_rhats(&tissue, CHAIN_SEGMENTS);
+        (0..crate::sim::params::N_TISSUE)
+            .map(|k| {
+                let rhat = rhats.get(k).copied().unwrap_or(f64::NAN);
+                (rhat.is_nan() || rhat > SETTLED_RHAT).then(|| {
+                    format!(
+                        "the chain has not settled in this parameter: within-chain R-hat {rhat:.3} > {SETTLED_RHAT} \
+                         (run it longer or with another seed)"
+                    )
+                })
+            })
+            .collect()
     }
 
-    /// The normal-range reading of the chain's draws, withdrawn (every parameter
-    /// `unreliable`, with the reason) when the fit check failed (`withdrawn`, its reason)
-    /// or the chain has not settled ([`Self::unsettled`]).
+    /// The normal-range reading of the chain's draws: every parameter withdrawn
+    /// (`unreliable`, with the reason) when the fit check failed (`withdrawn`, its
+    /// reason), and each tissue parameter whose chain has not settled
+    /// ([`Self::unsettled`]) with that reason too.
     pub fn reading(&self, npe: &Npe, withdrawn: Option<&str>) -> Vec<crate::npe::normal::Differential> {
         let mut reading = crate::npe::normal::read(npe.params(), &self.chain.samples);
-        let why = match (withdrawn, self.unsettled()) {
-            (Some(w), Some(u)) => Some(format!("{w}; {u}")),
-            (w, u) => w.map(str::to_string).or(u),
-        };
-        if let Some(why) = why {
-            crate::npe::normal::withdraw(&mut reading, &why);
+        let unsettled = self.unsettled();
+        for r in &mut reading {
+            let k = npe.params().iter().position(|p| p.name == r.name);
+            let why = match (withdrawn, k.and_then(|k| unsettled.get(k).cloned().flatten())) {
+                (Some(w), Some(u)) => Some(format!("{w}; {u}")),
+                (w, u) => w.map(str::to_string).or(u),
+            };
+            if let Some(why) = why {
+                crate::npe::normal::withdraw(std::slice::from_mut(r), &why);
+            }
         }
         reading
     }
@@ -500,9 +512,10 @@ mod tests {
         assert_eq!(seen, [Some(true), Some(false)], "the shipped ear must fit and the rippled one must not");
     }
 
-    /// A long chain whose later half has drifted (E_sal moved by 20 % against a spread of
-    /// 0.5 %) has not settled, and its reading is withdrawn with that reason, beside the
-    /// fit check's when both apply; the same draws without the drift keep their reading.
+    /// A long chain whose later half has drifted in E_sal (moved by 20 % against a
+    /// spread of 0.5 %) has not settled in E_sal: that reading is withdrawn with the
+    /// reason, beside the fit check's when both apply, and the settled parameters keep
+    /// theirs; the same draws without the drift keep every reading.
     #[test]
     fn an_unsettled_long_chain_withdraws_its_reading() {
         use rand::SeedableRng;
@@ -547,17 +560,27 @@ mod tests {
             ms: 0.0,
         };
         let (steady, drifted, nuisance) = (posterior(steady), posterior(drifted), posterior(nuisance));
-        assert_eq!(steady.unsettled(), None);
-        assert_eq!(nuisance.unsettled(), None);
+        let settled = |p: &ExactPosterior| p.unsettled().iter().all(Option::is_none);
+        assert!(settled(&steady) && settled(&nuisance));
         assert!(steady.reading(&npe, None).iter().all(|r| r.reading != "unreliable"));
-        let why = drifted.unsettled().expect("a drifted chain is unsettled");
-        assert!(why.contains("has not settled"), "{why}");
-        let read = drifted.reading(&npe, None);
-        assert!(
-            read.iter().all(|r| r.reading == "unreliable" && r.reason.as_deref() == Some(why.as_str())),
-            "{read:?}"
+        let flags = drifted.unsettled();
+        assert_eq!(
+            flags.iter().map(Option::is_some).collect::<Vec<_>>(),
+            (0..crate::sim::params::N_TISSUE).map(|k| k == 3).collect::<Vec<_>>()
         );
+        let why = flags[3].clone().unwrap();
+        assert!(why.contains("has not settled"), "{why}");
+        let name = &npe.params()[3].name;
+        let read = drifted.reading(&npe, None);
+        for r in &read {
+            let expected = (&r.name == name).then_some(why.as_str());
+            assert_eq!(r.reason.as_deref(), expected, "{read:?}");
+            assert_eq!(r.reading == "unreliable", expected.is_some(), "{read:?}");
+        }
         let both = drifted.reading(&npe, Some("misfit"));
-        assert!(both.iter().all(|r| r.reason.as_deref() == Some(format!("misfit; {why}").as_str())), "{both:?}");
+        for r in &both {
+            let expected = if &r.name == name { format!("misfit; {why}") } else { "misfit".into() };
+            assert_eq!(r.reason.as_deref(), Some(expected.as_str()), "{both:?}");
+        }
     }
 }
