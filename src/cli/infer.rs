@@ -54,10 +54,10 @@ pub struct InferArgs {
     #[arg(long, default_value_t = 0, conflicts_with = "log_prob")]
     pub refine: usize,
     /// Also sample the posterior under the model's own likelihood (Gaussian noise of the
-    /// training, the prior boxes) by this many Metropolis steps, one simulation each
-    /// (0 = off, else 100000..=200000: 100000, about 10 s, is the length measured
-    /// calibrated; 20000 under-covered), started
-    /// at the best of sixteen least-squares fits; reported under `exact` with its own
+    /// training, the prior boxes) by this many Metropolis steps, one simulation each, in
+    /// four chains side by side (0 = off, else 100000..=200000: 100000, about 10 s on two
+    /// cores, is the length measured calibrated), beside the best of sixteen
+    /// least-squares fits; reported under `exact` with its own
     /// summaries and differential reading. Much narrower than the flow's posterior, and
     /// exact only when the model fits the ear (docs/npe.md, "The flow's posterior against
     /// the likelihood's").

@@ -5,7 +5,8 @@
 //! draws, half near the model's degeneracies; 1× test–retest noise). On every ear: the
 //! short chains' 50 % and 90 % coverage of the truth per tissue parameter, their
 //! diagnostics (R-hat, ESS, `exact`) and wall time. On the first `reference` ears also
-//! the long chain (`discrepancy::exact`, 100,000 steps by default) and the C2ST between
+//! the long chains (`fitcheck::exact`, the `exact` job's four chains of 25,000 steps by
+//! default) and the C2ST between
 //! its draws and the short chains' over the tissue parameters: the short chains sample
 //! the same posterior when it is near 0.5.
 
@@ -16,7 +17,7 @@ use crate::posterior::{
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
 use otofit_discrepancy::discrepancy::exact_fast::{self, Settings};
-use otofit_discrepancy::discrepancy::fitcheck::{CHAIN_SEGMENTS, exact, simulator_for};
+use otofit_discrepancy::discrepancy::fitcheck::{exact, simulator_for};
 use otofit_npe::npe::{Npe, Obs};
 use otofit_npe::stats;
 use otofit_sim::N_TISSUE;
@@ -84,11 +85,10 @@ pub struct FastEar {
     pub c2st_flow: Option<f64>,
     /// Wall time of the long chain.
     pub long_seconds: Option<f64>,
-    /// The long chain's own scores per tissue parameter (reference ears): the reference is
-    /// one chain from one start, so it is checked against the truth too.
+    /// The long chains' own scores per tissue parameter (reference ears): the reference is
+    /// a sampler too, so it is checked against the truth.
     pub long: Option<Vec<Marginal>>,
-    /// The long chain's within-chain R-hat (its draws in 4 consecutive segments, as the
-    /// `exact` job reports it).
+    /// The long chains' R-hat across the chains, as the `exact` job reports it.
     pub long_rhat: Option<f64>,
 }
 
@@ -185,7 +185,7 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
         c2st = Some(c2st_of(npe, &long.chain.samples, &fast.samples, seed));
         c2st_flow = Some(c2st_of(npe, &long.chain.samples, &inf.samples, seed));
         long_scores = Some(marginals(tissue, truth, &long.chain.samples));
-        long_rhat = Some(exact_fast::within_chain(&long.chain.samples, CHAIN_SEGMENTS).0);
+        long_rhat = Some(exact_fast::within_chain(&long.chain.samples, long.chain.chains).0);
     }
     let g = &fast.diagnostics;
     Ok(FastEar {

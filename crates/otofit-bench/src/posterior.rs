@@ -1,6 +1,7 @@
 //! The shipped amortized posterior (the flow of a model such as `models/default.otofit`)
 //! against the posterior under the model's own likelihood (`discrepancy::exact`:
-//! least-squares fits from the flow's MAP and draws, then an adaptive Metropolis chain),
+//! least-squares fits from the flow's MAP and draws, and four adaptive Metropolis chains
+//! in the flow's latent space),
 //! on held-out simulated ears: `otofit bench posterior`.
 //!
 //! The flow is trained to be calibrated on average over the prior; the chain is exact for
@@ -25,7 +26,7 @@ use crate::c2st::{self, C2stParams};
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
 use otofit_discrepancy::discrepancy::exact_fast::within_chain;
-use otofit_discrepancy::discrepancy::fitcheck::{CHAIN_SEGMENTS, SETTLED_RHAT, exact, simulator_for};
+use otofit_discrepancy::discrepancy::fitcheck::{SETTLED_RHAT, exact, simulator_for};
 use otofit_npe::npe::normal::{self, Differential};
 use otofit_npe::npe::prior::space;
 use otofit_npe::npe::{Npe, Obs, Param};
@@ -74,8 +75,9 @@ pub enum End {
 
 impl End {
     /// The band of box positions drawn from: near the end, not on it, so that the
-    /// truth stays representable (the chain works in logit coordinates and the reading
-    /// calls a posterior piled within 2.5 % of a bound undetermined).
+    /// truth stays representable (the flow, which the chains work through, has no mass
+    /// on a bound, and the reading calls a posterior piled within 2.5 % of a bound
+    /// undetermined).
     pub fn band(self) -> (f64, f64) {
         match self {
             End::Low => (0.03, 0.15),
@@ -335,10 +337,9 @@ pub struct EarResult {
     pub chi2_start: f64,
     /// Median χ² over the chain's draws.
     pub chi2_median: f64,
-    /// The chain's within-chain R-hat over all its coordinates (its draws in
-    /// `CHAIN_SEGMENTS` consecutive segments, as the `exact` job's `diagnostics` report
-    /// it): above `SETTLED_RHAT` the reference has not settled. The reading's own rule
-    /// (`ExactPosterior::unsettled`) judges the seven tissue coordinates alone.
+    /// The chains' R-hat over all their coordinates (as the `exact` job's `diagnostics`
+    /// report it): above `SETTLED_RHAT` the reference has not settled. The reading's own
+    /// rule (`ExactPosterior::unsettled`) judges each tissue coordinate alone.
     pub chain_rhat: f64,
 }
 
@@ -447,7 +448,7 @@ fn one_ear(npe: &Npe, i: usize, ear: &Ear, x: &[f64], p: &PosteriorParams) -> Re
         chain_draws: chain.len(),
         chi2_start: ex.chain.chi2_start,
         chi2_median: ex.chain.chi2_median,
-        chain_rhat: within_chain(chain, CHAIN_SEGMENTS).0,
+        chain_rhat: within_chain(chain, ex.chain.chains).0,
     })
 }
 

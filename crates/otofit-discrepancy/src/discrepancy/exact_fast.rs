@@ -2,8 +2,9 @@
 //! flow's latent space from dispersed starts, with the diagnostics that say whether they
 //! agree.
 //!
-//! [`super::exact`] runs one long chain (100,000 steps, about 10 s) from the best of
-//! sixteen least-squares fits. This runs [`Settings::chains`] chains at once, one rayon
+//! [`super::fitcheck::exact`] runs four long chains of this kernel (100,000 steps in
+//! all, about 10 s on two cores) for the `exact` job. This runs [`Settings::chains`]
+//! short chains at once, one rayon
 //! task each, under a deadline, in the flow's base space: θ = T(z; x) is the flow's
 //! sampling map for the observation ([`crate::npe::LatentMap`]), and the chains target
 //! log p(x | T(z)) + log p(T(z)) + log |det ∂T/∂z|, whose push-forward through T is the

@@ -17,7 +17,7 @@ pub struct ExactParams {
     /// The observation: the model's features in its order (see GET /models/{id}), `null`
     /// for a feature not measured. A patient's measurement: shown to its tenant only.
     pub x: Vec<Option<f64>>,
-    /// Metropolis steps, one simulation each (default 100,000, the length measured
+    /// Metropolis steps of the four chains together, one simulation each (default 100,000, the length measured
     /// calibrated).
     #[serde(default = "steps")]
     pub steps: usize,
@@ -70,7 +70,7 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
         _ => None,
     };
     let fit = fit.map_or_else(|e| serde_json::json!({ "ok": null, "reason": e.to_string() }), |f| serde_json::json!(f));
-    let diagnostics = within_chain(&ex.chain.samples);
+    let diagnostics = across_chains(&ex.chain.samples, ex.chain.chains);
     r.still_ours(ctx)?;
     Ok(serde_json::json!({
         "model": id,
@@ -83,13 +83,12 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
     }))
 }
 
-/// The within-chain split diagnostic of the one long chain (`exact_fast::within_chain`:
-/// its thinned draws cut into `fitcheck::CHAIN_SEGMENTS` consecutive segments read as that many chains;
-/// rank-normalised split-R-hat, bulk and tail ESS, the worst over the parameters).
-fn within_chain(draws: &[Vec<f64>]) -> serde_json::Value {
-    use crate::discrepancy::fitcheck::CHAIN_SEGMENTS;
-    let (rhat, ess_bulk, ess_tail, n) = crate::discrepancy::exact_fast::within_chain(draws, CHAIN_SEGMENTS);
-    serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "segments": CHAIN_SEGMENTS, "draws": n })
+/// The chains' diagnostic: their kept draws (chain after chain) cut into `chains`
+/// segments, one per chain, read by `exact_fast::within_chain` (rank-normalised split
+/// R-hat, bulk and tail ESS, the worst over the parameters).
+fn across_chains(draws: &[Vec<f64>], chains: usize) -> serde_json::Value {
+    let (rhat, ess_bulk, ess_tail, n) = crate::discrepancy::exact_fast::within_chain(draws, chains);
+    serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "chains": chains, "draws": n })
 }
 
 #[cfg(test)]
@@ -97,17 +96,17 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_chain_that_drifts_is_flagged_by_its_segments() {
-        // Draws alternating ±1 (one coordinate) around a level that climbs from 0 to 6:
-        // the segments disagree. A sequence that repeats every 1,000 draws (each segment
-        // the same values) does not.
+    fn chains_that_disagree_are_flagged() {
+        // Draws alternating ±1 (one coordinate) around a level that climbs from 0 to 6
+        // over four chains of 1,000: the chains disagree. Four chains of the same values
+        // do not.
         let drift: Vec<Vec<f64>> =
             (0..4000).map(|t| vec![6.0 * t as f64 / 4000.0 + if t % 2 == 0 { 1.0 } else { -1.0 }]).collect();
-        let d = within_chain(&drift);
+        let d = across_chains(&drift, 4);
         assert!(d["rhat"].as_f64().unwrap() > 1.5, "{d}");
-        assert_eq!((d["segments"].as_u64(), d["draws"].as_u64()), (Some(4), Some(4000)), "{d}");
+        assert_eq!((d["chains"].as_u64(), d["draws"].as_u64()), (Some(4), Some(4000)), "{d}");
         let flat: Vec<Vec<f64>> = (0..4000).map(|t| vec![((t * 7919) % 1000) as f64]).collect();
-        let d = within_chain(&flat);
+        let d = across_chains(&flat, 4);
         assert!(d["rhat"].as_f64().unwrap() < 1.05, "{d}");
     }
 }
