@@ -363,10 +363,11 @@ where
     Some(Run { chains, images, exact: reason.is_none(), reason, diagnostics })
 }
 
-/// The within-chain split diagnostic of one long chain: its draws cut into `segments`
-/// consecutive segments read as that many chains by [`diagnose`]; (R̂, bulk ESS, tail ESS,
-/// draws used). It sees a chain that has not settled — a drift, a slow excursion — not a
-/// mode the one chain never visited.
+/// Draws cut into `segments` consecutive equal segments read as that many chains by
+/// [`diagnose`]; (R̂, bulk ESS, tail ESS, draws used). On one chain's draws it sees a
+/// chain that has not settled — a drift, a slow excursion — not a mode the chain never
+/// visited; on the draws of equal chains stored one after another (the `exact` job's,
+/// `segments` their number) it compares the chains.
 pub fn within_chain(draws: &[Vec<f64>], segments: usize) -> (f64, f64, f64, usize) {
     let (rhat, ess_bulk, ess_tail, _) = diagnose(&cut(draws, segments));
     let per = draws.len() / segments.max(1);
