@@ -185,7 +185,7 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
         c2st = Some(c2st_of(npe, &long.chain.samples, &fast.samples, seed));
         c2st_flow = Some(c2st_of(npe, &long.chain.samples, &inf.samples, seed));
         long_scores = Some(marginals(tissue, truth, &long.chain.samples));
-        long_rhat = Some(exact_fast::within_chain(&long.chain.samples, long.chain.chains).0);
+        long_rhat = Some(exact_fast::by_segments(&long.chain.samples, long.chain.chains).0);
     }
     let g = &fast.diagnostics;
     Ok(FastEar {

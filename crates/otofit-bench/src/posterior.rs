@@ -25,7 +25,7 @@
 use crate::c2st::{self, C2stParams};
 use anyhow::{Result, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
-use otofit_discrepancy::discrepancy::exact_fast::within_chain;
+use otofit_discrepancy::discrepancy::exact_fast::by_segments;
 use otofit_discrepancy::discrepancy::fitcheck::{SETTLED_RHAT, exact, simulator_for};
 use otofit_npe::npe::normal::{self, Differential};
 use otofit_npe::npe::prior::space;
@@ -448,7 +448,7 @@ fn one_ear(npe: &Npe, i: usize, ear: &Ear, x: &[f64], p: &PosteriorParams) -> Re
         chain_draws: chain.len(),
         chi2_start: ex.chain.chi2_start,
         chi2_median: ex.chain.chi2_median,
-        chain_rhat: within_chain(chain, ex.chain.chains).0,
+        chain_rhat: by_segments(chain, ex.chain.chains).0,
     })
 }
 

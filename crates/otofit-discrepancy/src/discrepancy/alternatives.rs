@@ -52,7 +52,7 @@
 //! difference is at least half of it.
 
 use super::fit::{Fit, Observation, damped_step, feature_residual, residuals};
-use super::fitcheck::sigma;
+use super::fitcheck::{observation, sigma};
 use crate::npe::Npe;
 use crate::npe::normal::{Differential, NORMAL, NormalRange};
 use crate::sim::batch::Design;
@@ -472,8 +472,7 @@ pub fn fit_all(
     effects: &[EffectHypothesis],
     steps: usize,
 ) -> Vec<Hypothesis> {
-    let x = x.iter().zip(present).map(|(&v, &p)| if p { v } else { f64::NAN }).collect();
-    let obs = Observation { x, sigma: sigma(npe) };
+    let obs = observation(npe, x, present);
     let all: Vec<Option<Side>> = std::iter::once(None).chain(tested.iter().copied().map(Some)).collect();
     let tissue = all
         .par_iter()

@@ -34,11 +34,10 @@
 //! log density and knows nothing of the simulator, so it is tested on analytic targets.
 
 use super::exact::{cholesky, spd_inverse};
-use super::fit::{Observation, fit_columns, residuals};
-use super::fitcheck::{FitCheckError, sigma, simulator_for};
+use super::fit::{fit_columns, residuals};
+use super::fitcheck::{FitCheckError, observation, simulator_for};
 use crate::npe::{Inference, Npe};
 use crate::sim::batch::Design;
-use crate::sim::params::ParamSpec;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{ChiSquared, Distribution, StandardNormal};
@@ -368,15 +367,15 @@ where
 /// chain that has not settled — a drift, a slow excursion — not a mode the chain never
 /// visited; on the draws of equal chains stored one after another (the `exact` job's,
 /// `segments` their number) it compares the chains.
-pub fn within_chain(draws: &[Vec<f64>], segments: usize) -> (f64, f64, f64, usize) {
+pub fn by_segments(draws: &[Vec<f64>], segments: usize) -> (f64, f64, f64, usize) {
     let (rhat, ess_bulk, ess_tail, _) = diagnose(&cut(draws, segments));
     let per = draws.len() / segments.max(1);
     (rhat, ess_bulk, ess_tail, per * segments)
 }
 
-/// [`within_chain`]'s R̂ per coordinate: one coordinate that has not settled leaves the
+/// [`by_segments`]'s R̂ per coordinate: one coordinate that has not settled leaves the
 /// others' marginals readable, and a reading reads marginals.
-pub fn within_chain_rhats(draws: &[Vec<f64>], segments: usize) -> Vec<f64> {
+pub fn segment_rhats(draws: &[Vec<f64>], segments: usize) -> Vec<f64> {
     diagnose(&cut(draws, segments)).3.iter().map(|c| c[0]).collect()
 }
 
@@ -638,9 +637,9 @@ impl FastExact {
 
 /// The posterior of the features `x` that are `present` under `npe`'s simulator and
 /// training noise (as [`super::fitcheck::exact`]), from [`Settings::chains`] short chains
-/// in the flow's latent space ([`crate::npe::LatentMap`]) started at dispersed points
-/// z ~ N(0, [`START_SD`]² I), stopping at `deadline`; beside them a least-squares fit
-/// from the flow's MAP (`inf.map`) gives `map` and `reduced_chi2`.
+/// in the flow's latent space ([`latent_chains`]), stopping at `deadline`; beside them a
+/// least-squares fit from the flow's MAP (`inf.map`, [`Settings::fit_steps`] steps) gives
+/// `map` and `reduced_chi2`.
 pub fn sample(
     npe: &Npe,
     x: &[f64],
@@ -651,14 +650,66 @@ pub fn sample(
 ) -> Result<FastExact, FitCheckError> {
     let model = simulator_for(npe)?;
     let t0 = Instant::now();
+    let fit_from_map = || {
+        let design = Design::default();
+        let obs = observation(npe, x, present);
+        let mut runner = model.runner();
+        fit_columns(&design.columns(), &inf.map, s.fit_steps, |r| residuals(&mut runner, &design, r, &obs))
+    };
+    let (best, chains) = rayon::join(fit_from_map, || latent_chains(npe, x, present, s, deadline));
+    let chains = chains?;
+    let best = best.ok_or_else(|| FitCheckError::Inference("the simulator failed at the flow's MAP".into()))?;
+    Ok(FastExact {
+        exact: chains.reason.is_none(),
+        reason: chains.reason,
+        // No draws when the deadline came during the warm-up: nothing to summarise.
+        summaries: if chains.samples.is_empty() {
+            vec![]
+        } else {
+            crate::npe::summarize(npe.params(), &chains.samples, &best.row)
+        },
+        reduced_chi2: best.reduced_chi2(),
+        restarted: chains.restarted,
+        diagnostics: chains.diagnostics,
+        settings: chains.settings,
+        ms: t0.elapsed().as_secs_f64() * 1e3,
+        samples: chains.samples,
+    })
+}
+
+/// What [`latent_chains`] ran and drew.
+pub struct LatentChains {
+    /// All chains' draws (natural units, the model's parameter order), chain after chain,
+    /// each chain's the same length.
+    pub samples: Vec<Vec<f64>>,
+    /// R̂, ESS, acceptance, steps.
+    pub diagnostics: Diagnostics,
+    /// Why the draws are not exact, when not.
+    pub reason: Option<String>,
+    /// Chains whose first dispersed start had no density.
+    pub restarted: usize,
+    /// What was run (`chains` at least 2).
+    pub settings: Settings,
+}
+
+/// The chains of [`sample`] alone, without its fit: [`Settings::chains`] random walks in
+/// the flow's latent space ([`crate::npe::LatentMap`]) started at dispersed points
+/// z ~ N(0, [`START_SD`]² I), stopping at `deadline`. The `exact` job calls this beside
+/// its own sixteen fits, whose best already holds what a fit from the MAP would give.
+pub fn latent_chains(
+    npe: &Npe,
+    x: &[f64],
+    present: &[bool],
+    s: &Settings,
+    deadline: Instant,
+) -> Result<LatentChains, FitCheckError> {
+    let model = simulator_for(npe)?;
     let design = Design::default();
-    let cols: Vec<ParamSpec> = design.columns();
     let latent = npe
         .latent(&crate::npe::Obs { x, present: Some(present) })
         .map_err(|e| FitCheckError::Inference(e.to_string()))?;
     let d = latent.dim();
-    let x = x.iter().zip(present).map(|(&v, &p)| if p { v } else { f64::NAN }).collect();
-    let obs = Observation { x, sigma: sigma(npe) };
+    let obs = observation(npe, x, present);
     let chains = s.chains.max(2);
     let params = npe.params();
     // log p(x | θ) + log p(θ) + log |det ∂θ/∂z| at z, and θ. The prior is uniform on
@@ -695,15 +746,9 @@ pub fn sample(
             None
         })
         .collect();
-    let fit_from_map = || {
-        let mut runner = model.runner();
-        fit_columns(&cols, &inf.map, s.fit_steps, |r| residuals(&mut runner, &design, r, &obs))
-    };
     let settings = Settings { chains, ..s.clone() };
-    let (best, run) = rayon::join(fit_from_map, || run_chains_mapped(new_density, &starts, &settings, deadline));
-    let run = run.ok_or_else(|| FitCheckError::Inference("no chain could start in the flow's latent space".into()))?;
-    let best = best.ok_or_else(|| FitCheckError::Inference("the simulator failed at the flow's MAP".into()))?;
-    let samples: Vec<Vec<f64>> = run.images.iter().flatten().cloned().collect();
+    let run = run_chains_mapped(new_density, &starts, &settings, deadline)
+        .ok_or_else(|| FitCheckError::Inference("no chain could start in the flow's latent space".into()))?;
     let failed = chains - starts.len();
     let reason = match (run.reason, failed) {
         (r, 0) => r,
@@ -712,18 +757,8 @@ pub fn sample(
             Some(r.map_or(why.clone(), |r| format!("{why}; {r}")))
         }
     };
-    Ok(FastExact {
-        exact: reason.is_none(),
-        reason,
-        // No draws when the deadline came during the warm-up: nothing to summarise.
-        summaries: if samples.is_empty() { vec![] } else { crate::npe::summarize(params, &samples, &best.row) },
-        reduced_chi2: best.reduced_chi2(),
-        restarted,
-        diagnostics: run.diagnostics,
-        settings,
-        ms: t0.elapsed().as_secs_f64() * 1e3,
-        samples,
-    })
+    let samples = run.images.into_iter().flatten().collect();
+    Ok(LatentChains { samples, diagnostics: run.diagnostics, reason, restarted, settings })
 }
 
 /// Standard deviation of the chains' starting points in the flow's latent space: wider

@@ -93,6 +93,13 @@ pub fn simulator_for(npe: &Npe) -> Result<&'static Model, FitCheckError> {
     Ok(model)
 }
 
+/// The features `x` that are `present` (the others NaN: left out of every residual) with
+/// the noise `npe` was trained with: what the fits and chains compare simulations with.
+pub(crate) fn observation(npe: &Npe, x: &[f64], present: &[bool]) -> super::Observation {
+    let x = x.iter().zip(present).map(|(&v, &p)| if p { v } else { f64::NAN }).collect();
+    super::Observation { x, sigma: sigma(npe) }
+}
+
 /// Per-feature noise standard deviation the model was trained with (1× when trained
 /// noise-free: the measurement itself is never noise-free).
 pub(crate) fn sigma(npe: &Npe) -> Vec<f64> {
@@ -372,7 +379,7 @@ impl ExactPosterior {
     pub fn unsettled(&self) -> Vec<Option<String>> {
         let tissue: Vec<Vec<f64>> =
             self.chain.samples.iter().map(|d| d.iter().take(crate::sim::params::N_TISSUE).copied().collect()).collect();
-        let rhats = super::exact_fast::within_chain_rhats(&tissue, self.chain.chains);
+        let rhats = super::exact_fast::segment_rhats(&tissue, self.chain.chains);
         (0..crate::sim::params::N_TISSUE)
             .map(|k| {
                 let rhat = rhats.get(k).copied().unwrap_or(f64::NAN);
@@ -412,8 +419,8 @@ pub const EXACT_STARTS: usize = 16;
 
 /// Least-squares fits from the MAP and fifteen posterior draws (at most 50 steps each)
 /// for the best fit (`map`, `reduced_chi2`), and [`super::exact::CHAINS`] chains of the
-/// short chains' kernel ([`super::exact_fast::sample`]: a random walk in the flow's latent
-/// space from dispersed starts) of a quarter of `steps` (≤ [`super::exact::MAX_STEPS`])
+/// short chains' kernel ([`super::exact_fast::latent_chains`]: a random walk in the flow's
+/// latent space from dispersed starts) of a quarter of `steps` (≤ [`super::exact::MAX_STEPS`])
 /// each, a quarter of each warm-up, run side by side; every 10th kept step of each. The
 /// posterior of the features `x` that are `present` under the model's noise, exact up to
 /// the chains' sampling error, and only for an ear the model fits. Chains shorter than
@@ -430,8 +437,7 @@ pub fn exact(
     let sim = simulator_for(npe)?;
     let t0 = std::time::Instant::now();
     let design = Design::default();
-    let xs: Vec<f64> = x.iter().zip(present).map(|(&v, &p)| if p { v } else { f64::NAN }).collect();
-    let obs = super::Observation { x: xs, sigma: sigma(npe) };
+    let obs = observation(npe, x, present);
     // The best fit is the answer's `map`: fits from the MAP and fifteen posterior draws,
     // in parallel (one fit in sixteen ended 90 χ² units above the truth's own with five
     // starts; docs/npe.md).
@@ -452,7 +458,7 @@ pub fn exact(
     };
     // No deadline: a job or the command line asked for these steps.
     let far = std::time::Instant::now() + std::time::Duration::from_secs(24 * 3600);
-    let run = super::exact_fast::sample(npe, x, present, inf, &settings, far)?;
+    let run = super::exact_fast::latent_chains(npe, x, present, &settings, far)?;
     let chains = run.diagnostics.steps.len();
     let n = run.samples.len() / chains.max(1);
     let samples: Vec<Vec<f64>> = run.samples.chunks(n.max(1)).flat_map(|c| c.iter().step_by(10).cloned()).collect();
@@ -495,8 +501,7 @@ pub fn refine(npe: &Npe, x: &[f64], present: &[bool], map: &[f64], steps: usize)
     let sim = simulator_for(npe)?;
     let t0 = std::time::Instant::now();
     let design = Design::default();
-    let x = x.iter().zip(present).map(|(&v, &p)| if p { v } else { f64::NAN }).collect();
-    let obs = super::Observation { x, sigma: sigma(npe) };
+    let obs = observation(npe, x, present);
     let dof = |n: usize| n.saturating_sub(map.len()).max(1) as f64;
     let start = super::fit::residuals(&mut sim.runner(), &design, map, &obs)
         .map(|r| r.iter().map(|v| v * v).sum::<f64>() / dof(r.len()));

@@ -84,10 +84,10 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
 }
 
 /// The chains' diagnostic: their kept draws (chain after chain) cut into `chains`
-/// segments, one per chain, read by `exact_fast::within_chain` (rank-normalised split
+/// segments, one per chain, read by `exact_fast::by_segments` (rank-normalised split
 /// R-hat, bulk and tail ESS, the worst over the parameters).
 fn across_chains(draws: &[Vec<f64>], chains: usize) -> serde_json::Value {
-    let (rhat, ess_bulk, ess_tail, n) = crate::discrepancy::exact_fast::within_chain(draws, chains);
+    let (rhat, ess_bulk, ess_tail, n) = crate::discrepancy::exact_fast::by_segments(draws, chains);
     serde_json::json!({ "rhat": rhat, "ess_bulk": ess_bulk, "ess_tail": ess_tail, "chains": chains, "draws": n })
 }
 
