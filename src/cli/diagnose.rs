@@ -309,7 +309,8 @@ fn effect_rates(
         .iter()
         .map(|&(k, m)| if k == 0 { "–".into() } else { format!("{:.0}", 100.0 * m as f64 / k as f64) })
         .collect();
-    let limit = match detection_limit(&bins) {
+    // The readings benchmark's rule: every larger size bin named in ≥ 90 % of its cases.
+    let limit = match otofit_bench::readings::detectable_from(&bins) {
         Some(b) => {
             let edge = b as f64 / SIZE_BINS as f64;
             let u = if grows_downward(effect) { 1.0 - edge } else { edge };
@@ -382,13 +383,6 @@ fn grows_downward(effect: &crate::sim::params::EffectSpec) -> bool {
 /// first, that the naming rate is reported by.
 const SIZE_BINS: usize = 5;
 
-/// The detection limit's bin: the smallest bin from which every larger bin with cases
-/// names the effect in ≥ 90 % of them, with at least ten cases from it up (the readings
-/// benchmark's rule); `None` when no bin qualifies.
-fn detection_limit(bins: &[(usize, usize)]) -> Option<usize> {
-    otofit_bench::readings::detectable_from(bins)
-}
-
 /// One full diagnosis, retrain included, at full size: the wall time a user waits.
 fn full_diagnosis(draw: &Cases, base: &crate::npe::Npe, seed: u64) -> Result<()> {
     let leak = crate::sim::Effects::index("probe_leak").context("probe_leak is in the library")?;
@@ -451,16 +445,5 @@ mod tests {
         assert!(!tissue_reads(&row, "cochlear_load below"));
         row[6] = 1e10;
         assert!(tissue_reads(&row, "cochlear_load below") && !tissue_reads(&row, "cochlear_load above"));
-    }
-
-    #[test]
-    fn the_detection_limit_is_where_every_larger_size_is_named() {
-        assert_eq!(detection_limit(&[(4, 0), (4, 1), (4, 4), (4, 4), (4, 4)]), Some(2));
-        assert_eq!(detection_limit(&[(10, 9), (10, 10), (10, 8), (10, 10), (10, 10)]), Some(3));
-        assert_eq!(detection_limit(&[(4, 4), (4, 4), (4, 4), (4, 4), (4, 3)]), None);
-        assert_eq!(detection_limit(&[(6, 6), (0, 0), (6, 6)]), Some(0), "a bin without cases proves nothing");
-        // One named case, or a handful, is not a limit.
-        assert_eq!(detection_limit(&[(0, 0), (0, 0), (0, 0), (0, 0), (1, 1)]), None);
-        assert_eq!(detection_limit(&[(0, 0), (0, 0), (0, 0), (4, 4), (5, 5)]), None);
     }
 }

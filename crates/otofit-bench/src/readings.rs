@@ -584,4 +584,15 @@ mod tests {
         assert_eq!(distance_bin(2.0), 4);
         assert!((position(&PARAMS[0], PARAMS[0].from_unit(0.37)) - 0.37).abs() < 1e-12);
     }
+
+    #[test]
+    fn the_detection_limit_is_where_every_larger_size_is_named() {
+        assert_eq!(detectable_from(&[(4, 0), (4, 1), (4, 4), (4, 4), (4, 4)]), Some(2));
+        assert_eq!(detectable_from(&[(10, 9), (10, 10), (10, 8), (10, 10), (10, 10)]), Some(3));
+        assert_eq!(detectable_from(&[(4, 4), (4, 4), (4, 4), (4, 4), (4, 3)]), None);
+        assert_eq!(detectable_from(&[(6, 6), (0, 0), (6, 6)]), Some(0), "a bin without cases proves nothing");
+        // One named case, or a handful, is not a limit.
+        assert_eq!(detectable_from(&[(0, 0), (0, 0), (0, 0), (0, 0), (1, 1)]), None);
+        assert_eq!(detectable_from(&[(0, 0), (0, 0), (0, 0), (4, 4), (5, 5)]), None);
+    }
 }
