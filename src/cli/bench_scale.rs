@@ -21,8 +21,8 @@ pub struct ScaleArgs {
     /// Rows of the training table (the first rows of the simulated one).
     #[arg(long, default_value_t = 5_000)]
     pub train_rows: usize,
-    /// Training epochs timed at each thread count (batch 200, the default recipe); the
-    /// median epoch is reported.
+    /// Training epochs timed at each thread count (the default recipe: batches of a
+    /// tenth of the training rows, 64 to 1,000); the median epoch is reported.
     #[arg(long, default_value_t = 3)]
     pub epochs: usize,
     /// Time the training only, on this dataset folder (its first --train-rows rows),

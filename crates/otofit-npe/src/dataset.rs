@@ -409,7 +409,8 @@ pub struct DatasetRun<'a> {
     pub format: Format,
 }
 
-/// Simulates `run.rows` into `dir` (chunks of 1024 on rayon, rows streamed to disk).
+/// Simulates `run.rows` into `dir` (chunks of 1024 on rayon, each written while the next
+/// is simulated; rows streamed to disk).
 /// `progress(done, total)` is called after each chunk; returning `false` cancels, and
 /// the temporary files are removed.
 pub fn simulate_to_dir(
@@ -467,8 +468,9 @@ impl Rows {
     }
 }
 
-/// Where each sub-batch's finished rows go.
-type RowSink<'a> = dyn FnMut(&Block) -> Result<()> + 'a;
+/// Where each sub-batch's finished rows go. `Send`, because it runs on a pool thread
+/// beside the next sub-batch's simulation ([`Batch::run`]).
+type RowSink<'a> = dyn FnMut(&Block) -> Result<()> + Send + 'a;
 
 /// Rows through the simulator: what one dataset run needs.
 struct Batch<'a> {
@@ -478,12 +480,27 @@ struct Batch<'a> {
     noise: &'a Noise,
 }
 
+/// One simulated sub-batch: its first row, its rows and each row's outcome.
+struct Simulated {
+    from: usize,
+    rows: Vec<Vec<f64>>,
+    results: Vec<std::result::Result<Vec<f64>, crate::sim::SimError>>,
+}
+
 impl Batch<'_> {
-    /// Simulates rows `first .. first + len` in sub-batches of 1,024 on rayon: finite
-    /// outputs go to `push`, failed rows to `failed` (by their row number in the whole
-    /// dataset). Every row's draw and noise come from its own stream (seed, row), so the
-    /// rows are the same whatever the split. `progress(rows done of these)` after each
-    /// sub-batch; `false` stops: `Ok(false)` unless it was the last.
+    /// Sub-batches of this many rows: a progress step, and what is simulated in
+    /// parallel while the sub-batch before is written.
+    const SUB: usize = 1024;
+
+    /// Simulates rows `first .. first + len` in sub-batches of [`Self::SUB`] on rayon:
+    /// finite outputs go to `push`, failed rows to `failed` (by their row number in the
+    /// whole dataset). Every row's draw and noise come from its own stream (seed, row),
+    /// so the rows are the same whatever the split. `progress(rows done of these)`
+    /// after each sub-batch is pushed; `false` stops: `Ok(false)` unless it was the last.
+    ///
+    /// Sub-batch k + 1 is simulated while sub-batch k is sorted and pushed (formatted
+    /// and written): on many threads the writing, done between sub-batches, left every
+    /// thread but one idle for a quarter of the time. The pushes keep their order.
     fn run(
         &self,
         first: usize,
@@ -492,37 +509,52 @@ impl Batch<'_> {
         push: &mut RowSink<'_>,
         progress: &mut dyn FnMut(usize) -> bool,
     ) -> Result<bool> {
-        const SUB: usize = 1024;
         let end = first + len;
-        for from in (first..end).step_by(SUB) {
-            let k = SUB.min(end - from);
-            let batch = match self.rows {
-                Rows::Given(g) => g[from..from + k].to_vec(),
-                Rows::Prior { seed, .. } => self.design.draw(*seed, from, k),
-            };
-            let results = crate::sim::batch::run_rows(self.model, self.design, &batch, from, Some(self.noise));
-            let mut block = Block::default();
-            for (i, (row, res)) in batch.iter().zip(results).enumerate() {
-                let (_, fx) = self.design.split(row);
-                let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
-                let fail = |reason: String| Failed { row: from + i, reason };
-                match (res, bad_effect) {
-                    (_, Some((e, v))) => failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high))),
-                    (Ok(x), None) if x.iter().all(|v| v.is_finite()) => {
-                        block.theta.extend_from_slice(row);
-                        block.x.extend_from_slice(&x);
-                        block.rows += 1;
-                    }
-                    (Ok(_), None) => failed.push(fail("non-finite output".into())),
-                    (Err(e), None) => failed.push(fail(e.to_string())),
-                }
-            }
-            push(&block)?;
-            if !progress(from + k - first) && from + k < end {
+        let mut next = (first < end).then(|| self.simulate(first, Self::SUB.min(len)));
+        while let Some(done) = next {
+            let from = done.from + done.rows.len();
+            let (simulated, pushed) = rayon::join(
+                || (from < end).then(|| self.simulate(from, Self::SUB.min(end - from))),
+                || self.sort(done, failed, push),
+            );
+            pushed?;
+            if !progress(from - first) && from < end {
                 return Ok(false);
             }
+            next = simulated;
         }
         Ok(true)
+    }
+
+    /// Draws (or takes) rows `from .. from + k` and simulates them on rayon.
+    fn simulate(&self, from: usize, k: usize) -> Simulated {
+        let rows = match self.rows {
+            Rows::Given(g) => g[from..from + k].to_vec(),
+            Rows::Prior { seed, .. } => self.design.draw(*seed, from, k),
+        };
+        let results = crate::sim::batch::run_rows(self.model, self.design, &rows, from, Some(self.noise));
+        Simulated { from, rows, results }
+    }
+
+    /// Sorts a simulated sub-batch into finished rows, pushed as one block, and failed ones.
+    fn sort(&self, s: Simulated, failed: &mut Vec<Failed>, push: &mut RowSink<'_>) -> Result<()> {
+        let mut block = Block::default();
+        for (i, (row, res)) in s.rows.iter().zip(s.results).enumerate() {
+            let (_, fx) = self.design.split(row);
+            let bad_effect = EFFECTS.iter().zip(fx.0).find(|(e, v)| !e.accepts(*v));
+            let fail = |reason: String| Failed { row: s.from + i, reason };
+            match (res, bad_effect) {
+                (_, Some((e, v))) => failed.push(fail(format!("{} = {v} outside [{}, {}]", e.name, e.low, e.high))),
+                (Ok(x), None) if x.iter().all(|v| v.is_finite()) => {
+                    block.theta.extend_from_slice(row);
+                    block.x.extend_from_slice(&x);
+                    block.rows += 1;
+                }
+                (Ok(_), None) => failed.push(fail("non-finite output".into())),
+                (Err(e), None) => failed.push(fail(e.to_string())),
+            }
+        }
+        push(&block)
     }
 }
 
@@ -757,4 +789,51 @@ pub fn read_noise_table(path: &Path, names: &[String]) -> Result<Vec<f64>> {
             Ok(v)
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sim::batch::{self, Design, Noise};
+
+    /// Sub-batches simulated beside the pushing of the one before still arrive in row
+    /// order, each row the simulator's own output for its draw; progress counts the
+    /// pushed rows, and a stop after the first sub-batch pushes no other.
+    #[test]
+    fn sub_batches_are_pushed_in_row_order_and_a_stop_pushes_no_more() {
+        let model = crate::sim::Model::new(crate::sim::ModelConfig::default()).unwrap();
+        let design = Design::default();
+        let noise = Noise { std: batch::default_noise_std(&model), scale: 1.0, seed: 2 };
+        let (first, n) = (7, 2 * Batch::SUB + 50);
+        let rows = Rows::Prior { n: first + n, seed: 9 };
+        let run = Batch { model: &model, design: &design, rows: &rows, noise: &noise };
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(3).build().unwrap();
+        let go = |stop_after: usize| {
+            let (mut theta, mut x, mut pushes, mut seen, mut failed) = (vec![], vec![], 0, vec![], vec![]);
+            let finished = pool.install(|| {
+                let mut push = |b: &Block| {
+                    theta.extend_from_slice(&b.theta);
+                    x.extend_from_slice(&b.x);
+                    pushes += 1;
+                    Ok(())
+                };
+                run.run(first, n, &mut failed, &mut push, &mut |d| {
+                    seen.push(d);
+                    seen.len() < stop_after
+                })
+            });
+            assert!(failed.is_empty(), "{failed:?}");
+            (finished.unwrap(), theta, x, pushes, seen)
+        };
+        let (finished, theta, x, pushes, seen) = go(usize::MAX);
+        assert!(finished);
+        assert_eq!((pushes, seen), (3, vec![Batch::SUB, 2 * Batch::SUB, n]));
+        let draws = design.draw(9, first, n);
+        let direct = batch::run_rows(&model, &design, &draws, first, Some(&noise));
+        assert!(theta == draws.concat(), "θ rows out of order");
+        assert!(x == direct.into_iter().map(|r| r.unwrap()).collect::<Vec<_>>().concat(), "x rows out of order");
+        let (finished, theta, _, pushes, seen) = go(1);
+        assert!(!finished, "a stop before the last sub-batch is reported");
+        assert_eq!((pushes, seen, theta.len()), (1, vec![Batch::SUB], Batch::SUB * design.width()));
+    }
 }
