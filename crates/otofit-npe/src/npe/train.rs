@@ -548,14 +548,21 @@ pub const SPLIT_ROWS: usize = 128;
 /// flow and hand-overs between threads than their gradients save.
 pub const MIN_PART_ROWS: usize = 64;
 
+/// The most parts a batch is split into, whatever the cores. Every autodiff op takes
+/// burn's process-wide graph lock, so parts beyond this wait on each other: on a
+/// 16-core machine a 1,000-row batch took 1.04 s per epoch at 4 parts, 1.05 s at 8 and
+/// 1.88 s at 15 (docs/results/scaling.md).
+pub const MAX_PARTS: usize = 8;
+
 /// How many parts a batch of `b` rows is split into on `threads` threads: one below
-/// [`SPLIT_ROWS`]; else as many as the threads, at least two and no more than parts of
-/// [`MIN_PART_ROWS`]. One and two threads split alike (two parts, the second after the
-/// first on one thread), so a seed trains the same weights with either; more threads
-/// split finer, which changes the rounding of the summed gradient, so a seed's weights
-/// are the same for a given thread count above two.
+/// [`SPLIT_ROWS`]; else as many as the threads up to [`MAX_PARTS`], at least two and no
+/// more than parts of [`MIN_PART_ROWS`]. One and two threads split alike (two parts,
+/// the second after the first on one thread), so a seed trains the same weights with
+/// either; more threads split finer, which changes the rounding of the summed gradient,
+/// so a seed's weights are the same for a given thread count above two (and for every
+/// count from [`MAX_PARTS`] up).
 pub fn parts(b: usize, threads: usize) -> usize {
-    if b < SPLIT_ROWS { 1 } else { threads.clamp(2, (b / MIN_PART_ROWS).max(2)) }
+    if b < SPLIT_ROWS { 1 } else { threads.min(MAX_PARTS).clamp(2, (b / MIN_PART_ROWS).max(2)) }
 }
 
 /// Adds the parts' gradients, weighted by their rows, parameter by parameter, in the
@@ -1599,6 +1606,8 @@ mod tests {
         assert_eq!(parts(200, 2), 2);
         assert_eq!(parts(200, 16), 3);
         assert_eq!(parts(1000, 4), 4);
-        assert_eq!(parts(1000, 64), 15);
+        assert_eq!(parts(1000, 8), 8);
+        assert_eq!(parts(1000, 64), MAX_PARTS);
+        assert_eq!(parts(300, 64), 4);
     }
 }
