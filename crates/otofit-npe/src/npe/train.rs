@@ -1525,6 +1525,27 @@ mod tests {
         });
     }
 
+    /// From [`MAX_PARTS`] threads up a batch is cut alike: an epoch of 640-row batches
+    /// (ten parts' worth of rows) gives the same bits on 8 and 10 threads.
+    #[test]
+    fn threads_beyond_the_part_cap_train_the_same_weights() {
+        let ds = toy(1500);
+        let s = TrainSettings { embedding: false, seed: 3, batch: 640, ..Default::default() };
+        with_run(&ds, &s, |run| {
+            let epoch = |threads: usize| {
+                on_threads(threads, || {
+                    let mut m = run.fresh(0, ChaCha8Rng::seed_from_u64(9));
+                    let loss;
+                    (m.flow, loss) = run.epoch(m.flow, &mut m.opt, run.s.lr, &mut m.order, &mut m.rng);
+                    (weights(&m.flow), loss)
+                })
+            };
+            let capped = epoch(MAX_PARTS);
+            assert!(capped.0.iter().all(|w| w.is_finite()) && capped.1.is_finite());
+            assert!(epoch(MAX_PARTS + 2) == capped, "{} threads", MAX_PARTS + 2);
+        });
+    }
+
     /// The validation loss is the batches' losses added in order, whatever the threads:
     /// the same bits on 1, 2, 3 and 4 threads as a plain loop (7 batches: 6 of 1000, one
     /// of 500).
