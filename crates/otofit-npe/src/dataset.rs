@@ -500,7 +500,7 @@ impl Batch<'_> {
     ///
     /// Sub-batch k + 1 is simulated while sub-batch k is sorted and pushed (formatted
     /// and written): on many threads the writing, done between sub-batches, left every
-    /// thread but one idle for a quarter of the time. The pushes keep their order.
+    /// thread but one idle while it ran. The pushes keep their order.
     fn run(
         &self,
         first: usize,
