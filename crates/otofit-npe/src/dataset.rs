@@ -280,8 +280,8 @@ impl Writer {
         let (pt, px) = (tmp(&self.dir, names[0]), tmp(&self.dir, names[1]));
         match self.format {
             Format::Csv => {
-                self.theta.write_all(&csv_rows(&block.theta, block.rows)).map_err(io("write", &pt))?;
-                self.x.write_all(&csv_rows(&block.x, block.rows)).map_err(io("write", &px))?;
+                write_csv_rows(&mut self.theta, &block.theta, block.rows).map_err(io("write", &pt))?;
+                write_csv_rows(&mut self.x, &block.x, block.rows).map_err(io("write", &px))?;
             }
             Format::Npy => {
                 crate::npy::write_values(&mut self.theta, &block.theta).map_err(io("write", &pt))?;
@@ -333,15 +333,16 @@ pub struct Block {
     pub rows: usize,
 }
 
-/// `rows` rows (`values` holds them one after the other) as CSV lines. Formatting the shortest round-tripping decimal
-/// of each number is most of the cost of writing a CSV table, so blocks of rows are
-/// formatted on rayon's threads and joined in order: the bytes are the same whatever
-/// the thread count.
-fn csv_rows(values: &[f64], rows: usize) -> Vec<u8> {
+/// Writes `rows` rows (`values` holds them one after the other) to `w` as CSV lines.
+/// Formatting the shortest round-tripping decimal of each number is most of the cost of
+/// writing a CSV table, so blocks of rows are formatted on rayon's threads and written
+/// in order, each as it is (not joined first: the copy ran on the writing thread while
+/// the others waited): the bytes are the same whatever the thread count.
+fn write_csv_rows(w: &mut impl Write, values: &[f64], rows: usize) -> std::io::Result<()> {
     use rayon::prelude::*;
     const ROWS_PER_TASK: usize = 64;
     if rows == 0 {
-        return Vec::new();
+        return Ok(());
     }
     let cols = values.len() / rows;
     let parts: Vec<Vec<u8>> = values
@@ -354,7 +355,7 @@ fn csv_rows(values: &[f64], rows: usize) -> Vec<u8> {
             out
         })
         .collect();
-    parts.concat()
+    parts.iter().try_for_each(|p| w.write_all(p))
 }
 
 fn write_row(w: &mut impl Write, v: &[f64]) -> std::io::Result<()> {
@@ -629,8 +630,8 @@ impl PartRun<'_> {
             let mut part = Part { first, len, rows: 0, failed: vec![], wall_seconds: 0.0 };
             let batch = Batch { model: self.model, design: self.design, rows: self.rows, noise: self.noise };
             let mut push = |b: &Block| {
-                theta.write_all(&csv_rows(&b.theta, b.rows)).map_err(io("write", &tmp(FILES[0])))?;
-                x.write_all(&csv_rows(&b.x, b.rows)).map_err(io("write", &tmp(FILES[1])))?;
+                write_csv_rows(&mut theta, &b.theta, b.rows).map_err(io("write", &tmp(FILES[0])))?;
+                write_csv_rows(&mut x, &b.x, b.rows).map_err(io("write", &tmp(FILES[1])))?;
                 part.rows += b.rows;
                 Ok(())
             };
