@@ -336,8 +336,8 @@ pub struct Block {
 /// Writes `rows` rows (`values` holds them one after the other) to `w` as CSV lines.
 /// Formatting the shortest round-tripping decimal of each number is most of the cost of
 /// writing a CSV table, so blocks of rows are formatted on rayon's threads and written
-/// in order, each as it is (not joined first: the copy ran on the writing thread while
-/// the others waited): the bytes are the same whatever the thread count.
+/// in order, each as it is (joining them first was a serial copy on the writing
+/// thread): the bytes are the same whatever the thread count.
 fn write_csv_rows(w: &mut impl Write, values: &[f64], rows: usize) -> std::io::Result<()> {
     use rayon::prelude::*;
     const ROWS_PER_TASK: usize = 64;
@@ -511,13 +511,11 @@ impl Batch<'_> {
         progress: &mut dyn FnMut(usize) -> bool,
     ) -> Result<bool> {
         let end = first + len;
-        let mut next = (first < end).then(|| self.simulate(first, Self::SUB.min(len)));
+        let sub_batch = |from: usize| (from < end).then(|| self.simulate(from, Self::SUB.min(end - from)));
+        let mut next = sub_batch(first);
         while let Some(done) = next {
             let from = done.from + done.rows.len();
-            let (simulated, pushed) = rayon::join(
-                || (from < end).then(|| self.simulate(from, Self::SUB.min(end - from))),
-                || self.sort(done, failed, push),
-            );
+            let (simulated, pushed) = rayon::join(|| sub_batch(from), || self.sort(done, failed, push));
             pushed?;
             if !progress(from - first) && from < end {
                 return Ok(false);
