@@ -270,6 +270,10 @@ pub fn run(args: InferArgs) -> Result<()> {
     let mut summaries = Vec::with_capacity(rows.len());
     for (r, (x, present)) in rows.iter().enumerate() {
         let (x, present) = (x.as_slice(), present.as_slice());
+        // The full-measure flow answers an ear with every measure, when the file holds one.
+        let answering = model.answering(&Obs { x, present: Some(present) });
+        let flow = if std::ptr::eq(answering, &model) { "main" } else { "full-measure" };
+        let model = answering;
         let inf = model
             .infer(&Obs { x, present: Some(present) }, args.samples, args.seed)
             .with_context(|| format!("observation {}", r + 1))?;
@@ -283,10 +287,10 @@ pub fn run(args: InferArgs) -> Result<()> {
         }
         if let Some(dir) = &args.plot {
             let title = format!("Posterior, {} observation {}", args.obs.display(), r + 1);
-            let svg = super::study::corner(&model, &inf.samples, None, &inf.map, &title);
+            let svg = super::study::corner(model, &inf.samples, None, &inf.map, &title);
             std::fs::write(dir.join(format!("corner_{}.svg", r + 1)), svg)?;
         }
-        let (differential, fit) = crate::discrepancy::fitcheck::checked_reading(&model, x, present, &inf, &inf.samples);
+        let (differential, fit) = crate::discrepancy::fitcheck::checked_reading(model, x, present, &inf, &inf.samples);
         let withdrawn = fit.as_ref().ok().filter(|f| f.ok == Some(false)).map(|f| f.reason.clone().unwrap_or_default());
         let fit = match fit {
             Ok(f) => serde_json::json!(f),
@@ -294,7 +298,7 @@ pub fn run(args: InferArgs) -> Result<()> {
         };
         // The competing explanations of a shipped finding, as POST /infer gives them.
         let alternatives = crate::discrepancy::alternatives::alternatives(
-            &model,
+            model,
             x,
             present,
             (&inf.map, &inf.samples),
@@ -303,26 +307,26 @@ pub fn run(args: InferArgs) -> Result<()> {
             &Default::default(),
         );
         let verdict = crate::npe::normal::verdict(&differential, fit["ok"].as_bool());
-        let mut json = serde_json::json!({ "observation": r, "verdict": verdict, "fit": fit, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
+        let mut json = serde_json::json!({ "observation": r, "verdict": verdict, "fit": fit, "flow": flow, "parameters": inf.summaries, "differential": differential, "timing_ms": { "sample": inf.sample_ms, "map": inf.map_ms } });
         if let Some(a) = alternatives {
             json["timing_ms"]["alternatives"] = serde_json::json!(a.ms);
             json["alternatives"] = serde_json::json!(a);
         }
         if args.refine > 0 {
-            let fit = crate::discrepancy::fitcheck::refine(&model, x, present, &inf.map, args.refine)
+            let fit = crate::discrepancy::fitcheck::refine(model, x, present, &inf.map, args.refine)
                 .with_context(|| format!("--refine, observation {}", r + 1))?;
             json["refined"] = serde_json::json!(fit);
         }
         if args.exact > 0 {
-            let ex = crate::discrepancy::fitcheck::exact(&model, x, present, &inf, args.exact, args.seed)
+            let ex = crate::discrepancy::fitcheck::exact(model, x, present, &inf, args.exact, args.seed)
                 .with_context(|| format!("--exact, observation {}", r + 1))?;
             let mut doc = serde_json::json!(ex);
-            doc["differential"] = serde_json::json!(ex.reading(&model, withdrawn.as_deref()));
+            doc["differential"] = serde_json::json!(ex.reading(model, withdrawn.as_deref()));
             doc["note"] = serde_json::json!(crate::discrepancy::fitcheck::EXACT_NOTE);
             json["exact"] = doc;
         }
         if args.posterior == PosteriorArg::Exact {
-            json["exact"] = exact_fast(&model, (x, present), &inf, args.seed, withdrawn.as_deref())
+            json["exact"] = exact_fast(model, (x, present), &inf, args.seed, withdrawn.as_deref())
                 .with_context(|| format!("--posterior exact, observation {}", r + 1))?;
         }
         summaries.push(json.to_string());

@@ -2,6 +2,7 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod attach;
 pub mod bench;
 mod bench_c2st;
 mod bench_exact;
@@ -55,6 +56,9 @@ pub enum Command {
     Calibrate(calibrate::CalibrateArgs),
     /// Measure speed (simulator, ...) on this machine.
     Bench(bench::BenchArgs),
+    /// Store an unmasked model inside a masked one: it then answers the ears with every
+    /// measure present (sharper there), the masked one every subset.
+    Attach(attach::AttachArgs),
     /// Convert a device or database export into an observation (JSON, POST /infer format).
     Import(import::ImportArgs),
 }
@@ -73,5 +77,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Infer(args) => infer::run(args),
         Command::Calibrate(args) => calibrate::run(args),
         Command::Import(args) => import::run(args),
+        Command::Attach(args) => attach::run(args),
     }
 }

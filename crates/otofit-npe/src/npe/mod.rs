@@ -107,6 +107,11 @@ pub struct Header {
     /// need not re-measure it per ear; `None` when never measured.
     #[serde(default)]
     pub diagnose_null: Option<DiagnoseNull>,
+    /// Whether a full-measure flow follows the members ([`Npe::answering`]): a second,
+    /// unmasked model that answers observations with every feature present, sharper there
+    /// than a network that must also answer every subset.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub full_measure_flow: bool,
 }
 
 /// The first 8 bytes as a little-endian u64's bytes (zeros past the end).
@@ -337,6 +342,8 @@ pub struct Npe {
     flows: Vec<Flow>,
     /// The same weights for inference in plain Rust (flow::plain).
     plains: Vec<PlainFlow>,
+    /// The full-measure flow, when the file holds one ([`Npe::answering`]).
+    full: Option<Box<Npe>>,
 }
 
 /// The members bound to one observation: an equal-weight mixture.
@@ -483,7 +490,50 @@ impl Npe {
         let device = Device::flex();
         let flows: Vec<Flow> = records.into_iter().map(|r| Flow::new(&header.flow, &device).load_record(r)).collect();
         let plains = flows.iter().map(|f| f.plain(&header.flow)).collect();
-        Npe { header, flows, plains }
+        Npe { header, flows, plains, full: None }
+    }
+
+    /// The model that answers an observation with these features present: the
+    /// full-measure flow when the file holds one and every feature is present and
+    /// finite, else this one. Its own header (temperature, fit-check null) goes with it.
+    pub fn answering(&self, obs: &Obs<'_>) -> &Npe {
+        let all = obs.x.len() == self.header.feature_names.len()
+            && obs.x.iter().all(|v| v.is_finite())
+            && obs.present.is_none_or(|p| p.iter().all(|&b| b));
+        match &self.full {
+            Some(full) if all => full,
+            _ => self,
+        }
+    }
+
+    /// The full-measure flow, if the file holds one.
+    pub fn full_measure(&self) -> Option<&Npe> {
+        self.full.as_deref()
+    }
+
+    /// Stores `full` as this model's full-measure flow ([`Npe::answering`]): an unmasked
+    /// model of the same parameters, features and grid, without one of its own.
+    pub fn attach_full_measure(&mut self, full: Npe) -> Result<(), CheckpointError> {
+        let (h, f) = (&self.header, &full.header);
+        let why = if f.mask_groups || f.mask_bands {
+            Some("it was trained with masks (it must answer the full set of measures only)")
+        } else if f.full_measure_flow || full.full.is_some() {
+            Some("it holds a full-measure flow of its own")
+        } else if f.feature_names != h.feature_names || f.frequencies_hz != h.frequencies_hz {
+            Some("its features or frequency grid differ")
+        } else if f.params.len() != h.params.len()
+            || f.params.iter().zip(&h.params).any(|(a, b)| a.name != b.name || a.low != b.low || a.high != b.high)
+        {
+            Some("its parameters or their prior boxes differ")
+        } else {
+            None
+        };
+        if let Some(why) = why {
+            return Err(CheckpointError::field("full_measure_flow", why));
+        }
+        self.full = Some(Box::new(full));
+        self.header.full_measure_flow = true;
+        Ok(())
     }
 
     /// Adds to each simulation in `xs` (row k: the k-th) its draw of the model error the
@@ -502,11 +552,22 @@ impl Npe {
     }
 
     /// Writes the checkpoint: magic, header length (u64 LE), JSON header, then per member
-    /// its burn record's length (u64 LE) and bytes.
+    /// its burn record's length (u64 LE) and bytes, then the full-measure flow's whole
+    /// checkpoint, length-prefixed, when there is one.
     pub fn save(&self, path: &Path) -> Result<()> {
+        let out = self.to_bytes()?;
+        let tmp = path.with_extension("tmp");
+        std::fs::write(&tmp, &out).map_err(FileError::on("write", &tmp))?;
+        std::fs::rename(&tmp, path).map_err(FileError::on("write", path))?;
+        Ok(())
+    }
+
+    /// The checkpoint's bytes ([`Npe::save`]).
+    fn to_bytes(&self) -> Result<Vec<u8>> {
         let mut h = self.header.clone();
         h.format_version = FORMAT_VERSION;
         h.members = self.flows.len();
+        h.full_measure_flow = self.full.is_some();
         let header = serde_json::to_vec(&h).map_err(|e| NpeError::Encode { what: "header", why: e.to_string() })?;
         let mut out = Vec::with_capacity(header.len() + 400_000 * self.flows.len());
         out.extend_from_slice(MAGIC);
@@ -521,10 +582,12 @@ impl Npe {
             out.extend_from_slice(&(record.len() as u64).to_le_bytes());
             out.extend_from_slice(&record);
         }
-        let tmp = path.with_extension("tmp");
-        std::fs::write(&tmp, &out).map_err(FileError::on("write", &tmp))?;
-        std::fs::rename(&tmp, path).map_err(FileError::on("write", path))?;
-        Ok(())
+        if let Some(full) = &self.full {
+            let bytes = full.to_bytes()?;
+            out.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+            out.extend_from_slice(&bytes);
+        }
+        Ok(out)
     }
 
     /// Reads a checkpoint file; a file that is not a usable model names itself.
@@ -536,6 +599,11 @@ impl Npe {
     /// Decodes a checkpoint: every length is checked against the file and every header
     /// field against what the code can build, before any weights are read.
     pub fn from_bytes(bytes: &[u8]) -> Result<Npe, CheckpointError> {
+        Self::decode(bytes, false)
+    }
+
+    /// [`Npe::from_bytes`]; `nested` for a full-measure flow, which may not hold another.
+    fn decode(bytes: &[u8], nested: bool) -> Result<Npe, CheckpointError> {
         let start = MAGIC.len() + 8;
         if bytes.len() < start || &bytes[..MAGIC.len()] != MAGIC {
             return Err(CheckpointError::BadMagic);
@@ -548,8 +616,8 @@ impl Npe {
             ModuleRecord::from_bytes(burn::tensor::Bytes::from_bytes_vec(b.to_vec()))
                 .map_err(|e| CheckpointError::Weights(format!("{e:?}")))
         };
-        let records = if header.format_version == 1 {
-            vec![record(rest)?]
+        let (records, rest) = if header.format_version == 1 {
+            (vec![record(rest)?], &[][..])
         } else {
             let mut rest = rest;
             let mut out = Vec::new();
@@ -559,15 +627,26 @@ impl Npe {
                 out.push(record(r)?);
                 rest = after;
             }
-            out
+            (out, rest)
         };
         if records.is_empty() {
             return Err(CheckpointError::NoWeights);
         }
+        let with_full = header.full_measure_flow;
+        if nested && with_full {
+            return Err(CheckpointError::field("full_measure_flow", "a full-measure flow holds another"));
+        }
         let expected = Flow::new(&header.flow, &Device::flex()).num_params();
-        let npe = Npe::from_parts(header, records);
+        let mut npe = Npe::from_parts(header, records);
         if npe.flows.iter().any(|f| f.num_params() != expected) {
             return Err(CheckpointError::Architecture);
+        }
+        if with_full {
+            let (bytes, _) = length_prefixed(rest)
+                .ok_or_else(|| CheckpointError::field("full_measure_flow", "the file ends before the flow"))?;
+            let full =
+                Npe::decode(bytes, true).map_err(|e| CheckpointError::field("full_measure_flow", e.to_string()))?;
+            npe.attach_full_measure(full)?;
         }
         Ok(npe)
     }
@@ -994,6 +1073,62 @@ mod tests {
         );
         let e = h.features_of_groups(&["tympanogram"]).unwrap_err().to_string();
         assert!(e.contains("'tympanogram'") && names.iter().all(|n| e.contains(n)), "{e}");
+    }
+
+    /// An untrained flow that takes `m`'s features without masks (the weights do not
+    /// matter to how a file is stored or which flow answers).
+    fn unmasked_like(m: &Npe) -> Npe {
+        let mut h = m.header.clone();
+        h.mask_groups = false;
+        h.mask_bands = false;
+        h.flow.inputs = h.feature_names.len();
+        h.full_measure_flow = false;
+        let flow = Flow::new(&h.flow, &Device::flex());
+        Npe::from_parts(h, vec![flow.into_record()])
+    }
+
+    #[test]
+    fn a_full_measure_flow_answers_ears_with_every_measure_and_is_stored_with_the_model() {
+        let mut m = model();
+        m.full = None;
+        let full = unmasked_like(&m);
+        m.attach_full_measure(full).unwrap();
+        let bytes = m.to_bytes().unwrap();
+        let back = Npe::from_bytes(&bytes).unwrap();
+        assert!(back.header.full_measure_flow && back.full_measure().is_some());
+        assert_eq!(back.to_bytes().unwrap(), bytes, "the model with its full-measure flow round-trips");
+        let x = back.header.x_mean.clone();
+        let f = x.len();
+        let all = vec![true; f];
+        let answering = |present: &[bool], x: &[f64]| back.answering(&Obs { x, present: Some(present) });
+        let full = back.full_measure().unwrap();
+        assert!(std::ptr::eq(answering(&all, &x), full), "every measure present: the full-measure flow");
+        assert!(std::ptr::eq(back.answering(&Obs { x: &x, present: None }), full));
+        let mut one_gone = all.clone();
+        one_gone[f - 1] = false;
+        assert!(std::ptr::eq(answering(&one_gone, &x), &back), "a feature absent: the main flow");
+        let mut nan = x.clone();
+        nan[0] = f64::NAN;
+        assert!(std::ptr::eq(answering(&all, &nan), &back), "a feature not finite: the main flow");
+    }
+
+    #[test]
+    fn a_full_measure_flow_must_be_unmasked_and_of_the_same_ear_and_a_cut_file_is_refused() {
+        let mut m = model();
+        m.full = None;
+        let why = |e: CheckpointError| e.to_string();
+        let masked = model();
+        assert!(why(m.attach_full_measure(masked).unwrap_err()).contains("masks"));
+        let mut other = unmasked_like(&m);
+        other.header.params[0].high *= 2.0;
+        assert!(why(m.attach_full_measure(other).unwrap_err()).contains("prior boxes"));
+        let mut nested = unmasked_like(&m);
+        nested.full = Some(Box::new(unmasked_like(&m)));
+        assert!(why(m.attach_full_measure(nested).unwrap_err()).contains("of its own"));
+        m.attach_full_measure(unmasked_like(&m)).unwrap();
+        let bytes = m.to_bytes().unwrap();
+        let cut = Npe::from_bytes(&bytes[..bytes.len() - 1000]).err().map(why).unwrap_or_default();
+        assert!(cut.contains("full_measure_flow"), "{cut}");
     }
 
     fn latent_of(npe: &Npe) -> LatentMap<'_> {

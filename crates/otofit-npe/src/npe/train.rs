@@ -315,6 +315,7 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         temperature: 1.0,
         fit_null: None,
         diagnose_null: None,
+        full_measure_flow: false,
     }
 }
 

@@ -271,6 +271,7 @@ fn response_structs_write_exactly_their_schemas_properties() {
         grid_hz: vec![],
         band_hz: Default::default(),
         format: "json",
+        flow: "main",
         notes: None,
     };
     let timing_ms = Timing { sample: 0.0, map: 0.0, fit: 0.0, alternatives: 0.0, exact: 0.0, total: 0.0 };

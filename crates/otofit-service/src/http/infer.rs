@@ -251,6 +251,9 @@ pub async fn infer(
     let (row, npe) = model_for(&st, &who, req.model.as_deref()).await?;
     let (x, present, used) = features(&npe, &req.measurements, csv.as_ref())?;
     let band_hz = bands_used(&npe, &present);
+    // Which of the model's flows answers: its full-measure flow for an ear with every
+    // measure over the whole band, when the model holds one.
+    let full = !std::ptr::eq(npe.answering(&Obs { x: &x, present: Some(&present) }), &*npe);
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
     let (plot, title) = (req.plot, format!("Posterior, model {}", row.id));
@@ -265,7 +268,8 @@ pub async fn infer(
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
     let Answer { inf, fit, fit_ms, corner, refined, mut differential, alternatives, exact } = answer;
     let (fit, next) = fit_and_next(fit, req.model.as_deref(), &mut differential);
-    let exact = exact.map(|e| exact_doc(e, &npe, &fit));
+    let answering = if full { npe.full_measure().unwrap_or(&npe) } else { &npe };
+    let exact = exact.map(|e| exact_doc(e, answering, &fit));
     let verdict = crate::npe::normal::verdict(&differential, fit["ok"].as_bool());
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
     // they describe the probe's placement, not the ear, and have no normal range.
@@ -295,6 +299,7 @@ pub async fn infer(
             grid_hz: npe.header.frequencies_hz.clone(),
             band_hz,
             format: if csv.is_some() { "csv" } else { "json" },
+            flow: if full { "full-measure" } else { "main" },
             notes: csv.map(|imp| imp.notes),
         },
         samples_count: n,
@@ -383,6 +388,9 @@ pub struct Inputs {
     pub band_hz: serde_json::Map<String, serde_json::Value>,
     /// The body's format: `json` or `csv`.
     pub format: &'static str,
+    /// The flow that answered: `full-measure` (the model's flow for ears with every
+    /// measure) or `main`.
+    pub flow: &'static str,
     /// What reading a text/csv table did.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub notes: Option<Vec<String>>,
@@ -463,6 +471,7 @@ fn posterior(
     title: &str,
     exact: Option<std::time::Instant>,
 ) -> Result<Answer, NpeError> {
+    let npe = npe.answering(&Obs { x: &x, present: Some(&present) });
     let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, n, seed)?;
     let refined = (refine > 0).then(|| crate::discrepancy::fitcheck::refine(npe, &x, &present, &inf.map, refine));
     let t = std::time::Instant::now();

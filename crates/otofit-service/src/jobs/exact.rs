@@ -54,13 +54,15 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
     }
     let x: Vec<f64> = p.x.iter().map(|v| v.unwrap_or(f64::NAN)).collect();
     let present: Vec<bool> = p.x.iter().map(Option::is_some).collect();
+    // The full-measure flow answers an ear with every measure, when the model holds one.
+    let npe = npe.answering(&Obs { x: &x, present: Some(&present) });
     r.report(0.0, "the flow's posterior and the fit check".into());
     let inf = npe
         .infer(&Obs { x: &x, present: Some(&present) }, 1000, p.seed)
         .map_err(|e| JobError::npe(e, &format!("model '{id}'"), "the flow's posterior could not be computed"))?;
-    let fit = crate::discrepancy::fitcheck::fit_check(&npe, &x, &present, &inf);
+    let fit = crate::discrepancy::fitcheck::fit_check(npe, &x, &present, &inf);
     r.report(0.05, format!("least-squares fits, then {} chain steps", p.steps));
-    let ex = crate::discrepancy::fitcheck::exact(&npe, &x, &present, &inf, p.steps, p.seed).map_err(|e| match e {
+    let ex = crate::discrepancy::fitcheck::exact(npe, &x, &present, &inf, p.steps, p.seed).map_err(|e| match e {
         FitCheckError::Simulator(_) => JobError::internal("the simulator could not be built", e),
         // Not otofit's model, or a chain that cannot start on this observation.
         e => JobError::client(e.to_string()),
@@ -76,7 +78,7 @@ pub(super) fn execute(ctx: &Ctx, p: &ExactParams, r: &Reporter) -> Result<serde_
         "model": id,
         "fit": fit,
         "flow": inf.summaries,
-        "differential": ex.reading(&npe, withdrawn.as_deref()),
+        "differential": ex.reading(npe, withdrawn.as_deref()),
         "exact": ex,
         "diagnostics": diagnostics,
         "note": crate::discrepancy::fitcheck::EXACT_NOTE,
