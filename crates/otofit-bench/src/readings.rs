@@ -311,6 +311,7 @@ pub struct ReadingsParams {
 /// Reads one ear as `otofit infer` does (`--exact`: from the chain's draws, withdrawn
 /// when the chain has not settled).
 fn read(npe: &Npe, truth: Vec<f64>, x: &[f64], present: &[bool], seed: u64, p: &ReadingsParams) -> Result<EarReading> {
+    let npe = npe.answering(&Obs { x, present: Some(present) });
     let inf = npe.infer(&Obs { x, present: Some(present) }, SAMPLES, seed)?;
     let chain = p.exact_steps.map(|steps| exact(npe, x, present, &inf, steps, seed)).transpose()?;
     let (mut d, fit) =

@@ -114,8 +114,11 @@ pub fn run(npe: &Npe, sim: &Model, p: &CrossParams, s: &Settings) -> Result<Vec<
             if !output::implausible(&x, &present, freqs.len()).is_empty() {
                 continue; // the CLI refuses it before any reading
             }
-            let inf = npe.infer(&Obs { x: &x, present: Some(&present) }, p.samples, p.seed.wrapping_add(ear as u64))?;
-            if fit_check(npe, &x, &present, &inf).is_ok_and(|f| f.ok != Some(false)) {
+            // The service's fit check: the full-measure flow's when the model holds one.
+            let answering = npe.answering(&Obs { x: &x, present: Some(&present) });
+            let inf =
+                answering.infer(&Obs { x: &x, present: Some(&present) }, p.samples, p.seed.wrapping_add(ear as u64))?;
+            if fit_check(answering, &x, &present, &inf).is_ok_and(|f| f.ok != Some(false)) {
                 row.fit_ok += 1;
                 continue;
             }

@@ -239,6 +239,8 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
         ));
         return Ok(ear);
     }
+    // As the service answers: the full-measure flow for an ear with every measure.
+    let npe = npe.answering(&Obs { x, present: Some(present) });
     let inf = npe.infer(&Obs { x, present: Some(present) }, samples, seed)?;
     // What the draws say before a failed fit check withdraws it.
     ear.findings_raw = findings(&normal::read(npe.params(), &inf.samples));

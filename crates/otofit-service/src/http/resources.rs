@@ -70,6 +70,15 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
             }
             d["training"] = json!(h.training);
             d["members"] = json!(h.members);
+            // The flow that answers ears with every measure, when the model holds one.
+            if let Some(full) = npe.full_measure() {
+                let f = &full.header;
+                d["full_measure_flow"] = json!({
+                    "training": f.training,
+                    "temperature": f.temperature,
+                    "fit_null": f.fit_null,
+                });
+            }
             d["calibration"] = json!({
                 "temperature": h.temperature,
                 "fit_null": h.fit_null,
