@@ -1085,3 +1085,17 @@ fn serve_refuses_a_default_model_it_cannot_load() {
     assert!(err.contains("--default-model /nonexistent.otofit") && err.contains("--default-model none"), "{err}");
     let _ = std::fs::remove_dir_all(&d);
 }
+
+/// `otofit attach` refuses a flow that cannot be a full-measure flow, naming --full and
+/// why, and writes nothing.
+#[test]
+fn attach_refuses_a_masked_flow_and_writes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let out = dir.path().join("combined.otofit");
+    let o = otofit(&["attach", "--model", model, "--full", model, "--out", out.to_str().unwrap()]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--full") && err.contains("masks"), "{err}");
+    assert!(!out.exists());
+}

@@ -1014,6 +1014,44 @@ fn clinic_request() -> Value {
     req
 }
 
+/// Every measure over the whole grid, SI units and radians, from the nominal ear.
+fn full_request() -> Value {
+    let model = otofit::sim::Model::new(otofit::sim::ModelConfig::default()).unwrap();
+    let x = otofit::sim::simulate(&mut model.runner(), &otofit::sim::Theta::nominal(), &Default::default()).unwrap();
+    let (f, n) = (model.frequencies(), model.frequencies().len());
+    let block = |k: usize| x[k * n..(k + 1) * n].to_vec();
+    let magnitude = |k: usize| block(k).iter().map(|v| 10f64.powf(*v)).collect::<Vec<f64>>();
+    json!({"measurements": {
+        "stapes_velocity": {"frequencies_hz": f, "magnitude": magnitude(0), "phase": block(1)},
+        "impedance": {"frequencies_hz": f, "magnitude": magnitude(2), "phase": block(3)},
+        "absorbance": {"frequencies_hz": f, "values": block(4)},
+        "umbo_velocity": {"frequencies_hz": f, "magnitude": magnitude(5), "phase": block(6)},
+    }})
+}
+
+/// The shipped model holds a full-measure flow: an ear with every measure over the whole
+/// band is answered by it, an ear without one of them by the main flow, and GET
+/// /models/{id} lists it with its own calibration.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
+    let (app, _, _dir) = app(vec![], 8, false).await;
+    let full = full_request();
+    let (status, _, a) = call(&app, "POST", "/infer", Some(full.clone())).await;
+    assert_eq!(status, StatusCode::OK, "{a}");
+    assert_eq!(a["inputs"]["flow"], "full-measure", "{}", a["inputs"]);
+    assert_eq!(a["fit"]["ok"], true, "{}", a["fit"]);
+    let mut without_umbo = full;
+    without_umbo["measurements"].as_object_mut().unwrap().remove("umbo_velocity");
+    let (status, _, b) = call(&app, "POST", "/infer", Some(without_umbo)).await;
+    assert_eq!((status, b["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{}", b["inputs"]);
+    let (status, _, m) = call(&app, "GET", "/models/default", None).await;
+    assert_eq!(status, StatusCode::OK, "{m}");
+    let f = &m["full_measure_flow"];
+    let t = f["temperature"].as_f64().unwrap_or(f64::NAN);
+    assert!((0.5..=2.0).contains(&t) && f["fit_null"].is_object(), "{f}");
+    assert_ne!(f["training"], m["training"], "the full-measure flow's own training, not the main flow's");
+}
+
 /// Umbo velocity: WBT + umbo LDV is answered, the umbo narrows the
 /// posterior of the tissue parameters on average, and its fields are checked by name.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
