@@ -217,9 +217,8 @@ fn log_probs(model: &Npe, rows: &[(Vec<f64>, Vec<bool>)], path: &Path) -> Result
     let inside = |t: &[f64]| model.params().iter().zip(t).all(|(p, v)| v.is_finite() && (p.low..=p.high).contains(v));
     let mut stdout = std::io::stdout().lock();
     for (r, (x, present)) in rows.iter().enumerate() {
-        let lp = model
-            .log_prob(&Obs { x, present: Some(present) }, &thetas)
-            .with_context(|| format!("observation {}", r + 1))?;
+        let obs = Obs { x, present: Some(present) };
+        let lp = model.answering(&obs).log_prob(&obs, &thetas).with_context(|| format!("observation {}", r + 1))?;
         let outside: Vec<usize> = (0..thetas.len()).filter(|&i| !inside(&thetas[i])).collect();
         let lp: Vec<Option<f64>> =
             lp.iter().enumerate().map(|(i, v)| (!outside.contains(&i) && v.is_finite()).then_some(*v)).collect();

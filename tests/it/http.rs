@@ -1040,6 +1040,12 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert_eq!(status, StatusCode::OK, "{a}");
     assert_eq!(a["inputs"]["flow"], "full-measure", "{}", a["inputs"]);
     assert_eq!(a["fit"]["ok"], true, "{}", a["fit"]);
+    // /log_prob gives the density of the flow that answered.
+    let draws = a["samples"].as_array().unwrap()[..3].to_vec();
+    let mut lp_req = full.clone();
+    lp_req["theta"] = json!(draws);
+    let (status, _, lp) = call(&app, "POST", "/log_prob", Some(lp_req)).await;
+    assert_eq!((status, lp["inputs"]["flow"].as_str()), (StatusCode::OK, Some("full-measure")), "{lp}");
     let mut without_umbo = full;
     without_umbo["measurements"].as_object_mut().unwrap().remove("umbo_velocity");
     let (status, _, b) = call(&app, "POST", "/infer", Some(without_umbo)).await;

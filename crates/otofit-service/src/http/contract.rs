@@ -309,7 +309,7 @@ fn response_structs_write_exactly_their_schemas_properties() {
     let log_prob = LogProbResponse {
         model: String::new(),
         columns: vec![],
-        inputs: UsedInputs { used: vec![] },
+        inputs: UsedInputs { used: vec![], flow: "main" },
         log_prob: vec![],
         outside_prior: vec![],
     };

@@ -49,9 +49,12 @@ pub async fn log_prob(
     }
     let (x, present, used) = super::infer::features(&npe, &req.measurements, None)?;
     let theta = req.theta;
+    // The density of the flow /infer samples for these measurements.
+    let full = !std::ptr::eq(npe.answering(&Obs { x: &x, present: Some(&present) }), &*npe);
     let npe2 = npe.clone();
     let lp = tokio::task::spawn_blocking(move || {
-        npe2.log_prob(&Obs { x: &x, present: Some(&present) }, &theta).map(|lp| (lp, theta))
+        let obs = Obs { x: &x, present: Some(&present) };
+        npe2.answering(&obs).log_prob(&obs, &theta).map(|lp| (lp, theta))
     })
     .await
     .map_err(Problem::internal)?
@@ -65,7 +68,7 @@ pub async fn log_prob(
     Ok(Json(LogProbResponse {
         model: row.id,
         columns: npe.params().iter().map(|p| p.name.clone()).collect(),
-        inputs: UsedInputs { used },
+        inputs: UsedInputs { used, flow: if full { "full-measure" } else { "main" } },
         log_prob: values,
         outside_prior: outside,
     }))
@@ -89,4 +92,6 @@ pub struct LogProbResponse {
 #[derive(Serialize)]
 pub struct UsedInputs {
     pub used: Vec<&'static str>,
+    /// The flow whose density this is (`full-measure` or `main`, as POST /infer's).
+    pub flow: &'static str,
 }
