@@ -999,7 +999,9 @@ pub fn summarize(params: &[Param], samples: &[Vec<f64>], map: &[f64]) -> Vec<Sum
                 q05: stats::quantile_linear(&v, 0.05),
                 q95: stats::quantile_linear(&v, 0.95),
                 std,
-                cv: std / mean.abs(),
+                // Draws without spread vary by nothing, even at a mean of 0 (a prior box
+                // that starts at 0, every draw on it): 0, not 0/0.
+                cv: if std == 0.0 { 0.0 } else { std / mean.abs() },
             }
         })
         .collect()
@@ -1085,6 +1087,18 @@ mod tests {
         h.full_measure_flow = false;
         let flow = Flow::new(&h.flow, &Device::flex());
         Npe::from_parts(h, vec![flow.into_record()])
+    }
+
+    #[test]
+    fn draws_without_spread_have_a_coefficient_of_variation_of_zero() {
+        let params = model().header.params;
+        let k = params.iter().position(|p| p.low == 0.0).expect("a prior box that starts at 0");
+        let draws: Vec<Vec<f64>> = (0..4)
+            .map(|i| params.iter().enumerate().map(|(j, p)| if j == k { 0.0 } else { p.low + i as f64 }).collect())
+            .collect();
+        let s = summarize(&params, &draws, &draws[0]);
+        assert_eq!((s[k].mean, s[k].std, s[k].cv), (0.0, 0.0, 0.0), "{:?}", s[k]);
+        assert!(s.iter().all(|p| p.cv.is_finite()), "{s:?}");
     }
 
     #[test]
