@@ -270,9 +270,9 @@ pub fn run(args: InferArgs) -> Result<()> {
     for (r, (x, present)) in rows.iter().enumerate() {
         let (x, present) = (x.as_slice(), present.as_slice());
         // The full-measure flow answers an ear with every measure, when the file holds one.
-        let answering = model.answering(&Obs { x, present: Some(present) });
-        let flow = if std::ptr::eq(answering, &model) { "main" } else { "full-measure" };
-        let model = answering;
+        let obs = Obs { x, present: Some(present) };
+        let flow = if model.full_measure_answers(&obs) { "full-measure" } else { "main" };
+        let model = model.answering(&obs);
         let inf = model
             .infer(&Obs { x, present: Some(present) }, args.samples, args.seed)
             .with_context(|| format!("observation {}", r + 1))?;

@@ -497,13 +497,19 @@ impl Npe {
     /// full-measure flow when the file holds one and every feature is present and
     /// finite, else this one. Its own header (temperature, fit-check null) goes with it.
     pub fn answering(&self, obs: &Obs<'_>) -> &Npe {
-        let all = obs.x.len() == self.header.feature_names.len()
-            && obs.x.iter().all(|v| v.is_finite())
-            && obs.present.is_none_or(|p| p.iter().all(|&b| b));
         match &self.full {
-            Some(full) if all => full,
+            Some(full) if self.full_measure_answers(obs) => full,
             _ => self,
         }
+    }
+
+    /// Whether [`Npe::answering`] gives the full-measure flow for `obs`: the file holds
+    /// one, and every feature is present and finite.
+    pub fn full_measure_answers(&self, obs: &Obs<'_>) -> bool {
+        self.full.is_some()
+            && obs.x.len() == self.header.feature_names.len()
+            && obs.x.iter().all(|v| v.is_finite())
+            && obs.present.is_none_or(|p| p.iter().all(|&b| b))
     }
 
     /// The full-measure flow, if the file holds one.
@@ -1121,6 +1127,11 @@ mod tests {
         let mut one_gone = all.clone();
         one_gone[f - 1] = false;
         assert!(std::ptr::eq(answering(&one_gone, &x), &back), "a feature absent: the main flow");
+        let says = |present: &[bool]| back.full_measure_answers(&Obs { x: &x, present: Some(present) });
+        assert!(says(&all) && !says(&one_gone), "the name the service gives follows the flow that answers");
+        let mut bare = model();
+        bare.full = None;
+        assert!(!bare.full_measure_answers(&Obs { x: &x, present: Some(&all) }), "no full-measure flow, none answers");
         let mut nan = x.clone();
         nan[0] = f64::NAN;
         assert!(std::ptr::eq(answering(&all, &nan), &back), "a feature not finite: the main flow");

@@ -253,7 +253,7 @@ pub async fn infer(
     let band_hz = bands_used(&npe, &present);
     // Which of the model's flows answers: its full-measure flow for an ear with every
     // measure over the whole band, when the model holds one.
-    let full = !std::ptr::eq(npe.answering(&Obs { x: &x, present: Some(&present) }), &*npe);
+    let full = npe.full_measure_answers(&Obs { x: &x, present: Some(&present) });
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
     let (plot, title) = (req.plot, format!("Posterior, model {}", row.id));

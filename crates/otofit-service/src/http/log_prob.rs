@@ -50,7 +50,7 @@ pub async fn log_prob(
     let (x, present, used) = super::infer::features(&npe, &req.measurements, None)?;
     let theta = req.theta;
     // The density of the flow /infer samples for these measurements.
-    let full = !std::ptr::eq(npe.answering(&Obs { x: &x, present: Some(&present) }), &*npe);
+    let full = npe.full_measure_answers(&Obs { x: &x, present: Some(&present) });
     let npe2 = npe.clone();
     let lp = tokio::task::spawn_blocking(move || {
         let obs = Obs { x: &x, present: Some(&present) };
