@@ -3,6 +3,7 @@
 //! MLPs of the untouched half and the embedding, with fixed permutations between them,
 //! over a standard-normal base. No I/O here; `npe` owns data, training and checkpoints.
 
+pub mod gradient;
 pub mod plain;
 pub mod spline;
 
@@ -209,9 +210,10 @@ impl Mlp {
 }
 
 /// σ(x), the residual blocks' context gate, computed on the host ([`plain::sigmoids`]);
-/// in training its value and gradient come from the tangent line at x, slope·x + offset
+/// with autodiff its value and gradient come from the tangent line at x, slope·x + offset
 /// (two tensor ops, the gradient slope·grad). burn's sigmoid took a quarter of a
-/// two-moons training in libm's `expf`.
+/// two-moons training in libm's `expf` (training now takes its gradient on the host,
+/// [`gradient`]).
 fn gate(x: Tensor<2>) -> Tensor<2> {
     let dims = x.dims();
     let device = x.device();

@@ -113,7 +113,7 @@ fn back(w: MatRef<'_, f64>, g: &[f64], n: usize) -> Vec<f64> {
 /// fit check on the same thread — then ran 2–3× slower (measured: `DrumModes::schur` 2.8×,
 /// a whole `POST /infer` 33 → 19 ms of CPU on one thread, `otofit bench infer --direct`).
 #[inline]
-fn clear_upper() {
+pub(super) fn clear_upper() {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU has AVX (just detected).

@@ -4,6 +4,7 @@
 
 #![warn(missing_docs)]
 
+mod adam;
 pub mod calibrate;
 pub mod data;
 mod error;
