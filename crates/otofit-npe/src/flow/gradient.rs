@@ -136,26 +136,23 @@ impl Weights {
     }
 
     /// `flow` with these weights (the same parameter ids).
-    pub fn into_flow(self, flow: Flow) -> Flow {
-        let device = flow.embedding.layers.first().map(|l| l.weight.val().device());
-        let mut mapper = SetValues { by_id: self.params.iter().map(|p| p.0).zip(self.values).collect(), device };
+    pub fn to_flow(&self, flow: Flow) -> Flow {
+        let by_id = self.params.iter().map(|p| p.0).zip(self.values.iter().cloned()).collect();
+        let mut mapper = SetValues { by_id };
         flow.map(&mut mapper)
     }
 }
 
-/// Puts host values into a flow's parameters, by id.
+/// Puts host values into a flow's parameters, by id (each on its tensor's device).
 struct SetValues {
     by_id: std::collections::HashMap<ParamId, Vec<f32>>,
-    device: Option<Device>,
 }
 
 impl burn::module::ModuleMapper for SetValues {
     fn map_float<const D: usize>(&mut self, param: burn::module::Param<Tensor<D>>) -> burn::module::Param<Tensor<D>> {
         let Some(v) = self.by_id.remove(&param.id) else { return param };
         let (id, tensor, mapper) = param.consume();
-        let device = self.device.clone().unwrap_or_else(|| tensor.device());
-        let dims = tensor.dims();
-        let new = Tensor::<D>::from_data(TensorData::new(v, dims), &device);
+        let new = Tensor::<D>::from_data(TensorData::new(v, tensor.dims()), &tensor.device());
         let new = if tensor.is_require_grad() { new.require_grad() } else { new };
         burn::module::Param::from_mapped_value(id, new, mapper)
     }
@@ -386,19 +383,25 @@ struct Coupling {
     before_lu: Vec<f32>,
 }
 
-/// Mean −log q(v | inp) over `n` rows (v: standardised parameters [n × dim], inp: the
-/// network's inputs [n × inputs], row-major) and its gradient with respect to every weight:
-/// the value of burn's `Flow::log_prob(…).mean().neg()` and of its backward pass, up to
-/// f32 rounding.
-pub fn loss_and_gradient(weights: &Weights, v: &[f32], inp: &[f32], n: usize) -> (f64, Gradient) {
+/// What the forward pass keeps for the backward one.
+struct Record {
+    /// Each embedding layer's input.
+    emb_inputs: Vec<Vec<f32>>,
+    /// The embedding's output, the conditioners' context [n × context].
+    ctx: Vec<f32>,
+    /// The rows at the base [n × dim].
+    u: Vec<f32>,
+    couplings: Vec<Coupling>,
+}
+
+/// −log q(v | inp) of each of `n` rows (v: standardised parameters [n × dim], inp: the
+/// network's inputs [n × inputs], row-major), and with `record` what the backward pass
+/// reads (without it the splines' Jacobians are not taken: the validation loss).
+fn forward_pass(weights: &Weights, v: &[f32], inp: &[f32], n: usize, record: bool) -> (Vec<f64>, Record) {
     let cfg = &weights.cfg;
     let (d, (dc, dt)) = (cfg.dim, cfg.split());
     let np = spline::n_params(cfg.bins);
-    // The factor on each of a spline's raw parameters (the bin scale on widths and heights).
-    let factor: Vec<f32> =
-        (0..np).map(|k| if cfg.scaled_bins && k < 2 * cfg.bins { cfg.bin_scale() as f32 } else { 1.0 }).collect();
-
-    // Forward: the embedding, then each coupling and LU layer.
+    let factor = raw_factors(cfg);
     let vals = &weights.values;
     let mut emb_inputs = vec![];
     let mut ctx = inp.to_vec();
@@ -409,7 +412,7 @@ pub fn loss_and_gradient(weights: &Weights, v: &[f32], inp: &[f32], n: usize) ->
     let c = cfg.context();
     let mut u = v.to_vec();
     let mut logdet = vec![0.0f64; n];
-    let mut tapes = vec![];
+    let mut couplings = vec![];
     for t in 0..cfg.transforms {
         let perm = &cfg.permutations[t];
         u = (0..n).flat_map(|i| perm.iter().map(move |&p| (i, p))).map(|(i, p)| u[i * d + p]).collect();
@@ -424,8 +427,10 @@ pub fn loss_and_gradient(weights: &Weights, v: &[f32], inp: &[f32], n: usize) ->
         }
         let x: Vec<f32> = (0..n).flat_map(|i| u[i * d + dc..(i + 1) * d].iter().copied()).collect();
         let (mut y, mut ld) = (vec![0.0f32; n * dt], vec![0.0f32; n * dt]);
-        let (mut jy, mut jl) = (vec![0.0f32; n * dt * (np + 1)], vec![0.0f32; n * dt * (np + 1)]);
-        plain::spline_jacobians(&x, &raw, cfg.bins, cfg.bound, (&mut y, &mut ld), Some((&mut jy, &mut jl)));
+        let jacobians = if record { n * dt * (np + 1) } else { 0 };
+        let (mut jy, mut jl) = (vec![0.0f32; jacobians], vec![0.0f32; jacobians]);
+        let wanted = record.then_some((&mut jy[..], &mut jl[..]));
+        plain::spline_jacobians(&x, &raw, cfg.bins, cfg.bound, (&mut y, &mut ld), wanted);
         for i in 0..n {
             logdet[i] += ld[i * dt..(i + 1) * dt].iter().map(|&v| v as f64).sum::<f64>();
             u[i * d + dc..(i + 1) * d].copy_from_slice(&y[i * dt..(i + 1) * dt]);
@@ -444,17 +449,51 @@ pub fn loss_and_gradient(weights: &Weights, v: &[f32], inp: &[f32], n: usize) ->
             }
             before_lu = std::mem::replace(&mut u, out);
         }
-        tapes.push(Coupling { tape, jy, jl, before_lu });
+        if record {
+            couplings.push(Coupling { tape, jy, jl, before_lu });
+        }
     }
     let half_log_2pi = 0.5 * (2.0 * std::f64::consts::PI).ln();
-    let loss = (0..n)
+    let losses = (0..n)
         .map(|i| {
             let sq: f64 = u[i * d..(i + 1) * d].iter().map(|&v| (v as f64).powi(2)).sum();
             0.5 * sq + d as f64 * half_log_2pi - logdet[i]
         })
-        .sum::<f64>()
-        / n as f64;
+        .collect();
+    (losses, Record { emb_inputs, ctx, u, couplings })
+}
 
+/// The factor on each of a spline's raw parameters (the bin scale on widths and heights).
+fn raw_factors(cfg: &FlowConfig) -> Vec<f32> {
+    let np = spline::n_params(cfg.bins);
+    (0..np).map(|k| if cfg.scaled_bins && k < 2 * cfg.bins { cfg.bin_scale() as f32 } else { 1.0 }).collect()
+}
+
+/// −log q(v | inp) of each of `n` rows, as [`loss_and_gradient`] takes it, without the
+/// records of its backward pass.
+pub fn row_losses(weights: &Weights, v: &[f32], inp: &[f32], n: usize) -> Vec<f64> {
+    forward_pass(weights, v, inp, n, false).0
+}
+
+/// Mean −log q(v | inp) over `n` rows (v: standardised parameters [n × dim], inp: the
+/// network's inputs [n × inputs], row-major) and its gradient with respect to every weight:
+/// the value of burn's `Flow::log_prob(…).mean().neg()` and of its backward pass, up to
+/// f32 rounding.
+pub fn loss_and_gradient(weights: &Weights, v: &[f32], inp: &[f32], n: usize) -> (f64, Gradient) {
+    let (losses, record) = forward_pass(weights, v, inp, n, true);
+    let loss = losses.iter().sum::<f64>() / n as f64;
+    (loss, backward_pass(weights, record, n))
+}
+
+/// The gradient of the mean −log q over the `n` rows whose forward pass left `record`.
+fn backward_pass(weights: &Weights, record: Record, n: usize) -> Gradient {
+    let cfg = &weights.cfg;
+    let (d, (dc, dt)) = (cfg.dim, cfg.split());
+    let np = spline::n_params(cfg.bins);
+    let factor = raw_factors(cfg);
+    let vals = &weights.values;
+    let c = cfg.context();
+    let Record { emb_inputs, ctx, u, couplings: tapes } = record;
     // Backward: ∂loss/∂u = u / n at the base; every row's log-determinant enters with −1/n.
     let mut grad = Gradient(weights.params.iter().map(|(_, s)| vec![0.0; s.iter().product()]).collect());
     let inv_n = 1.0 / n as f32;
@@ -505,7 +544,7 @@ pub fn loss_and_gradient(weights: &Weights, v: &[f32], inp: &[f32], n: usize) ->
         }
         gc = gx;
     }
-    (loss, grad)
+    grad
 }
 
 /// The LU layer's backward pass: y = W x + b per row, W = L U, and −log |det W| in the

@@ -397,7 +397,8 @@ impl Batcher<'_> {
     }
 }
 
-/// Mean negative log-likelihood of one batch.
+/// Mean negative log-likelihood of one batch, through burn (the tests hold the host's to it).
+#[cfg(test)]
 fn loss_of(flow: &Flow, cfg: &FlowConfig, v: Vec<f32>, inp: Vec<f32>, b: usize, dev: &Device) -> Tensor<1> {
     let vt = Tensor::<2>::from_data(TensorData::new(v, [b, cfg.dim]), dev);
     let it = Tensor::<2>::from_data(TensorData::new(inp, [b, cfg.inputs]), dev);
@@ -587,6 +588,10 @@ pub const MIN_PART_ROWS: usize = 64;
 /// few for its matrix products.
 pub const MAX_PARTS: usize = 16;
 
+/// Rows per piece of the validation pass (a fixed size, so that the sum does not depend
+/// on the threads).
+const VALIDATION_PIECE: usize = 125;
+
 /// How many parts a batch of `b` rows is split into on `threads` threads: one below
 /// [`SPLIT_ROWS`]; else as many as the threads up to [`MAX_PARTS`], at least two and no
 /// more than parts of [`MIN_PART_ROWS`]. One and two threads split alike (two parts,
@@ -599,6 +604,7 @@ pub fn parts(b: usize, threads: usize) -> usize {
 }
 
 /// A one-element loss tensor as f64 (NaN when it cannot be read).
+#[cfg(test)]
 fn scalar(loss: Tensor<1>) -> f64 {
     loss.try_into_vec_as::<f32>().map(|v| v[0] as f64).unwrap_or(f64::NAN)
 }
@@ -675,15 +681,24 @@ struct Run<'a> {
     batcher: Batcher<'a>,
     train_idx: &'a [usize],
     /// Validation inputs with one fixed noise draw: (v, input, rows).
-    val_batches: Vec<(Vec<f32>, Vec<f32>, usize)>,
+    val_batches: Vec<Rows>,
     n_val: usize,
-    /// The autodiff device the member trains on.
+    /// The device of the member's burn flow, which holds the weights between epochs (for
+    /// the best weights and checkpoints); the epochs themselves train on the host.
     device: Device,
 }
 
 impl Run<'_> {
-    /// One pass over the training rows; the mean loss of the finite batches.
-    fn epoch(&self, flow: Flow, opt: &mut Adam, lr: f64, order: &mut [usize], rng: &mut ChaCha8Rng) -> (Flow, f64) {
+    /// One pass over the training rows: the flow with its new weights, the same weights
+    /// on the host, and the mean loss of the finite batches.
+    fn epoch(
+        &self,
+        flow: Flow,
+        opt: &mut Adam,
+        lr: f64,
+        order: &mut [usize],
+        rng: &mut ChaCha8Rng,
+    ) -> (Flow, Weights, f64) {
         order.shuffle(rng);
         let threads = rayon::current_num_threads();
         let batches: Vec<&[usize]> = order.chunks(self.s.batch).collect();
@@ -732,21 +747,27 @@ impl Run<'_> {
             });
         }
         let weights = Arc::try_unwrap(weights).unwrap_or_else(|shared| (*shared).clone());
-        (weights.into_flow(flow), sum / count.max(1) as f64)
+        (weights.to_flow(flow), weights, sum / count.max(1) as f64)
     }
 
-    /// Validation loss of the current weights (without autodiff). The batches' losses are
-    /// taken on the thread pool and added in the batches' order: the same bits for any
-    /// number of threads.
-    fn validate(&self, valid: &Flow) -> f64 {
+    /// Validation loss (mean −log q over the validation rows) of `weights`, on the host.
+    /// The rows are cut into pieces of [`VALIDATION_PIECE`] (a fixed size: on many cores
+    /// the few 1000-row batches left threads idle while the epoch waited), taken on the
+    /// thread pool, and their rows' losses added in the rows' order: the same bits for
+    /// any number of threads.
+    fn validate(&self, weights: &Weights) -> f64 {
         use rayon::prelude::*;
-        let plain = Device::flex();
-        let losses: Vec<f64> = self
-            .val_batches
+        let (d, k) = (self.cfg.dim, self.cfg.inputs);
+        let pieces: Vec<(&Rows, usize)> =
+            self.val_batches.iter().flat_map(|b| (0..b.2).step_by(VALIDATION_PIECE).map(move |lo| (b, lo))).collect();
+        let losses: Vec<Vec<f64>> = pieces
             .par_iter()
-            .map(|(v, inp, b)| scalar(loss_of(valid, self.cfg, v.clone(), inp.clone(), *b, &plain)) * *b as f64)
+            .map(|&((v, inp, b), lo)| {
+                let hi = (lo + VALIDATION_PIECE).min(*b);
+                gradient::row_losses(weights, &v[lo * d..hi * d], &inp[lo * k..hi * k], hi - lo)
+            })
             .collect();
-        losses.iter().fold(0.0, |sum, l| sum + l) / self.n_val as f64
+        losses.iter().flatten().fold(0.0, |sum, l| sum + l) / self.n_val as f64
     }
 
     /// Ensemble member `member` before its first epoch: weights from its own seed, batches
@@ -794,11 +815,11 @@ impl Run<'_> {
             if let Some((start, len)) = m.anneal {
                 lr *= half_cosine(epoch - 1 - start, len);
             }
-            (m.flow, train_loss) = self.epoch(m.flow, &mut m.opt, lr, &mut m.order, &mut m.rng);
-            let valid = m.flow.valid();
-            let val_loss = self.validate(&valid);
+            let weights;
+            (m.flow, weights, train_loss) = self.epoch(m.flow, &mut m.opt, lr, &mut m.order, &mut m.rng);
+            let val_loss = self.validate(&weights);
             if val_loss < m.best_val_loss {
-                (m.best_val_loss, m.best_epoch, m.record) = (val_loss, epoch, Some(valid.into_record()));
+                (m.best_val_loss, m.best_epoch, m.record) = (val_loss, epoch, Some(m.flow.valid().into_record()));
             }
             end.done = epoch == s.max_epochs;
             if let Some((start, len)) = m.anneal {
@@ -1487,7 +1508,7 @@ mod tests {
                             count += rows.len();
                             m.opt.step(run.s.lr, Arc::make_mut(&mut w), g);
                         }
-                        m.flow = Arc::try_unwrap(w).ok().unwrap().into_flow(m.flow);
+                        m.flow = w.to_flow(m.flow);
                         losses.push(sum / count as f64);
                     }
                     (weights(&m.flow), losses, m.rng.get_word_pos())
@@ -1499,7 +1520,7 @@ mod tests {
                     let mut losses = vec![];
                     for _ in 0..2 {
                         let loss;
-                        (m.flow, loss) = run.epoch(m.flow, &mut m.opt, run.s.lr, &mut m.order, &mut m.rng);
+                        (m.flow, _, loss) = run.epoch(m.flow, &mut m.opt, run.s.lr, &mut m.order, &mut m.rng);
                         losses.push(loss);
                     }
                     (weights(&m.flow), losses, m.rng.get_word_pos())
@@ -1524,7 +1545,7 @@ mod tests {
                 on_threads(threads, || {
                     let mut m = run.fresh(0, ChaCha8Rng::seed_from_u64(9));
                     let loss;
-                    (m.flow, loss) = run.epoch(m.flow, &mut m.opt, run.s.lr, &mut m.order, &mut m.rng);
+                    (m.flow, _, loss) = run.epoch(m.flow, &mut m.opt, run.s.lr, &mut m.order, &mut m.rng);
                     (weights(&m.flow), loss)
                 })
             };
@@ -1534,9 +1555,9 @@ mod tests {
         });
     }
 
-    /// The validation loss is the batches' losses added in order, whatever the threads:
-    /// the same bits on 1, 2, 3 and 4 threads as a plain loop (7 batches: 6 of 1000, one
-    /// of 500).
+    /// The validation loss is the rows' losses added in order, whatever the threads: the
+    /// same bits on 1, 2, 3 and 4 threads as a plain loop over the rows (7 batches: 6 of
+    /// 1000, one of 500), and burn's mean −log q of the same weights up to f32 rounding.
     #[test]
     fn the_validation_loss_is_the_same_on_any_number_of_threads() {
         let ds = toy(13_000);
@@ -1547,14 +1568,19 @@ mod tests {
                 [1000, 1000, 1000, 1000, 1000, 1000, 500]
             );
             let valid = new_flow(run.cfg, &Device::flex(), Some(4));
-            let mut sum = 0.0;
+            let weights = Weights::of(&valid, run.cfg);
+            let (mut plain, mut burn) = (0.0, 0.0);
             for (v, inp, b) in &run.val_batches {
-                sum += scalar(loss_of(&valid, run.cfg, v.clone(), inp.clone(), *b, &Device::flex())) * *b as f64;
+                for l in gradient::row_losses(&weights, v, inp, *b) {
+                    plain += l;
+                }
+                burn += scalar(loss_of(&valid, run.cfg, v.clone(), inp.clone(), *b, &Device::flex())) * *b as f64;
             }
-            let plain = sum / run.n_val as f64;
+            let (plain, burn) = (plain / run.n_val as f64, burn / run.n_val as f64);
             assert!(plain.is_finite());
+            assert!((plain - burn).abs() < 1e-5 * burn.abs().max(1.0), "host {plain} vs burn {burn}");
             for threads in [1, 2, 3, 4] {
-                let got = on_threads(threads, || run.validate(&valid));
+                let got = on_threads(threads, || run.validate(&weights));
                 assert_eq!(got.to_bits(), plain.to_bits(), "{threads} threads: {got} vs {plain}");
             }
         });
