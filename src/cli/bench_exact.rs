@@ -41,14 +41,20 @@ pub fn run(a: ExactArgs) -> Result<()> {
     let t = Instant::now();
     let report = exact_fast::run(&npe, &p, &mut |outcome| match outcome {
         Ok(e) => eprintln!(
-            "ear {} ({}): {:.2} s, exact {}, R-hat {:.3}, ESS {:.0}/{:.0}{}{}{} ({:.0} s)",
+            "ear {} ({}): {:.2} s, exact {} by {}{}{}{}{}{} ({:.0} s)",
             e.ear,
             e.kind,
             e.seconds,
             e.exact,
-            e.rhat,
-            e.ess_bulk,
-            e.ess_tail,
+            e.method,
+            match (e.importance_ess, e.pareto_k) {
+                (Some(ess), Some(k)) => format!(", importance ESS {ess:.0}, Pareto k {k:.2}"),
+                _ => String::new(),
+            },
+            match (e.rhat, e.ess_bulk, e.ess_tail) {
+                (Some(r), Some(b), Some(t)) => format!(", R-hat {r:.3}, ESS {b:.0}/{t:.0}"),
+                _ => String::new(),
+            },
             e.c2st.map_or(String::new(), |c| format!(", C2ST {c:.3}")),
             e.c2st_flow.map_or(String::new(), |c| format!(" (flow {c:.3})")),
             e.long_rhat.map_or(String::new(), |r| format!(", long chain's R-hat {r:.3}")),

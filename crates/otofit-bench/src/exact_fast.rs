@@ -67,16 +67,22 @@ pub struct FastEar {
     pub kind: &'static str,
     /// The flow (`flow`) and the short chains (`exact`) on each tissue parameter.
     pub params: Vec<ParamScore>,
-    /// The short chains' verdict.
+    /// The in-request answer's verdict.
     pub exact: bool,
+    /// What answered: `importance` or `chains`.
+    pub method: &'static str,
     /// Why not exact, when not.
     pub reason: Option<String>,
-    /// Largest R-hat over the parameters.
-    pub rhat: f64,
-    /// Smallest bulk ESS.
-    pub ess_bulk: f64,
-    /// Smallest tail ESS.
-    pub ess_tail: f64,
+    /// The importance weights' Kish ESS, when importance sampling ran.
+    pub importance_ess: Option<f64>,
+    /// Their Pareto k̂.
+    pub pareto_k: Option<f64>,
+    /// Largest R-hat over the parameters, when the chains ran.
+    pub rhat: Option<f64>,
+    /// Smallest bulk ESS of the chains.
+    pub ess_bulk: Option<f64>,
+    /// Smallest tail ESS of the chains.
+    pub ess_tail: Option<f64>,
     /// Wall time of the short chains (fits included).
     pub seconds: f64,
     /// C2ST between the short chains' and the long chain's draws (reference ears).
@@ -148,6 +154,12 @@ pub struct FastReport {
     pub c2st_flow_median: f64,
     /// The long chain's own coverage and the short chains' width against it.
     pub long: LongChain,
+    /// Ears called exact by importance sampling (the rest by the chains).
+    pub importance_ears: usize,
+    /// Median Kish ESS and Pareto k̂ of the importance weights over the ears.
+    pub importance_ess_median: f64,
+    /// Median Pareto k̂.
+    pub pareto_k_median: f64,
     /// Median and largest wall time of the short chains.
     pub seconds_median: f64,
     /// Largest wall time of the short chains.
@@ -179,6 +191,9 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
     let settings = Settings { seed, ..Settings::default() };
     let fast = exact_fast::sample(npe, x, &present, &inf, &settings, Instant::now() + exact_fast::BUDGET)?;
     let seconds = t.elapsed().as_secs_f64();
+    if fast.samples.is_empty() {
+        bail!("no draws within {:.1} s: {}", seconds, fast.reason.as_deref().unwrap_or("?"));
+    }
     let tissue = &npe.params()[..N_TISSUE];
     let (mut c2st, mut c2st_flow, mut long_seconds, mut long_scores, mut long_rhat) = (None, None, None, None, None);
     if i < p.reference {
@@ -190,16 +205,20 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
         long_scores = Some(marginals(tissue, truth, &long.chain.samples));
         long_rhat = Some(exact_fast::by_segments(&long.chain.samples, long.chain.chains).0);
     }
-    let g = &fast.diagnostics;
+    let g = fast.diagnostics.as_ref();
+    let w = fast.importance.as_ref();
     Ok(FastEar {
         ear: i,
         kind,
         params: score(tissue, truth, &inf.samples, &fast.samples),
         exact: fast.exact,
+        method: fast.method,
         reason: fast.reason.clone(),
-        rhat: g.rhat,
-        ess_bulk: g.ess_bulk,
-        ess_tail: g.ess_tail,
+        importance_ess: w.map(|w| w.ess),
+        pareto_k: w.map(|w| w.pareto_k),
+        rhat: g.map(|g| g.rhat),
+        ess_bulk: g.map(|g| g.ess_bulk),
+        ess_tail: g.map(|g| g.ess_tail),
         seconds,
         c2st,
         c2st_flow,
@@ -248,6 +267,9 @@ pub fn run(npe: &Npe, p: &FastParams, progress: &mut dyn FnMut(&EarOutcome)) -> 
         c2st_median: median(per_ear.iter().filter_map(|e| e.c2st).collect()),
         c2st_flow_median: median(per_ear.iter().filter_map(|e| e.c2st_flow).collect()),
         long: pool_long(&per_ear),
+        importance_ears: exact_ears.iter().filter(|e| e.method == "importance").count(),
+        importance_ess_median: median(per_ear.iter().filter_map(|e| e.importance_ess).collect()),
+        pareto_k_median: median(per_ear.iter().filter_map(|e| e.pareto_k).collect()),
         seconds_median: median(seconds.clone()),
         seconds_max: seconds.iter().copied().fold(f64::NAN, f64::max),
         per_ear,
@@ -261,11 +283,13 @@ pub fn table(r: &FastReport) -> String {
     let scored = r.per_ear.len();
     let _ = writeln!(
         s,
-        "{scored} of {} ears scored ({} skipped), seed {}; {} chains × ({} warm-up + {} steps); {} reference ears \
-         with a {}-step chain",
+        "{scored} of {} ears scored ({} skipped), seed {}; importance sampling {:?} draws per round (+{} wide), \
+         else {} chains × ({} warm-up + {} steps); {} reference ears with a {}-step chain",
         r.ears,
         r.skipped.len(),
         r.seed,
+        r.settings.importance.as_ref().map(|i| i.rounds.clone()).unwrap_or_default(),
+        r.settings.importance.as_ref().map_or(0, |i| i.wide),
         r.settings.chains,
         r.settings.warmup,
         r.settings.steps,
@@ -283,9 +307,17 @@ pub fn table(r: &FastReport) -> String {
     }
     let _ = writeln!(
         s,
-        "\ncalled exact: {} of {scored}; median C2ST short chains vs long chain {:.3} (target ≤ 0.6), flow vs long \
-         chain {:.3}; short chains' wall time median {:.2} s, max {:.2} s",
-        r.exact_ears, r.c2st_median, r.c2st_flow_median, r.seconds_median, r.seconds_max
+        "\ncalled exact: {} of {scored} ({} by importance sampling: median ESS {:.0}, Pareto k {:.2}); median C2ST \
+         in-request vs long chain {:.3} (target ≤ 0.6), flow vs long chain {:.3}; in-request wall time median \
+         {:.2} s, max {:.2} s",
+        r.exact_ears,
+        r.importance_ears,
+        r.importance_ess_median,
+        r.pareto_k_median,
+        r.c2st_median,
+        r.c2st_flow_median,
+        r.seconds_median,
+        r.seconds_max
     );
     let l = &r.long;
     if l.pairs > 0 {
@@ -322,10 +354,13 @@ mod tests {
             kind: "prior",
             params,
             exact: false,
+            method: "chains",
             reason: None,
-            rhat: 1.0,
-            ess_bulk: 1.0,
-            ess_tail: 1.0,
+            importance_ess: None,
+            pareto_k: None,
+            rhat: Some(1.0),
+            ess_bulk: Some(1.0),
+            ess_tail: Some(1.0),
             seconds: 0.0,
             c2st: None,
             c2st_flow: None,

@@ -7,6 +7,7 @@ pub mod exact;
 pub mod exact_fast;
 pub mod fit;
 pub mod fitcheck;
+pub mod importance;
 pub mod locate;
 pub mod workflow;
 
