@@ -1,5 +1,6 @@
-//! POST /infer's `posterior: exact`: the likelihood's posterior from short chains within
-//! the request, with its diagnostics; the field validated by name.
+//! POST /infer's `posterior: exact`: the likelihood's posterior within the request, by
+//! importance sampling or short chains, with their diagnostics; the field validated by
+//! name.
 
 use crate::http::{app, call, nominal_request};
 use axum::body::Body;
@@ -8,7 +9,7 @@ use serde_json::json;
 use tower::ServiceExt;
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn infer_with_the_exact_posterior_reports_its_chains_and_their_verdict() {
+async fn infer_with_the_exact_posterior_reports_its_sampler_and_its_verdict() {
     let (app, _, _dir) = app(vec![], 8, false).await;
     let mut req = nominal_request();
     req["posterior"] = json!("exact");
@@ -17,13 +18,28 @@ async fn infer_with_the_exact_posterior_reports_its_chains_and_their_verdict() {
     assert_eq!(status, StatusCode::OK, "{body}");
     let e = &body["exact"];
     let exact = e["exact"].as_bool().unwrap_or_else(|| panic!("no exact.exact: {e}"));
+    // Importance sampling always runs first; the chains only where its weights fail.
+    let w = &e["importance"];
+    assert!(w["ess"].is_number() && w["rounds"].as_u64().unwrap() >= 1, "{w}");
     let g = &e["diagnostics"];
-    assert_eq!(g["acceptance"].as_array().map(Vec::len), Some(4), "{g}");
-    assert!(g["deadline_hit"].is_boolean(), "{g}");
+    match e["method"].as_str() {
+        Some("chains") => {
+            assert_eq!(g["acceptance"].as_array().map(Vec::len), Some(4), "{g}");
+            assert!(g["deadline_hit"].is_boolean(), "{g}");
+        }
+        Some("importance") => assert!(!exact || g.is_null(), "{e}"),
+        m => panic!("method {m:?}: {e}"),
+    }
     assert!(body["timing_ms"]["exact"].as_f64().unwrap() > 0.0, "{}", body["timing_ms"]);
     if exact {
         assert!(e.get("reason").is_none(), "{e}");
-        assert!(g["rhat"].as_f64().unwrap() <= e["settings"]["rhat_max"].as_f64().unwrap(), "{g}");
+        if e["method"] == "importance" {
+            let s = &e["settings"]["importance"];
+            assert!(w["ess"].as_f64().unwrap() >= s["ess_min"].as_f64().unwrap(), "{w}");
+            assert!(w["pareto_k"].as_f64().unwrap() <= s["k_max"].as_f64().unwrap(), "{w}");
+        } else {
+            assert!(g["rhat"].as_f64().unwrap() <= e["settings"]["rhat_max"].as_f64().unwrap(), "{g}");
+        }
     } else {
         // Not exact: the reason says why, and no reading is offered from these draws.
         assert!(!e["reason"].as_str().unwrap().is_empty(), "{e}");
