@@ -5,10 +5,12 @@
 //! N(0, I) where the flow approximates the posterior (see [`super::exact_fast`]). The
 //! first round draws from N(0, I) — the flow itself, wider than the likelihood's
 //! posterior, so it covers it; each further round draws from a Student-t fitted to the
-//! weighted draws so far. Every draw is weighted against the mixture of all rounds'
-//! proposals in proportion to their draws (the deterministic mixture of adaptive
-//! multiple importance sampling, Cornuet, Marin, Mira & Robert 2012, Scand. J. Stat.
-//! 39:798–812), so the flow's own round stays a defensive component throughout.
+//! weighted draws so far, tempered where they rest on few draws ([`tempered`]), so that
+//! many small rounds walk the proposal in from the flow. Every draw is weighted against
+//! the mixture of all rounds' proposals in proportion to their draws (the deterministic
+//! mixture of adaptive multiple importance sampling, Cornuet, Marin, Mira & Robert 2012,
+//! Scand. J. Stat. 39:798–812), so the flow's own round stays a defensive component
+//! throughout.
 //!
 //! The answer counts only when the weights say so: Kish's effective sample size
 //! (Σw)²/Σw² ≥ [`ImportanceSettings::ess_min`] and the Pareto shape k̂ of the largest
@@ -50,7 +52,7 @@ pub struct ImportanceSettings {
 impl Default for ImportanceSettings {
     fn default() -> Self {
         ImportanceSettings {
-            rounds: vec![1000, 2000, 3000, 3000, 3000, 4000],
+            rounds: vec![500, 500, 500, 500, 1000, 1000, 1000, 2000, 2000, 3000, 3000],
             wide: 1000,
             ess_min: 400.0,
             k_max: 0.7,
@@ -96,10 +98,10 @@ const T_DOF: f64 = 5.0;
 /// The rounds stop early once the weights pass with this many times the ESS asked for…
 const EARLY_ESS: f64 = 1.5;
 
-/// …after this many rounds at least: stopping after the second let a mode 4.5 flow
-/// standard deviations out go unseen in two of eight seeds of the test's target, each
-/// called reliable; the third round's draws find it or flag it.
-const EARLY_AFTER: usize = 3;
+/// …once this many draws are weighted: over eight seeds of the tests' two-mode target a
+/// second mode 4.5 flow deviations out was missed (and called reliable) on one seed
+/// whether the rounds could stop from 4,000, 6,000 or 8,000 draws on, so the earliest.
+const EARLY_DRAWS: usize = 4000;
 
 /// Draws per rayon task (each task makes one density: one simulator runner).
 const CHUNK: usize = 32;
@@ -213,7 +215,7 @@ where
             vec![(Proposal::Normal(1.0), n), (Proposal::Normal(WIDE_SD), s.wide)]
         } else {
             // A fit that fails (all weight on one draw: no covariance) repeats the flow.
-            let log_w = mixture_weights(&draws, &proposals);
+            let log_w = tempered(mixture_weights(&draws, &proposals));
             vec![(fitted(&draws, &log_w, d).unwrap_or(Proposal::Normal(1.0)), n)]
         };
         let points: Vec<Vec<f64>> =
@@ -243,7 +245,7 @@ where
         proposals.extend(stage.into_iter().filter(|(_, n)| *n > 0));
         rounds += 1;
         // Enough already: later rounds would only add draws to weights that pass.
-        if round + 1 >= EARLY_AFTER && round + 1 < s.rounds.len() {
+        if draws.len() >= EARLY_DRAWS && round + 1 < s.rounds.len() {
             let log_w = mixture_weights(&draws, &proposals);
             if kish_ess(&log_w) >= EARLY_ESS * s.ess_min && pareto_k(&log_w) <= s.k_max {
                 break;
@@ -312,6 +314,30 @@ fn normalised(log_w: &[f64]) -> Vec<f64> {
     let s: f64 = w.iter().sum();
     w.into_iter().map(|v| v / s).collect()
 }
+
+/// The weights a proposal is fitted to: `log_w` itself when its ESS is at least
+/// [`ADAPT_SHARE`] of the draws with a density, else β·log w with the largest β in (0, 1)
+/// that reaches it. Where the flow is much wider than the posterior, the first weights
+/// rest on a handful of draws, and a Student-t fitted to them is a guess; tempered, they
+/// describe a flatter version of the posterior, which the next round's draws cover and
+/// sharpen. Only the proposals change: every draw's own weight stays untempered.
+fn tempered(log_w: Vec<f64>) -> Vec<f64> {
+    let finite = log_w.iter().filter(|w| w.is_finite()).count();
+    let want = ADAPT_SHARE * finite as f64;
+    if finite == 0 || kish_ess(&log_w) >= want {
+        return log_w;
+    }
+    let scaled = |b: f64| log_w.iter().map(|w| b * w).collect::<Vec<_>>();
+    let (mut lo, mut hi) = (0.0, 1.0);
+    for _ in 0..40 {
+        let mid = 0.5 * (lo + hi);
+        if kish_ess(&scaled(mid)) >= want { lo = mid } else { hi = mid }
+    }
+    scaled(lo.max(f64::MIN_POSITIVE))
+}
+
+/// The share of the draws whose ESS a proposal's weights keep ([`tempered`]).
+const ADAPT_SHARE: f64 = 0.1;
 
 /// The Student-t fitted to the weighted draws: their weighted mean and covariance (with
 /// a small ridge, so that a few heavy draws still give a proper scale).
@@ -460,17 +486,36 @@ mod tests {
         let s = ImportanceSettings { seed: 3, ..Default::default() };
         let w = run(&target, 6, &s, later());
         assert!(w.reason.is_none(), "{:?} {:?}", w.reason, w.diagnostics);
-        assert!(w.diagnostics.ess >= 2000.0 && w.diagnostics.pareto_k < 0.5, "{:?}", w.diagnostics);
+        assert!(w.diagnostics.ess >= s.ess_min && w.diagnostics.pareto_k < 0.5, "{:?}", w.diagnostics);
         for i in 0..6 {
             let (m, s) = mean_sd(&w.resampled.iter().map(|r| r[i]).collect::<Vec<_>>());
             assert!((m - mu[i]).abs() < 0.05 && (s / sd[i] - 1.0).abs() < 0.08, "coordinate {i}: {m} ± {s}");
         }
     }
 
+    /// A target 12.5 times narrower than the flow in fourteen dimensions, off its centre
+    /// (as the likelihood's posterior is from a flow trained on fewer measures): the first
+    /// weights rest on a few draws, and only the tempered fits walk the proposal in within
+    /// the rounds (untempered, the weights end with k̂ 2.7 and an ESS of 1), on four seeds.
+    #[test]
+    fn a_target_much_narrower_than_the_flow_is_reached_by_tempered_rounds() {
+        let mu = [0.5, -0.3, 0.2, 0.0, 0.4, -0.6, 0.1, 0.3, -0.2, 0.6, -0.4, 0.25, 0.05, -0.15];
+        let target = |z: &[f64]| -0.5 * (0..14).map(|i| ((z[i] - mu[i]) / 0.08).powi(2)).sum::<f64>();
+        for seed in 0..4 {
+            let s = ImportanceSettings { seed, ..Default::default() };
+            let w = run(&target, 14, &s, later());
+            assert!(w.reason.is_none(), "seed {seed}: {:?} {:?}", w.reason, w.diagnostics);
+            for (i, m) in mu.iter().enumerate() {
+                let (got, sd) = mean_sd(&w.resampled.iter().map(|r| r[i]).collect::<Vec<_>>());
+                assert!((got - m).abs() < 0.02 && (sd / 0.08 - 1.0).abs() < 0.15, "seed {seed}, {i}: {got} ± {sd}");
+            }
+        }
+    }
+
     /// A target with a second mode as heavy as the first, 4 standard deviations of the
     /// flow out, which its draws reach only rarely (the wide draws and the fitted rounds'
     /// heavy tails more often): over eight seeds each answer puts half the mass there. (At
-    /// 4.5 one seed in eight misses the mode and is called reliable; at 5.5 every seed does:
+    /// 4.5 one seed in eight misses the mode and is called reliable; at 5, five of eight:
     /// weights cannot show a part of the target no draw reaches, the limit the docs state.)
     #[test]
     fn a_second_mode_four_flow_deviations_out_is_found() {
