@@ -728,10 +728,10 @@ fn weighted_or_chains(
     s: &Settings,
     deadline: Instant,
 ) -> Result<Drawn, FitCheckError> {
+    let target = LatentTarget::new(npe, x, present)?;
     let mut importance = None;
     let mut why_not = None;
     if let Some(is) = &s.importance {
-        let target = LatentTarget::new(npe, x, present)?;
         let is = ImportanceSettings { seed: s.seed, ..is.clone() };
         let w = super::importance::sample(|| target.density(), target.latent.dim(), &is, deadline);
         if w.reason.is_none() {
@@ -741,7 +741,7 @@ fn weighted_or_chains(
         why_not = w.reason.map(|r| format!("importance sampling: {r}"));
         importance = Some((w.diagnostics, w.resampled));
     }
-    let chains = latent_chains(npe, x, present, s, deadline)?;
+    let chains = chains_on(&target, s, deadline)?;
     let (importance, weighted) = importance.map_or((None, vec![]), |(g, draws)| (Some(g), draws));
     if chains.samples.is_empty() && !weighted.is_empty() {
         // The deadline came in the chains' warm-up: the weighted draws, not exact, are
@@ -783,7 +783,11 @@ pub fn latent_chains(
     s: &Settings,
     deadline: Instant,
 ) -> Result<LatentChains, FitCheckError> {
-    let target = LatentTarget::new(npe, x, present)?;
+    chains_on(&LatentTarget::new(npe, x, present)?, s, deadline)
+}
+
+/// [`latent_chains`] on a target already built (its flow map is conditioned once).
+fn chains_on(target: &LatentTarget, s: &Settings, deadline: Instant) -> Result<LatentChains, FitCheckError> {
     let d = target.latent.dim();
     let chains = s.chains.max(2);
     let new_density = || target.density();

@@ -205,6 +205,8 @@ where
     let chi = ChiSquared::new(T_DOF).expect("a positive number of degrees of freedom");
     let mut proposals: Vec<(Proposal, usize)> = vec![];
     let mut draws: Vec<Draw> = vec![];
+    // The weights of all draws so far, against all proposals so far (after each round).
+    let mut log_w: Vec<f64> = vec![];
     let (mut deadline_hit, mut rounds) = (false, 0);
     for (round, &n) in s.rounds.iter().enumerate() {
         if Instant::now() >= deadline {
@@ -215,8 +217,7 @@ where
             vec![(Proposal::Normal(1.0), n), (Proposal::Normal(WIDE_SD), s.wide)]
         } else {
             // A fit that fails (all weight on one draw: no covariance) repeats the flow.
-            let log_w = tempered(mixture_weights(&draws, &proposals));
-            vec![(fitted(&draws, &log_w, d).unwrap_or(Proposal::Normal(1.0)), n)]
+            vec![(fitted(&draws, &tempered(log_w.clone()), d).unwrap_or(Proposal::Normal(1.0)), n)]
         };
         let points: Vec<Vec<f64>> =
             stage.iter().flat_map(|(q, n)| (0..*n).map(|_| q.draw(d, &mut rng, &chi)).collect::<Vec<_>>()).collect();
@@ -244,15 +245,16 @@ where
         draws.extend(evaluated.into_iter().flatten().flatten());
         proposals.extend(stage.into_iter().filter(|(_, n)| *n > 0));
         rounds += 1;
+        log_w = mixture_weights(&draws, &proposals);
         // Enough already: later rounds would only add draws to weights that pass.
-        if draws.len() >= EARLY_DRAWS && round + 1 < s.rounds.len() {
-            let log_w = mixture_weights(&draws, &proposals);
-            if kish_ess(&log_w) >= EARLY_ESS * s.ess_min && pareto_k(&log_w) <= s.k_max {
-                break;
-            }
+        if draws.len() >= EARLY_DRAWS
+            && round + 1 < s.rounds.len()
+            && kish_ess(&log_w) >= EARLY_ESS * s.ess_min
+            && pareto_k(&log_w) <= s.k_max
+        {
+            break;
         }
     }
-    let log_w = mixture_weights(&draws, &proposals);
     let outside = log_w.iter().filter(|w| !w.is_finite()).count();
     let (ess, pareto_k) = (kish_ess(&log_w), pareto_k(&log_w));
     // A round the deadline cut is left out whole; the rounds before it make a sample of
