@@ -21,6 +21,10 @@ pub struct ExactArgs {
     /// Seed of the ears, their noise, the flow's draws and the chains.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Feature groups given, comma-separated (e.g. stapes_velocity,impedance,absorbance:
+    /// no umbo velocity, answered by the flow for any subset); all if empty.
+    #[arg(long, default_value = "")]
+    pub measures: String,
     /// Folder for exact.json (every ear and the pooled scores); none if absent.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -32,7 +36,8 @@ pub struct ExactArgs {
 /// Runs it: progress per ear on stderr, the table on stdout.
 pub fn run(a: ExactArgs) -> Result<()> {
     use crate::bench::exact_fast::{self, FastParams};
-    let p = FastParams { ears: a.ears, reference: a.reference, steps: a.steps, seed: a.seed };
+    let measures = a.measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
+    let p = FastParams { ears: a.ears, reference: a.reference, steps: a.steps, seed: a.seed, measures };
     p.check()?;
     if let Some(out) = &a.out {
         std::fs::create_dir_all(out).with_context(|| format!("--out {}: cannot create it", out.display()))?;

@@ -14,7 +14,7 @@ use crate::c2st::{self, C2stParams};
 use crate::posterior::{
     C2ST_DRAWS, FLOW_SAMPLES, Marginal, ParamScore, Pooled, ears, marginals, pool, score, tissue_coords,
 };
-use anyhow::{Result, bail};
+use anyhow::{Result, anyhow, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
 use otofit_discrepancy::discrepancy::exact_fast::{self, Settings};
 use otofit_discrepancy::discrepancy::fitcheck::{exact, simulator_for};
@@ -37,6 +37,8 @@ pub struct FastParams {
     pub steps: usize,
     /// Seed of the ears, their noise, the flow's draws and the chains.
     pub seed: u64,
+    /// Feature groups given (every feature when empty), as a clinic's subset of measures.
+    pub measures: Vec<String>,
 }
 
 impl FastParams {
@@ -140,6 +142,8 @@ pub struct FastReport {
     pub steps: usize,
     /// The seed.
     pub seed: u64,
+    /// Feature groups given (all when empty).
+    pub measures: Vec<String>,
     /// The short chains' settings.
     pub settings: Settings,
     /// Pooled over all scored ears and tissue parameters (`exact_*`: the short chains).
@@ -180,16 +184,22 @@ fn c2st_of(npe: &Npe, a: &[Vec<f64>], b: &[Vec<f64>], seed: u64) -> f64 {
     )
 }
 
-fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p: &FastParams) -> Result<FastEar> {
+fn one_ear(
+    npe: &Npe,
+    (i, kind): (usize, &'static str),
+    truth: &[f64],
+    x: &[f64],
+    present: &[bool],
+    p: &FastParams,
+) -> Result<FastEar> {
     let seed = p.seed.wrapping_add(i as u64);
-    let present = vec![true; x.len()];
-    // Every measure: the model's full-measure flow answers, when it holds one, as the
-    // service's would.
-    let npe = npe.answering(&Obs { x, present: Some(&present) });
-    let inf = npe.infer(&Obs { x, present: Some(&present) }, FLOW_SAMPLES, seed)?;
+    // The flow the service would pick: with every measure, the model's full-measure flow
+    // when it holds one.
+    let npe = npe.answering(&Obs { x, present: Some(present) });
+    let inf = npe.infer(&Obs { x, present: Some(present) }, FLOW_SAMPLES, seed)?;
     let t = Instant::now();
     let settings = Settings { seed, ..Settings::default() };
-    let fast = exact_fast::sample(npe, x, &present, &inf, &settings, Instant::now() + exact_fast::BUDGET)?;
+    let fast = exact_fast::sample(npe, x, present, &inf, &settings, Instant::now() + exact_fast::BUDGET)?;
     let seconds = t.elapsed().as_secs_f64();
     if fast.samples.is_empty() {
         bail!("no draws within {:.1} s: {}", seconds, fast.reason.as_deref().unwrap_or("?"));
@@ -198,7 +208,7 @@ fn one_ear(npe: &Npe, i: usize, kind: &'static str, truth: &[f64], x: &[f64], p:
     let (mut c2st, mut c2st_flow, mut long_seconds, mut long_scores, mut long_rhat) = (None, None, None, None, None);
     if i < p.reference {
         let t = Instant::now();
-        let long = exact(npe, x, &present, &inf, p.steps, seed)?;
+        let long = exact(npe, x, present, &inf, p.steps, seed)?;
         long_seconds = Some(t.elapsed().as_secs_f64());
         c2st = Some(c2st_of(npe, &long.chain.samples, &fast.samples, seed));
         c2st_flow = Some(c2st_of(npe, &long.chain.samples, &inf.samples, seed));
@@ -237,6 +247,7 @@ fn median(v: Vec<f64>) -> f64 {
 pub fn run(npe: &Npe, p: &FastParams, progress: &mut dyn FnMut(&EarOutcome)) -> Result<FastReport> {
     p.check()?;
     let model = simulator_for(npe)?;
+    let present = npe.header.features_of_groups(&p.measures).map_err(|e| anyhow!("--measures: {e}"))?;
     let held = ears(p.ears, p.seed);
     let rows: Vec<Vec<f64>> = held.iter().map(|e| e.row.clone()).collect();
     let noise = Noise { std: default_noise_std(model), scale: 1.0, seed: p.seed };
@@ -245,7 +256,7 @@ pub fn run(npe: &Npe, p: &FastParams, progress: &mut dyn FnMut(&EarOutcome)) -> 
     for (i, (ear, x)) in held.iter().zip(xs).enumerate() {
         let outcome = x
             .map_err(anyhow::Error::from)
-            .and_then(|x| one_ear(npe, i, ear.kind, &ear.row, &x, p))
+            .and_then(|x| one_ear(npe, (i, ear.kind), &ear.row, &x, &present, p))
             .map_err(|e| (i, format!("{e:#}")));
         progress(&outcome);
         match outcome {
@@ -260,6 +271,7 @@ pub fn run(npe: &Npe, p: &FastParams, progress: &mut dyn FnMut(&EarOutcome)) -> 
         reference: p.reference,
         steps: p.steps,
         seed: p.seed,
+        measures: p.measures.clone(),
         settings: Settings::default(),
         all: pool(per_ear.iter().flat_map(|e| &e.params)),
         called_exact: pool(exact_ears.iter().flat_map(|e| &e.params)),
@@ -283,11 +295,12 @@ pub fn table(r: &FastReport) -> String {
     let scored = r.per_ear.len();
     let _ = writeln!(
         s,
-        "{scored} of {} ears scored ({} skipped), seed {}; importance sampling {:?} draws per round (+{} wide), \
+        "{scored} of {} ears scored ({} skipped), seed {}, measures {}; importance sampling {:?} draws per round (+{} wide), \
          else {} chains × ({} warm-up + {} steps); {} reference ears with a {}-step chain",
         r.ears,
         r.skipped.len(),
         r.seed,
+        if r.measures.is_empty() { "all".to_string() } else { r.measures.join(",") },
         r.settings.importance.as_ref().map(|i| i.rounds.clone()).unwrap_or_default(),
         r.settings.importance.as_ref().map_or(0, |i| i.wide),
         r.settings.chains,

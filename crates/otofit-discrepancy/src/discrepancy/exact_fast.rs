@@ -1,5 +1,7 @@
 //! The likelihood's posterior within one request: importance sampling from the flow
-//! ([`super::importance`]) first, and where its weights do not pass, several short
+//! ([`super::importance`]), guided by the Laplace approximation at the mode of the
+//! likelihood times the flow's base density ([`latent_guide`]), first; and where its
+//! weights do not pass, several short
 //! Metropolis chains in the flow's latent space from dispersed starts, with the
 //! diagnostics that say whether they agree.
 //!
@@ -39,9 +41,9 @@
 //! log density and knows nothing of the simulator, so it is tested on analytic targets.
 
 use super::exact::{cholesky, spd_inverse};
-use super::fit::{fit_columns, residuals};
+use super::fit::{damped_step, fit_columns, residuals};
 use super::fitcheck::{FitCheckError, observation, simulator_for};
-use super::importance::{ImportanceDiagnostics, ImportanceSettings};
+use super::importance::{Guide, ImportanceDiagnostics, ImportanceSettings};
 use crate::npe::{Inference, Npe};
 use crate::sim::batch::Design;
 use rand::{Rng, SeedableRng};
@@ -636,7 +638,7 @@ pub const BUDGET: std::time::Duration = std::time::Duration::from_millis(1800);
 
 /// What the answer is, said beside it wherever it is reported.
 pub const NOTE: &str = "the posterior under the model's own noise likelihood: importance-weighted draws from the flow \
-     (method `importance`), or where their weights do not pass, short Metropolis chains in the flow's latent space \
+     and a Laplace guess of the posterior's mode (method `importance`), or where their weights do not pass, short Metropolis chains in the flow's latent space \
      started at dispersed points (method `chains`); exact (up to its ESS) only when `exact` is true, i.e. the weights \
      have enough effective draws and a light tail (importance: ESS, Pareto k) or the chains agree and have enough \
      effective draws (R-hat, ESS), within the deadline, and the model fits the ear (fit.ok); narrower than the flow's; \
@@ -666,10 +668,12 @@ impl FastExact {
 }
 
 /// The posterior of the features `x` that are `present` under `npe`'s simulator and
-/// training noise (as [`super::fitcheck::exact`]), from [`Settings::chains`] short chains
-/// in the flow's latent space ([`latent_chains`]), stopping at `deadline`; beside them a
-/// least-squares fit from the flow's MAP (`inf.map`, [`Settings::fit_steps`] steps) gives
-/// `map` and `reduced_chi2`.
+/// training noise (as [`super::fitcheck::exact`]), by guided importance sampling or,
+/// where its weights fail, [`Settings::chains`] short chains in the flow's latent space
+/// ([`latent_chains`]), stopping at `deadline`; beside them a least-squares fit from the
+/// flow's MAP (`inf.map`, [`Settings::fit_steps`] steps) gives `map` and `reduced_chi2`.
+/// The guide's own fit ([`latent_guide`], at most as many steps) runs first on the same
+/// side of the join as the weighting.
 pub fn sample(
     npe: &Npe,
     x: &[f64],
@@ -680,13 +684,15 @@ pub fn sample(
 ) -> Result<FastExact, FitCheckError> {
     let model = simulator_for(npe)?;
     let t0 = Instant::now();
+    let target = LatentTarget::new(npe, x, present)?;
     let fit_from_map = || {
         let design = Design::default();
-        let obs = observation(npe, x, present);
         let mut runner = model.runner();
-        fit_columns(&design.columns(), &inf.map, s.fit_steps, |r| residuals(&mut runner, &design, r, &obs))
+        fit_columns(&design.columns(), &inf.map, s.fit_steps, |r| residuals(&mut runner, &design, r, &target.obs))
     };
-    let (best, drawn) = rayon::join(fit_from_map, || weighted_or_chains(npe, x, present, s, deadline));
+    // The guide's fit runs beside the fit from the flow's MAP; the weighting after it.
+    let guided = || weighted_or_chains(&target, s, latent_guide(&target, s.fit_steps).as_ref(), deadline);
+    let (best, drawn) = rayon::join(fit_from_map, guided);
     let drawn = drawn?;
     let best = best.ok_or_else(|| FitCheckError::Inference("the simulator failed at the flow's MAP".into()))?;
     Ok(FastExact {
@@ -722,18 +728,16 @@ struct Drawn {
 /// else the chains ([`latent_chains`]) until `deadline`, their reason then also saying
 /// why the weights did not pass.
 fn weighted_or_chains(
-    npe: &Npe,
-    x: &[f64],
-    present: &[bool],
+    target: &LatentTarget,
     s: &Settings,
+    guide: Option<&Guide>,
     deadline: Instant,
 ) -> Result<Drawn, FitCheckError> {
-    let target = LatentTarget::new(npe, x, present)?;
     let mut importance = None;
     let mut why_not = None;
     if let Some(is) = &s.importance {
         let is = ImportanceSettings { seed: s.seed, ..is.clone() };
-        let w = super::importance::sample(|| target.density(), target.latent.dim(), &is, deadline);
+        let w = super::importance::sample(|| target.density(), target.latent.dim(), &is, guide, deadline);
         if w.reason.is_none() {
             let importance = Some(w.diagnostics);
             return Ok(Drawn { method: "importance", samples: w.resampled, reason: None, importance, chains: None });
@@ -741,7 +745,7 @@ fn weighted_or_chains(
         why_not = w.reason.map(|r| format!("importance sampling: {r}"));
         importance = Some((w.diagnostics, w.resampled));
     }
-    let chains = chains_on(&target, s, deadline)?;
+    let chains = chains_on(target, s, deadline)?;
     let (importance, weighted) = importance.map_or((None, vec![]), |(g, draws)| (Some(g), draws));
     if chains.samples.is_empty() && !weighted.is_empty() {
         // The deadline came in the chains' warm-up: the weighted draws, not exact, are
@@ -862,6 +866,63 @@ impl<'a> LatentTarget<'a> {
     }
 }
 
+/// The mode of exp(−χ²(T(z))/2)·N(z; 0, I) in the flow's latent space and its Laplace
+/// covariance, by Levenberg–Marquardt from the flow's centre on the residuals
+/// [r(T(z)); z] (at most `steps` steps). Where the flow is wider than the likelihood's
+/// posterior its density varies slowly across that posterior, so the target π(z) is near
+/// this product; its precision JᵀJ includes the identity of the z residuals, so the
+/// covariance is never wider than the flow's. Unlike a fit in θ from the flow's MAP, it
+/// weighs the flow's own view along the likelihood's ridges. `None` when the flow's
+/// centre has no density or a matrix is not positive definite.
+fn latent_guide(target: &LatentTarget, steps: usize) -> Option<Guide> {
+    let d = target.latent.dim();
+    let mut runner = target.model.runner();
+    let params = target.npe.params();
+    let mut resid = |z: &[f64]| -> Option<Vec<f64>> {
+        let (theta, log_det) = target.latent.to_theta(z);
+        if !log_det.is_finite() || !params.iter().zip(&theta).all(|(p, &v)| p.contains(v)) {
+            return None;
+        }
+        let mut r = residuals(&mut runner, &target.design, &theta, &target.obs)?;
+        r.extend_from_slice(z);
+        Some(r)
+    };
+    let sum_sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
+    let mut z = vec![0.0; d];
+    let mut r = resid(&z)?;
+    let mut c = sum_sq(&r);
+    let mut lambda = 1e-2;
+    let jtj = |z: &[f64], r: &[f64], resid: &mut dyn FnMut(&[f64]) -> Option<Vec<f64>>| {
+        // Forward differences; a step with no density leaves its column at zero.
+        let h = 1e-4;
+        let jac: Vec<Vec<f64>> = (0..d)
+            .map(|k| {
+                let mut zk = z.to_vec();
+                zk[k] += h;
+                resid(&zk).map_or_else(|| vec![0.0; r.len()], |rk| rk.iter().zip(r).map(|(a, b)| (a - b) / h).collect())
+            })
+            .collect();
+        let m = faer::Mat::<f64>::from_fn(d, d, |i, j| jac[i].iter().zip(&jac[j]).map(|(a, b)| a * b).sum());
+        let g: Vec<f64> = (0..d).map(|i| jac[i].iter().zip(r).map(|(a, b)| a * b).sum()).collect();
+        (m, g)
+    };
+    for _ in 0..steps {
+        let (m, g) = jtj(&z, &r, &mut resid);
+        let to_trial = |step: &faer::Mat<f64>| (0..d).map(|i| z[i] + step[(i, 0)]).collect();
+        let Some((trial, rt, ct)) = damped_step(&m, &g, &mut lambda, c, to_trial, &mut resid) else {
+            break;
+        };
+        let gain = c - ct;
+        (z, r, c) = (trial, rt, ct);
+        if gain <= 1e-6 * c.max(1.0) {
+            break;
+        }
+    }
+    let (m, _) = jtj(&z, &r, &mut resid);
+    let precision: Vec<f64> = (0..d * d).map(|k| m[(k / d, k % d)]).collect();
+    Some(Guide { cov: spd_inverse(&precision, d)?, mean: z })
+}
+
 /// Standard deviation of the chains' starting points in the flow's latent space: wider
 /// than the flow (whose draws are N(0, I) there), which is itself wider than the
 /// likelihood's posterior, so that agreeing chains have come together.
@@ -878,6 +939,31 @@ fn identity(d: usize) -> Vec<f64> {
 mod tests {
     use super::*;
     use std::time::Duration;
+
+    /// The nominal ear with stapes velocity, impedance and absorbance only (five measures,
+    /// the guide's example; answered by the flow for any subset, about 3× wider than the
+    /// likelihood's posterior): from the flow alone the rounds end with ESS 60 and Pareto
+    /// k 0.85; with the latent Laplace guide they pass (ESS 656, k 0.45, after ten of the
+    /// eleven rounds).
+    #[test]
+    fn a_five_measure_ear_is_reached_with_the_latent_guide() {
+        let npe =
+            Npe::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit")).unwrap();
+        let model = simulator_for(&npe).unwrap();
+        let design = Design::default();
+        let row: Vec<f64> = design.columns().iter().map(|c| c.nominal).collect();
+        let x = crate::sim::batch::run_rows(model, &design, &[row], 0, None).remove(0).unwrap();
+        let present = npe.header.features_of_groups(&["stapes_velocity", "impedance", "absorbance"]).unwrap();
+        let npe = npe.answering(&crate::npe::Obs { x: &x, present: Some(&present) });
+        let target = LatentTarget::new(npe, &x, &present).unwrap();
+        let guide = latent_guide(&target, 50).unwrap();
+        let is = ImportanceSettings::default();
+        let d = target.latent.dim();
+        let with = super::super::importance::sample(|| target.density(), d, &is, Some(&guide), later());
+        assert!(with.reason.is_none(), "{:?} {:?}", with.reason, with.diagnostics);
+        let without = super::super::importance::sample(|| target.density(), d, &is, None, later());
+        assert!(without.reason.is_some(), "the flow alone passed: {:?}", without.diagnostics);
+    }
 
     fn later() -> Instant {
         Instant::now() + Duration::from_secs(600)
