@@ -98,9 +98,14 @@ pub struct Weighted {
     pub reason: Option<String>,
 }
 
-/// Degrees of freedom of the fitted rounds' Student-t (heavy tails: a proposal narrower
-/// than the target in some direction still reaches it).
-const T_DOF: f64 = 5.0;
+/// Degrees of freedom of the fitted rounds' and the guide's Student-t: tails heavier
+/// than a Gaussian's, so that a proposal narrower than the target in some direction still
+/// reaches it, but not much heavier: in fourteen dimensions a heavy-tailed t spends many
+/// draws far out. Exact answers of 20 ears of the default model with three of the four
+/// measures (`otofit bench exact --measures stapes_velocity,impedance,absorbance`, seeds
+/// 1 / 2): ν = 5: 7 / 2; ν = 10 with the fitted covariances inflated 1.5×: 11 / 7;
+/// ν = 20: 13 / 7 (inflated: 13 / 6); ν = 3: 2 (seed 1); ν = 1000 inflated: 11 (seed 1).
+const T_DOF: f64 = 20.0;
 
 /// The rounds stop early once the weights pass with this many times the ESS asked for…
 const EARLY_ESS: f64 = 1.5;
@@ -568,8 +573,8 @@ mod tests {
         let s = ImportanceSettings {
             rounds: vec![500],
             wide: 0,
-            guided: 3000,
-            ess_min: 200.0,
+            guided: 6000,
+            ess_min: 300.0,
             seed: 5,
             ..Default::default()
         };
@@ -579,7 +584,7 @@ mod tests {
         assert!(w.reason.is_none(), "{:?} {:?}", w.reason, w.diagnostics);
         for (i, m) in mu.iter().enumerate() {
             let (got, sd) = mean_sd(&w.resampled.iter().map(|r| r[i]).collect::<Vec<_>>());
-            assert!((got - m).abs() < 0.004 && (sd / 0.02 - 1.0).abs() < 0.1, "{i}: {got} ± {sd}");
+            assert!((got - m).abs() < 0.004 && (sd / 0.02 - 1.0).abs() < 0.15, "{i}: {got} ± {sd}");
         }
         let alone = sample(|| |z: &[f64]| (target(z), z.to_vec()), 14, &s, None, later());
         assert!(alone.diagnostics.ess < 10.0, "{:?}", alone.diagnostics);
