@@ -737,7 +737,7 @@ fn weighted_or_chains(
     let mut why_not = None;
     if let Some(is) = &s.importance {
         let is = ImportanceSettings { seed: s.seed, ..is.clone() };
-        let w = super::importance::sample(|| target.density(), target.latent.dim(), &is, guide, deadline);
+        let w = super::importance::sample(|| target.densities(), target.latent.dim(), &is, guide, deadline);
         if w.reason.is_none() {
             let importance = Some(w.diagnostics);
             return Ok(Drawn { method: "importance", samples: w.resampled, reason: None, importance, chains: None });
@@ -852,17 +852,31 @@ impl<'a> LatentTarget<'a> {
     /// parameter's scale in its box (that of `super::exact`): log p(θ) = log |dt/dθ|.
     fn density(&self) -> impl FnMut(&[f64]) -> (f64, Vec<f64>) + '_ {
         let mut runner = self.model.runner();
-        let params = self.npe.params();
         move |z: &[f64]| {
             let (theta, log_det) = self.latent.to_theta(z);
-            if !log_det.is_finite() || !params.iter().zip(&theta).all(|(p, &v)| p.contains(v)) {
-                return (f64::NEG_INFINITY, theta);
-            }
-            let prior: f64 = params.iter().zip(&theta).map(|(p, &v)| p.t_log_jacobian(v)).sum();
-            let chi2 = residuals(&mut runner, &self.design, &theta, &self.obs)
-                .map_or(f64::INFINITY, |r| r.iter().map(|v| v * v).sum());
-            (-0.5 * chi2 + prior + log_det, theta)
+            self.at(&mut runner, theta, log_det)
         }
+    }
+
+    /// [`Self::density`] of a batch of points, the flow's map run once for all of them.
+    fn densities(&self) -> impl FnMut(&[Vec<f64>]) -> Vec<(f64, Vec<f64>)> + '_ {
+        let mut runner = self.model.runner();
+        move |zs: &[Vec<f64>]| {
+            let mapped = self.latent.to_thetas(&zs.concat());
+            mapped.into_iter().map(|(theta, log_det)| self.at(&mut runner, theta, log_det)).collect()
+        }
+    }
+
+    /// The log density at θ = T(z), given log |det ∂T/∂z|, and θ.
+    fn at(&self, runner: &mut crate::sim::Runner<'_>, theta: Vec<f64>, log_det: f64) -> (f64, Vec<f64>) {
+        let params = self.npe.params();
+        if !log_det.is_finite() || !params.iter().zip(&theta).all(|(p, &v)| p.contains(v)) {
+            return (f64::NEG_INFINITY, theta);
+        }
+        let prior: f64 = params.iter().zip(&theta).map(|(p, &v)| p.t_log_jacobian(v)).sum();
+        let chi2 =
+            residuals(runner, &self.design, &theta, &self.obs).map_or(f64::INFINITY, |r| r.iter().map(|v| v * v).sum());
+        (-0.5 * chi2 + prior + log_det, theta)
     }
 }
 
@@ -959,9 +973,9 @@ mod tests {
         let guide = latent_guide(&target, 50).unwrap();
         let is = ImportanceSettings::default();
         let d = target.latent.dim();
-        let with = super::super::importance::sample(|| target.density(), d, &is, Some(&guide), later());
+        let with = super::super::importance::sample(|| target.densities(), d, &is, Some(&guide), later());
         assert!(with.reason.is_none(), "{:?} {:?}", with.reason, with.diagnostics);
-        let without = super::super::importance::sample(|| target.density(), d, &is, None, later());
+        let without = super::super::importance::sample(|| target.densities(), d, &is, None, later());
         assert!(without.reason.is_some(), "the flow alone passed: {:?}", without.diagnostics);
     }
 

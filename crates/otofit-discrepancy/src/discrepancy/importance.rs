@@ -217,8 +217,8 @@ struct Draw {
     image: Vec<f64>,
 }
 
-/// Samples `log_density` (made per task by `new_density`; it returns log π(z) and the
-/// image of z, −∞ where there is none) in dimension `d` by the rounds of `s`, the first
+/// Samples a log density (made per task by `new_density`; for a batch of points it
+/// returns log π(z) and the image of each z, −∞ where there is none) in dimension `d` by the rounds of `s`, the first
 /// also from `guide` where one is given, stopping at `deadline`. The answer's `reason`
 /// is `None` only when the weights pass both checks.
 pub fn sample<D, F>(
@@ -229,14 +229,16 @@ pub fn sample<D, F>(
     deadline: Instant,
 ) -> Weighted
 where
-    D: FnMut(&[f64]) -> (f64, Vec<f64>),
+    D: FnMut(&[Vec<f64>]) -> Vec<(f64, Vec<f64>)>,
     F: Fn() -> D + Sync,
 {
     let mut rng = ChaCha8Rng::seed_from_u64(s.seed ^ 0x015a_3b1e);
     let chi = ChiSquared::new(T_DOF).expect("a positive number of degrees of freedom");
     let mut proposals: Vec<(Proposal, usize)> = vec![];
     let mut draws: Vec<Draw> = vec![];
-    // The weights of all draws so far, against all proposals so far (after each round).
+    // log q of every draw under every proposal so far, one column per proposal, each
+    // computed once; and the weights of all draws against their mixture.
+    let mut log_q: Vec<Vec<f64>> = vec![];
     let mut log_w: Vec<f64> = vec![];
     let (mut deadline_hit, mut rounds) = (false, 0);
     for (round, &n) in s.rounds.iter().enumerate() {
@@ -259,13 +261,9 @@ where
                 if Instant::now() >= deadline {
                     return None;
                 }
+                let evaluated = density(zs);
                 Some(
-                    zs.iter()
-                        .map(|z| {
-                            let (log_pi, image) = density(z);
-                            Draw { z: z.clone(), log_pi, image }
-                        })
-                        .collect(),
+                    zs.iter().zip(evaluated).map(|(z, (log_pi, image))| Draw { z: z.clone(), log_pi, image }).collect(),
                 )
             })
             .collect();
@@ -274,10 +272,17 @@ where
             deadline_hit = true;
             break;
         }
+        let old = draws.len();
         draws.extend(evaluated.into_iter().flatten().flatten());
-        proposals.extend(stage.into_iter().filter(|(_, n)| *n > 0));
+        for (column, (q, _)) in log_q.iter_mut().zip(&proposals) {
+            column.par_extend(draws[old..].par_iter().map(|dr| q.log_q(&dr.z)));
+        }
+        for (q, n) in stage.into_iter().filter(|(_, n)| *n > 0) {
+            log_q.push(draws.par_iter().map(|dr| q.log_q(&dr.z)).collect());
+            proposals.push((q, n));
+        }
         rounds += 1;
-        log_w = mixture_weights(&draws, &proposals);
+        log_w = mixture_weights(&draws, &log_q, &proposals);
         // Enough already: later rounds would only add draws to weights that pass.
         if draws.len() >= EARLY_DRAWS
             && round + 1 < s.rounds.len()
@@ -314,17 +319,19 @@ where
     Weighted { resampled, diagnostics, reason }
 }
 
-/// log w = log π(z) − log Σ_r (n_r / N) q_r(z) for every draw (−∞ where π has none).
-fn mixture_weights(draws: &[Draw], proposals: &[(Proposal, usize)]) -> Vec<f64> {
+/// log w = log π(z) − log Σ_r (n_r / N) q_r(z) for every draw (−∞ where π has none),
+/// from each draw's log q under each proposal (`log_q`, one column per proposal).
+fn mixture_weights(draws: &[Draw], log_q: &[Vec<f64>], proposals: &[(Proposal, usize)]) -> Vec<f64> {
     let total: usize = proposals.iter().map(|p| p.1).sum();
     let shares: Vec<f64> = proposals.iter().map(|p| (p.1 as f64 / total as f64).ln()).collect();
     draws
         .par_iter()
-        .map(|dr| {
+        .enumerate()
+        .map(|(i, dr)| {
             if !dr.log_pi.is_finite() {
                 return f64::NEG_INFINITY;
             }
-            let terms: Vec<f64> = proposals.iter().zip(&shares).map(|((q, _), s)| s + q.log_q(&dr.z)).collect();
+            let terms: Vec<f64> = log_q.iter().zip(&shares).map(|(column, s)| s + column[i]).collect();
             dr.log_pi - log_sum_exp(&terms)
         })
         .collect()
@@ -478,7 +485,12 @@ mod tests {
 
     /// `sample` of an analytic log density `f` (each draw's image is the draw itself).
     fn run(f: &(dyn Fn(&[f64]) -> f64 + Sync), d: usize, s: &ImportanceSettings, deadline: Instant) -> Weighted {
-        sample(|| |z: &[f64]| (f(z), z.to_vec()), d, s, None, deadline)
+        sample(|| batch(f), d, s, None, deadline)
+    }
+
+    /// A batch density of the analytic log density `f`, each point its own image.
+    fn batch(f: &(dyn Fn(&[f64]) -> f64 + Sync)) -> impl FnMut(&[Vec<f64>]) -> Vec<(f64, Vec<f64>)> + '_ {
+        |zs: &[Vec<f64>]| zs.iter().map(|z| (f(z), z.clone())).collect()
     }
 
     fn mean_sd(v: &[f64]) -> (f64, f64) {
@@ -580,13 +592,13 @@ mod tests {
         };
         let cov: Vec<f64> = (0..14 * 14).map(|k| if k % 15 == 0 { 1.5 * 0.02f64.powi(2) } else { 0.0 }).collect();
         let guide = Guide { mean: mu.iter().map(|m| m + 0.01).collect(), cov };
-        let w = sample(|| |z: &[f64]| (target(z), z.to_vec()), 14, &s, Some(&guide), later());
+        let w = sample(|| batch(&target), 14, &s, Some(&guide), later());
         assert!(w.reason.is_none(), "{:?} {:?}", w.reason, w.diagnostics);
         for (i, m) in mu.iter().enumerate() {
             let (got, sd) = mean_sd(&w.resampled.iter().map(|r| r[i]).collect::<Vec<_>>());
             assert!((got - m).abs() < 0.004 && (sd / 0.02 - 1.0).abs() < 0.15, "{i}: {got} ± {sd}");
         }
-        let alone = sample(|| |z: &[f64]| (target(z), z.to_vec()), 14, &s, None, later());
+        let alone = sample(|| batch(&target), 14, &s, None, later());
         assert!(alone.diagnostics.ess < 10.0, "{:?}", alone.diagnostics);
     }
 
