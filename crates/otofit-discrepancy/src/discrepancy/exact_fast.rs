@@ -956,11 +956,12 @@ mod tests {
 
     /// The nominal ear with stapes velocity, impedance and absorbance only (five measures,
     /// the guide's example; answered by the flow for any subset, about 3× wider than the
-    /// likelihood's posterior): from the flow alone the eleven rounds end at ESS 111
-    /// (Pareto k 0.63); with the latent Laplace guide the weights pass after seven
-    /// (ESS 667, k 0.40).
+    /// likelihood's posterior): with the latent Laplace guide the weights pass after seven
+    /// rounds, 6,500 draws (ESS 667, k 0.40); from the flow alone only after all fifteen,
+    /// 28,000 draws (after eleven, 16,000 draws: ESS 111), more than a request's budget
+    /// allows on two cores under load.
     #[test]
-    fn a_five_measure_ear_is_reached_with_the_latent_guide() {
+    fn a_five_measure_ear_is_reached_sooner_with_the_latent_guide() {
         let npe =
             Npe::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit")).unwrap();
         let model = simulator_for(&npe).unwrap();
@@ -976,7 +977,8 @@ mod tests {
         let with = super::super::importance::sample(|| target.densities(), d, &is, Some(&guide), later());
         assert!(with.reason.is_none(), "{:?} {:?}", with.reason, with.diagnostics);
         let without = super::super::importance::sample(|| target.densities(), d, &is, None, later());
-        assert!(without.reason.is_some(), "the flow alone passed: {:?}", without.diagnostics);
+        let (w, wo) = (&with.diagnostics, &without.diagnostics);
+        assert!(without.reason.is_some() || wo.draws >= 3 * w.draws, "the flow alone as fast: {wo:?} vs {w:?}");
     }
 
     fn later() -> Instant {

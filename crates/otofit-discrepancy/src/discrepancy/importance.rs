@@ -58,7 +58,7 @@ pub struct ImportanceSettings {
 impl Default for ImportanceSettings {
     fn default() -> Self {
         ImportanceSettings {
-            rounds: vec![500, 500, 500, 500, 1000, 1000, 1000, 2000, 2000, 3000, 3000],
+            rounds: vec![500, 500, 500, 500, 1000, 1000, 1000, 2000, 2000, 3000, 3000, 3000, 3000, 3000, 3000],
             wide: 1000,
             guided: 500,
             ess_min: 400.0,
