@@ -691,7 +691,7 @@ pub fn sample(
         fit_columns(&design.columns(), &inf.map, s.fit_steps, |r| residuals(&mut runner, &design, r, &target.obs))
     };
     // The guide's fit runs beside the fit from the flow's MAP; the weighting after it.
-    let guided = || weighted_or_chains(&target, s, latent_guide(&target, s.fit_steps).as_ref(), deadline);
+    let guided = || weighted_or_chains(&target, s, &latent_guides(&target, s.fit_steps, s.seed), deadline);
     let (best, drawn) = rayon::join(fit_from_map, guided);
     let drawn = drawn?;
     let best = best.ok_or_else(|| FitCheckError::Inference("the simulator failed at the flow's MAP".into()))?;
@@ -730,14 +730,14 @@ struct Drawn {
 fn weighted_or_chains(
     target: &LatentTarget,
     s: &Settings,
-    guide: Option<&Guide>,
+    guides: &[Guide],
     deadline: Instant,
 ) -> Result<Drawn, FitCheckError> {
     let mut importance = None;
     let mut why_not = None;
     if let Some(is) = &s.importance {
         let is = ImportanceSettings { seed: s.seed, ..is.clone() };
-        let w = super::importance::sample(|| target.densities(), target.latent.dim(), &is, guide, deadline);
+        let w = super::importance::sample(|| target.densities(), target.latent.dim(), &is, guides, deadline);
         if w.reason.is_none() {
             let importance = Some(w.diagnostics);
             return Ok(Drawn { method: "importance", samples: w.resampled, reason: None, importance, chains: None });
@@ -888,7 +888,7 @@ impl<'a> LatentTarget<'a> {
 /// covariance is never wider than the flow's. Unlike a fit in θ from the flow's MAP, it
 /// weighs the flow's own view along the likelihood's ridges. `None` when the flow's
 /// centre has no density or a matrix is not positive definite.
-fn latent_guide(target: &LatentTarget, steps: usize) -> Option<Guide> {
+fn latent_guide(target: &LatentTarget, start: &[f64], steps: usize) -> Option<(Guide, f64)> {
     let d = target.latent.dim();
     let mut runner = target.model.runner();
     let params = target.npe.params();
@@ -902,7 +902,7 @@ fn latent_guide(target: &LatentTarget, steps: usize) -> Option<Guide> {
         Some(r)
     };
     let sum_sq = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
-    let mut z = vec![0.0; d];
+    let mut z = start.to_vec();
     let mut r = resid(&z)?;
     let mut c = sum_sq(&r);
     let mut lambda = 1e-2;
@@ -934,7 +934,53 @@ fn latent_guide(target: &LatentTarget, steps: usize) -> Option<Guide> {
     }
     let (m, _) = jtj(&z, &r, &mut resid);
     let precision: Vec<f64> = (0..d * d).map(|k| m[(k / d, k % d)]).collect();
-    Some(Guide { cov: spd_inverse(&precision, d)?, mean: z })
+    Some((Guide { cov: spd_inverse(&precision, d)?, mean: z }, c))
+}
+
+/// Draws of the flow whose best few start further latent fits beside the flow's centre.
+const GUIDE_DRAWS: usize = 128;
+
+/// Latent fits ([`latent_guide`]) beyond the one from the flow's centre.
+const GUIDE_STARTS: usize = 7;
+
+/// The modes [`latent_guide`] finds from the flow's centre and from the best
+/// [`GUIDE_STARTS`] of [`GUIDE_DRAWS`] draws of the flow (by the target's density), run
+/// side by side, each mode once: a posterior with several modes (ears with fewer
+/// measures, whose likelihood has ridges the flow spans) gets a guide at each the fits
+/// reach, so the weights see them all; from one start, the rounds could pass on one mode
+/// alone. A fit that ends within three of its Laplace deviations of a better one's mode
+/// is the same mode.
+fn latent_guides(target: &LatentTarget, steps: usize, seed: u64) -> Vec<Guide> {
+    let d = target.latent.dim();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x0960_1de5);
+    let drawn: Vec<Vec<f64>> =
+        (0..GUIDE_DRAWS).map(|_| (0..d).map(|_| StandardNormal.sample(&mut rng)).collect()).collect();
+    let mut scored: Vec<(f64, Vec<f64>)> =
+        target.densities()(&drawn).into_iter().map(|(l, _)| l).zip(drawn).filter(|(l, _)| l.is_finite()).collect();
+    scored.sort_by(|a, b| b.0.total_cmp(&a.0));
+    let starts: Vec<Vec<f64>> =
+        std::iter::once(vec![0.0; d]).chain(scored.into_iter().take(GUIDE_STARTS).map(|(_, z)| z)).collect();
+    distinct_modes(starts.par_iter().filter_map(|z| latent_guide(target, z, steps)).collect())
+}
+
+/// The fits (each a guide and its objective, lower better) best first, each mode once: a
+/// fit whose mode lies within three Laplace deviations of a better fit's mode (in that
+/// fit's covariance) is the same mode.
+fn distinct_modes(mut fits: Vec<(Guide, f64)>) -> Vec<Guide> {
+    fits.sort_by(|a, b| a.1.total_cmp(&b.1));
+    let mut kept: Vec<Guide> = vec![];
+    for (g, _) in fits {
+        let d = g.mean.len();
+        let same = kept.iter().any(|k| {
+            let r: Vec<f64> = (0..d).map(|i| g.mean[i] - k.mean[i]).collect();
+            spd_inverse(&k.cov, d)
+                .is_some_and(|inv| (0..d * d).map(|m| r[m / d] * inv[m] * r[m % d]).sum::<f64>() < 9.0)
+        });
+        if !same {
+            kept.push(g);
+        }
+    }
+    kept
 }
 
 /// Standard deviation of the chains' starting points in the flow's latent space: wider
@@ -954,6 +1000,17 @@ mod tests {
     use super::*;
     use std::time::Duration;
 
+    /// Fits ending at one mode count once, the best of them kept; a fit four Laplace
+    /// deviations away is another mode.
+    #[test]
+    fn fits_at_the_same_mode_count_once() {
+        let guide = |x: f64| Guide { mean: vec![x, 0.0], cov: vec![0.01, 0.0, 0.0, 0.01] };
+        let fits = vec![(guide(0.25), 3.0), (guide(0.0), 1.0), (guide(0.4), 2.0), (guide(-0.1), 4.0)];
+        let modes = distinct_modes(fits);
+        let means: Vec<f64> = modes.iter().map(|g| g.mean[0]).collect();
+        assert_eq!(means, [0.0, 0.4], "{means:?}");
+    }
+
     /// The nominal ear with stapes velocity, impedance and absorbance only (five measures,
     /// the guide's example; answered by the flow for any subset, about 3× wider than the
     /// likelihood's posterior): with the latent Laplace guide the weights pass after seven
@@ -971,12 +1028,12 @@ mod tests {
         let present = npe.header.features_of_groups(&["stapes_velocity", "impedance", "absorbance"]).unwrap();
         let npe = npe.answering(&crate::npe::Obs { x: &x, present: Some(&present) });
         let target = LatentTarget::new(npe, &x, &present).unwrap();
-        let guide = latent_guide(&target, 50).unwrap();
+        let guides = latent_guides(&target, 50, 0);
         let is = ImportanceSettings::default();
         let d = target.latent.dim();
-        let with = super::super::importance::sample(|| target.densities(), d, &is, Some(&guide), later());
+        let with = super::super::importance::sample(|| target.densities(), d, &is, &guides, later());
         assert!(with.reason.is_none(), "{:?} {:?}", with.reason, with.diagnostics);
-        let without = super::super::importance::sample(|| target.densities(), d, &is, None, later());
+        let without = super::super::importance::sample(|| target.densities(), d, &is, &[], later());
         let (w, wo) = (&with.diagnostics, &without.diagnostics);
         assert!(without.reason.is_some() || wo.draws >= 3 * w.draws, "the flow alone as fast: {wo:?} vs {w:?}");
     }

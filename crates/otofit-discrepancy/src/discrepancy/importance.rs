@@ -41,8 +41,7 @@ pub struct ImportanceSettings {
     /// flow's, so that a part of the posterior the flow barely reaches shows in the
     /// weights.
     pub wide: usize,
-    /// Further draws of the first round from the Student-t of a [`Guide`], when one is
-    /// given: a guess of the target's own shape (e.g. a Laplace approximation at its
+    /// Further draws of the first round from the Student-t of each [`Guide`] given: a guess of the target's own shape (e.g. a Laplace approximation at its
     /// mode), which reaches a posterior far narrower than the flow from the start.
     pub guided: usize,
     /// Smallest Kish effective sample size called enough.
@@ -218,16 +217,10 @@ struct Draw {
 }
 
 /// Samples a log density (made per task by `new_density`; for a batch of points it
-/// returns log π(z) and the image of each z, −∞ where there is none) in dimension `d` by the rounds of `s`, the first
-/// also from `guide` where one is given, stopping at `deadline`. The answer's `reason`
-/// is `None` only when the weights pass both checks.
-pub fn sample<D, F>(
-    new_density: F,
-    d: usize,
-    s: &ImportanceSettings,
-    guide: Option<&Guide>,
-    deadline: Instant,
-) -> Weighted
+/// returns log π(z) and the image of each z, −∞ where there is none) in dimension `d` by
+/// the rounds of `s`, the first also from each of `guides`, stopping at `deadline`. The
+/// answer's `reason` is `None` only when the weights pass both checks.
+pub fn sample<D, F>(new_density: F, d: usize, s: &ImportanceSettings, guides: &[Guide], deadline: Instant) -> Weighted
 where
     D: FnMut(&[Vec<f64>]) -> Vec<(f64, Vec<f64>)>,
     F: Fn() -> D + Sync,
@@ -247,7 +240,7 @@ where
             break;
         }
         let stage: Vec<(Proposal, usize)> = if round == 0 {
-            let guided = guide.and_then(|g| Proposal::t(g.mean.clone(), &g.cov)).map(|q| (q, s.guided));
+            let guided = guides.iter().filter_map(|g| Proposal::t(g.mean.clone(), &g.cov)).map(|q| (q, s.guided));
             [(Proposal::Normal(1.0), n), (Proposal::Normal(WIDE_SD), s.wide)].into_iter().chain(guided).collect()
         } else {
             // A fit that fails (all weight on one draw: no covariance) repeats the flow.
@@ -485,7 +478,7 @@ mod tests {
 
     /// `sample` of an analytic log density `f` (each draw's image is the draw itself).
     fn run(f: &(dyn Fn(&[f64]) -> f64 + Sync), d: usize, s: &ImportanceSettings, deadline: Instant) -> Weighted {
-        sample(|| batch(f), d, s, None, deadline)
+        sample(|| batch(f), d, s, &[], deadline)
     }
 
     /// A batch density of the analytic log density `f`, each point its own image.
@@ -592,13 +585,13 @@ mod tests {
         };
         let cov: Vec<f64> = (0..14 * 14).map(|k| if k % 15 == 0 { 1.5 * 0.02f64.powi(2) } else { 0.0 }).collect();
         let guide = Guide { mean: mu.iter().map(|m| m + 0.01).collect(), cov };
-        let w = sample(|| batch(&target), 14, &s, Some(&guide), later());
+        let w = sample(|| batch(&target), 14, &s, std::slice::from_ref(&guide), later());
         assert!(w.reason.is_none(), "{:?} {:?}", w.reason, w.diagnostics);
         for (i, m) in mu.iter().enumerate() {
             let (got, sd) = mean_sd(&w.resampled.iter().map(|r| r[i]).collect::<Vec<_>>());
             assert!((got - m).abs() < 0.004 && (sd / 0.02 - 1.0).abs() < 0.15, "{i}: {got} ± {sd}");
         }
-        let alone = sample(|| batch(&target), 14, &s, None, later());
+        let alone = sample(|| batch(&target), 14, &s, &[], later());
         assert!(alone.diagnostics.ess < 10.0, "{:?}", alone.diagnostics);
     }
 
