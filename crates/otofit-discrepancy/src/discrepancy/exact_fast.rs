@@ -692,7 +692,7 @@ pub fn sample(
         let mut runner = model.runner();
         fit_columns(&design.columns(), &inf.map, s.fit_steps, |r| residuals(&mut runner, &design, r, &target.obs))
     };
-    // The guide's fit runs beside the fit from the flow's MAP; the weighting after it.
+    // The guides' fits run beside the fit from the flow's MAP; the weighting after them.
     let guided = || weighted_or_chains(&target, s, &latent_guides(&target, s.fit_steps, s.seed), deadline);
     let (best, drawn) = rayon::join(fit_from_map, guided);
     let drawn = drawn?;
@@ -883,13 +883,13 @@ impl<'a> LatentTarget<'a> {
 }
 
 /// The mode of exp(−χ²(T(z))/2)·N(z; 0, I) in the flow's latent space and its Laplace
-/// covariance, by Levenberg–Marquardt from the flow's centre on the residuals
-/// [r(T(z)); z] (at most `steps` steps). Where the flow is wider than the likelihood's
-/// posterior its density varies slowly across that posterior, so the target π(z) is near
-/// this product; its precision JᵀJ includes the identity of the z residuals, so the
-/// covariance is never wider than the flow's. Unlike a fit in θ from the flow's MAP, it
-/// weighs the flow's own view along the likelihood's ridges. `None` when the flow's
-/// centre has no density or a matrix is not positive definite.
+/// covariance, by Levenberg–Marquardt from `start` on the residuals [r(T(z)); z] (at
+/// most `steps` steps), with the fit's final Σr² beside it. Where the flow is wider than
+/// the likelihood's posterior its density varies slowly across that posterior, so the
+/// target π(z) is near this product; its precision JᵀJ includes the identity of the z
+/// residuals, so the covariance is never wider than the flow's. Unlike a fit in θ from
+/// the flow's MAP, it weighs the flow's own view along the likelihood's ridges. `None`
+/// when `start` has no density or a matrix is not positive definite.
 fn latent_guide(target: &LatentTarget, start: &[f64], steps: usize) -> Option<(Guide, f64)> {
     let d = target.latent.dim();
     let mut runner = target.model.runner();
