@@ -101,7 +101,8 @@ pub struct C2stArgs {
     /// L2 penalty on the weights (through Adam's gradient).
     #[arg(long)]
     pub weight_decay: Option<f64>,
-    /// Flows trained from different seeds, sampled as an equal-weight mixture.
+    /// Flows trained from different seeds, sampled as an equal-weight mixture (the
+    /// default recipe: from the table's size, as `otofit train`).
     #[arg(long)]
     pub ensemble: Option<usize>,
     /// Hidden units of each conditioner layer (`otofit train --hidden`).

@@ -65,9 +65,10 @@ pub struct TrainArgs {
     #[arg(long)]
     pub mask_bands: bool,
     /// Train K flows (1..=16) from different seeds and store them as one equal-weight
-    /// ensemble.
-    #[arg(long, default_value_t = 1)]
-    pub ensemble: usize,
+    /// ensemble. Default: the default recipe trains 50,000 / training rows of them, 1 to 5
+    /// (five on a 10,000-row table, one from about 28,000 rows on); `--recipe v8` one.
+    #[arg(long)]
+    pub ensemble: Option<usize>,
     /// Keep the training's state in FILE as it goes (at least every 30 s) and, if FILE
     /// holds a state of this same training (flags and data), resume from it: the model is
     /// the same as an uninterrupted run's. FILE is removed once the model is written.
@@ -105,7 +106,9 @@ pub fn run(args: TrainArgs) -> Result<()> {
     if !(1..=1000).contains(&args.patience) {
         bail!("--patience must be between 1 and 1000 epochs, got {}", args.patience);
     }
-    check(&ENSEMBLE, args.ensemble).map_err(|m| anyhow::anyhow!("--ensemble {m}"))?;
+    if let Some(k) = args.ensemble {
+        check(&ENSEMBLE, k).map_err(|m| anyhow::anyhow!("--ensemble {m}"))?;
+    }
     let mut ds = Dataset::load(&args.data)?;
     if let Some(p) = &args.noise_table {
         ds.noise_std = crate::dataset::read_noise_table(p, &ds.feature_names).context("--noise-table")?;
@@ -132,20 +135,27 @@ pub fn run(args: TrainArgs) -> Result<()> {
         patience: args.patience,
         mask_groups: args.mask_groups,
         mask_bands: args.mask_bands,
-        ensemble: args.ensemble,
+        ensemble: args.ensemble.unwrap_or(match args.recipe {
+            Recipe::Default => 0,
+            Recipe::V8 => 1,
+        }),
         ..match args.recipe {
             Recipe::Default => TrainSettings::default(),
             Recipe::V8 => TrainSettings::v8(),
         }
     };
+    let members = settings.members_for_table(ds.theta.len());
+    if members > 1 && args.ensemble.is_none() {
+        eprintln!("training {members} flows (the default for {} rows; --ensemble 1 for one)", ds.theta.len());
+    }
     let checkpoint =
         args.checkpoint.as_ref().map(|path| npe::Checkpointing::new(path.clone(), &std::process::id().to_string()));
     // On a terminal a bar over every member's epoch budget (early stopping ends a
     // member sooner: the ETA is an upper bound); otherwise a line per epoch.
-    let budget = (args.max_epochs * args.ensemble) as u64;
+    let budget = (args.max_epochs * members) as u64;
     let mut bar = super::progress::Progress::new("training", "epochs (at most)", budget);
     let trained = npe::train_checkpointed(&ds, &settings, checkpoint.as_ref(), &mut |r| {
-        let m = if args.ensemble > 1 { format!("member {} ", r.member) } else { String::new() };
+        let m = if members > 1 { format!("member {} ", r.member) } else { String::new() };
         let line = format!(
             "{m}epoch {:4}  train {:8.4}  val {:8.4}  best {:8.4}  ({:.2} s)",
             r.epoch, r.train_loss, r.val_loss, r.best_val_loss, r.seconds

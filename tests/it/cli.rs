@@ -182,11 +182,12 @@ fn train_infer_and_calibrate_from_the_command_line() {
         "3",
         "--mask-groups",
     ]);
-    assert_eq!(
-        String::from_utf8_lossy(&o.stderr).lines().filter(|l| l.starts_with("epoch ")).count(),
-        3,
-        "one progress line per epoch"
-    );
+    // 400 rows (360 to train on): the default recipe's five flows, a line per epoch each.
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("training 5 flows"), "{err}");
+    let epochs: Vec<&str> = err.lines().filter(|l| l.starts_with("member ") && l.contains(" epoch ")).collect();
+    assert_eq!(epochs.len(), 15, "one progress line per epoch and flow: {err}");
+    assert!(epochs[14].starts_with("member 4 epoch    3"), "{err}");
     // Observation: the first two held-out rows, absorbance only (a subset: mask model).
     let x = std::fs::read_to_string(held.join("x.csv")).unwrap();
     let mut lines = x.lines();

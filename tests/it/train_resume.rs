@@ -189,6 +189,7 @@ fn otofit_train_resumes_from_its_checkpoint_file() {
     let (data, model, c) = (dir.to_str().unwrap(), dir.join("m.otofit"), ckpt.to_str().unwrap());
     let out = Command::new(env!("CARGO_BIN_EXE_otofit"))
         .args(["train", "--data", data, "--out", model.to_str().unwrap(), "--seed", "2", "--max-epochs", "10"])
+        .args(["--ensemble", "1"])
         .args(["--checkpoint", c])
         .output()
         .unwrap();

@@ -126,10 +126,10 @@ pub fn sbi_nsf_settings() -> TrainSettings {
 }
 
 /// `otofit train`'s defaults as the benchmark runs them: the default recipe
-/// ([`TrainSettings::default`]) without the embedding network, which is for spectra
-/// (`otofit train --embedding none`).
+/// ([`TrainSettings::default`]) with its flows from the table's size, without the
+/// embedding network, which is for spectra (`otofit train --embedding none`).
 pub fn default_settings() -> TrainSettings {
-    TrainSettings { embedding: false, ..TrainSettings::default() }
+    TrainSettings { embedding: false, ensemble: 0, ..TrainSettings::default() }
 }
 
 /// The task's fixed observation `k` (1-based): x simulated at a prior draw of seed k.

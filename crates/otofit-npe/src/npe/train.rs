@@ -81,7 +81,8 @@ pub struct TrainSettings {
     /// a constant rate does not (the 2-D benchmark tasks: docs/results/npe.md).
     pub lr_anneal: f64,
     /// Flows trained from different seeds and averaged as an equal-weight mixture
-    /// (wider, better-calibrated joint posteriors; K× the training time).
+    /// (wider, better-calibrated joint posteriors; K× the training time); 0: from the
+    /// table's size ([`TrainSettings::members_for`]).
     pub ensemble: usize,
     /// Hidden width of the conditioners and of each embedding layer (the default 50).
     pub hidden: usize,
@@ -93,7 +94,10 @@ pub struct TrainSettings {
 /// neural spline flow (two residual blocks per conditioner, LU layers, scaled bins, Adam
 /// ε 1e-8), a batch of a tenth of the training rows (64 to 1000) at a rate proportional to
 /// it, a constant rate until 10 epochs pass without a better validation loss, then a
-/// half-cosine anneal over half the epochs so far. Chosen on the two-moons, mixture, SLCP
+/// half-cosine anneal over half the epochs so far. One flow: `otofit train`, the train
+/// job and `otofit bench c2st` set `ensemble` to 0, so that a small table gets an ensemble
+/// ([`TrainSettings::members_for`]); the library's callers (the diagnose workflow's
+/// extension, the studies, the tests) keep one flow for time. Chosen on the two-moons, mixture, SLCP
 /// and 10-D Gaussian tasks against fixed budgets and other patiences; the anneal adapts
 /// the length to the table where a fixed budget cannot (the middle-ear tables need
 /// hundreds of epochs, the 2-D tasks tens).
@@ -163,12 +167,35 @@ impl TrainSettings {
         }
     }
 
-    /// These settings with the batch and the rate set for `train_rows` training rows.
+    /// The flows trained for `train_rows` training rows: as set, or [`ENSEMBLE_ROWS`] /
+    /// `train_rows` within 1..=[`ENSEMBLE_MAX`] (five flows on a 10,000-row table, one from
+    /// 25,000 training rows on). A flow from a small table varies from seed to seed by as
+    /// much as it misses the posterior (the 2-D tasks: 0.005–0.01 of C2ST), and small
+    /// tables train in seconds; the mixture of a few seeds averages that spread away
+    /// (docs/results/npe.md, "Five flows on small tables").
+    pub fn members_for(&self, train_rows: usize) -> usize {
+        if self.ensemble > 0 { self.ensemble } else { (ENSEMBLE_ROWS / train_rows.max(1)).clamp(1, ENSEMBLE_MAX) }
+    }
+
+    /// [`TrainSettings::members_for`] a table of `rows` rows (its training part).
+    pub fn members_for_table(&self, rows: usize) -> usize {
+        self.members_for(rows - validation_rows(rows.max(2), self.val_fraction).min(rows))
+    }
+
+    /// These settings with the batch, the rate and the flows set for `train_rows`
+    /// training rows.
     fn for_rows(&self, train_rows: usize) -> TrainSettings {
         let batch = self.batch_for(train_rows);
-        TrainSettings { batch, lr: self.lr_for(batch), ..self.clone() }
+        TrainSettings { batch, lr: self.lr_for(batch), ensemble: self.members_for(train_rows), ..self.clone() }
     }
 }
+
+/// Training rows whose flow the default recipe trains once: a smaller table gets
+/// `ENSEMBLE_ROWS / rows` flows ([`TrainSettings::members_for`]).
+pub const ENSEMBLE_ROWS: usize = 50_000;
+
+/// Most flows the default recipe trains for a small table.
+pub const ENSEMBLE_MAX: usize = 5;
 
 /// One epoch's numbers, passed to the progress callback.
 #[derive(Clone, Debug)]
@@ -1330,11 +1357,15 @@ pub fn validation_split(n: usize, val_fraction: f64, seed: u64) -> (Vec<usize>, 
 
 /// The rows shuffled by `rng` and how many of the first go to validation (at least one
 /// row on each side).
+/// Rows of a table of `n` (at least 2) held out for validation.
+fn validation_rows(n: usize, val_fraction: f64) -> usize {
+    ((n as f64 * val_fraction).round() as usize).clamp(1, n - 1)
+}
+
 fn split(n: usize, val_fraction: f64, rng: &mut ChaCha8Rng) -> (Vec<usize>, usize) {
     let mut idx: Vec<usize> = (0..n).collect();
     idx.shuffle(rng);
-    let n_val = ((n as f64 * val_fraction).round() as usize).clamp(1, n - 1);
-    (idx, n_val)
+    (idx, validation_rows(n, val_fraction))
 }
 
 /// The header as a checkpoint reads it back (serde_json may move a float by one ulp), so
@@ -1371,6 +1402,28 @@ fn summarise(mut header: Header, fin: Finished, wall: f64) -> Npe {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn small_tables_get_an_ensemble_and_large_ones_one_flow() {
+        let auto = TrainSettings { ensemble: 0, ..TrainSettings::default() };
+        let members: Vec<usize> = [100, 9_000, 10_000, 12_500, 16_666, 25_000, 25_001, 1_000_000]
+            .iter()
+            .map(|&rows| auto.members_for(rows))
+            .collect();
+        assert_eq!(members, [5, 5, 5, 4, 3, 2, 1, 1]);
+        // A 10,000-row table trains on 9,000 rows; 27,778 rows (25,000 training) is the
+        // last with two.
+        assert_eq!(auto.members_for_table(10_000), 5);
+        assert_eq!(auto.members_for_table(27_778), 2);
+        assert_eq!(auto.members_for_table(27_779), 1);
+        assert_eq!(auto.members_for_table(2), 5);
+        // A count that is set is kept, on any table; the library's default is one flow.
+        let three = TrainSettings { ensemble: 3, ..auto.clone() };
+        assert_eq!([three.members_for(100), three.members_for(1_000_000)], [3, 3]);
+        assert_eq!(TrainSettings::default().members_for(100), 1);
+        assert_eq!(TrainSettings::v8().members_for(100), 1);
+        assert_eq!(auto.for_rows(9_000).ensemble, 5);
+    }
 
     /// The largest difference between two gradients relative to each tensor's largest
     /// entry, and how many tensors were compared.

@@ -295,11 +295,12 @@ mod tests {
         let params = spec.params();
         assert_eq!(
             params,
-            json!({"dataset": "d1", "noise_scale": 1.0, "seed": 0, "max_epochs": 1000, "mask_groups": false, "ensemble": 1})
+            json!({"dataset": "d1", "noise_scale": 1.0, "seed": 0, "max_epochs": 1000, "mask_groups": false})
         );
         let back = JobSpec::of(&spec.queued()).unwrap();
         assert_eq!((back.kind(), back.params()), ("train", params));
-        // Absent options stay absent (no `"model": null`, no `"theta": null`).
+        // Absent options stay absent (no `"ensemble": null`, no `"model": null`, no
+        // `"theta": null`).
         let d = JobSpec::parse("diagnose", &json!({"x": [1.0, 2.0]})).unwrap().params();
         assert!(d.get("model").is_none() && d.get("candidates").is_none(), "{d}");
         assert_eq!(d["null_cases"], 40);

@@ -32,13 +32,10 @@ pub struct TrainParams {
     /// Train with group masks so that the model accepts any subset of measure groups.
     #[serde(default)]
     pub mask_groups: bool,
-    /// Flows in the ensemble (`limits::ENSEMBLE`).
-    #[serde(default = "one_member")]
-    pub ensemble: usize,
-}
-
-fn one_member() -> usize {
-    1
+    /// Flows in the ensemble (`limits::ENSEMBLE`); absent: from the table's size, as
+    /// `otofit train` (`TrainSettings::members_for`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ensemble: Option<usize>,
 }
 fn one() -> f64 {
     1.0
@@ -53,7 +50,9 @@ impl TrainParams {
         plain_id("params.dataset", &self.dataset, errs);
         in_range("params.max_epochs", &limits::EPOCHS, self.max_epochs, errs);
         non_negative("params.noise_scale", self.noise_scale, errs);
-        in_range("params.ensemble", &limits::ENSEMBLE, self.ensemble, errs);
+        if let Some(k) = self.ensemble {
+            in_range("params.ensemble", &limits::ENSEMBLE, k, errs);
+        }
     }
 }
 
@@ -92,7 +91,7 @@ fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_jso
         seed: p.seed,
         max_epochs: p.max_epochs,
         mask_groups: p.mask_groups,
-        ensemble: p.ensemble,
+        ensemble: p.ensemble.unwrap_or(0),
         ..TrainSettings::default()
     };
     // At least every 30 s: the most training time a killed job loses.
@@ -102,7 +101,7 @@ fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_jso
         .with_context(|| format!("creating {}", folder.display()))
         .internal("the checkpoint folder could not be created")?;
     // Progress over all members (each may stop early, so this is a lower bound).
-    let max = (s.max_epochs * s.ensemble) as f64;
+    let max = (s.max_epochs * s.members_for_table(ds.theta.len())) as f64;
     let trained = npe::train_checkpointed(&ds, &s, Some(&checkpoint), &mut |e| {
         r.report(
             (e.member * s.max_epochs + e.epoch) as f64 / max,
