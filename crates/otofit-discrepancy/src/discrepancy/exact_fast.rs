@@ -43,7 +43,7 @@
 //! log density and knows nothing of the simulator, so it is tested on analytic targets.
 
 use super::exact::{cholesky, spd_inverse};
-use super::fit::{damped_step, fit_columns, residuals};
+use super::fit::{damped_step, fit_columns, normal_equations, residuals};
 use super::fitcheck::{FitCheckError, observation, simulator_for};
 use super::importance::{Guide, ImportanceDiagnostics, ImportanceSettings};
 use crate::npe::{Inference, Npe};
@@ -908,22 +908,9 @@ fn latent_guide(target: &LatentTarget, start: &[f64], steps: usize) -> Option<(G
     let mut r = resid(&z)?;
     let mut c = sum_sq(&r);
     let mut lambda = 1e-2;
-    let jtj = |z: &[f64], r: &[f64], resid: &mut dyn FnMut(&[f64]) -> Option<Vec<f64>>| {
-        // Forward differences; a step with no density leaves its column at zero.
-        let h = 1e-4;
-        let jac: Vec<Vec<f64>> = (0..d)
-            .map(|k| {
-                let mut zk = z.to_vec();
-                zk[k] += h;
-                resid(&zk).map_or_else(|| vec![0.0; r.len()], |rk| rk.iter().zip(r).map(|(a, b)| (a - b) / h).collect())
-            })
-            .collect();
-        let m = faer::Mat::<f64>::from_fn(d, d, |i, j| jac[i].iter().zip(&jac[j]).map(|(a, b)| a * b).sum());
-        let g: Vec<f64> = (0..d).map(|i| jac[i].iter().zip(r).map(|(a, b)| a * b).sum()).collect();
-        (m, g)
-    };
+    // A step with no density leaves its Jacobian column at zero.
     for _ in 0..steps {
-        let (m, g) = jtj(&z, &r, &mut resid);
+        let (m, g) = normal_equations(&z, &r, true, &mut resid)?;
         let to_trial = |step: &faer::Mat<f64>| (0..d).map(|i| z[i] + step[(i, 0)]).collect();
         let Some((trial, rt, ct)) = damped_step(&m, &g, &mut lambda, c, to_trial, &mut resid) else {
             break;
@@ -934,7 +921,7 @@ fn latent_guide(target: &LatentTarget, start: &[f64], steps: usize) -> Option<(G
             break;
         }
     }
-    let (m, _) = jtj(&z, &r, &mut resid);
+    let (m, _) = normal_equations(&z, &r, true, &mut resid)?;
     let precision: Vec<f64> = (0..d * d).map(|k| m[(k / d, k % d)]).collect();
     Some((Guide { cov: spd_inverse(&precision, d)?, mean: z }, c))
 }

@@ -112,17 +112,8 @@ pub fn fit_columns(
     let mut jtj = Mat::<f64>::zeros(d, d);
     for it in 0..max_iter {
         iterations = it + 1;
-        // Forward-difference Jacobian in u.
-        let h = 1e-4;
-        let mut jac = Vec::with_capacity(d);
-        for k in 0..d {
-            let mut up = u.clone();
-            up[k] += h;
-            let rk = residuals(&to_row(&up))?;
-            jac.push(rk.iter().zip(&r).map(|(a, b)| (a - b) / h).collect::<Vec<f64>>());
-        }
-        jtj = Mat::from_fn(d, d, |i, j| jac[i].iter().zip(&jac[j]).map(|(a, b)| a * b).sum());
-        let jtr: Vec<f64> = (0..d).map(|i| jac[i].iter().zip(&r).map(|(a, b)| a * b).sum()).collect();
+        let jtr;
+        (jtj, jtr) = normal_equations(&u, &r, false, |up| residuals(&to_row(up)))?;
         let to_trial = |step: &Mat<f64>| (0..d).map(|i| (u[i] + step[(i, 0)]).clamp(-20.0, 20.0)).collect();
         let Some((trial, rt, ct)) = damped_step(&jtj, &jtr, &mut lambda, c, to_trial, |t| residuals(&to_row(t))) else {
             break;
@@ -139,6 +130,31 @@ pub fn fit_columns(
     let u_std = (0..d).map(|i| inv[(i, i)].abs().sqrt()).collect();
     let jtj = (0..d * d).map(|k| jtj[(k / d, k % d)]).collect();
     Some(Fit { row: to_row(&u), chi2: c, n_features: r.len(), iterations, u_std, jtj })
+}
+
+/// JᵀJ and Jᵀr of `residuals` at `x`, whose residuals are `r`, by forward differences in
+/// each coordinate (step 1e-4). A step whose row fails to simulate gives up (`None`), or,
+/// with `zero_failed`, leaves its column at zero (that direction drops out of the step).
+pub(crate) fn normal_equations(
+    x: &[f64],
+    r: &[f64],
+    zero_failed: bool,
+    mut residuals: impl FnMut(&[f64]) -> Option<Vec<f64>>,
+) -> Option<(Mat<f64>, Vec<f64>)> {
+    let (d, h) = (x.len(), 1e-4);
+    let mut jac = Vec::with_capacity(d);
+    for k in 0..d {
+        let mut up = x.to_vec();
+        up[k] += h;
+        jac.push(match residuals(&up) {
+            Some(rk) => rk.iter().zip(r).map(|(a, b)| (a - b) / h).collect::<Vec<f64>>(),
+            None if zero_failed => vec![0.0; r.len()],
+            None => return None,
+        });
+    }
+    let jtj = Mat::from_fn(d, d, |i, j| jac[i].iter().zip(&jac[j]).map(|(a, b)| a * b).sum());
+    let jtr = (0..d).map(|i| jac[i].iter().zip(r).map(|(a, b)| a * b).sum()).collect();
+    Some((jtj, jtr))
 }
 
 /// Levenberg–Marquardt's damped step, up to ten tries: solves (JᵀJ + λ·D) s = −Jᵀr, D the
