@@ -79,7 +79,7 @@ pub struct FastEar {
     pub importance_ess: Option<f64>,
     /// Their Pareto k̂.
     pub pareto_k: Option<f64>,
-    /// Largest R-hat over the parameters, when the chains ran.
+    /// Largest R-hat over the parameters, when the chains ran and took a sampling step.
     pub rhat: Option<f64>,
     /// Smallest bulk ESS of the chains.
     pub ess_bulk: Option<f64>,
@@ -226,9 +226,10 @@ fn one_ear(
         reason: fast.reason.clone(),
         importance_ess: w.map(|w| w.ess),
         pareto_k: w.map(|w| w.pareto_k),
-        rhat: g.map(|g| g.rhat),
-        ess_bulk: g.map(|g| g.ess_bulk),
-        ess_tail: g.map(|g| g.ess_tail),
+        // Chains that took no sampling step have no R-hat or ESS (NaN): none is printed.
+        rhat: g.map(|g| g.rhat).filter(|v| v.is_finite()),
+        ess_bulk: g.map(|g| g.ess_bulk).filter(|v| v.is_finite()),
+        ess_tail: g.map(|g| g.ess_tail).filter(|v| v.is_finite()),
         seconds,
         c2st,
         c2st_flow,
