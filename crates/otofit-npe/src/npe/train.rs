@@ -94,11 +94,12 @@ pub struct TrainSettings {
 /// neural spline flow (two residual blocks per conditioner, LU layers, scaled bins, Adam
 /// ε 1e-8), a batch of a tenth of the training rows (64 to 1000) at a rate proportional to
 /// it, a constant rate until 10 epochs pass without a better validation loss, then a
-/// half-cosine anneal over half the epochs so far. One flow: `otofit train`, the train
-/// job and `otofit bench c2st` set `ensemble` to 0, so that a small table gets an ensemble
-/// ([`TrainSettings::members_for`]); the library's callers (the diagnose workflow's
-/// extension, the studies, the tests) keep one flow for time. Chosen on the two-moons, mixture, SLCP
-/// and 10-D Gaussian tasks against fixed budgets and other patiences; the anneal adapts
+/// half-cosine anneal over half the epochs so far. This library default trains one flow
+/// (`ensemble: 1`), for the callers that want one for time (the diagnose workflow's
+/// extension, the studies, the tests); what users run — `otofit train`, the train job and
+/// `otofit bench c2st` — sets `ensemble` to 0, the rule that gives a small table several
+/// flows ([`TrainSettings::members_for`]). Chosen on the two-moons, mixture, SLCP and
+/// 10-D Gaussian tasks against fixed budgets and other patiences; the anneal adapts
 /// the length to the table where a fixed budget cannot (the middle-ear tables need
 /// hundreds of epochs, the 2-D tasks tens).
 impl Default for TrainSettings {
@@ -168,8 +169,8 @@ impl TrainSettings {
     }
 
     /// The flows trained for `train_rows` training rows: as set, or [`ENSEMBLE_ROWS`] /
-    /// `train_rows` within 1..=[`ENSEMBLE_MAX`] (five flows on a 10,000-row table, one from
-    /// 25,000 training rows on). A flow from a small table varies from seed to seed by as
+    /// `train_rows` within 1..=[`ENSEMBLE_MAX`] (five flows on a 10,000-row table, one
+    /// above 25,000 training rows). A flow from a small table varies from seed to seed by as
     /// much as it misses the posterior (the 2-D tasks: 0.005–0.01 of C2ST), and small
     /// tables train in seconds; the mixture of a few seeds averages that spread away
     /// (docs/results/npe.md, "Five flows on small tables").
@@ -177,9 +178,11 @@ impl TrainSettings {
         if self.ensemble > 0 { self.ensemble } else { (ENSEMBLE_ROWS / train_rows.max(1)).clamp(1, ENSEMBLE_MAX) }
     }
 
-    /// [`TrainSettings::members_for`] a table of `rows` rows (its training part).
+    /// [`TrainSettings::members_for`] a table of `rows` rows: the rows left once the
+    /// validation rows are held out (a table too small to split holds none out).
     pub fn members_for_table(&self, rows: usize) -> usize {
-        self.members_for(rows - validation_rows(rows.max(2), self.val_fraction).min(rows))
+        let held = if rows < 2 { 0 } else { validation_rows(rows, self.val_fraction) };
+        self.members_for(rows - held)
     }
 
     /// These settings with the batch, the rate and the flows set for `train_rows`
@@ -1355,13 +1358,13 @@ pub fn validation_split(n: usize, val_fraction: f64, seed: u64) -> (Vec<usize>, 
     (idx, train)
 }
 
-/// The rows shuffled by `rng` and how many of the first go to validation (at least one
-/// row on each side).
-/// Rows of a table of `n` (at least 2) held out for validation.
+/// Rows of a table of `n` (at least 2) held out for validation: at least one row on each
+/// side.
 fn validation_rows(n: usize, val_fraction: f64) -> usize {
     ((n as f64 * val_fraction).round() as usize).clamp(1, n - 1)
 }
 
+/// The rows shuffled by `rng` and how many of the first go to validation.
 fn split(n: usize, val_fraction: f64, rng: &mut ChaCha8Rng) -> (Vec<usize>, usize) {
     let mut idx: Vec<usize> = (0..n).collect();
     idx.shuffle(rng);
@@ -1417,6 +1420,8 @@ mod tests {
         assert_eq!(auto.members_for_table(27_778), 2);
         assert_eq!(auto.members_for_table(27_779), 1);
         assert_eq!(auto.members_for_table(2), 5);
+        // Too small to split (refused by the dataset's check, but no panic here).
+        assert_eq!([auto.members_for_table(0), auto.members_for_table(1)], [5, 5]);
         // A count that is set is kept, on any table; the library's default is one flow.
         let three = TrainSettings { ensemble: 3, ..auto.clone() };
         assert_eq!([three.members_for(100), three.members_for(1_000_000)], [3, 3]);
