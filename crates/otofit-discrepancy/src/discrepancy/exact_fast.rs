@@ -274,7 +274,7 @@ fn moments(rows: &[&Vec<f64>], d: usize) -> (Vec<f64>, Vec<f64>) {
 
 /// Runs one chain per start, one rayon task each; `new_density` makes each chain its own
 /// log density (e.g. with its own simulator workspace) for each phase. Warm-up in
-/// [`ROUNDS`] rounds: after each, the shared proposal's mean and covariance become those
+/// rounds (`ROUNDS`): after each, the shared proposal's mean and covariance become those
 /// of all chains' histories (the later half of the warm-up so far), shrunk towards the
 /// starts' mean covariance, and the random walk's scale moves towards a 0.234 acceptance.
 /// Then [`Settings::steps`] steps of the fixed kernel, all kept. The draws of all chains
@@ -957,19 +957,20 @@ fn latent_guides(target: &LatentTarget, steps: usize, seed: u64) -> Vec<Guide> {
 /// fit's covariance) is the same mode.
 fn distinct_modes(mut fits: Vec<(Guide, f64)>) -> Vec<Guide> {
     fits.sort_by(|a, b| a.1.total_cmp(&b.1));
-    let mut kept: Vec<Guide> = vec![];
+    // Each kept mode with its precision, inverted once (none: compared with nothing).
+    let mut kept: Vec<(Guide, Option<Vec<f64>>)> = vec![];
     for (g, _) in fits {
         let d = g.mean.len();
-        let same = kept.iter().any(|k| {
+        let same = kept.iter().any(|(k, inv)| {
             let r: Vec<f64> = (0..d).map(|i| g.mean[i] - k.mean[i]).collect();
-            spd_inverse(&k.cov, d)
-                .is_some_and(|inv| (0..d * d).map(|m| r[m / d] * inv[m] * r[m % d]).sum::<f64>() < 9.0)
+            inv.as_ref().is_some_and(|inv| (0..d * d).map(|m| r[m / d] * inv[m] * r[m % d]).sum::<f64>() < 9.0)
         });
         if !same {
-            kept.push(g);
+            let inv = spd_inverse(&g.cov, d);
+            kept.push((g, inv));
         }
     }
-    kept
+    kept.into_iter().map(|(g, _)| g).collect()
 }
 
 /// Standard deviation of the chains' starting points in the flow's latent space: wider

@@ -7,7 +7,7 @@
 //! posterior, so it covers it — and, where the caller has one, from a [`Guide`]: a guess
 //! of the target's mode and covariance, which reaches a posterior too narrow for the
 //! flow's draws to find; each further round draws from a Student-t fitted to the
-//! weighted draws so far, tempered where they rest on few draws ([`tempered`]), so that
+//! weighted draws so far, tempered where they rest on few draws (`tempered`), so that
 //! many small rounds walk the proposal in from the flow. Every draw is weighted against
 //! the mixture of all rounds' proposals in proportion to their draws (the deterministic
 //! mixture of adaptive multiple importance sampling, Cornuet, Marin, Mira & Robert 2012,
