@@ -104,6 +104,8 @@ pub struct Weighted {
 /// measures (`otofit bench exact --measures stapes_velocity,impedance,absorbance`, seeds
 /// 1 / 2): ν = 5: 7 / 2; ν = 10 with the fitted covariances inflated 1.5×: 11 / 7;
 /// ν = 20: 13 / 7 (inflated: 13 / 6); ν = 3: 2 (seed 1); ν = 1000 inflated: 11 (seed 1).
+/// Those counts were taken before [`SPREAD`] widened the fitted rounds, and with one
+/// latent guide; ν was not chosen again after either.
 const T_DOF: f64 = 20.0;
 
 /// The fitted rounds' proposals have this many times the weighted draws' covariance. A
