@@ -24,6 +24,8 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+mod side_by_side;
+
 /// How to train (`otofit train`'s flags).
 #[derive(Clone, Debug)]
 pub struct TrainSettings {
@@ -685,6 +687,20 @@ struct Finished {
     best_sum: f64,
 }
 
+impl Finished {
+    /// Adds the member that just ended, the next in order, with its best weights.
+    fn add(&mut self, m: MemberRun) -> Result<()> {
+        self.epochs += m.epoch;
+        let Some(record) = m.record else { return Err(NpeError::NoFiniteLoss { member: m.member }) };
+        self.records.push(record);
+        if m.member == 0 {
+            self.best_epoch = m.best_epoch;
+        }
+        self.best_sum += m.best_val_loss;
+        Ok(())
+    }
+}
+
 /// Adam with the clipping every member trains with.
 fn optimizer(s: &TrainSettings) -> Adam {
     Adam::new(
@@ -826,9 +842,12 @@ impl Run<'_> {
     /// plateaus and divided by 10 instead of stopping `lr_drops` times. After each epoch
     /// that does not end the member, `save` is offered its state (`true`: the training
     /// stops here, save it whatever the time).
+    /// On a `lane`, each epoch runs on that lane's threads ([`side_by_side::Lane`]);
+    /// without one, on the calling thread's pool.
     fn member(
         &self,
         mut m: MemberRun,
+        lane: Option<&side_by_side::Lane>,
         progress: &mut dyn FnMut(&EpochReport) -> bool,
         save: &mut dyn FnMut(&MemberRun, bool),
     ) -> (MemberRun, MemberEnd) {
@@ -845,9 +864,15 @@ impl Run<'_> {
             if let Some((start, len)) = m.anneal {
                 lr *= half_cosine(epoch - 1 - start, len);
             }
-            let weights;
-            (m.flow, weights, train_loss) = self.epoch(m.flow, &mut m.opt, lr, &mut m.order, &mut m.rng);
-            let val_loss = self.validate(&weights);
+            let val_loss;
+            let pass = || {
+                let (flow, weights, loss) = self.epoch(m.flow, &mut m.opt, lr, &mut m.order, &mut m.rng);
+                (flow, loss, self.validate(&weights))
+            };
+            (m.flow, train_loss, val_loss) = match lane {
+                Some(lane) => lane.run(pass),
+                None => pass(),
+            };
             if val_loss < m.best_val_loss {
                 (m.best_val_loss, m.best_epoch, m.record) = (val_loss, epoch, Some(m.flow.valid().into_record()));
             }
@@ -889,7 +914,9 @@ impl Run<'_> {
     /// Trains the members from `fin` and `current` (a checkpoint's, or none) on to the
     /// ensemble's size, offering `saver` the state as it goes. Member 0 uses the seed and
     /// the batch stream `rng` exactly as a single model does, so a one-member ensemble is
-    /// the single model; member k draws its batches from a stream of its own.
+    /// the single model; member k draws its batches from a stream of its own. Without a
+    /// checkpoint, two or more members train side by side ([`side_by_side`]): the same
+    /// weights, sooner.
     fn members(
         &self,
         rng: &ChaCha8Rng,
@@ -899,27 +926,22 @@ impl Run<'_> {
         progress: &mut dyn FnMut(&EpochReport) -> bool,
     ) -> Result<Finished> {
         let s = self.s;
+        // A checkpoint holds one member under way: with one, one member after another.
+        let lanes = (saver.is_none() && current.is_none())
+            .then(|| side_by_side::Lanes::for_members(s.ensemble.max(1) - fin.records.len()))
+            .flatten();
+        if let Some(lanes) = lanes {
+            return self.side_by_side(rng, fin, lanes, progress);
+        }
         while fin.records.len() < s.ensemble.max(1) {
             let member = fin.records.len();
-            let m = current.take().unwrap_or_else(|| {
-                let stream = match member {
-                    0 => rng.clone(),
-                    k => ChaCha8Rng::seed_from_u64(s.seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(k as u64))),
-                };
-                self.fresh(member, stream)
-            });
-            let (m, end) = self.member(m, progress, &mut |m, force| {
+            let m = current.take().unwrap_or_else(|| self.fresh(member, member_stream(rng, s.seed, member)));
+            let (m, end) = self.member(m, None, progress, &mut |m, force| {
                 if let Some(sv) = saver.as_deref_mut() {
                     sv.offer(&fin, Some(m), force)
                 }
             });
-            fin.epochs += m.epoch;
-            let Some(record) = m.record else { return Err(NpeError::NoFiniteLoss { member }) };
-            fin.records.push(record);
-            if member == 0 {
-                fin.best_epoch = m.best_epoch;
-            }
-            fin.best_sum += m.best_val_loss;
+            fin.add(m)?;
             if let Some(sv) = saver.as_deref_mut().filter(|_| end.done) {
                 sv.offer(&fin, None, true);
             }
@@ -928,6 +950,15 @@ impl Run<'_> {
             }
         }
         Ok(fin)
+    }
+}
+
+/// Member `member`'s batch stream: member 0 goes on from the split's `rng` (so a
+/// one-member ensemble is the single model), member k draws from a stream of its own.
+fn member_stream(rng: &ChaCha8Rng, seed: u64, member: usize) -> ChaCha8Rng {
+    match member {
+        0 => rng.clone(),
+        k => ChaCha8Rng::seed_from_u64(seed ^ (0x9E37_79B9_7F4A_7C15u64.wrapping_mul(k as u64))),
     }
 }
 
@@ -1684,6 +1715,86 @@ mod tests {
         let one = trained(1);
         assert!(trained(2) == one, "two threads differ from one");
         assert!(trained(2) == one, "two threads differ from themselves");
+    }
+
+    /// An ensemble's members trained side by side (two and three threads) are the
+    /// members trained one after another (one thread; and a checkpointed training, which
+    /// never runs them side by side): the same model, bit for bit. On two threads the
+    /// reports of two members interleave, all on the calling thread.
+    #[test]
+    fn an_ensemble_side_by_side_is_the_ensemble_one_after_another() {
+        let ds = toy(700);
+        let s = TrainSettings {
+            embedding: false,
+            max_epochs: 12,
+            patience: 40,
+            seed: 2,
+            ensemble: 3,
+            ..Default::default()
+        };
+        let model = |m: Npe| {
+            let t = &m.header.training;
+            let draws = m.sample(&super::super::Obs { x: &[0.5, -0.3, 0.1], present: None }, 50, 2).unwrap();
+            (m.header.members, t.epochs, t.best_epoch, t.best_val_loss.to_bits(), draws)
+        };
+        let trained = |threads: usize, checkpoint: Option<&Checkpointing>| {
+            let mut order = vec![];
+            let m = on_threads(threads, || {
+                let caller = std::thread::current().id();
+                train_checkpointed(&ds, &s, checkpoint, &mut |r| {
+                    assert_eq!(std::thread::current().id(), caller, "a report off the calling thread");
+                    // Member 0 slowed down, so that member 1 surely starts beside it.
+                    if r.member == 0 {
+                        std::thread::sleep(Duration::from_millis(10));
+                    }
+                    order.push(r.member);
+                    true
+                })
+            });
+            (model(m.unwrap().model), order)
+        };
+        let (one, order) = trained(1, None);
+        assert_eq!(one.1, 36, "three members of 12 epochs");
+        assert!(order.is_sorted(), "one thread: one member after another {order:?}");
+        let (two, order) = trained(2, None);
+        assert!(two == one, "two threads side by side differ from one thread");
+        assert!(!order.is_sorted(), "two threads: members one after another {order:?}");
+        assert!(trained(3, None).0 == one, "three threads side by side differ from one thread");
+        let dir = std::env::temp_dir().join(format!("otofit-side-by-side-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let c = Checkpointing::new(dir.join("t.ckpt"), "a");
+        let (saved, order) = trained(2, Some(&c));
+        assert!(saved == one && order.is_sorted(), "checkpointed: {order:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A stop from the progress callback ends every member training side by side at its
+    /// next epoch and starts no other; the model keeps the members that ran.
+    #[test]
+    fn a_stop_ends_every_member_side_by_side() {
+        let ds = toy(700);
+        let s = TrainSettings {
+            embedding: false,
+            max_epochs: 30,
+            patience: 40,
+            seed: 2,
+            ensemble: 4,
+            ..Default::default()
+        };
+        let mut seen = vec![];
+        let m = on_threads(2, || {
+            train(&ds, &s, &mut |r| {
+                seen.push((r.member, r.epoch));
+                !(r.member == 0 && r.epoch == 3)
+            })
+        })
+        .unwrap();
+        let stop = seen.iter().position(|&r| r == (0, 3)).unwrap();
+        // At most the other lane's member reports once more (and is told to stop).
+        assert!(seen.len() <= stop + 2, "reports after the stop: {seen:?}");
+        assert!(seen.iter().all(|&(member, _)| member < 2), "a member started after the stop: {seen:?}");
+        assert_eq!(m.header.members, seen.iter().map(|r| r.0).max().unwrap() + 1);
+        assert_eq!(m.header.training.epochs, seen.len());
     }
 
     /// Weights of another flow, or bytes that are no record, are a typed refusal that

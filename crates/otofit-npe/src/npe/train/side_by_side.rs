@@ -1,0 +1,122 @@
+//! An ensemble's flows trained side by side, one thread each.
+//!
+//! A small table's flows train in seconds each, and their small batches split less well
+//! over threads than flows do (SLCP on two cores: one flow 1.9× faster on two threads
+//! than on one, two flows at once on a thread each 2.3× — docs/results/npe.md). So the
+//! members of an ensemble train on lanes of one thread, a lane taking the next member
+//! when its own ends; once one lane is left training, its member's epochs run on two
+//! threads. One and two threads train a member to the same bits ([`super::parts`]), so
+//! the model is the same as one member after another — on any number of threads. The
+//! progress callback runs on the calling thread, one report at a time, and stops every
+//! lane when it says so.
+
+use super::{EpochReport, Finished, MemberRun, Result, Run, member_stream};
+use rand_chacha::ChaCha8Rng;
+use rayon::{ThreadPool, ThreadPoolBuilder};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::mpsc;
+
+/// The threads side-by-side members train on: a pool of one thread per lane, and one
+/// of two for the member left training alone.
+pub(super) struct Lanes {
+    own: Vec<ThreadPool>,
+    pair: ThreadPool,
+}
+
+impl Lanes {
+    /// Lanes for `members` members still to train on this pool's threads: none (one
+    /// after another) for fewer than two members or one thread, or when the threads
+    /// cannot be started.
+    pub(super) fn for_members(members: usize) -> Option<Lanes> {
+        let lanes = rayon::current_num_threads().min(members);
+        if lanes < 2 {
+            return None;
+        }
+        let pool = |n: usize| ThreadPoolBuilder::new().num_threads(n).build().ok();
+        let own = (0..lanes).map(|_| pool(1)).collect::<Option<Vec<_>>>()?;
+        Some(Lanes { own, pair: pool(2)? })
+    }
+}
+
+/// One lane's threads for a member's epochs.
+pub(super) struct Lane<'a> {
+    own: &'a ThreadPool,
+    pair: &'a ThreadPool,
+    /// Lanes still training.
+    training: &'a AtomicUsize,
+}
+
+impl Lane<'_> {
+    /// Runs an epoch on the lane's thread, or on two once no other lane is training.
+    pub(super) fn run<R: Send>(&self, epoch: impl FnOnce() -> R + Send) -> R {
+        if self.training.load(Ordering::Acquire) <= 1 { self.pair.install(epoch) } else { self.own.install(epoch) }
+    }
+}
+
+/// A report on its way to the calling thread, with where its answer goes.
+type Report = (EpochReport, mpsc::SyncSender<bool>);
+
+impl Run<'_> {
+    /// Trains the ensemble's members from the first after `fin` on, side by side on
+    /// `lanes`: the same members as [`Run::members`] trains one after another, each from
+    /// its own seed and batch stream, added in order.
+    pub(super) fn side_by_side(
+        &self,
+        rng: &ChaCha8Rng,
+        mut fin: Finished,
+        lanes: Lanes,
+        progress: &mut dyn FnMut(&EpochReport) -> bool,
+    ) -> Result<Finished> {
+        let total = self.s.ensemble.max(1);
+        let next = AtomicUsize::new(fin.records.len());
+        let training = AtomicUsize::new(lanes.own.len());
+        let stop = AtomicBool::new(false);
+        let (tx, rx) = mpsc::channel::<Report>();
+        let mut ended: Vec<MemberRun> = std::thread::scope(|scope| {
+            let handles: Vec<_> = lanes
+                .own
+                .iter()
+                .map(|own| {
+                    let lane = Lane { own, pair: &lanes.pair, training: &training };
+                    let (tx, next, stop) = (tx.clone(), &next, &stop);
+                    scope.spawn(move || {
+                        let mut ended = vec![];
+                        let mut report = |r: &EpochReport| {
+                            let (answer, answered) = mpsc::sync_channel(1);
+                            tx.send((r.clone(), answer)).is_ok() && answered.recv().unwrap_or(false)
+                        };
+                        while !stop.load(Ordering::Acquire) {
+                            let member = next.fetch_add(1, Ordering::AcqRel);
+                            if member >= total {
+                                break;
+                            }
+                            let m = self.fresh(member, member_stream(rng, self.s.seed, member));
+                            let (m, _) = self.member(m, Some(&lane), &mut report, &mut |_, _| {});
+                            ended.push(m);
+                        }
+                        lane.training.fetch_sub(1, Ordering::AcqRel);
+                        ended
+                    })
+                })
+                .collect();
+            drop(tx);
+            // The reports, one at a time on this thread, every epoch trained; once one
+            // says stop, every lane stops at its next epoch and starts no other member.
+            let mut go = true;
+            for (r, answer) in rx {
+                go &= progress(&r);
+                stop.store(!go, Ordering::Release);
+                let _ = answer.send(go);
+            }
+            handles
+                .into_iter()
+                .flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+                .collect()
+        });
+        ended.sort_by_key(|m| m.member);
+        for m in ended {
+            fin.add(m)?;
+        }
+        Ok(fin)
+    }
+}
