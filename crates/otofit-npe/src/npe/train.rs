@@ -915,8 +915,8 @@ impl Run<'_> {
     /// ensemble's size, offering `saver` the state as it goes. Member 0 uses the seed and
     /// the batch stream `rng` exactly as a single model does, so a one-member ensemble is
     /// the single model; member k draws its batches from a stream of its own. Without a
-    /// checkpoint, two or more members train side by side ([`side_by_side`]): the same
-    /// weights, sooner.
+    /// checkpoint, two or more members train side by side ([`side_by_side`]), sooner:
+    /// up to two threads per lane, the weights of one member after another on one thread.
     fn members(
         &self,
         rng: &ChaCha8Rng,
@@ -1765,6 +1765,34 @@ mod tests {
         let c = Checkpointing::new(dir.join("t.ckpt"), "a");
         let (saved, order) = trained(2, Some(&c));
         assert!(saved == one && order.is_sorted(), "checkpointed: {order:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Threads shared between lanes: two members on six threads train three threads
+    /// each, the model of one member after another on three threads (a checkpointed
+    /// training), which a three-way split makes other than one thread's.
+    #[test]
+    fn lanes_of_three_threads_train_as_one_after_another_on_three() {
+        let ds = toy(700);
+        let s = TrainSettings {
+            embedding: false,
+            max_epochs: 4,
+            patience: 40,
+            seed: 6,
+            ensemble: 2,
+            batch: 300,
+            ..Default::default()
+        };
+        let dir = std::env::temp_dir().join(format!("otofit-lanes-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let trained = |threads: usize, checkpoint: Option<&Checkpointing>| {
+            let m = on_threads(threads, || train_checkpointed(&ds, &s, checkpoint, &mut |_| true)).unwrap().model;
+            let draws = m.sample(&super::super::Obs { x: &[0.5, -0.3, 0.1], present: None }, 50, 2).unwrap();
+            (m.header.training.best_val_loss.to_bits(), draws)
+        };
+        let three = trained(3, Some(&Checkpointing::new(dir.join("t.ckpt"), "a")));
+        assert!(trained(6, None) == three, "two lanes of three threads differ from three threads");
+        assert!(trained(1, None) != three, "three threads gave one thread's bits: the check cannot fail");
         let _ = std::fs::remove_dir_all(&dir);
     }
 

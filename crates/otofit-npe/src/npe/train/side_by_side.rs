@@ -3,12 +3,14 @@
 //! A small table's flows train in seconds each, and their small batches split less well
 //! over threads than flows do (SLCP on two cores: one flow 1.9× faster on two threads
 //! than on one, two flows at once on a thread each 2.3× — docs/results/npe.md). So the
-//! members of an ensemble train on lanes of one thread, a lane taking the next member
-//! when its own ends; once one lane is left training, its member's epochs run on two
-//! threads. One and two threads train a member to the same bits ([`super::parts`]), so
-//! the model is the same as one member after another — on any number of threads. The
-//! progress callback runs on the calling thread, one report at a time, and stops every
-//! lane when it says so.
+//! members of an ensemble train on lanes, one per member up to the threads, the threads
+//! shared evenly between them; a lane takes the next member when its own ends. On a
+//! one-thread lane (two cores, or five flows on up to nine), once it is the last lane
+//! training, its member's epochs run on two threads. One and two threads train a member
+//! to the same bits ([`super::parts`]), so there the model is that of one member after
+//! another on one or two threads; with more threads per lane, that of one member after
+//! another on as many threads as the lane has. The progress callback runs on the calling
+//! thread, one report at a time, and stops every lane when it says so.
 
 use super::{EpochReport, Finished, MemberRun, Result, Run, member_stream};
 use rand_chacha::ChaCha8Rng;
@@ -16,24 +18,27 @@ use rayon::{ThreadPool, ThreadPoolBuilder};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc;
 
-/// The threads side-by-side members train on: a pool of one thread per lane, and one
-/// of two for the member left training alone.
+/// The threads side-by-side members train on: a pool per lane, the threads shared
+/// evenly, and one of two threads for a one-thread lane's member left training alone.
 pub(super) struct Lanes {
     own: Vec<ThreadPool>,
     pair: ThreadPool,
 }
 
 impl Lanes {
-    /// Lanes for `members` members still to train on this pool's threads: none (one
-    /// after another) for fewer than two members or one thread, or when the threads
-    /// cannot be started.
+    /// Lanes for `members` members still to train on this pool's threads: one per member
+    /// up to the threads, each with its share of them (at least one). None (one after
+    /// another) for fewer than two members or one thread, or when the threads cannot be
+    /// started. A lane's thread count is fixed when training starts, so a member's weights
+    /// depend on the thread count and the members only, never on which lane ends first.
     pub(super) fn for_members(members: usize) -> Option<Lanes> {
-        let lanes = rayon::current_num_threads().min(members);
+        let threads = rayon::current_num_threads();
+        let lanes = threads.min(members);
         if lanes < 2 {
             return None;
         }
         let pool = |n: usize| ThreadPoolBuilder::new().num_threads(n).build().ok();
-        let own = (0..lanes).map(|_| pool(1)).collect::<Option<Vec<_>>>()?;
+        let own = (0..lanes).map(|_| pool(threads / lanes)).collect::<Option<Vec<_>>>()?;
         Some(Lanes { own, pair: pool(2)? })
     }
 }
@@ -47,9 +52,14 @@ pub(super) struct Lane<'a> {
 }
 
 impl Lane<'_> {
-    /// Runs an epoch on the lane's thread, or on two once no other lane is training.
+    /// Runs an epoch on the lane's threads; a one-thread lane's on two once no other lane
+    /// is training (one and two threads give the same bits).
     pub(super) fn run<R: Send>(&self, epoch: impl FnOnce() -> R + Send) -> R {
-        if self.training.load(Ordering::Acquire) <= 1 { self.pair.install(epoch) } else { self.own.install(epoch) }
+        if self.own.current_num_threads() == 1 && self.training.load(Ordering::Acquire) <= 1 {
+            self.pair.install(epoch)
+        } else {
+            self.own.install(epoch)
+        }
     }
 }
 
