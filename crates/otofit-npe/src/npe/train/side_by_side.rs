@@ -19,10 +19,11 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc;
 
 /// The threads side-by-side members train on: a pool per lane, the threads shared
-/// evenly, and one of two threads for a one-thread lane's member left training alone.
+/// evenly, and, where a lane has one thread, a pool of two for its member left training
+/// alone.
 pub(super) struct Lanes {
     own: Vec<ThreadPool>,
-    pair: ThreadPool,
+    pair: Option<ThreadPool>,
 }
 
 impl Lanes {
@@ -39,14 +40,15 @@ impl Lanes {
         }
         let pool = |n: usize| ThreadPoolBuilder::new().num_threads(n).build().ok();
         let own = (0..lanes).map(|_| pool(threads / lanes)).collect::<Option<Vec<_>>>()?;
-        Some(Lanes { own, pair: pool(2)? })
+        let pair = if threads / lanes == 1 { Some(pool(2)?) } else { None };
+        Some(Lanes { own, pair })
     }
 }
 
 /// One lane's threads for a member's epochs.
 pub(super) struct Lane<'a> {
     own: &'a ThreadPool,
-    pair: &'a ThreadPool,
+    pair: Option<&'a ThreadPool>,
     /// Lanes still training.
     training: &'a AtomicUsize,
 }
@@ -55,10 +57,11 @@ impl Lane<'_> {
     /// Runs an epoch on the lane's threads; a one-thread lane's on two once no other lane
     /// is training (one and two threads give the same bits).
     pub(super) fn run<R: Send>(&self, epoch: impl FnOnce() -> R + Send) -> R {
-        if self.own.current_num_threads() == 1 && self.training.load(Ordering::Acquire) <= 1 {
-            self.pair.install(epoch)
-        } else {
-            self.own.install(epoch)
+        match self.pair {
+            Some(pair) if self.own.current_num_threads() == 1 && self.training.load(Ordering::Acquire) <= 1 => {
+                pair.install(epoch)
+            }
+            _ => self.own.install(epoch),
         }
     }
 }
@@ -87,7 +90,7 @@ impl Run<'_> {
                 .own
                 .iter()
                 .map(|own| {
-                    let lane = Lane { own, pair: &lanes.pair, training: &training };
+                    let lane = Lane { own, pair: lanes.pair.as_ref(), training: &training };
                     let (tx, next, stop) = (tx.clone(), &next, &stop);
                     scope.spawn(move || {
                         let mut ended = vec![];
