@@ -11,6 +11,7 @@ use faer::traits::{ComplexField, Conjugate};
 use faer::{Accum, Mat, MatMut, MatRef, Par};
 use std::sync::OnceLock;
 
+mod lane_jacobians;
 mod lanes;
 
 use super::spline::{MIN_DERIVATIVE, MIN_HEIGHT, MIN_WIDTH};
@@ -749,8 +750,8 @@ const SERIAL_ELEMENTS: usize = 16_384;
 /// The training's spline pass (`spline::forward`), in f64 from burn's f32: for element e,
 /// y[e] = f(x[e]) and ld[e] = log |f′(x[e])| with parameters `raw[e·np..(e+1)·np]`, and
 /// with `jacobians` also ∂y and ∂ld with respect to (raw, x), np + 1 entries per element.
-/// Elements are independent: chunks of them run on rayon, each compiled for AVX2 and FMA
-/// where the CPU has them, as [`splines`].
+/// Elements are independent: chunks of them run on rayon; where the CPU has AVX2 and FMA,
+/// four elements at a time in one register (`lane_jacobians`, the same bits).
 pub(crate) fn spline_jacobians(
     x: &[f32],
     raw: &[f32],
@@ -800,10 +801,24 @@ fn jacobian_chunk_avx2(
     raw: &[f32],
     bins: usize,
     bound: f64,
-    out: (&mut [f32], &mut [f32]),
+    (y, ld): (&mut [f32], &mut [f32]),
     jacobians: Option<(&mut [f32], &mut [f32])>,
 ) {
-    jacobian_chunk_with::<true>(x, raw, bins, bound, out, jacobians);
+    // Whole groups of four in lanes (the same bits), the rest here.
+    let Some((jy, jl)) = jacobians else {
+        return jacobian_chunk_with::<true>(x, raw, bins, bound, (y, ld), None);
+    };
+    let np = 3 * bins - 1;
+    let done = lane_jacobians::jacobians(x, raw, bins, bound, (&mut *y, &mut *ld), (&mut *jy, &mut *jl));
+    let rest = (&mut jy[done * (np + 1)..], &mut jl[done * (np + 1)..]);
+    jacobian_chunk_with::<true>(
+        &x[done..],
+        &raw[done * np..],
+        bins,
+        bound,
+        (&mut y[done..], &mut ld[done..]),
+        Some(rest),
+    );
 }
 
 #[inline(always)]

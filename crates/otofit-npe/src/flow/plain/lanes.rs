@@ -56,42 +56,42 @@ fn portable(s: &Splines, u: &mut [f64], raw: &[f64], n: usize, logdet: &mut [f64
 macro_rules! lane_kernel {
     ($name:ident, $features:literal) => {
         #[cfg(target_arch = "x86_64")]
-        mod $name {
+        pub(super) mod $name {
             use super::super::{
                 EXP_SHIFT, INV_FACT, LG, LN2_HI, LN2_LO, MIN_DERIVATIVE, MIN_HEIGHT, MIN_WIDTH, Splines,
             };
             use std::arch::x86_64::*;
 
-            type V = __m256d;
+            pub(in super::super) type V = __m256d;
 
             #[target_feature(enable = $features)]
-            fn set(x: f64) -> V {
+            pub(in super::super) fn set(x: f64) -> V {
                 _mm256_set1_pd(x)
             }
 
             #[target_feature(enable = $features)]
-            fn add(a: V, b: V) -> V {
+            pub(in super::super) fn add(a: V, b: V) -> V {
                 _mm256_add_pd(a, b)
             }
 
             #[target_feature(enable = $features)]
-            fn sub(a: V, b: V) -> V {
+            pub(in super::super) fn sub(a: V, b: V) -> V {
                 _mm256_sub_pd(a, b)
             }
 
             #[target_feature(enable = $features)]
-            fn mul(a: V, b: V) -> V {
+            pub(in super::super) fn mul(a: V, b: V) -> V {
                 _mm256_mul_pd(a, b)
             }
 
             /// b where `mask`, else a.
             #[target_feature(enable = $features)]
-            fn blend(a: V, b: V, mask: V) -> V {
+            pub(in super::super) fn blend(a: V, b: V, mask: V) -> V {
                 _mm256_blendv_pd(a, b, mask)
             }
 
             #[target_feature(enable = $features)]
-            fn eq(a: V, b: V) -> V {
+            pub(in super::super) fn eq(a: V, b: V) -> V {
                 _mm256_cmp_pd::<_CMP_EQ_OQ>(a, b)
             }
 
@@ -104,7 +104,7 @@ macro_rules! lane_kernel {
             }
 
             #[target_feature(enable = $features)]
-            fn store(v: V) -> [f64; 4] {
+            pub(in super::super) fn store(v: V) -> [f64; 4] {
                 let mut a = [0.0; 4];
                 // SAFETY: `a` holds four f64; storeu takes any alignment.
                 unsafe { _mm256_storeu_pd(a.as_mut_ptr(), v) };
@@ -113,7 +113,7 @@ macro_rules! lane_kernel {
 
             /// `super::super::exp_neg::<true>` in lanes (the same operations, NaN kept).
             #[target_feature(enable = $features)]
-            fn exp_neg(x: V) -> V {
+            pub(in super::super) fn exp_neg(x: V) -> V {
                 // max(−708, x) returns x when x is NaN, as the scalar clamp does.
                 let x = _mm256_max_pd(set(-708.0), x);
                 let shifted = _mm256_add_pd(_mm256_mul_pd(x, set(std::f64::consts::LOG2_E)), set(EXP_SHIFT));
@@ -130,7 +130,7 @@ macro_rules! lane_kernel {
 
             /// softplus(r) + MIN_DERIVATIVE, as `super::super::derivative`.
             #[target_feature(enable = $features)]
-            fn softplus(r: V) -> V {
+            pub(in super::super) fn softplus(r: V) -> V {
                 // −|r|: the sign bit set.
                 let l = ln_1p_unit(exp_neg(_mm256_or_pd(r, set(-0.0))));
                 _mm256_add_pd(_mm256_add_pd(_mm256_max_pd(r, _mm256_setzero_pd()), l), set(MIN_DERIVATIVE))
@@ -158,17 +158,17 @@ macro_rules! lane_kernel {
 
             /// The knot at cumulative weight c: c·2·bound − bound.
             #[target_feature(enable = $features)]
-            fn knot(c: V, bound: V) -> V {
+            pub(in super::super) fn knot(c: V, bound: V) -> V {
                 _mm256_sub_pd(_mm256_mul_pd(_mm256_mul_pd(c, set(2.0)), bound), bound)
             }
 
-            /// Softmax weights of one knot axis (K raw values from parameter `first` on), as
-            /// `super::super::axis_weights`: e into `e`, the scale returned.
+            /// Softmax weights of one knot axis (K raw values, the lanes' j-th from `param(j)`),
+            /// as `super::super::axis_weights`: e into `e`; (scale, Σ e) returned.
             #[target_feature(enable = $features)]
-            fn axis(e: &mut [V; 32], src: &[f64], stride: usize, off: usize, first: usize, bins: usize, min: f64) -> V {
+            pub(in super::super) fn axis(e: &mut [V; 32], param: impl Fn(usize) -> V, bins: usize, min: f64) -> (V, V) {
                 let mut m = set(f64::NEG_INFINITY);
                 for (j, ej) in e.iter_mut().enumerate().take(bins) {
-                    *ej = load(src, (first + j) * stride + off);
+                    *ej = param(j);
                     m = _mm256_max_pd(m, *ej);
                 }
                 let mut s = _mm256_setzero_pd();
@@ -176,7 +176,7 @@ macro_rules! lane_kernel {
                     *ej = exp_neg(_mm256_sub_pd(*ej, m));
                     s = _mm256_add_pd(s, *ej);
                 }
-                _mm256_div_pd(set(1.0 - bins as f64 * min), s)
+                (_mm256_div_pd(set(1.0 - bins as f64 * min), s), s)
             }
 
             /// f′ at t in a bin of slope delta with end derivatives d0, d1 (`super::super::slope`).
@@ -191,7 +191,7 @@ macro_rules! lane_kernel {
 
             /// `x` clamped to [0, 1] as f64::clamp does (NaN stays NaN).
             #[target_feature(enable = $features)]
-            fn unit(x: V) -> V {
+            pub(in super::super) fn unit(x: V) -> V {
                 let x = _mm256_blendv_pd(x, _mm256_setzero_pd(), _mm256_cmp_pd::<_CMP_LT_OQ>(x, _mm256_setzero_pd()));
                 _mm256_blendv_pd(x, set(1.0), _mm256_cmp_pd::<_CMP_GT_OQ>(x, set(1.0)))
             }
@@ -204,8 +204,8 @@ macro_rules! lane_kernel {
                 let bins = s.bins;
                 let bound = set(s.bound);
                 let (mut wx, mut wy) = ([_mm256_setzero_pd(); 32], [_mm256_setzero_pd(); 32]);
-                let sx = axis(&mut wx, src, stride, off, first, bins, MIN_WIDTH);
-                let sy = axis(&mut wy, src, stride, off, first + bins, bins, MIN_HEIGHT);
+                let sx = axis(&mut wx, |j| load(src, (first + j) * stride + off), bins, MIN_WIDTH).0;
+                let sy = axis(&mut wy, |j| load(src, (first + bins + j) * stride + off), bins, MIN_HEIGHT).0;
                 let (search, scale, min) = if s.inverse { (&wy, sy, MIN_HEIGHT) } else { (&wx, sx, MIN_WIDTH) };
                 // The active bin: the count of leading interior knots not above v (the scalar
                 // search stops at the first knot above v; the knots rise, so the count is its
