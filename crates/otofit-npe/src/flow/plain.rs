@@ -751,7 +751,8 @@ const SERIAL_ELEMENTS: usize = 16_384;
 /// y[e] = f(x[e]) and ld[e] = log |f′(x[e])| with parameters `raw[e·np..(e+1)·np]`, and
 /// with `jacobians` also ∂y and ∂ld with respect to (raw, x), np + 1 entries per element.
 /// Elements are independent: chunks of them run on rayon; where the CPU has AVX2 and FMA,
-/// four elements at a time in one register (`lane_jacobians`, the same bits).
+/// four elements at a time in one register (`lane_jacobians`, the same bits), with or
+/// without the Jacobians.
 pub(crate) fn spline_jacobians(
     x: &[f32],
     raw: &[f32],
@@ -805,20 +806,12 @@ fn jacobian_chunk_avx2(
     jacobians: Option<(&mut [f32], &mut [f32])>,
 ) {
     // Whole groups of four in lanes (the same bits), the rest here.
-    let Some((jy, jl)) = jacobians else {
-        return jacobian_chunk_with::<true>(x, raw, bins, bound, (y, ld), None);
-    };
     let np = 3 * bins - 1;
-    let done = lane_jacobians::jacobians(x, raw, bins, bound, (&mut *y, &mut *ld), (&mut *jy, &mut *jl));
-    let rest = (&mut jy[done * (np + 1)..], &mut jl[done * (np + 1)..]);
-    jacobian_chunk_with::<true>(
-        &x[done..],
-        &raw[done * np..],
-        bins,
-        bound,
-        (&mut y[done..], &mut ld[done..]),
-        Some(rest),
-    );
+    let mut jacobians = jacobians;
+    let lanes = jacobians.as_mut().map(|(jy, jl)| (&mut **jy, &mut **jl));
+    let done = lane_jacobians::jacobians(x, raw, bins, bound, (&mut *y, &mut *ld), lanes);
+    let rest = jacobians.map(|(jy, jl)| (&mut jy[done * (np + 1)..], &mut jl[done * (np + 1)..]));
+    jacobian_chunk_with::<true>(&x[done..], &raw[done * np..], bins, bound, (&mut y[done..], &mut ld[done..]), rest);
 }
 
 #[inline(always)]

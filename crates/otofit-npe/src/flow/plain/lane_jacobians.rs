@@ -11,16 +11,17 @@
 /// Elements per group.
 const LANES: usize = 4;
 
-/// [`super::jacobian_chunk_with`] with Jacobians, on the leading whole groups of four
-/// elements of x (layouts as there); returns how many elements it did. Zero without AVX2
-/// and FMA (the caller's scalar pass does them all).
+/// [`super::jacobian_chunk_with`] on the leading whole groups of four elements of x
+/// (layouts as there; without `jacobians`, y and log f′ only: the validation pass);
+/// returns how many elements it did. Zero without AVX2 and FMA (the caller's scalar pass
+/// does them all).
 pub(super) fn jacobians(
     x: &[f32],
     raw: &[f32],
     bins: usize,
     bound: f64,
     out: (&mut [f32], &mut [f32]),
-    jacobians: (&mut [f32], &mut [f32]),
+    jacobians: Option<(&mut [f32], &mut [f32])>,
 ) -> usize {
     #[cfg(target_arch = "x86_64")]
     {
@@ -79,17 +80,19 @@ macro_rules! jacobian_kernel {
                 bins: usize,
                 bound: f64,
                 (y, ld): (&mut [f32], &mut [f32]),
-                (jy, jl): (&mut [f32], &mut [f32]),
+                mut jacobians: Option<(&mut [f32], &mut [f32])>,
             ) -> usize {
                 let whole = x.len() / LANES * LANES;
                 for e in (0..whole).step_by(LANES) {
-                    group(x, raw, bins, bound, e, (y, ld), (jy, jl));
+                    let jacobians = jacobians.as_mut().map(|(jy, jl)| (&mut **jy, &mut **jl));
+                    group(x, raw, bins, bound, e, (y, ld), jacobians);
                 }
                 whole
             }
 
             /// Elements e..e + 4: lane by lane `super::super::spline_jacobian::<true>` inside
-            /// the bound and the identity beyond it, as `jacobian_chunk_with` writes them.
+            /// the bound and the identity beyond it, as `jacobian_chunk_with` writes them
+            /// (without Jacobians, `spline_forward`'s y and log f′, the same terms).
             #[allow(clippy::too_many_arguments)]
             #[target_feature(enable = $features)]
             fn group(
@@ -99,7 +102,7 @@ macro_rules! jacobian_kernel {
                 bound: f64,
                 e: usize,
                 (y, ld): (&mut [f32], &mut [f32]),
-                (jy, jl): (&mut [f32], &mut [f32]),
+                jacobians: Option<(&mut [f32], &mut [f32])>,
             ) {
                 let np = 3 * bins - 1;
                 let param = |j: usize| widen(std::array::from_fn(|l| raw[(e + l) * np + j]));
@@ -157,6 +160,17 @@ macro_rules! jacobian_kernel {
                 let out_y = add(y0, div(mul(h, a), den));
                 let n2 = add(add(mul(mul(d1, t), t), mul(two_delta, t1)), mul(mul(d0, one_t), one_t));
                 let slope = div(mul(mul(delta, delta), n2), mul(den, den));
+                let Some((jy, jl)) = jacobians else {
+                    let [xs, out_y, slope] = [v, out_y, slope].map(|q| store(q));
+                    for l in 0..LANES {
+                        (y[e + l], ld[e + l]) = if xs[l].abs() > bound {
+                            (xs[l] as f32, 0.0)
+                        } else {
+                            (out_y[l] as f32, slope[l].ln() as f32)
+                        };
+                    }
+                    return;
+                };
                 let one_2t = sub(one, mul(two, t));
                 let den_t = mul(s, one_2t);
                 let den_delta = sub(one, mul(two, t1));
@@ -235,7 +249,7 @@ mod tests {
     use super::super::jacobian_chunk_with;
 
     /// The lane kernels give the scalar pass's values, Jacobians and log-slopes bit for
-    /// bit, on points inside and beyond the bound and bin counts from 2 to 31, with a
+    /// bit (and its values and log-slopes alone where no Jacobian is asked for), on points inside and beyond the bound and bin counts from 2 to 31, with a
     /// partial group left to the scalar pass.
     #[test]
     fn lanes_match_the_scalar_jacobians_exactly() {
@@ -257,24 +271,29 @@ mod tests {
             let bound = 3.0;
             let raw: Vec<f32> = (0..np * n).map(|_| uniform() * 3.0).collect();
             let x: Vec<f32> = (0..n).map(|_| uniform() * 3.5).collect();
-            let run = |lanes: bool| {
+            let run = |lanes: bool, with_jacobians: bool| {
                 let (mut y, mut ld) = (vec![9.0f32; n], vec![9.0f32; n]);
                 let (mut jy, mut jl) = (vec![9.0f32; n * (np + 1)], vec![9.0f32; n * (np + 1)]);
+                let mut js = with_jacobians.then_some((&mut jy[..], &mut jl[..]));
                 let done = if lanes {
-                    super::jacobians(&x, &raw, bins, bound, (&mut y, &mut ld), (&mut jy, &mut jl))
+                    let js = js.as_mut().map(|(a, b)| (&mut **a, &mut **b));
+                    super::jacobians(&x, &raw, bins, bound, (&mut y, &mut ld), js)
                 } else {
                     0
                 };
                 let (ys, lds) = (&mut y[done..], &mut ld[done..]);
-                let js = (&mut jy[done * (np + 1)..], &mut jl[done * (np + 1)..]);
-                jacobian_chunk_with::<true>(&x[done..], &raw[done * np..], bins, bound, (ys, lds), Some(js));
+                let js = js.map(|(a, b)| (&mut a[done * (np + 1)..], &mut b[done * (np + 1)..]));
+                jacobian_chunk_with::<true>(&x[done..], &raw[done * np..], bins, bound, (ys, lds), js);
                 (done, [y, ld, jy, jl].map(|v| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>()))
             };
-            let ((done, lanes), (_, scalar)) = (run(true), run(false));
-            assert_eq!(done, n / 4 * 4, "bins {bins}, n {n}: whole groups");
-            for (what, (a, b)) in ["y", "log f′", "∂y", "∂ log f′"].iter().zip(lanes.iter().zip(&scalar)) {
-                assert_eq!(a, b, "bins {bins}, n {n}: {what}");
+            for with_jacobians in [true, false] {
+                let ((done, lanes), (_, scalar)) = (run(true, with_jacobians), run(false, with_jacobians));
+                assert_eq!(done, n / 4 * 4, "bins {bins}, n {n}: whole groups");
+                for (what, (a, b)) in ["y", "log f′", "∂y", "∂ log f′"].iter().zip(lanes.iter().zip(&scalar)) {
+                    assert_eq!(a, b, "bins {bins}, n {n}, Jacobians {with_jacobians}: {what}");
+                }
             }
+            let scalar = run(false, true).1;
             // Points on both sides of the bound, and Jacobians that are not all zero.
             assert!(x.iter().any(|v| v.abs() > 3.0) && x.iter().any(|v| v.abs() < 3.0));
             assert!(scalar[2].iter().filter(|&&b| f32::from_bits(b) != 0.0).count() > n * bins);
