@@ -232,7 +232,7 @@ fn forward(l: &Layer, v: &[Vec<f32>], x: &[f32], n: usize, last: bool) -> Vec<f3
 
 /// The backward pass of a layer (its weights in `v`) at input x [n × in] for the output
 /// gradient g [n × out]: adds W's and b's gradients to `grads`; with `input`, returns x's
-/// gradient.
+/// gradient (without, a product the caller would drop is not computed).
 fn backward(
     l: &Layer,
     v: &[Vec<f32>],
@@ -332,7 +332,8 @@ fn conditioner(
 }
 
 /// The conditioner's backward pass for its output gradient `g`: adds its weights'
-/// gradients to `grads` and the context's gradient to `g_ctx`; returns its input's.
+/// gradients to `grads` and, when given `g_ctx`, the context's gradient to it; with
+/// `input`, returns its input's.
 #[allow(clippy::too_many_arguments)]
 fn conditioner_back(
     cfg: &FlowConfig,
@@ -342,14 +343,14 @@ fn conditioner_back(
     n: usize,
     g: Vec<f32>,
     grads: &mut [Vec<f32>],
-    g_ctx: &mut [f32],
+    (g_ctx, input): (Option<&mut [f32]>, bool),
 ) -> Vec<f32> {
     let last = layers.len() - 1;
     if cfg.blocks == 0 {
         let mut g = g;
         for k in (0..layers.len()).rev() {
             let x = &tape.inputs[k];
-            let mut gx = backward(&layers[k], v, x, &g, n, grads, true);
+            let mut gx = backward(&layers[k], v, x, &g, n, grads, k > 0 || input);
             if k > 0 {
                 through_relu(&mut gx, x);
             }
@@ -358,20 +359,23 @@ fn conditioner_back(
         return g;
     }
     let mut gh = backward(&layers[last], v, &tape.inputs[1 + 2 * cfg.blocks], &g, n, grads, true);
+    let mut g_ctx = g_ctx;
     for k in (0..cfg.blocks).rev() {
         let (p, q) = (&tape.inputs[1 + 2 * k], &tape.inputs[2 + 2 * k]);
         let (r, s) = (&tape.branches[k], &tape.gates[k]);
         let gr: Vec<f32> = gh.iter().zip(s).map(|(g, s)| g * s).collect();
         let gz: Vec<f32> = gh.iter().zip(r.iter().zip(s)).map(|(g, (r, s))| g * r * s * (1.0 - s)).collect();
-        let gc = backward(&layers[3 + 3 * k], v, ctx, &gz, n, grads, true);
-        g_ctx.iter_mut().zip(&gc).for_each(|(a, b)| *a += b);
+        let gc = backward(&layers[3 + 3 * k], v, ctx, &gz, n, grads, g_ctx.is_some());
+        if let Some(g_ctx) = g_ctx.as_deref_mut() {
+            g_ctx.iter_mut().zip(&gc).for_each(|(a, b)| *a += b);
+        }
         let mut gq = backward(&layers[2 + 3 * k], v, q, &gr, n, grads, true);
         through_relu(&mut gq, q);
         let mut gp = backward(&layers[1 + 3 * k], v, p, &gq, n, grads, true);
         through_relu(&mut gp, p);
         gh.iter_mut().zip(&gp).for_each(|(a, b)| *a += b);
     }
-    backward(&layers[0], v, &tape.inputs[0], &gh, n, grads, true)
+    backward(&layers[0], v, &tape.inputs[0], &gh, n, grads, input)
 }
 
 /// One coupling's record for the backward pass.
@@ -499,7 +503,8 @@ fn backward_pass(weights: &Weights, record: Record, n: usize) -> Gradient {
     let inv_n = 1.0 / n as f32;
     let g_ld = -inv_n;
     let mut g: Vec<f32> = u.iter().map(|&v| v * inv_n).collect();
-    let mut g_ctx = vec![0.0f32; n * c];
+    // The context's gradient reaches only an embedding's weights.
+    let mut g_ctx = (!weights.embedding.is_empty()).then(|| vec![0.0f32; n * c]);
     for t in (0..cfg.transforms).rev() {
         let rec = &tapes[t];
         if let Some(lu) = weights.lu.get(t) {
@@ -520,8 +525,19 @@ fn backward_pass(weights: &Weights, record: Record, n: usize) -> Gradient {
                 }
             }
         }
+        // The conditioner's input is [a, context]: a's gradient is wanted where a coupling
+        // comes before, the context's where an embedding does.
+        let input = g_ctx.is_some() || t > 0;
         let layers = (&weights.conditioners[t][..], &vals[..]);
-        let g_in = conditioner_back(cfg, layers, &rec.tape, &ctx, n, g_raw, &mut grad.0, &mut g_ctx);
+        let g_in = conditioner_back(cfg, layers, &rec.tape, &ctx, n, g_raw, &mut grad.0, (g_ctx.as_deref_mut(), input));
+        if let Some(g_ctx) = g_ctx.as_deref_mut() {
+            for (gc, gi) in g_ctx.chunks_exact_mut(c).zip(g_in.chunks_exact(dc + c)) {
+                gc.iter_mut().zip(&gi[dc..]).for_each(|(a, b)| *a += b);
+            }
+        }
+        if t == 0 {
+            break;
+        }
         // u = [a, y] after the coupling; before it the permuted [a, x].
         let perm = &cfg.permutations[t];
         let mut before = vec![0.0f32; n * d];
@@ -531,11 +547,10 @@ fn backward_pass(weights: &Weights, record: Record, n: usize) -> Gradient {
                 let gk = if k < dc { g[i * d + k] + gi[k] } else { g_x[i * dt + k - dc] };
                 before[i * d + perm[k]] = gk;
             }
-            g_ctx[i * c..(i + 1) * c].iter_mut().zip(&gi[dc..]).for_each(|(a, b)| *a += b);
         }
         g = before;
     }
-    let mut gc = g_ctx;
+    let Some(mut gc) = g_ctx else { return grad };
     for k in (0..weights.embedding.len()).rev() {
         let x = &emb_inputs[k];
         let mut gx = backward(&weights.embedding[k], vals, x, &gc, n, &mut grad.0, k > 0);

@@ -766,52 +766,15 @@ pub(crate) fn spline_jacobians(
     assert!(np <= MAX_PARAMS, "at most 31 bins");
     let c = JACOBIAN_CHUNK;
     if x.len() <= SERIAL_ELEMENTS {
-        return jacobian_chunk(x, raw, bins, bound, (y, ld), jacobians);
+        return lane_jacobians::chunk(x, raw, bins, bound, (y, ld), jacobians);
     }
     let chunks = x.par_chunks(c).zip(raw.par_chunks(c * np)).zip(y.par_chunks_mut(c)).zip(ld.par_chunks_mut(c));
     match jacobians {
-        Some((jy, jl)) => chunks
-            .zip(jy.par_chunks_mut(c * (np + 1)))
-            .zip(jl.par_chunks_mut(c * (np + 1)))
-            .for_each(|(((((x, raw), y), ld), jy), jl)| jacobian_chunk(x, raw, bins, bound, (y, ld), Some((jy, jl)))),
-        None => chunks.for_each(|(((x, raw), y), ld)| jacobian_chunk(x, raw, bins, bound, (y, ld), None)),
+        Some((jy, jl)) => chunks.zip(jy.par_chunks_mut(c * (np + 1))).zip(jl.par_chunks_mut(c * (np + 1))).for_each(
+            |(((((x, raw), y), ld), jy), jl)| lane_jacobians::chunk(x, raw, bins, bound, (y, ld), Some((jy, jl))),
+        ),
+        None => chunks.for_each(|(((x, raw), y), ld)| lane_jacobians::chunk(x, raw, bins, bound, (y, ld), None)),
     }
-}
-
-/// [`spline_jacobians`] on one chunk.
-fn jacobian_chunk(
-    x: &[f32],
-    raw: &[f32],
-    bins: usize,
-    bound: f64,
-    out: (&mut [f32], &mut [f32]),
-    jacobians: Option<(&mut [f32], &mut [f32])>,
-) {
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma") {
-        // SAFETY: the CPU has the features `jacobian_chunk_avx2` is compiled for (just detected).
-        return unsafe { jacobian_chunk_avx2(x, raw, bins, bound, out, jacobians) };
-    }
-    jacobian_chunk_with::<false>(x, raw, bins, bound, out, jacobians);
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,fma")]
-fn jacobian_chunk_avx2(
-    x: &[f32],
-    raw: &[f32],
-    bins: usize,
-    bound: f64,
-    (y, ld): (&mut [f32], &mut [f32]),
-    jacobians: Option<(&mut [f32], &mut [f32])>,
-) {
-    // Whole groups of four in lanes (the same bits), the rest here.
-    let np = 3 * bins - 1;
-    let mut jacobians = jacobians;
-    let lanes = jacobians.as_mut().map(|(jy, jl)| (&mut **jy, &mut **jl));
-    let done = lane_jacobians::jacobians(x, raw, bins, bound, (&mut *y, &mut *ld), lanes);
-    let rest = jacobians.map(|(jy, jl)| (&mut jy[done * (np + 1)..], &mut jl[done * (np + 1)..]));
-    jacobian_chunk_with::<true>(&x[done..], &raw[done * np..], bins, bound, (&mut y[done..], &mut ld[done..]), rest);
 }
 
 #[inline(always)]
@@ -1366,7 +1329,7 @@ mod tests {
             if parallel {
                 spline_jacobians(&x, &raw, bins, 3.0, (&mut y, &mut ld), jac);
             } else {
-                jacobian_chunk(&x, &raw, bins, 3.0, (&mut y, &mut ld), jac);
+                lane_jacobians::chunk(&x, &raw, bins, 3.0, (&mut y, &mut ld), jac);
             }
             (y, ld, jy, jl)
         };

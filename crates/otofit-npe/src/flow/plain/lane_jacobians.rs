@@ -11,32 +11,31 @@
 /// Elements per group.
 const LANES: usize = 4;
 
-/// [`super::jacobian_chunk_with`] on the leading whole groups of four elements of x
-/// (layouts as there; without `jacobians`, y and log f′ only: the validation pass);
-/// returns how many elements it did. Zero without AVX2 and FMA (the caller's scalar pass
-/// does them all).
-pub(super) fn jacobians(
+/// [`super::jacobian_chunk_with`] on one chunk (layouts as there; without `jacobians`, y
+/// and log f′ only: the validation pass): where the CPU has AVX2 and FMA, the whole groups
+/// of four in lanes and the last 1–3 elements on the scalar pass compiled alike; else the
+/// scalar pass throughout. The one place the features are detected.
+pub(super) fn chunk(
     x: &[f32],
     raw: &[f32],
     bins: usize,
     bound: f64,
     out: (&mut [f32], &mut [f32]),
     jacobians: Option<(&mut [f32], &mut [f32])>,
-) -> usize {
+) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::is_x86_feature_detected as has;
         if has!("avx2") && has!("fma") && has!("avx512f") && has!("avx512vl") {
-            // SAFETY: the CPU has the features `avx512vl::jacobians` is compiled for (just detected).
-            return unsafe { avx512vl::jacobians(x, raw, bins, bound, out, jacobians) };
+            // SAFETY: the CPU has the features `avx512vl::chunk` is compiled for (just detected).
+            return unsafe { avx512vl::chunk(x, raw, bins, bound, out, jacobians) };
         }
         if has!("avx2") && has!("fma") {
-            // SAFETY: the CPU has the features `avx2::jacobians` is compiled for (just detected).
-            return unsafe { avx2::jacobians(x, raw, bins, bound, out, jacobians) };
+            // SAFETY: the CPU has the features `avx2::chunk` is compiled for (just detected).
+            return unsafe { avx2::chunk(x, raw, bins, bound, out, jacobians) };
         }
     }
-    let _ = (x, raw, bins, bound, out, jacobians);
-    0
+    super::jacobian_chunk_with::<false>(x, raw, bins, bound, out, jacobians);
 }
 
 /// The Jacobian kernel as module `$name`, compiled for `$features` with the lane kernel
@@ -46,7 +45,7 @@ macro_rules! jacobian_kernel {
         #[cfg(target_arch = "x86_64")]
         mod $name {
             use super::super::lanes::$name::{V, add, axis, blend, eq, knot, mul, set, softplus, store, sub, unit};
-            use super::super::{MIN_HEIGHT, MIN_WIDTH};
+            use super::super::{MIN_HEIGHT, MIN_WIDTH, jacobian_chunk_with};
             use super::LANES;
             use std::arch::x86_64::*;
 
@@ -73,8 +72,28 @@ macro_rules! jacobian_kernel {
                 _mm256_cvtps_pd(_mm_setr_ps(v[0], v[1], v[2], v[3]))
             }
 
+            /// `super::chunk` for a CPU with these features.
             #[target_feature(enable = $features)]
-            pub(in super::super) fn jacobians(
+            pub(super) fn chunk(
+                x: &[f32],
+                raw: &[f32],
+                bins: usize,
+                bound: f64,
+                (y, ld): (&mut [f32], &mut [f32]),
+                jacobians: Option<(&mut [f32], &mut [f32])>,
+            ) {
+                let np = 3 * bins - 1;
+                let mut jacobians = jacobians;
+                let lanes = jacobians.as_mut().map(|(jy, jl)| (&mut **jy, &mut **jl));
+                let done = self::jacobians(x, raw, bins, bound, (&mut *y, &mut *ld), lanes);
+                let rest = jacobians.map(|(jy, jl)| (&mut jy[done * (np + 1)..], &mut jl[done * (np + 1)..]));
+                let (x, raw, y, ld) = (&x[done..], &raw[done * np..], &mut y[done..], &mut ld[done..]);
+                jacobian_chunk_with::<true>(x, raw, bins, bound, (y, ld), rest);
+            }
+
+            /// The leading whole groups of four elements; returns how many elements it did.
+            #[target_feature(enable = $features)]
+            pub(super) fn jacobians(
                 x: &[f32],
                 raw: &[f32],
                 bins: usize,
@@ -131,9 +150,12 @@ macro_rules! jacobian_kernel {
                     let nx = add(add(ax, mul(wx[j], sx)), set(MIN_WIDTH));
                     let ny = add(add(ay, mul(wy[j], sy)), set(MIN_HEIGHT));
                     (x0, x1, y0, y1) = (blend(x0, ax, at), blend(x1, nx, at), blend(y0, ay, at), blend(y1, ny, at));
-                    (ekx, eky) = (blend(ekx, wx[j], at), blend(eky, wy[j], at));
-                    below_x = blend(below_x, add(below_x, div(wx[j], tx)), under);
-                    below_y = blend(below_y, add(below_y, div(wy[j], ty)), under);
+                    // What only the Jacobians read (the validation pass goes without).
+                    if jacobians.is_some() {
+                        (ekx, eky) = (blend(ekx, wx[j], at), blend(eky, wy[j], at));
+                        below_x = blend(below_x, add(below_x, div(wx[j], tx)), under);
+                        below_y = blend(below_y, add(below_y, div(wy[j], ty)), under);
+                    }
                     if j + 1 < bins {
                         let rd = param(2 * bins + j);
                         r0 = blend(r0, rd, eq(k, set((j + 1) as f64)));
@@ -279,7 +301,8 @@ mod tests {
                 let mut js = with_jacobians.then_some((&mut jy[..], &mut jl[..]));
                 let done = if lanes {
                     let js = js.as_mut().map(|(a, b)| (&mut **a, &mut **b));
-                    super::jacobians(&x, &raw, bins, bound, (&mut y, &mut ld), js)
+                    // SAFETY: the CPU has AVX2 and FMA (checked above).
+                    unsafe { super::avx2::jacobians(&x, &raw, bins, bound, (&mut y, &mut ld), js) }
                 } else {
                     0
                 };
