@@ -102,9 +102,12 @@ macro_rules! jacobian_kernel {
                 mut jacobians: Option<(&mut [f32], &mut [f32])>,
             ) -> usize {
                 let whole = x.len() / LANES * LANES;
+                // The softmax weights' buffers, set anew for each group's first `bins`.
+                let zero = _mm256_setzero_pd();
+                let mut weights = ([zero; 32], [zero; 32]);
                 for e in (0..whole).step_by(LANES) {
                     let jacobians = jacobians.as_mut().map(|(jy, jl)| (&mut **jy, &mut **jl));
-                    group(x, raw, bins, bound, e, (y, ld), jacobians);
+                    group(x, raw, (bins, bound), e, &mut weights, (y, ld), jacobians);
                 }
                 whole
             }
@@ -117,9 +120,9 @@ macro_rules! jacobian_kernel {
             fn group(
                 x: &[f32],
                 raw: &[f32],
-                bins: usize,
-                bound: f64,
+                (bins, bound): (usize, f64),
                 e: usize,
+                (wx, wy): &mut ([V; 32], [V; 32]),
                 (y, ld): (&mut [f32], &mut [f32]),
                 jacobians: Option<(&mut [f32], &mut [f32])>,
             ) {
@@ -128,9 +131,8 @@ macro_rules! jacobian_kernel {
                 let v = widen(std::array::from_fn(|l| x[e + l]));
                 let b = set(bound);
                 let zero = _mm256_setzero_pd();
-                let (mut wx, mut wy) = ([zero; 32], [zero; 32]);
-                let (sx, tx) = axis(&mut wx, |j| param(j), bins, MIN_WIDTH);
-                let (sy, ty) = axis(&mut wy, |j| param(bins + j), bins, MIN_HEIGHT);
+                let (sx, tx) = axis(wx, |j| param(j), bins, MIN_WIDTH);
+                let (sy, ty) = axis(wy, |j| param(bins + j), bins, MIN_HEIGHT);
                 // The active bin on x, as the lane kernel's search.
                 let (mut k, mut acc) = (zero, zero);
                 for w in &wx[..bins - 1] {
@@ -139,23 +141,14 @@ macro_rules! jacobian_kernel {
                     k = add(k, _mm256_and_pd(passed, set(1.0)));
                     acc = next;
                 }
-                // The active bin's knots and interior derivatives' raw values, its softmax
-                // weights, and the shares below it (summed in order from Rust's empty sum).
-                let empty = set(std::iter::empty::<f64>().sum());
+                // The active bin's knots and interior derivatives' raw values.
                 let (mut ax, mut ay) = (zero, zero);
-                let [mut x0, mut x1, mut y0, mut y1, mut r0, mut r1, mut ekx, mut eky] = [zero; 8];
-                let (mut below_x, mut below_y) = (empty, empty);
+                let [mut x0, mut x1, mut y0, mut y1, mut r0, mut r1] = [zero; 6];
                 for j in 0..bins {
-                    let (at, under) = (eq(k, set(j as f64)), less(set(j as f64), k));
+                    let at = eq(k, set(j as f64));
                     let nx = add(add(ax, mul(wx[j], sx)), set(MIN_WIDTH));
                     let ny = add(add(ay, mul(wy[j], sy)), set(MIN_HEIGHT));
                     (x0, x1, y0, y1) = (blend(x0, ax, at), blend(x1, nx, at), blend(y0, ay, at), blend(y1, ny, at));
-                    // What only the Jacobians read (the validation pass goes without).
-                    if jacobians.is_some() {
-                        (ekx, eky) = (blend(ekx, wx[j], at), blend(eky, wy[j], at));
-                        below_x = blend(below_x, add(below_x, div(wx[j], tx)), under);
-                        below_y = blend(below_y, add(below_y, div(wy[j], ty)), under);
-                    }
                     if j + 1 < bins {
                         let rd = param(2 * bins + j);
                         r0 = blend(r0, rd, eq(k, set((j + 1) as f64)));
@@ -216,16 +209,25 @@ macro_rules! jacobian_kernel {
                 };
                 let ((yx, yx0, yw), (lx, lx0, lw)) = (via(yt, ydelta), via(lt, ldelta));
                 let at = |l: usize| (e + l) * (np + 1);
-                for (axis, ew, total, min, below, ek, (y_lo, y_len), (l_lo, l_len)) in [
-                    (0, &wx, tx, MIN_WIDTH, below_x, ekx, (yx0, yw), (lx0, lw)),
-                    (1, &wy, ty, MIN_HEIGHT, below_y, eky, (one, yh), (zero, lh)),
+                // Empty sums as Rust's (−0.0), for the shares below the active bin.
+                let empty = set(std::iter::empty::<f64>().sum());
+                for (axis, ew, total, min, (y_lo, y_len), (l_lo, l_len)) in [
+                    (0, &mut *wx, tx, MIN_WIDTH, (yx0, yw), (lx0, lw)),
+                    (1, &mut *wy, ty, MIN_HEIGHT, (one, yh), (zero, lh)),
                 ] {
+                    // Each bin's share of the axis (in place of its weight), the active
+                    // bin's, and theirs below it summed in order.
+                    let (mut below, mut share) = (empty, zero);
+                    for (j, ej) in ew.iter_mut().enumerate().take(bins) {
+                        *ej = div(*ej, total);
+                        let (at, under) = (eq(k, set(j as f64)), less(set(j as f64), k));
+                        (below, share) = (blend(below, add(below, *ej), under), blend(share, *ej, at));
+                    }
                     let c = set(2.0 * bound * (1.0 - bins as f64 * min));
-                    let share = div(ek, total);
                     let (y_mean, l_mean) =
                         (add(mul(y_lo, below), mul(y_len, share)), add(mul(l_lo, below), mul(l_len, share)));
                     for (i, ei) in ew.iter().enumerate().take(bins) {
-                        let si = mul(c, div(*ei, total));
+                        let si = mul(c, *ei);
                         let (is, under) = (eq(k, set(i as f64)), less(set(i as f64), k));
                         let gy = blend(blend(zero, y_len, is), y_lo, under);
                         let gl = blend(blend(zero, l_len, is), l_lo, under);
