@@ -268,7 +268,8 @@ macro_rules! jacobian_kernel {
 jacobian_kernel!(avx2, "avx2,fma");
 jacobian_kernel!(avx512vl, "avx2,fma,avx512f,avx512vl");
 
-#[cfg(test)]
+/// The lanes exist on x86-64 only.
+#[cfg(all(test, target_arch = "x86_64"))]
 mod tests {
     use super::super::jacobian_chunk_with;
 
@@ -280,7 +281,6 @@ mod tests {
     /// same flows.)
     #[test]
     fn lanes_match_the_scalar_jacobians_exactly() {
-        #[cfg(target_arch = "x86_64")]
         if !(std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")) {
             return;
         }
