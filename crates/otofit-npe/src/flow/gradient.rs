@@ -343,7 +343,8 @@ fn conditioner_back(
     n: usize,
     g: Vec<f32>,
     grads: &mut [Vec<f32>],
-    (g_ctx, input): (Option<&mut [f32]>, bool),
+    mut g_ctx: Option<&mut [f32]>,
+    input: bool,
 ) -> Vec<f32> {
     let last = layers.len() - 1;
     if cfg.blocks == 0 {
@@ -359,7 +360,6 @@ fn conditioner_back(
         return g;
     }
     let mut gh = backward(&layers[last], v, &tape.inputs[1 + 2 * cfg.blocks], &g, n, grads, true);
-    let mut g_ctx = g_ctx;
     for k in (0..cfg.blocks).rev() {
         let (p, q) = (&tape.inputs[1 + 2 * k], &tape.inputs[2 + 2 * k]);
         let (r, s) = (&tape.branches[k], &tape.gates[k]);
@@ -529,7 +529,7 @@ fn backward_pass(weights: &Weights, record: Record, n: usize) -> Gradient {
         // comes before, the context's where an embedding does.
         let input = g_ctx.is_some() || t > 0;
         let layers = (&weights.conditioners[t][..], &vals[..]);
-        let g_in = conditioner_back(cfg, layers, &rec.tape, &ctx, n, g_raw, &mut grad.0, (g_ctx.as_deref_mut(), input));
+        let g_in = conditioner_back(cfg, layers, &rec.tape, &ctx, n, g_raw, &mut grad.0, g_ctx.as_deref_mut(), input);
         if let Some(g_ctx) = g_ctx.as_deref_mut() {
             for (gc, gi) in g_ctx.chunks_exact_mut(c).zip(g_in.chunks_exact(dc + c)) {
                 gc.iter_mut().zip(&gi[dc..]).for_each(|(a, b)| *a += b);

@@ -80,10 +80,9 @@ macro_rules! jacobian_kernel {
                 bins: usize,
                 bound: f64,
                 (y, ld): (&mut [f32], &mut [f32]),
-                jacobians: Option<(&mut [f32], &mut [f32])>,
+                mut jacobians: Option<(&mut [f32], &mut [f32])>,
             ) {
                 let np = 3 * bins - 1;
-                let mut jacobians = jacobians;
                 let lanes = jacobians.as_mut().map(|(jy, jl)| (&mut **jy, &mut **jl));
                 let done = self::jacobians(x, raw, bins, bound, (&mut *y, &mut *ld), lanes);
                 let rest = jacobians.map(|(jy, jl)| (&mut jy[done * (np + 1)..], &mut jl[done * (np + 1)..]));
