@@ -63,6 +63,12 @@ pub enum NpeError {
         /// Ensemble member.
         member: usize,
     },
+    /// The training's threads could not be started (the system refused them; internal).
+    #[error("the training's threads could not be started: {why}")]
+    Threads {
+        /// The thread pool's message.
+        why: String,
+    },
 }
 
 impl NpeError {
@@ -77,7 +83,9 @@ impl NpeError {
             | NpeError::Prior(_)
             | NpeError::Settings { .. } => true,
             NpeError::Csv(e) => e.is_input(),
-            NpeError::Io(_) | NpeError::Encode { .. } | NpeError::NoFiniteLoss { .. } => false,
+            NpeError::Io(_) | NpeError::Encode { .. } | NpeError::NoFiniteLoss { .. } | NpeError::Threads { .. } => {
+                false
+            }
         }
     }
 

@@ -675,6 +675,42 @@ struct MemberEnd {
     stopped: bool,
 }
 
+/// A member that ended (or was stopped): what the model keeps of it.
+struct Ended {
+    member: usize,
+    epoch: usize,
+    best_epoch: usize,
+    best_val_loss: f64,
+    /// The best weights; none if no epoch gave a finite validation loss.
+    record: Option<ModuleRecord>,
+}
+
+impl MemberRun {
+    fn ended(self) -> Ended {
+        let MemberRun { member, epoch, best_epoch, best_val_loss, record, .. } = self;
+        Ended { member, epoch, best_epoch, best_val_loss, record }
+    }
+}
+
+/// Where a training goes on from (a checkpoint's state, or nothing).
+#[derive(Default)]
+struct Start {
+    /// The members the model has, in order.
+    fin: Finished,
+    /// Members that ended while one before them was still under way.
+    ended: Vec<Ended>,
+    /// Members under way.
+    under_way: Vec<MemberRun>,
+}
+
+impl Start {
+    /// Epochs done, summed over the members.
+    fn epochs(&self) -> usize {
+        let (ended, under_way) = (self.ended.iter().map(|m| m.epoch), self.under_way.iter().map(|m| m.epoch));
+        self.fin.epochs + ended.sum::<usize>() + under_way.sum::<usize>()
+    }
+}
+
 /// The members trained to the end: their best weights and the summary's sums.
 #[derive(Default)]
 struct Finished {
@@ -688,8 +724,8 @@ struct Finished {
 }
 
 impl Finished {
-    /// Adds the member that just ended, the next in order, with its best weights.
-    fn add(&mut self, m: MemberRun) -> Result<()> {
+    /// Adds a member that ended, the next in order, with its best weights.
+    fn add(&mut self, m: Ended) -> Result<()> {
         self.epochs += m.epoch;
         let Some(record) = m.record else { return Err(NpeError::NoFiniteLoss { member: m.member }) };
         self.records.push(record);
@@ -842,12 +878,11 @@ impl Run<'_> {
     /// plateaus and divided by 10 instead of stopping `lr_drops` times. After each epoch
     /// that does not end the member, `save` is offered its state (`true`: the training
     /// stops here, save it whatever the time).
-    /// On a `lane`, each epoch runs on that lane's threads ([`side_by_side::Lane`]);
-    /// without one, on the calling thread's pool.
+    /// Each epoch runs on the `lane`'s threads ([`side_by_side::Lane`]).
     fn member(
         &self,
         mut m: MemberRun,
-        lane: Option<&side_by_side::Lane>,
+        lane: &side_by_side::Lane,
         progress: &mut dyn FnMut(&EpochReport) -> bool,
         save: &mut dyn FnMut(&MemberRun, bool),
     ) -> (MemberRun, MemberEnd) {
@@ -869,10 +904,7 @@ impl Run<'_> {
                 let (flow, weights, loss) = self.epoch(m.flow, &mut m.opt, lr, &mut m.order, &mut m.rng);
                 (flow, loss, self.validate(&weights))
             };
-            (m.flow, train_loss, val_loss) = match lane {
-                Some(lane) => lane.run(pass),
-                None => pass(),
-            };
+            (m.flow, train_loss, val_loss) = lane.run(pass);
             if val_loss < m.best_val_loss {
                 (m.best_val_loss, m.best_epoch, m.record) = (val_loss, epoch, Some(m.flow.valid().into_record()));
             }
@@ -909,47 +941,6 @@ impl Run<'_> {
             }
         }
         (m, end)
-    }
-
-    /// Trains the members from `fin` and `current` (a checkpoint's, or none) on to the
-    /// ensemble's size, offering `saver` the state as it goes. Member 0 uses the seed and
-    /// the batch stream `rng` exactly as a single model does, so a one-member ensemble is
-    /// the single model; member k draws its batches from a stream of its own. Without a
-    /// checkpoint, two or more members train side by side ([`side_by_side`]), sooner:
-    /// up to two threads per lane, the weights of one member after another on one thread.
-    fn members(
-        &self,
-        rng: &ChaCha8Rng,
-        mut fin: Finished,
-        mut current: Option<MemberRun>,
-        mut saver: Option<&mut Saver>,
-        progress: &mut dyn FnMut(&EpochReport) -> bool,
-    ) -> Result<Finished> {
-        let s = self.s;
-        // A checkpoint holds one member under way: with one, one member after another.
-        let lanes = (saver.is_none() && current.is_none())
-            .then(|| side_by_side::Lanes::for_members(s.ensemble.max(1) - fin.records.len()))
-            .flatten();
-        if let Some(lanes) = lanes {
-            return self.side_by_side(rng, fin, lanes, progress);
-        }
-        while fin.records.len() < s.ensemble.max(1) {
-            let member = fin.records.len();
-            let m = current.take().unwrap_or_else(|| self.fresh(member, member_stream(rng, s.seed, member)));
-            let (m, end) = self.member(m, None, progress, &mut |m, force| {
-                if let Some(sv) = saver.as_deref_mut() {
-                    sv.offer(&fin, Some(m), force)
-                }
-            });
-            fin.add(m)?;
-            if let Some(sv) = saver.as_deref_mut().filter(|_| end.done) {
-                sv.offer(&fin, None, true);
-            }
-            if end.stopped {
-                break;
-            }
-        }
-        Ok(fin)
     }
 }
 
@@ -1001,9 +992,9 @@ pub struct Trained {
 const CKPT_MAGIC: &[u8; 12] = b"OTOFIT-CKPT\n";
 
 /// A checkpoint's numbers (its JSON part); the weights follow as length-prefixed
-/// records: each finished member's best, then the member under way's current flow, its
-/// optimizer and its best (if it has one). Floats that steer the training are kept as
-/// bits: exact through JSON.
+/// records: each finished member's best, then for each of `states` in turn its blobs
+/// ([`Snapshot`]). Floats that steer the training are kept as bits: exact through JSON.
+/// Each member's state is its own: a checkpoint may hold members at different epochs.
 #[derive(Serialize, Deserialize)]
 struct Saved {
     /// The settings and the data's standardisation, hashed: a checkpoint of another
@@ -1018,13 +1009,21 @@ struct Saved {
     best_sum_bits: u64,
     /// Training time before this checkpoint, over all runs.
     wall_seconds: f64,
+    /// The members not in `members`: ended after one still under way, or under way.
+    #[serde(default)]
+    states: Vec<MemberState>,
+    /// The one member under way of a checkpoint written before members trained side by
+    /// side (read, never written).
+    #[serde(default, skip_serializing)]
     current: Option<MemberState>,
 }
 
-/// `MemberRun`'s numbers.
-#[derive(Serialize, Deserialize)]
+/// `MemberRun`'s numbers, or an ended member's (`done`: no order, stream or optimizer).
+#[derive(Clone, Serialize, Deserialize)]
 struct MemberState {
     member: usize,
+    #[serde(default)]
+    done: bool,
     epoch: usize,
     lr_bits: u64,
     last_change: usize,
@@ -1035,9 +1034,71 @@ struct MemberState {
     anneal: Option<(usize, usize)>,
     best_val_loss_bits: u64,
     best_epoch: usize,
+    #[serde(default)]
     order: Vec<usize>,
     /// The batch stream: seed (hex), stream, word position (decimal: a u128).
+    #[serde(default)]
     rng: (String, u64, String),
+}
+
+/// A member's state as a checkpoint holds it: its numbers and its weights encoded, the
+/// current flow and the optimizer (under way only), then the best weights (if any).
+struct Snapshot {
+    state: MemberState,
+    blobs: Vec<Vec<u8>>,
+}
+
+impl Snapshot {
+    /// The state of member `m`, under way.
+    fn of(m: &MemberRun) -> CheckpointResult<Snapshot> {
+        let mut blobs = vec![record_bytes(&m.flow.clone().into_record())?, m.opt.to_bytes()];
+        if let Some(r) = &m.record {
+            blobs.push(record_bytes(r)?);
+        }
+        let state = MemberState {
+            member: m.member,
+            done: false,
+            epoch: m.epoch,
+            lr_bits: m.lr.to_bits(),
+            last_change: m.last_change,
+            last_drop: m.last_drop,
+            drops: m.drops,
+            anneal: m.anneal,
+            best_val_loss_bits: m.best_val_loss.to_bits(),
+            best_epoch: m.best_epoch,
+            order: m.order.clone(),
+            rng: (hex::encode(m.rng.get_seed()), m.rng.get_stream(), m.rng.get_word_pos().to_string()),
+        };
+        Ok(Snapshot { state, blobs })
+    }
+
+    /// The state of member `e`, ended: its best weights and its sums.
+    fn ended(e: &Ended) -> CheckpointResult<Snapshot> {
+        let blobs = e.record.iter().map(record_bytes).collect::<CheckpointResult<_>>()?;
+        let state = MemberState {
+            member: e.member,
+            done: true,
+            epoch: e.epoch,
+            lr_bits: 0,
+            last_change: 0,
+            last_drop: 0,
+            drops: 0,
+            anneal: None,
+            best_val_loss_bits: e.best_val_loss.to_bits(),
+            best_epoch: e.best_epoch,
+            order: vec![],
+            rng: Default::default(),
+        };
+        Ok(Snapshot { state, blobs })
+    }
+
+    fn member(&self) -> usize {
+        self.state.member
+    }
+
+    fn done(&self) -> bool {
+        self.state.done
+    }
 }
 
 /// The hash of what a training depends on besides its seed's streams: every setting and
@@ -1113,7 +1174,7 @@ struct Saver<'a> {
     wall_before: f64,
     start: Instant,
     last: Instant,
-    /// How long writing the last checkpoint took.
+    /// How long the last checkpoint took: encoding the members' states and writing.
     cost: Duration,
     /// The finished members' records, encoded once.
     members: Vec<Vec<u8>>,
@@ -1126,16 +1187,15 @@ impl Saver<'_> {
         Saver { c, fingerprint, wall_before: 0.0, start, last: start, cost: Duration::ZERO, members: vec![] }
     }
 
-    /// The finished members and the member under way from this training's checkpoint
-    /// (nothing when there is none, or it cannot be used: the training starts over,
-    /// and says why in the log).
-    fn resume(&mut self, run: &Run) -> (Finished, Option<MemberRun>) {
+    /// Where this training goes on from its checkpoint (from the start when there is
+    /// none, or it cannot be used: the log says why).
+    fn resume(&mut self, run: &Run) -> Start {
         match self.load(run) {
-            Ok(Some((fin, current, wall))) => {
+            Ok(Some((start, wall))) => {
                 self.wall_before = wall;
-                let epochs = fin.epochs + current.as_ref().map_or(0, |m| m.epoch);
+                let epochs = start.epochs();
                 tracing::info!(checkpoint = %self.c.path.display(), epochs, "training resumed from its checkpoint");
-                (fin, current)
+                start
             }
             Ok(None) => Default::default(),
             Err(why) => {
@@ -1145,61 +1205,43 @@ impl Saver<'_> {
         }
     }
 
-    /// Writes a checkpoint of `fin` and `cur` if one is due (or `force`); a failure is
-    /// logged, not fatal: the training goes on.
-    fn offer(&mut self, fin: &Finished, cur: Option<&MemberRun>, force: bool) {
-        if !force && self.last.elapsed() < self.c.every.min(self.cost * CHECKPOINT_COST_SHARE) {
-            return;
-        }
-        let t0 = Instant::now();
-        if let Err(why) = self.write(fin, cur) {
-            tracing::warn!(checkpoint = %self.c.path.display(), %why, "training checkpoint not written");
-        }
-        (self.last, self.cost) = (Instant::now(), t0.elapsed());
+    /// Whether a checkpoint is due: the training since the last one took
+    /// `Checkpointing::every`, or [`CHECKPOINT_COST_SHARE`] times what writing it took.
+    fn due(&self) -> bool {
+        self.last.elapsed() >= self.c.every.min(self.cost * CHECKPOINT_COST_SHARE)
     }
 
-    fn write(&mut self, fin: &Finished, cur: Option<&MemberRun>) -> CheckpointResult<()> {
+    /// Writes a checkpoint of `fin` and the other members' `states`, whose encoding took
+    /// `encoding` (on the lanes); a failure is logged, not fatal: the training goes on.
+    fn save<'s>(&mut self, fin: &Finished, states: impl Iterator<Item = &'s Snapshot>, encoding: Duration) {
+        let t0 = Instant::now();
+        if let Err(why) = self.write(fin, states) {
+            tracing::warn!(checkpoint = %self.c.path.display(), %why, "training checkpoint not written");
+        }
+        (self.last, self.cost) = (Instant::now(), t0.elapsed() + encoding);
+    }
+
+    fn write<'s>(&mut self, fin: &Finished, states: impl Iterator<Item = &'s Snapshot>) -> CheckpointResult<()> {
         for r in &fin.records[self.members.len()..] {
             self.members.push(record_bytes(r)?);
         }
-        let mut blobs: Vec<Vec<u8>> = vec![];
-        let current = match cur {
-            None => None,
-            Some(m) => {
-                blobs.push(record_bytes(&m.flow.clone().into_record())?);
-                blobs.push(m.opt.to_bytes());
-                if let Some(r) = &m.record {
-                    blobs.push(record_bytes(r)?);
-                }
-                Some(MemberState {
-                    member: m.member,
-                    epoch: m.epoch,
-                    lr_bits: m.lr.to_bits(),
-                    last_change: m.last_change,
-                    last_drop: m.last_drop,
-                    drops: m.drops,
-                    anneal: m.anneal,
-                    best_val_loss_bits: m.best_val_loss.to_bits(),
-                    best_epoch: m.best_epoch,
-                    order: m.order.clone(),
-                    rng: (hex::encode(m.rng.get_seed()), m.rng.get_stream(), m.rng.get_word_pos().to_string()),
-                })
-            }
-        };
+        let states: Vec<&Snapshot> = states.collect();
         let saved = Saved {
             fingerprint: self.fingerprint.clone(),
-            epochs_done: fin.epochs + cur.map_or(0, |m| m.epoch),
+            epochs_done: fin.epochs + states.iter().map(|m| m.state.epoch).sum::<usize>(),
             members: fin.records.len(),
             epochs: fin.epochs,
             best_epoch: fin.best_epoch,
             best_sum_bits: fin.best_sum.to_bits(),
             wall_seconds: self.wall_before + self.start.elapsed().as_secs_f64(),
-            current,
+            states: states.iter().map(|m| m.state.clone()).collect(),
+            current: None,
         };
         let json = serde_json::to_vec(&saved)
             .map_err(|e| CheckpointError::Encode { what: "training state", why: e.to_string() })?;
         let mut out = CKPT_MAGIC.to_vec();
-        for part in std::iter::once(&json).chain(&self.members).chain(&blobs) {
+        let blobs = states.iter().flat_map(|m| &m.blobs);
+        for part in std::iter::once(&json).chain(&self.members).chain(blobs) {
             out.extend_from_slice(&(part.len() as u64).to_le_bytes());
             out.extend_from_slice(part);
         }
@@ -1222,10 +1264,9 @@ impl Saver<'_> {
         std::fs::rename(&tmp, path).map_err(io("rename", path))
     }
 
-    /// The state a checkpoint of this training holds, if there is one: the finished
-    /// members, the member under way, the training time before. `Err` says why a
-    /// checkpoint there is not used.
-    fn load(&self, run: &Run) -> CheckpointResult<Option<(Finished, Option<MemberRun>, f64)>> {
+    /// The state a checkpoint of this training holds, if there is one, and the training
+    /// time before it. `Err` says why a checkpoint there is not used.
+    fn load(&self, run: &Run) -> CheckpointResult<Option<(Start, f64)>> {
         let bytes = match std::fs::read(&self.c.path) {
             Ok(b) => b,
             Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
@@ -1244,58 +1285,85 @@ impl Saver<'_> {
             return Err(CheckpointError::Foreign);
         }
         let (cfg, members) = (run.cfg, run.s.ensemble.max(1));
-        let blobs = &parts[1..];
+        let blobs = parts.get(1..1 + saved.members).ok_or_else(bad)?;
         let fin = Finished {
-            records: blobs
-                .iter()
-                .take(saved.members)
-                .map(|b| record_from(b, cfg))
-                .collect::<std::result::Result<_, _>>()?,
+            records: blobs.iter().map(|b| record_from(b, cfg)).collect::<std::result::Result<_, _>>()?,
             epochs: saved.epochs,
             best_epoch: saved.best_epoch,
             best_sum: f64::from_bits(saved.best_sum_bits),
         };
-        if fin.records.len() != saved.members || saved.members > members {
+        if saved.members > members {
             return Err(bad());
         }
-        let Some(st) = saved.current else { return Ok(Some((fin, None, saved.wall_seconds))) };
-        let [flow, opt, best @ ..] = &blobs[saved.members..] else { return Err(bad()) };
-        let mut sorted = st.order.clone();
-        sorted.sort_unstable();
-        let mut want = run.train_idx.to_vec();
-        want.sort_unstable();
-        let has_best = st.best_epoch > 0;
-        if st.member != saved.members || sorted != want || best.len() != usize::from(has_best) {
+        let mut blobs = parts[1 + saved.members..].iter();
+        let mut start = Start { fin, ..Default::default() };
+        let mut seen = vec![false; members];
+        for st in saved.states.into_iter().chain(saved.current) {
+            // Each member once, after the model's own.
+            if st.member < saved.members || std::mem::replace(seen.get_mut(st.member).ok_or_else(bad)?, true) {
+                return Err(bad());
+            }
+            match st.done {
+                true => start.ended.push(Ended {
+                    member: st.member,
+                    epoch: st.epoch,
+                    best_epoch: st.best_epoch,
+                    best_val_loss: f64::from_bits(st.best_val_loss_bits),
+                    record: (st.best_epoch > 0)
+                        .then(|| blobs.next().ok_or_else(bad).and_then(|b| record_from(b, cfg)))
+                        .transpose()?,
+                }),
+                false => {
+                    let (flow, opt) = (blobs.next().ok_or_else(bad)?, blobs.next().ok_or_else(bad)?);
+                    let best = (st.best_epoch > 0).then(|| blobs.next().ok_or_else(bad)).transpose()?;
+                    start.under_way.push(member_run(run, st, flow, opt, best.copied())?);
+                }
+            }
+        }
+        if blobs.next().is_some() {
             return Err(bad());
         }
-        let flow = new_flow(cfg, &run.device, None)
-            .try_load_record(record_from(flow, cfg)?)
-            .map_err(|e| CheckpointError::Decode { what: "weights", why: format!("{e:?}") })?;
-        let opt = optimizer(run.s)
-            .with_state(opt, &Weights::of(&flow, cfg))
-            .map_err(|e| CheckpointError::Decode { what: "optimizer state", why: e.to_string() })?;
-        let seed: [u8; 32] = hex::decode(&st.rng.0).ok().and_then(|s| s.try_into().ok()).ok_or_else(bad)?;
-        let mut rng = ChaCha8Rng::from_seed(seed);
-        rng.set_stream(st.rng.1);
-        rng.set_word_pos(st.rng.2.parse().map_err(|_| bad())?);
-        let m = MemberRun {
-            member: st.member,
-            flow,
-            opt,
-            rng,
-            order: st.order,
-            epoch: st.epoch,
-            lr: f64::from_bits(st.lr_bits),
-            last_change: st.last_change,
-            last_drop: st.last_drop,
-            drops: st.drops,
-            anneal: st.anneal,
-            best_val_loss: f64::from_bits(st.best_val_loss_bits),
-            best_epoch: st.best_epoch,
-            record: best.first().map(|b| record_from(b, cfg)).transpose()?,
-        };
-        Ok(Some((fin, Some(m), saved.wall_seconds)))
+        Ok(Some((start, saved.wall_seconds)))
     }
+}
+
+/// A member under way from its checkpointed numbers and blobs (its flow, optimizer and
+/// best weights).
+fn member_run(run: &Run, st: MemberState, flow: &[u8], opt: &[u8], best: Option<&[u8]>) -> CheckpointResult<MemberRun> {
+    let (cfg, bad) = (run.cfg, || CheckpointError::Damaged);
+    let mut sorted = st.order.clone();
+    sorted.sort_unstable();
+    let mut want = run.train_idx.to_vec();
+    want.sort_unstable();
+    if sorted != want {
+        return Err(bad());
+    }
+    let flow = new_flow(cfg, &run.device, None)
+        .try_load_record(record_from(flow, cfg)?)
+        .map_err(|e| CheckpointError::Decode { what: "weights", why: format!("{e:?}") })?;
+    let opt = optimizer(run.s)
+        .with_state(opt, &Weights::of(&flow, cfg))
+        .map_err(|e| CheckpointError::Decode { what: "optimizer state", why: e.to_string() })?;
+    let seed: [u8; 32] = hex::decode(&st.rng.0).ok().and_then(|s| s.try_into().ok()).ok_or_else(bad)?;
+    let mut rng = ChaCha8Rng::from_seed(seed);
+    rng.set_stream(st.rng.1);
+    rng.set_word_pos(st.rng.2.parse().map_err(|_| bad())?);
+    Ok(MemberRun {
+        member: st.member,
+        flow,
+        opt,
+        rng,
+        order: st.order,
+        epoch: st.epoch,
+        lr: f64::from_bits(st.lr_bits),
+        last_change: st.last_change,
+        last_drop: st.last_drop,
+        drops: st.drops,
+        anneal: st.anneal,
+        best_val_loss: f64::from_bits(st.best_val_loss_bits),
+        best_epoch: st.best_epoch,
+        record: best.map(|b| record_from(b, cfg)).transpose()?,
+    })
 }
 
 /// The JSON part of the checkpoint at `path`, read without its weights.
@@ -1366,9 +1434,10 @@ pub fn train_checkpointed(
     let val_batches = validation_batches(&batcher, val_idx, s.seed);
     let run = Run { s, cfg: &cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() };
     let mut saver = checkpoint.map(|c| Saver::new(c, fingerprint(s, &header), start));
-    let (fin, current) = saver.as_mut().map(|sv| sv.resume(&run)).unwrap_or_default();
-    let resumed_from_epoch = fin.epochs + current.as_ref().map_or(0, |m| m.epoch);
-    let fin = run.members(&rng, fin, current, saver.as_mut(), progress)?;
+    let from = saver.as_mut().map(|sv| sv.resume(&run)).unwrap_or_default();
+    let resumed_from_epoch = from.epochs();
+    let lanes = side_by_side::Lanes::for_members(s.ensemble.max(1))?;
+    let fin = run.side_by_side(&rng, from, lanes, saver.as_mut(), progress)?;
     let wall = saver.map_or(0.0, |sv| sv.wall_before) + start.elapsed().as_secs_f64();
     Ok(Trained { model: summarise(header, fin, wall), resumed_from_epoch })
 }
@@ -1717,26 +1786,26 @@ mod tests {
         assert!(trained(2) == one, "two threads differ from themselves");
     }
 
-    /// An ensemble's members trained side by side (two and three threads) are the
-    /// members trained one after another (one thread; and a checkpointed training, which
-    /// never runs them side by side): the same model, bit for bit. On two threads the
-    /// reports of two members interleave, all on the calling thread.
+    /// An ensemble's settings for the side-by-side tests: no embedding, no early stop.
+    fn lanes_settings(ensemble: usize, max_epochs: usize, seed: u64) -> TrainSettings {
+        TrainSettings { embedding: false, max_epochs, patience: 40, seed, ensemble, ..Default::default() }
+    }
+
+    /// What "the same model" is compared by: members, epochs, best epoch and loss, draws.
+    fn model(m: &Npe) -> (usize, usize, usize, u64, Vec<Vec<f64>>) {
+        let t = &m.header.training;
+        let draws = m.sample(&super::super::Obs { x: &[0.5, -0.3, 0.1], present: None }, 50, 2).unwrap();
+        (m.header.members, t.epochs, t.best_epoch, t.best_val_loss.to_bits(), draws)
+    }
+
+    /// An ensemble's members trained side by side (two and three threads, checkpointed or
+    /// not) are the members trained one after another (one thread): the same model, bit
+    /// for bit. On two threads the reports of two members interleave, all on the calling
+    /// thread.
     #[test]
     fn an_ensemble_side_by_side_is_the_ensemble_one_after_another() {
         let ds = toy(700);
-        let s = TrainSettings {
-            embedding: false,
-            max_epochs: 12,
-            patience: 40,
-            seed: 2,
-            ensemble: 3,
-            ..Default::default()
-        };
-        let model = |m: Npe| {
-            let t = &m.header.training;
-            let draws = m.sample(&super::super::Obs { x: &[0.5, -0.3, 0.1], present: None }, 50, 2).unwrap();
-            (m.header.members, t.epochs, t.best_epoch, t.best_val_loss.to_bits(), draws)
-        };
+        let s = lanes_settings(3, 12, 2);
         let trained = |threads: usize, checkpoint: Option<&Checkpointing>| {
             let mut order = vec![];
             let m = on_threads(threads, || {
@@ -1751,7 +1820,7 @@ mod tests {
                     true
                 })
             });
-            (model(m.unwrap().model), order)
+            (model(&m.unwrap().model), order)
         };
         let (one, order) = trained(1, None);
         assert_eq!(one.1, 36, "three members of 12 epochs");
@@ -1764,36 +1833,85 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let c = Checkpointing::new(dir.join("t.ckpt"), "a");
         let (saved, order) = trained(2, Some(&c));
-        assert!(saved == one && order.is_sorted(), "checkpointed: {order:?}");
+        assert!(saved == one, "checkpointed side by side differs from one thread");
+        assert!(!order.is_sorted(), "checkpointed: members one after another {order:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A checkpointed ensemble side by side (two threads, three members, a checkpoint due
+    /// at every epoch) stopped once member 1 has ended while member 0 is still training:
+    /// checkpoints are written while both are under way, and the last holds member 1
+    /// ended beside a member under way, each at its own epoch, and every epoch the stopped
+    /// model trained. Resumed from it on two threads, and from a copy on one, the training
+    /// trains no epoch twice and ends with the uninterrupted model, bit for bit.
+    #[test]
+    fn a_side_by_side_checkpoint_resumes_to_the_same_model() {
+        let ds = toy(700);
+        let s = lanes_settings(3, 12, 2);
+        let whole = model(&on_threads(1, || train(&ds, &s, &mut |_| true)).unwrap());
+        let dir = std::env::temp_dir().join(format!("otofit-side-ckpt-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let c = Checkpointing { every: Duration::ZERO, ..Checkpointing::new(dir.join("t.ckpt"), "a") };
+        let (mut last, mut one_ended, mut written_under_way) = ([0; 3], false, false);
+        let stopped = on_threads(2, || {
+            train_checkpointed(&ds, &s, Some(&c), &mut |r| {
+                last[r.member] = r.epoch;
+                // Member 0 slowed down, so that member 1 surely ends before it.
+                if r.member == 0 {
+                    std::thread::sleep(Duration::from_millis(30));
+                }
+                one_ended |= r.member == 1 && r.epoch == 12;
+                written_under_way |= !one_ended && read_head(&c.path).is_some_and(|h| h.epochs_done > 0);
+                !(one_ended && r.member == 0)
+            })
+        })
+        .unwrap();
+        assert!(written_under_way, "no checkpoint while the members were under way");
+        let head = read_head(&c.path).unwrap();
+        assert_eq!(head.epochs_done, stopped.model.header.training.epochs, "{last:?}");
+        let state = |member: usize| head.states.iter().find(|m| m.member == member).map(|m| (m.done, m.epoch));
+        assert_eq!(state(1), Some((true, 12)));
+        assert!(matches!(state(0), Some((false, e)) if e == last[0] && e < 12), "{:?} {last:?}", state(0));
+        std::fs::copy(&c.path, dir.join("u.ckpt")).unwrap();
+        for (threads, file) in [(2, "t.ckpt"), (1, "u.ckpt")] {
+            let c = Checkpointing::new(dir.join(file), "b");
+            let mut twice = vec![];
+            let resumed = on_threads(threads, || {
+                train_checkpointed(&ds, &s, Some(&c), &mut |r| {
+                    if r.epoch <= last[r.member] {
+                        twice.push((r.member, r.epoch));
+                    }
+                    true
+                })
+            })
+            .unwrap();
+            assert_eq!(resumed.resumed_from_epoch, head.epochs_done, "{threads} threads");
+            assert!(twice.is_empty(), "{threads} threads: epochs trained again {twice:?}");
+            assert!(model(&resumed.model) == whole, "{threads} threads: the resumed model differs");
+        }
         let _ = std::fs::remove_dir_all(&dir);
     }
 
     /// Threads shared between lanes: two members on six threads train three threads
-    /// each, the model of one member after another on three threads (a checkpointed
-    /// training), which a three-way split makes other than one thread's.
+    /// each, the model of one member after another on one lane of three threads, which a
+    /// three-way split makes other than one thread's.
     #[test]
     fn lanes_of_three_threads_train_as_one_after_another_on_three() {
         let ds = toy(700);
-        let s = TrainSettings {
-            embedding: false,
-            max_epochs: 4,
-            patience: 40,
-            seed: 6,
-            ensemble: 2,
-            batch: 300,
-            ..Default::default()
+        let s = TrainSettings { batch: 300, ..lanes_settings(2, 4, 6) };
+        let trained = |threads: usize| {
+            let m = on_threads(threads, || train(&ds, &s, &mut |_| true)).unwrap();
+            (m.header.members, m.header.training.best_val_loss.to_bits())
         };
-        let dir = std::env::temp_dir().join(format!("otofit-lanes-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let trained = |threads: usize, checkpoint: Option<&Checkpointing>| {
-            let m = on_threads(threads, || train_checkpointed(&ds, &s, checkpoint, &mut |_| true)).unwrap().model;
-            let draws = m.sample(&super::super::Obs { x: &[0.5, -0.3, 0.1], present: None }, 50, 2).unwrap();
-            (m.header.training.best_val_loss.to_bits(), draws)
-        };
-        let three = trained(3, Some(&Checkpointing::new(dir.join("t.ckpt"), "a")));
-        assert!(trained(6, None) == three, "two lanes of three threads differ from three threads");
-        assert!(trained(1, None) != three, "three threads gave one thread's bits: the check cannot fail");
-        let _ = std::fs::remove_dir_all(&dir);
+        // One lane of three threads, the members one after another.
+        let three = with_run(&ds, &s, |run| {
+            let (_, _, rng) = seeded_split(ds.theta.len(), s.val_fraction, s.seed);
+            let lanes = side_by_side::Lanes::one(3);
+            let fin = run.side_by_side(&rng, Start::default(), lanes, None, &mut |_| true).unwrap();
+            (fin.records.len(), (fin.best_sum / 2.0).to_bits())
+        });
+        assert!(trained(6) == three, "two lanes of three threads differ from one lane of three");
+        assert!(trained(1) != three, "three threads gave one thread's bits: the check cannot fail");
     }
 
     /// A stop from the progress callback ends every member training side by side at its
@@ -1801,14 +1919,7 @@ mod tests {
     #[test]
     fn a_stop_ends_every_member_side_by_side() {
         let ds = toy(700);
-        let s = TrainSettings {
-            embedding: false,
-            max_epochs: 30,
-            patience: 40,
-            seed: 2,
-            ensemble: 4,
-            ..Default::default()
-        };
+        let s = lanes_settings(4, 30, 2);
         let mut seen = vec![];
         let m = on_threads(2, || {
             train(&ds, &s, &mut |r| {

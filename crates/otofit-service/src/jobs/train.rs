@@ -100,11 +100,15 @@ fn train(ctx: &Ctx, id: &str, p: &TrainParams, r: &Reporter) -> Result<serde_jso
     std::fs::create_dir_all(&folder)
         .with_context(|| format!("creating {}", folder.display()))
         .internal("the checkpoint folder could not be created")?;
-    // Progress over all members (each may stop early, so this is a lower bound).
+    // Progress: the epochs done over every member's epoch budget (each may stop early, so
+    // this is a lower bound). The members may train side by side, their reports
+    // interleaved: each report is one epoch more, on top of the checkpoint's.
     let max = (s.max_epochs * s.members_for_table(ds.theta.len())) as f64;
+    let mut done = npe::checkpoint_epochs(&checkpoint.path).unwrap_or(0);
     let trained = npe::train_checkpointed(&ds, &s, Some(&checkpoint), &mut |e| {
+        done += 1;
         r.report(
-            (e.member * s.max_epochs + e.epoch) as f64 / max,
+            (done as f64 / max).min(1.0),
             format!("member {} epoch {} val loss {:.4}", e.member, e.epoch, e.val_loss),
         )
     })

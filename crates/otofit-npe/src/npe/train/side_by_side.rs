@@ -1,4 +1,4 @@
-//! An ensemble's flows trained side by side, one thread each.
+//! An ensemble's flows trained side by side, one lane each, checkpointed or not.
 //!
 //! A small table's flows train in seconds each, and their small batches split less well
 //! over threads than flows do (SLCP on two cores: one flow 1.9× faster on two threads
@@ -11,15 +11,27 @@
 //! another on one or two threads; with more threads per lane, that of one member after
 //! another on as many threads as the lane has. The progress callback runs on the calling
 //! thread, one report at a time, and stops every lane when it says so.
+//!
+//! A checkpoint holds each member's own state, not one moment of the whole ensemble:
+//! when one is due, the calling thread asks each lane for its member's state at that
+//! member's next epoch and writes the checkpoint once every lane has answered (or has no
+//! member left); one is written too when a member ends and at the end or a stop. The
+//! lanes are set by the threads and the ensemble's size, not by the members left, so a
+//! resumed training trains each member on the threads the uninterrupted one did.
 
-use super::{EpochReport, Finished, MemberRun, Result, Run, member_stream};
+use super::{Ended, EpochReport, Finished, MemberRun, Result, Run, Saver, Snapshot, Start, member_stream};
+use crate::npe::NpeError;
 use rand_chacha::ChaCha8Rng;
 use rayon::{ThreadPool, ThreadPoolBuilder};
+use std::cell::Cell;
+use std::collections::{BTreeMap, VecDeque};
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::mpsc;
+use std::time::{Duration, Instant};
 
-/// The threads side-by-side members train on: a pool per lane, the threads shared
-/// evenly, and, where a lane has one thread, a pool of two for its member left training
+/// The threads the members train on: a pool per lane, the threads shared evenly, and,
+/// where two or more lanes have one thread each, a pool of two for a member left training
 /// alone.
 pub(super) struct Lanes {
     own: Vec<ThreadPool>,
@@ -27,21 +39,26 @@ pub(super) struct Lanes {
 }
 
 impl Lanes {
-    /// Lanes for `members` members still to train on this pool's threads: one per member
-    /// up to the threads, each with its share of them (at least one). None (one after
-    /// another) for fewer than two members or one thread, or when the threads cannot be
-    /// started. A lane's thread count is fixed when training starts, so a member's weights
-    /// depend on the thread count and the members only, never on which lane ends first.
-    pub(super) fn for_members(members: usize) -> Option<Lanes> {
+    /// Lanes for an ensemble of `members` on this pool's threads: one per member up to
+    /// the threads, each with its share of them (at least one); one lane with every
+    /// thread for one member or one thread. A lane's thread count is fixed by the thread
+    /// count and the ensemble's size, so a member's weights depend on those only, never
+    /// on which lane ends first or on how many members a resumed training had left.
+    pub(super) fn for_members(members: usize) -> Result<Lanes> {
         let threads = rayon::current_num_threads();
-        let lanes = threads.min(members);
-        if lanes < 2 {
-            return None;
-        }
-        let pool = |n: usize| ThreadPoolBuilder::new().num_threads(n).build().ok();
-        let own = (0..lanes).map(|_| pool(threads / lanes)).collect::<Option<Vec<_>>>()?;
-        let pair = if threads / lanes == 1 { Some(pool(2)?) } else { None };
-        Some(Lanes { own, pair })
+        let lanes = threads.min(members).max(1);
+        let pool = |n: usize| {
+            ThreadPoolBuilder::new().num_threads(n).build().map_err(|e| NpeError::Threads { why: e.to_string() })
+        };
+        let own = (0..lanes).map(|_| pool(threads / lanes)).collect::<Result<Vec<_>>>()?;
+        let pair = if lanes > 1 && threads / lanes == 1 { Some(pool(2)?) } else { None };
+        Ok(Lanes { own, pair })
+    }
+
+    /// One lane of `threads` threads: every member one after another on them.
+    #[cfg(test)]
+    pub(super) fn one(threads: usize) -> Lanes {
+        Lanes { own: vec![ThreadPoolBuilder::new().num_threads(threads).build().unwrap()], pair: None }
     }
 }
 
@@ -66,49 +83,117 @@ impl Lane<'_> {
     }
 }
 
-/// A report on its way to the calling thread, with where its answer goes.
-type Report = (EpochReport, mpsc::SyncSender<bool>);
+/// What the calling thread tells a lane after a report.
+#[derive(Clone, Copy)]
+struct Answer {
+    /// Go on training.
+    go: bool,
+    /// Send the member's state for a checkpoint.
+    state: bool,
+}
+
+/// A lane's message to the calling thread; each names its lane.
+enum Message {
+    /// An epoch's report, and where its answer goes.
+    Report(usize, EpochReport, mpsc::SyncSender<Answer>),
+    /// A member's state for the checkpoint (none: it could not be encoded), and how long
+    /// encoding it took.
+    State(usize, Option<Snapshot>, Duration),
+    /// The lane has no member left to train.
+    Exit(usize),
+}
+
+/// A lane's part in a checkpoint round.
+#[derive(Clone, Copy, PartialEq)]
+enum Round {
+    /// Not asked yet: it will be at its next report.
+    Ask,
+    /// Asked; its member's state is on its way.
+    Asked,
+    /// Answered, or training no more.
+    Done,
+}
 
 impl Run<'_> {
-    /// Trains the ensemble's members from the first after `fin` on, side by side on
-    /// `lanes`: the same members as [`Run::members`] trains one after another, each from
-    /// its own seed and batch stream, added in order.
+    /// Trains the ensemble's members from `start` on, side by side on `lanes`, offering
+    /// `saver` their states as they go ([module docs](self)). Each member trains from its
+    /// own seed and batch stream, so the model is the same whichever lane trains which
+    /// member; member 0 uses the seed and the batch stream `rng` exactly as a single model
+    /// does, so a one-member ensemble is the single model. The members are added in order.
     pub(super) fn side_by_side(
         &self,
         rng: &ChaCha8Rng,
-        mut fin: Finished,
+        start: Start,
         lanes: Lanes,
+        mut saver: Option<&mut Saver>,
         progress: &mut dyn FnMut(&EpochReport) -> bool,
     ) -> Result<Finished> {
         let total = self.s.ensemble.max(1);
-        let next = AtomicUsize::new(fin.records.len());
+        let Start { mut fin, mut ended, under_way } = start;
+        let checkpointing = saver.is_some();
+        // The members' states as the checkpoint holds them, the resumed ones from the start.
+        let mut states = BTreeMap::new();
+        if checkpointing {
+            let resumed = ended.iter().map(Snapshot::ended).chain(under_way.iter().map(Snapshot::of));
+            states.extend(resumed.filter_map(Result::ok).map(|s| (s.member(), s)));
+        }
+        // The members to train, in order: those under way go on, the others start fresh.
+        let mut todo: VecDeque<(usize, Option<MemberRun>)> = VecDeque::new();
+        let mut under_way: BTreeMap<usize, MemberRun> = under_way.into_iter().map(|m| (m.member, m)).collect();
+        for member in fin.records.len()..total {
+            if !ended.iter().any(|e| e.member == member) {
+                todo.push_back((member, under_way.remove(&member)));
+            }
+        }
+        let todo = Mutex::new(todo);
         let training = AtomicUsize::new(lanes.own.len());
         let stop = AtomicBool::new(false);
-        let (tx, rx) = mpsc::channel::<Report>();
-        let mut ended: Vec<MemberRun> = std::thread::scope(|scope| {
+        let (tx, rx) = mpsc::channel::<Message>();
+        let trained: Vec<Ended> = std::thread::scope(|scope| {
             let handles: Vec<_> = lanes
                 .own
                 .iter()
-                .map(|own| {
+                .enumerate()
+                .map(|(i, own)| {
                     let lane = Lane { own, pair: lanes.pair.as_ref(), training: &training };
-                    let (tx, next, stop) = (tx.clone(), &next, &stop);
+                    let (tx, todo, stop) = (tx.clone(), &todo, &stop);
                     scope.spawn(move || {
-                        let mut ended = vec![];
+                        let mut trained = vec![];
+                        let asked = Cell::new(false);
                         let mut report = |r: &EpochReport| {
                             let (answer, answered) = mpsc::sync_channel(1);
-                            tx.send((r.clone(), answer)).is_ok() && answered.recv().unwrap_or(false)
+                            let sent = tx.send(Message::Report(i, r.clone(), answer)).is_ok();
+                            let a = sent.then(|| answered.recv().ok()).flatten();
+                            let a = a.unwrap_or(Answer { go: false, state: false });
+                            asked.set(a.state);
+                            a.go
+                        };
+                        let send = |encode: &dyn Fn() -> super::CheckpointResult<Snapshot>, member: usize| {
+                            let t0 = Instant::now();
+                            let snapshot =
+                                encode().map_err(|why| tracing::warn!(member, %why, "member state not checkpointed"));
+                            let _ = tx.send(Message::State(i, snapshot.ok(), t0.elapsed()));
                         };
                         while !stop.load(Ordering::Acquire) {
-                            let member = next.fetch_add(1, Ordering::AcqRel);
-                            if member >= total {
-                                break;
+                            let next = todo.lock().unwrap_or_else(|p| p.into_inner()).pop_front();
+                            let Some((member, resumed)) = next else { break };
+                            let m =
+                                resumed.unwrap_or_else(|| self.fresh(member, member_stream(rng, self.s.seed, member)));
+                            let (m, end) = self.member(m, &lane, &mut report, &mut |m, force| {
+                                if checkpointing && (asked.take() || force) {
+                                    send(&|| Snapshot::of(m), m.member);
+                                }
+                            });
+                            let m = m.ended();
+                            if checkpointing && end.done {
+                                send(&|| Snapshot::ended(&m), member);
+                                asked.set(false);
                             }
-                            let m = self.fresh(member, member_stream(rng, self.s.seed, member));
-                            let (m, _) = self.member(m, Some(&lane), &mut report, &mut |_, _| {});
-                            ended.push(m);
+                            trained.push(m);
                         }
                         lane.training.fetch_sub(1, Ordering::AcqRel);
-                        ended
+                        let _ = tx.send(Message::Exit(i));
+                        trained
                     })
                 })
                 .collect();
@@ -116,16 +201,64 @@ impl Run<'_> {
             // The reports, one at a time on this thread, every epoch trained; once one
             // says stop, every lane stops at its next epoch and starts no other member.
             let mut go = true;
-            for (r, answer) in rx {
-                go &= progress(&r);
-                stop.store(!go, Ordering::Release);
-                let _ = answer.send(go);
+            let mut round: Option<Vec<Round>> = None;
+            let mut exited = vec![false; handles.len()];
+            let mut unsaved = false;
+            // The lanes' time encoding states since the last checkpoint: part of its cost.
+            let mut encoding = Duration::ZERO;
+            for message in rx {
+                let mut write = false;
+                match message {
+                    Message::Report(lane, r, answer) => {
+                        go &= progress(&r);
+                        stop.store(!go, Ordering::Release);
+                        if round.is_none() && saver.as_ref().is_some_and(|sv| sv.due()) {
+                            round = Some(exited.iter().map(|&x| if x { Round::Done } else { Round::Ask }).collect());
+                        }
+                        let ask = round.as_mut().is_some_and(|r| r[lane] == Round::Ask);
+                        if let Some(r) = round.as_mut().filter(|_| ask) {
+                            r[lane] = Round::Asked;
+                        }
+                        let _ = answer.send(Answer { go, state: ask });
+                    }
+                    Message::State(lane, snapshot, took) => {
+                        encoding += took;
+                        if let Some(s) = snapshot {
+                            // A member's end is saved at once.
+                            write = s.done();
+                            states.insert(s.member(), s);
+                            unsaved = true;
+                        }
+                        if let Some(r) = round.as_mut().filter(|r| r[lane] == Round::Asked) {
+                            r[lane] = Round::Done;
+                        }
+                    }
+                    Message::Exit(lane) => {
+                        exited[lane] = true;
+                        if let Some(r) = round.as_mut() {
+                            r[lane] = Round::Done;
+                        }
+                    }
+                }
+                if round.as_ref().is_some_and(|r| r.iter().all(|&a| a == Round::Done)) {
+                    round = None;
+                    write = true;
+                }
+                if let Some(sv) = saver.as_deref_mut().filter(|_| write && unsaved) {
+                    sv.save(&fin, states.values(), std::mem::take(&mut encoding));
+                    unsaved = false;
+                }
+            }
+            // At the end, or a stop: the states the lanes sent last.
+            if let Some(sv) = saver.filter(|_| unsaved) {
+                sv.save(&fin, states.values(), encoding);
             }
             handles
                 .into_iter()
                 .flat_map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
                 .collect()
         });
+        ended.extend(trained);
         ended.sort_by_key(|m| m.member);
         for m in ended {
             fin.add(m)?;
