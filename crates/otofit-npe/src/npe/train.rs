@@ -1285,6 +1285,10 @@ impl Saver<'_> {
             return Err(CheckpointError::Foreign);
         }
         let (cfg, members) = (run.cfg, run.s.ensemble.max(1));
+        // Counts past the settings' (a damaged file) would overflow the sums of epochs.
+        if saved.members > members || saved.epochs > members * run.s.max_epochs {
+            return Err(bad());
+        }
         let blobs = parts.get(1..1 + saved.members).ok_or_else(bad)?;
         let fin = Finished {
             records: blobs.iter().map(|b| record_from(b, cfg)).collect::<std::result::Result<_, _>>()?,
@@ -1292,15 +1296,13 @@ impl Saver<'_> {
             best_epoch: saved.best_epoch,
             best_sum: f64::from_bits(saved.best_sum_bits),
         };
-        if saved.members > members {
-            return Err(bad());
-        }
         let mut blobs = parts[1 + saved.members..].iter();
         let mut start = Start { fin, ..Default::default() };
         let mut seen = vec![false; members];
         for st in saved.states.into_iter().chain(saved.current) {
-            // Each member once, after the model's own.
-            if st.member < saved.members || std::mem::replace(seen.get_mut(st.member).ok_or_else(bad)?, true) {
+            // Each member once, after the model's own, within its epochs.
+            let again = std::mem::replace(seen.get_mut(st.member).ok_or_else(bad)?, true);
+            if st.member < saved.members || again || st.epoch > run.s.max_epochs {
                 return Err(bad());
             }
             match st.done {
@@ -1889,6 +1891,54 @@ mod tests {
             assert!(twice.is_empty(), "{threads} threads: epochs trained again {twice:?}");
             assert!(model(&resumed.model) == whole, "{threads} threads: the resumed model differs");
         }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A checkpoint whose numbers were damaged (member or epoch counts past the settings',
+    /// a member out of range or twice) is refused as damaged: never a panic or an
+    /// overflowing sum.
+    #[test]
+    fn damaged_checkpoint_counts_are_refused() {
+        let ds = toy(700);
+        let s = lanes_settings(2, 3, 4);
+        let dir = std::env::temp_dir().join(format!("otofit-ckpt-counts-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let c = Checkpointing::new(dir.join("t.ckpt"), "a");
+        on_threads(2, || train_checkpointed(&ds, &s, Some(&c), &mut |r| !(r.member == 1 && r.epoch == 2))).unwrap();
+        let bytes = std::fs::read(&c.path).unwrap();
+        let (json, rest) = super::super::length_prefixed(&bytes[CKPT_MAGIC.len()..]).unwrap();
+        let json: serde_json::Value = serde_json::from_slice(json).unwrap();
+        let rewritten = |edit: &dyn Fn(&mut serde_json::Value)| {
+            let mut j = json.clone();
+            edit(&mut j);
+            let j = serde_json::to_vec(&j).unwrap();
+            let mut out = CKPT_MAGIC.to_vec();
+            out.extend_from_slice(&(j.len() as u64).to_le_bytes());
+            out.extend_from_slice(&j);
+            out.extend_from_slice(rest);
+            out
+        };
+        let max = serde_json::json!(usize::MAX);
+        type Edit<'a> = (&'a str, &'a dyn Fn(&mut serde_json::Value));
+        let edits: [Edit; 5] = [
+            ("members", &|j| j["members"] = max.clone()),
+            ("epochs", &|j| j["epochs"] = max.clone()),
+            ("a state's epoch", &|j| j["states"][0]["epoch"] = max.clone()),
+            ("a state's member", &|j| j["states"][0]["member"] = serde_json::json!(99)),
+            ("a member twice", &|j| {
+                let first = j["states"][0].clone();
+                j["states"].as_array_mut().unwrap().push(first)
+            }),
+        ];
+        with_run(&ds, &s, |run| {
+            let saver = Saver::new(&c, json["fingerprint"].as_str().unwrap().to_string(), Instant::now());
+            assert!(matches!(saver.load(run), Ok(Some(_))), "the intact checkpoint");
+            for (what, edit) in edits {
+                std::fs::write(&c.path, rewritten(edit)).unwrap();
+                let got = saver.load(run);
+                assert!(matches!(got, Err(CheckpointError::Damaged)), "{what}: {:?}", got.err());
+            }
+        });
         let _ = std::fs::remove_dir_all(&dir);
     }
 
