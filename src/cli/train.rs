@@ -152,10 +152,11 @@ pub fn run(args: TrainArgs) -> Result<()> {
         args.checkpoint.as_ref().map(|path| npe::Checkpointing::new(path.clone(), &std::process::id().to_string()));
     // On a terminal a bar over every member's epoch budget (early stopping ends a
     // member sooner: the ETA is an upper bound) at the epochs done, summed over the
-    // members (they may train side by side); otherwise a line per epoch.
+    // members (they may train side by side, their reports interleaved: each is one epoch
+    // more, on top of a checkpoint's); otherwise a line per epoch.
     let budget = (args.max_epochs * members) as u64;
     let mut bar = super::progress::Progress::new("training", "epochs (at most)", budget);
-    let mut done = vec![0u64; members];
+    let mut done = checkpoint.as_ref().and_then(|c| npe::checkpoint_epochs(&c.path)).unwrap_or(0) as u64;
     let trained = npe::train_checkpointed(&ds, &settings, checkpoint.as_ref(), &mut |r| {
         let m = if members > 1 { format!("member {} ", r.member) } else { String::new() };
         let line = format!(
@@ -164,10 +165,8 @@ pub fn run(args: TrainArgs) -> Result<()> {
         );
         if bar.is_bar() {
             bar.message(&format!("training: {}", line.trim()));
-            if let Some(d) = done.get_mut(r.member) {
-                *d = r.epoch as u64;
-            }
-            bar.set(done.iter().sum());
+            done += 1;
+            bar.set(done.min(budget));
         } else {
             eprintln!("{line}");
         }

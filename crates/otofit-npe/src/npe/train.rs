@@ -1894,6 +1894,19 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
     }
 
+    /// A checkpoint's bytes with its JSON part rewritten by `edit`.
+    fn rewritten(bytes: &[u8], edit: &dyn Fn(&mut serde_json::Value)) -> Vec<u8> {
+        let (json, rest) = super::super::length_prefixed(&bytes[CKPT_MAGIC.len()..]).unwrap();
+        let mut json: serde_json::Value = serde_json::from_slice(json).unwrap();
+        edit(&mut json);
+        let json = serde_json::to_vec(&json).unwrap();
+        let mut out = CKPT_MAGIC.to_vec();
+        out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+        out.extend_from_slice(&json);
+        out.extend_from_slice(rest);
+        out
+    }
+
     /// A checkpoint whose numbers were damaged (member or epoch counts past the settings',
     /// a member out of range or twice) is refused as damaged: never a panic or an
     /// overflowing sum.
@@ -1906,18 +1919,7 @@ mod tests {
         let c = Checkpointing::new(dir.join("t.ckpt"), "a");
         on_threads(2, || train_checkpointed(&ds, &s, Some(&c), &mut |r| !(r.member == 1 && r.epoch == 2))).unwrap();
         let bytes = std::fs::read(&c.path).unwrap();
-        let (json, rest) = super::super::length_prefixed(&bytes[CKPT_MAGIC.len()..]).unwrap();
-        let json: serde_json::Value = serde_json::from_slice(json).unwrap();
-        let rewritten = |edit: &dyn Fn(&mut serde_json::Value)| {
-            let mut j = json.clone();
-            edit(&mut j);
-            let j = serde_json::to_vec(&j).unwrap();
-            let mut out = CKPT_MAGIC.to_vec();
-            out.extend_from_slice(&(j.len() as u64).to_le_bytes());
-            out.extend_from_slice(&j);
-            out.extend_from_slice(rest);
-            out
-        };
+        let fingerprint = read_head(&c.path).unwrap().fingerprint;
         let max = serde_json::json!(usize::MAX);
         type Edit<'a> = (&'a str, &'a dyn Fn(&mut serde_json::Value));
         let edits: [Edit; 5] = [
@@ -1931,14 +1933,37 @@ mod tests {
             }),
         ];
         with_run(&ds, &s, |run| {
-            let saver = Saver::new(&c, json["fingerprint"].as_str().unwrap().to_string(), Instant::now());
+            let saver = Saver::new(&c, fingerprint, Instant::now());
             assert!(matches!(saver.load(run), Ok(Some(_))), "the intact checkpoint");
             for (what, edit) in edits {
-                std::fs::write(&c.path, rewritten(edit)).unwrap();
+                std::fs::write(&c.path, rewritten(&bytes, edit)).unwrap();
                 let got = saver.load(run);
                 assert!(matches!(got, Err(CheckpointError::Damaged)), "{what}: {:?}", got.err());
             }
         });
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A checkpoint written before members trained side by side (its one member under way
+    /// in `current`, no `states`) is resumed from, to the uninterrupted model.
+    #[test]
+    fn a_checkpoint_of_one_member_under_way_is_resumed_from() {
+        let ds = toy(700);
+        let s = lanes_settings(1, 5, 3);
+        let whole = model(&train(&ds, &s, &mut |_| true).unwrap());
+        let dir = std::env::temp_dir().join(format!("otofit-ckpt-current-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let c = Checkpointing::new(dir.join("t.ckpt"), "a");
+        train_checkpointed(&ds, &s, Some(&c), &mut |r| r.epoch < 2).unwrap();
+        let old = rewritten(&std::fs::read(&c.path).unwrap(), &|json| {
+            let states = json.as_object_mut().unwrap().remove("states").unwrap();
+            json["current"] = states[0].clone();
+            json["current"].as_object_mut().unwrap().remove("done");
+        });
+        std::fs::write(&c.path, old).unwrap();
+        let resumed = train_checkpointed(&ds, &s, Some(&c), &mut |_| true).unwrap();
+        assert_eq!(resumed.resumed_from_epoch, 2);
+        assert!(model(&resumed.model) == whole, "the resumed model differs");
         let _ = std::fs::remove_dir_all(&dir);
     }
 
