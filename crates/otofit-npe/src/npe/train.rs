@@ -995,8 +995,9 @@ const CKPT_MAGIC: &[u8; 12] = b"OTOFIT-CKPT\n";
 /// records: each finished member's best, then for each of `states` in turn its blobs
 /// ([`Snapshot`]). Floats that steer the training are kept as bits: exact through JSON.
 /// Each member's state is its own: a checkpoint may hold members at different epochs.
+/// Written with the states borrowed (`S = &MemberState`), read with them owned.
 #[derive(Serialize, Deserialize)]
-struct Saved {
+struct Saved<S = MemberState> {
     /// The settings and the data's standardisation, hashed: a checkpoint of another
     /// training is not resumed from.
     fingerprint: String,
@@ -1011,15 +1012,15 @@ struct Saved {
     wall_seconds: f64,
     /// The members not in `members`: ended after one still under way, or under way.
     #[serde(default)]
-    states: Vec<MemberState>,
+    states: Vec<S>,
     /// The one member under way of a checkpoint written before members trained side by
     /// side (read, never written).
     #[serde(default, skip_serializing)]
-    current: Option<MemberState>,
+    current: Option<S>,
 }
 
 /// `MemberRun`'s numbers, or an ended member's (`done`: no order, stream or optimizer).
-#[derive(Clone, Serialize, Deserialize)]
+#[derive(Clone, Default, Serialize, Deserialize)]
 struct MemberState {
     member: usize,
     #[serde(default)]
@@ -1079,15 +1080,9 @@ impl Snapshot {
             member: e.member,
             done: true,
             epoch: e.epoch,
-            lr_bits: 0,
-            last_change: 0,
-            last_drop: 0,
-            drops: 0,
-            anneal: None,
             best_val_loss_bits: e.best_val_loss.to_bits(),
             best_epoch: e.best_epoch,
-            order: vec![],
-            rng: Default::default(),
+            ..MemberState::default()
         };
         Ok(Snapshot { state, blobs })
     }
@@ -1234,7 +1229,7 @@ impl Saver<'_> {
             best_epoch: fin.best_epoch,
             best_sum_bits: fin.best_sum.to_bits(),
             wall_seconds: self.wall_before + self.start.elapsed().as_secs_f64(),
-            states: states.iter().map(|m| m.state.clone()).collect(),
+            states: states.iter().map(|m| &m.state).collect(),
             current: None,
         };
         let json = serde_json::to_vec(&saved)

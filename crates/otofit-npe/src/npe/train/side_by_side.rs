@@ -215,10 +215,13 @@ impl Run<'_> {
                         if round.is_none() && saver.as_ref().is_some_and(|sv| sv.due()) {
                             round = Some(exited.iter().map(|&x| if x { Round::Done } else { Round::Ask }).collect());
                         }
-                        let ask = round.as_mut().is_some_and(|r| r[lane] == Round::Ask);
-                        if let Some(r) = round.as_mut().filter(|_| ask) {
-                            r[lane] = Round::Asked;
-                        }
+                        let ask = match round.as_mut().map(|r| &mut r[lane]) {
+                            Some(slot) if *slot == Round::Ask => {
+                                *slot = Round::Asked;
+                                true
+                            }
+                            _ => false,
+                        };
                         let _ = answer.send(Answer { go, state: ask });
                     }
                     Message::State(lane, snapshot, took) => {
