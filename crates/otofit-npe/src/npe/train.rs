@@ -1020,7 +1020,7 @@ struct Saved<S = MemberState> {
 }
 
 /// `MemberRun`'s numbers, or an ended member's (`done`: no order, stream or optimizer).
-#[derive(Clone, Default, Serialize, Deserialize)]
+#[derive(Default, Serialize, Deserialize)]
 struct MemberState {
     member: usize,
     #[serde(default)]
