@@ -43,7 +43,7 @@
 //! log density and knows nothing of the simulator, so it is tested on analytic targets.
 
 use super::exact::{cholesky, spd_inverse};
-use super::fit::{damped_step, fit_columns, normal_equations, residuals};
+use super::fit::{TRIES, damped_step, fit_columns, normal_equations, residuals};
 use super::fitcheck::{FitCheckError, observation, simulator_for};
 use super::importance::{Guide, ImportanceDiagnostics, ImportanceSettings};
 use crate::npe::{Inference, Npe};
@@ -912,7 +912,7 @@ fn latent_guide(target: &LatentTarget, start: &[f64], steps: usize) -> Option<(G
     for _ in 0..steps {
         let (m, g) = normal_equations(&z, &r, true, &mut resid)?;
         let to_trial = |step: &faer::Mat<f64>| (0..d).map(|i| z[i] + step[(i, 0)]).collect();
-        let Some((trial, rt, ct)) = damped_step(&m, &g, &mut lambda, c, to_trial, &mut resid) else {
+        let Some((trial, rt, ct)) = damped_step(&m, &g, &mut lambda, c, to_trial, &mut resid, TRIES) else {
             break;
         };
         let gain = c - ct;

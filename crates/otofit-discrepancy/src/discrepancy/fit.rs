@@ -115,7 +115,8 @@ pub fn fit_columns(
         let jtr;
         (jtj, jtr) = normal_equations(&u, &r, false, |up| residuals(&to_row(up)))?;
         let to_trial = |step: &Mat<f64>| (0..d).map(|i| (u[i] + step[(i, 0)]).clamp(-20.0, 20.0)).collect();
-        let Some((trial, rt, ct)) = damped_step(&jtj, &jtr, &mut lambda, c, to_trial, |t| residuals(&to_row(t))) else {
+        let Some((trial, rt, ct)) = damped_step(&jtj, &jtr, &mut lambda, c, to_trial, |t| residuals(&to_row(t)), TRIES)
+        else {
             break;
         };
         let gain = c - ct;
@@ -157,12 +158,6 @@ pub(crate) fn normal_equations(
     Some((jtj, jtr))
 }
 
-/// Levenberg–Marquardt's damped step, up to ten tries: solves (JᵀJ + λ·D) s = −Jᵀr, D the
-/// diagonal of JᵀJ floored at [`DAMPING_FLOOR`] of its largest entry, makes a trial point
-/// of s with `to_trial`, and keeps the first whose χ² is below `c`. λ falls by 3 on a
-/// success (not below 1e-7) and grows by 4 on a failure. The point, its residuals and its
-/// χ²; `None` after ten failures. Shared by the unbounded fit here and the box fit of the
-/// alternatives.
 /// Floor of the damping diagonal, relative to its largest entry. Without a relative floor a
 /// direction the residuals barely see at this point (JᵀJ's entry ~1e-12 against ~1e8) is
 /// damped by almost nothing: its step, Jᵀr over a near-zero entry, throws that parameter to
@@ -170,6 +165,15 @@ pub(crate) fn normal_equations(
 /// stops where it started (seen from most starts of a strong perforation's fit).
 const DAMPING_FLOOR: f64 = 1e-9;
 
+/// Tries of [`damped_step`] when its Jacobian is fresh.
+pub(super) const TRIES: usize = 10;
+
+/// Levenberg–Marquardt's damped step, up to `tries` tries: solves (JᵀJ + λ·D) s = −Jᵀr, D
+/// the diagonal of JᵀJ floored at [`DAMPING_FLOOR`] of its largest entry, makes a trial
+/// point of s with `to_trial`, and keeps the first whose χ² is below `c`. λ falls by 3 on
+/// a success (not below 1e-7) and grows by 4 on a failure. The point, its residuals and
+/// its χ²; `None` after `tries` failures. Shared by the unbounded fit here, the box fit of
+/// the alternatives and the exact sampler's mode search.
 pub(super) fn damped_step(
     jtj: &Mat<f64>,
     jtr: &[f64],
@@ -177,11 +181,12 @@ pub(super) fn damped_step(
     c: f64,
     mut to_trial: impl FnMut(&Mat<f64>) -> Vec<f64>,
     mut residuals: impl FnMut(&[f64]) -> Option<Vec<f64>>,
+    tries: usize,
 ) -> Option<(Vec<f64>, Vec<f64>, f64)> {
     let n = jtr.len();
     let top = (0..n).map(|i| jtj[(i, i)]).fold(0.0_f64, f64::max);
     let floor = (DAMPING_FLOOR * top).max(1e-9);
-    for _ in 0..10 {
+    for _ in 0..tries {
         let a = Mat::from_fn(n, n, |i, j| jtj[(i, j)] + if i == j { *lambda * jtj[(i, i)].max(floor) } else { 0.0 });
         let rhs = Mat::from_fn(n, 1, |i, _| -jtr[i]);
         let trial = to_trial(&a.partial_piv_lu().solve(&rhs));
