@@ -132,6 +132,11 @@ pub enum BenchWhat {
         /// length measured calibrated, under-cover: for quick looks only).
         #[arg(long, default_value_t = crate::bench::posterior::DEFAULT_STEPS)]
         steps: usize,
+        /// Feature groups given, comma-separated (e.g. impedance,absorbance: wideband
+        /// tympanometry, answered by the masked flow and scored against the likelihood of
+        /// those features alone); all if empty.
+        #[arg(long, default_value = "")]
+        measures: String,
         /// Folder for posterior.json (every ear and the pooled scores); none if absent.
         #[arg(long)]
         out: Option<std::path::PathBuf>,
@@ -216,22 +221,22 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Readings { ears, out, model, seed, measures, exact } => {
             readings(ears, &out, &model, seed, &measures, exact)
         }
-        BenchWhat::Posterior { ears, seed, steps, out, model } => posterior(ears, seed, steps, out.as_deref(), &model),
+        BenchWhat::Posterior { ears, seed, steps, measures, out, model } => {
+            let measures = measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
+            posterior(crate::bench::posterior::PosteriorParams { ears, seed, steps, measures }, out.as_deref(), &model)
+        }
     }
 }
 
 /// `otofit bench posterior`: the flow against the likelihood's posterior, the table on
 /// stdout, every ear in `out`/posterior.json.
 fn posterior(
-    ears: usize,
-    seed: u64,
-    steps: usize,
+    p: crate::bench::posterior::PosteriorParams,
     out: Option<&std::path::Path>,
     model: &std::path::Path,
 ) -> Result<()> {
-    use crate::bench::posterior::{self, PosteriorParams};
+    use crate::bench::posterior;
     use anyhow::Context;
-    let p = PosteriorParams { ears, seed, steps };
     p.check()?;
     if let Some(out) = out {
         std::fs::create_dir_all(out).with_context(|| format!("--out {}: cannot create it", out.display()))?;

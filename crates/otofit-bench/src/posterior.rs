@@ -23,7 +23,7 @@
 //! wall time.
 
 use crate::c2st::{self, C2stParams};
-use anyhow::{Result, bail};
+use anyhow::{Result, anyhow, bail};
 use otofit_discrepancy::discrepancy::exact::MAX_STEPS;
 use otofit_discrepancy::discrepancy::exact_fast::by_segments;
 use otofit_discrepancy::discrepancy::fitcheck::{SETTLED_RHAT, exact, simulator_for};
@@ -150,11 +150,14 @@ pub struct PosteriorParams {
     pub seed: u64,
     /// Metropolis steps per chain.
     pub steps: usize,
+    /// Feature groups given (every feature when empty), as a clinic's subset of measures:
+    /// the flow that answers them and the likelihood of those features alone.
+    pub measures: Vec<String>,
 }
 
 impl Default for PosteriorParams {
     fn default() -> Self {
-        PosteriorParams { ears: 20, seed: 1, steps: DEFAULT_STEPS }
+        PosteriorParams { ears: 20, seed: 1, steps: DEFAULT_STEPS, measures: vec![] }
     }
 }
 
@@ -391,6 +394,10 @@ pub struct Report {
     pub seed: u64,
     /// Chain steps per ear.
     pub steps: usize,
+    /// Feature groups given (empty: every one).
+    pub measures: Vec<String>,
+    /// The flow that answered: `full-measure` or `masked` (the file's main flow).
+    pub flow: &'static str,
     /// Flow draws per ear.
     pub flow_samples: usize,
     /// The degeneracy recipes.
@@ -419,17 +426,16 @@ pub fn tissue_coords(params: &[Param], draws: &[Vec<f64>], n: usize) -> Vec<Vec<
 }
 
 /// Runs the flow and the chain on one ear whose features are `x`.
-fn one_ear(npe: &Npe, i: usize, ear: &Ear, x: &[f64], p: &PosteriorParams) -> Result<EarResult> {
+fn one_ear(npe: &Npe, i: usize, ear: &Ear, x: &[f64], present: &[bool], p: &PosteriorParams) -> Result<EarResult> {
     let seed = p.seed.wrapping_add(i as u64);
-    let present = vec![true; x.len()];
-    // Every measure: the model's full-measure flow answers, when it holds one, as the
-    // service's would.
-    let npe = npe.answering(&Obs { x, present: Some(&present) });
+    // The flow the service would answer with: the full-measure flow, when the model holds
+    // one, for every measure; the masked flow for a subset.
+    let npe = npe.answering(&Obs { x, present: Some(present) });
     let t = Instant::now();
-    let inf = npe.infer(&Obs { x, present: Some(&present) }, FLOW_SAMPLES, seed)?;
+    let inf = npe.infer(&Obs { x, present: Some(present) }, FLOW_SAMPLES, seed)?;
     let flow_seconds = t.elapsed().as_secs_f64();
     let t = Instant::now();
-    let ex = exact(npe, x, &present, &inf, p.steps, seed)?;
+    let ex = exact(npe, x, present, &inf, p.steps, seed)?;
     let exact_seconds = t.elapsed().as_secs_f64();
     let tissue = &npe.params()[..N_TISSUE];
     let (flow, chain) = (&inf.samples, &ex.chain.samples);
@@ -494,6 +500,8 @@ pub fn summarize(per_ear: &[EarResult]) -> (Vec<ParamSummary>, Vec<GroupSummary>
 /// the scores. `progress` hears each ear as it ends.
 pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarResult, Skipped>)) -> Result<Report> {
     p.check()?;
+    let present = npe.header.features_of_groups(&p.measures).map_err(|e| anyhow!("--measures: {e}"))?;
+    let full_measure = npe.full_measure_answers(&Obs { x: &vec![0.0; present.len()], present: Some(&present) });
     let model = simulator_for(npe)?;
     let held = ears(p.ears, p.seed);
     let rows: Vec<Vec<f64>> = held.iter().map(|e| e.row.clone()).collect();
@@ -507,11 +515,10 @@ pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarR
     let xs = run_rows(model, &Design::default(), &rows, 0, Some(&noise));
     let (mut per_ear, mut skipped) = (vec![], vec![]);
     for (i, (ear, x)) in held.iter().zip(xs).enumerate() {
-        let outcome = x.map_err(anyhow::Error::from).and_then(|x| one_ear(npe, i, ear, &x, p)).map_err(|e| Skipped {
-            ear: i,
-            kind: ear.kind,
-            reason: format!("{e:#}"),
-        });
+        let outcome = x
+            .map_err(anyhow::Error::from)
+            .and_then(|x| one_ear(npe, i, ear, &x, &present, p))
+            .map_err(|e| Skipped { ear: i, kind: ear.kind, reason: format!("{e:#}") });
         progress(&outcome);
         match outcome {
             Ok(r) => per_ear.push(r),
@@ -523,6 +530,8 @@ pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarR
         ears: p.ears,
         seed: p.seed,
         steps: p.steps,
+        measures: p.measures.clone(),
+        flow: if full_measure { "full-measure" } else { "masked" },
         flow_samples: FLOW_SAMPLES,
         recipes: RECIPES.to_vec(),
         noise_mismatch,
@@ -567,10 +576,12 @@ pub fn table(r: &Report) -> String {
     let scored = r.per_ear.len();
     let _ = writeln!(
         s,
-        "{scored} of {} ears scored ({} skipped), seed {}, {} chain steps, {} flow draws per ear",
+        "{scored} of {} ears scored ({} skipped), seed {}, measures {} ({} flow), {} chain steps, {} flow draws per ear",
         r.ears,
         r.skipped.len(),
         r.seed,
+        if r.measures.is_empty() { "all".to_string() } else { r.measures.join(",") },
+        r.flow,
         r.steps,
         r.flow_samples
     );
@@ -798,7 +809,7 @@ mod tests {
     fn two_ears_of_the_shipped_model_are_scored() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
         let npe = Npe::load(&path).unwrap();
-        let p = PosteriorParams { ears: 2, seed: 3, steps: 20_000 };
+        let p = PosteriorParams { ears: 2, seed: 3, steps: 20_000, measures: vec![] };
         let mut heard = 0;
         let r = run(&npe, &p, &mut |_| heard += 1).unwrap();
         assert_eq!((heard, r.per_ear.len() + r.skipped.len()), (2, 2));
@@ -809,6 +820,28 @@ mod tests {
         }
         assert!(table(&r).contains("| E_eardrum |"));
         assert!(serde_json::to_string(&r).unwrap().contains("\"per_ear\""));
+    }
+
+    /// A subset of measures is answered by the masked flow and scored against the
+    /// likelihood of its features alone; an unknown group is refused by its argument.
+    #[test]
+    fn a_subset_of_measures_is_read_by_the_masked_flow() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
+        let npe = Npe::load(&path).unwrap();
+        let wbt = vec!["impedance".to_string(), "absorbance".to_string()];
+        let p = PosteriorParams { ears: 1, seed: 3, steps: MIN_STEPS, measures: wbt.clone() };
+        let r = run(&npe, &p, &mut |_| {}).unwrap();
+        assert_eq!((r.flow, &r.measures, r.per_ear.len()), ("masked", &wbt, 1), "{:?}", r.skipped);
+        assert!(table(&r).contains("measures impedance,absorbance (masked flow)"));
+        let all = PosteriorParams { measures: vec![], ..p.clone() };
+        let every = run(&npe, &all, &mut |_| {}).unwrap();
+        assert_eq!(every.flow, "full-measure");
+        // Fewer features, a wider likelihood: the chain's intervals widen.
+        let width = |r: &Report| r.per_ear[0].params.iter().map(|s| s.exact.width90).sum::<f64>();
+        assert!(width(&r) > width(&every), "{} vs {}", width(&r), width(&every));
+        let bad = PosteriorParams { measures: vec!["tympanogram".into()], ..p };
+        let e = run(&npe, &bad, &mut |_| {}).unwrap_err().to_string();
+        assert!(e.contains("--measures") && e.contains("tympanogram"), "{e}");
     }
 
     #[test]
