@@ -497,6 +497,12 @@ async fn settle(
         // configured) before the job shows as ended.
         Ok(Ok(doc)) => match put_outputs(ctx, id, token, renew).await {
             Ok(()) => {
+                // The model is registered before the job shows as ended: a client that
+                // sees the job end must find its model (`clean_up` registering it again
+                // is a no-op).
+                if leaves.model {
+                    register_model(ctx, id).await;
+                }
                 let state = if stop.cancelled { JobState::Cancelled } else { JobState::Succeeded };
                 (state.as_str(), store.finish(id, token, state, None, Some(&doc)).await)
             }
@@ -535,17 +541,22 @@ async fn clean_up(ctx: &Ctx, job: &JobRow, token: &str, label: &str, owned: bool
     }
     if leaves.model
         && let Ok(Some(j)) = ctx.store.job(&job.id).await
+        && matches!(j.state, JobState::Succeeded | JobState::Cancelled)
     {
-        let file = ctx.artifacts.local_path(&crate::artifacts::model_key(&job.id));
-        // An absolute path (every process sharing the data directory, mounted at the same
-        // path, loads the model there whatever its working directory) or the model's URL
-        // in the object store (every process fetches it from there).
-        if matches!(j.state, JobState::Succeeded | JobState::Cancelled)
-            && file.exists()
-            && let Ok(path) = ctx.artifacts.model_ref(&job.id)
-        {
-            let _ = ctx.store.add_model(&job.id, &path, false, Some(&job.id)).await;
-        }
+        register_model(ctx, &job.id).await;
+    }
+}
+
+/// Registers the model job `id` wrote, if it wrote one: by an absolute path (every
+/// process sharing the data directory, mounted at the same path, loads the model there
+/// whatever its working directory) or by its URL in the object store (every process
+/// fetches it from there).
+async fn register_model(ctx: &Ctx, id: &str) {
+    let file = ctx.artifacts.local_path(&crate::artifacts::model_key(id));
+    if file.exists()
+        && let Ok(path) = ctx.artifacts.model_ref(id)
+    {
+        let _ = ctx.store.add_model(id, &path, false, Some(id)).await;
     }
 }
 
