@@ -222,10 +222,15 @@ pub fn run(args: BenchArgs) -> Result<()> {
             readings(ears, &out, &model, seed, &measures, exact)
         }
         BenchWhat::Posterior { ears, seed, steps, measures, out, model } => {
-            let measures = measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
+            let measures = groups(&measures);
             posterior(crate::bench::posterior::PosteriorParams { ears, seed, steps, measures }, out.as_deref(), &model)
         }
     }
+}
+
+/// A `--measures` value's feature groups: comma-separated, blanks dropped (none: all).
+pub(super) fn groups(measures: &str) -> Vec<String> {
+    measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect()
 }
 
 /// `otofit bench posterior`: the flow against the likelihood's posterior, the table on
@@ -289,8 +294,7 @@ fn crossmodel(
     }
     std::fs::create_dir_all(out).with_context(|| format!("--out {}: cannot create it", out.display()))?;
     let npe = crate::npe::Npe::load(model)?;
-    let groups: Vec<String> = measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
-    let p = CrossParams { ears, seed, samples, groups, ..CrossParams::default() };
+    let p = CrossParams { ears, seed, samples, groups: groups(measures), ..CrossParams::default() };
     let given = if measures.is_empty() { "all" } else { measures };
     let t = Instant::now();
     let results = run::run(&npe, &p, &mut |r| {
@@ -335,9 +339,7 @@ fn readings(
     use crate::bench::readings::{self, ReadingsParams};
     use anyhow::Context;
     let npe = crate::npe::Npe::load(model)?;
-    let measures_list: Vec<String> =
-        measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
-    let p = ReadingsParams { ears, seed, measures: measures_list, exact_steps };
+    let p = ReadingsParams { ears, seed, measures: groups(measures), exact_steps };
     let t = Instant::now();
     let results = readings::run(&npe, &p, &mut |r| {
         eprintln!("{}: {:.0} % ({:.0} s)", r.group, 100.0 * r.rate, t.elapsed().as_secs_f64())

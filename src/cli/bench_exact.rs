@@ -36,7 +36,7 @@ pub struct ExactArgs {
 /// Runs it: progress per ear on stderr, the table on stdout.
 pub fn run(a: ExactArgs) -> Result<()> {
     use crate::bench::exact_fast::{self, FastParams};
-    let measures = a.measures.split(',').map(str::trim).filter(|m| !m.is_empty()).map(String::from).collect();
+    let measures = super::bench::groups(&a.measures);
     let p = FastParams { ears: a.ears, reference: a.reference, steps: a.steps, seed: a.seed, measures };
     p.check()?;
     if let Some(out) = &a.out {
