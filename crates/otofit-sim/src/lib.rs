@@ -17,6 +17,7 @@ pub mod drum;
 pub mod drum_mesh;
 pub mod ear_effects;
 pub mod line_drum;
+pub mod memo;
 pub mod mode_cache;
 pub mod model;
 pub mod output;

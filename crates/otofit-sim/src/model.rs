@@ -24,6 +24,7 @@ use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
 use super::ear_effects;
 use super::line_drum::{LineDrum, LineTuning, simpson};
+use super::memo::{Memo, SolveKey, Solved};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
 use super::system::{SolveError, System, SystemBuilder, Workspace};
@@ -608,7 +609,12 @@ impl Model {
 
     /// Per-thread solver state; one per thread, any number per model.
     pub fn runner(&self) -> Runner<'_> {
-        Runner { model: self, ws: self.system.workspace(), coef: vec![c64::new(0.0, 0.0); self.system.n_blocks()] }
+        Runner {
+            model: self,
+            ws: self.system.workspace(),
+            coef: vec![c64::new(0.0, 0.0); self.system.n_blocks()],
+            memo: None,
+        }
     }
 
     fn fill_coefficients(&self, theta: &Theta, fx: &Effects, w: f64, coef: &mut [c64]) {
@@ -1010,6 +1016,8 @@ pub struct Runner<'m> {
     model: &'m Model,
     ws: Workspace,
     coef: Vec<c64>,
+    /// Recent whole-grid solves, when asked for ([`Runner::remember`]).
+    memo: Option<Memo>,
 }
 
 /// Power balance of one solve (W, for a unit probe volume velocity): what enters at the
@@ -1068,11 +1076,7 @@ impl Runner<'_> {
     /// incudostapedial joint, a fixed malleus); those at the probe act on the responses
     /// after the solve.
     pub fn solve_with(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
-        for (i, v) in theta.0.iter().enumerate() {
-            if !super::params::PARAMS[i].physical(*v) {
-                return Err(SimError::BadParameter { name: super::params::PARAMS[i].name, value: *v });
-            }
-        }
+        check(theta)?;
         let w = 2.0 * PI * freq_hz;
         self.model.fill_coefficients(theta, fx, w, &mut self.coef);
         self.model.system.solve(&self.coef, &[(self.model.dofs.p_drum, c64::new(1.0, 0.0))], &mut self.ws, freq_hz)?;
@@ -1086,55 +1090,64 @@ impl Runner<'_> {
 
     /// The residual canal of `theta` at angular frequency `w`, loaded by the last solve.
     fn line(&self, theta: &Theta, w: f64) -> Line {
-        let (z, y) = self.model.air.line_zy(w, theta.canal_area());
-        let (gamma, zc) = air::line_constants(z, y);
-        Line { z, y, gamma, zc, p_l: self.ws.x[self.model.dofs.p_drum] }
+        line(&self.model.air, theta, w, self.ws.x[self.model.dofs.p_drum])
+    }
+
+    /// The unknowns a response is read from, of the last solve.
+    fn solved(&self) -> Solved {
+        let (d, x) = (&self.model.dofs, &self.ws.x);
+        Solved { p_drum: x[d.p_drum], x_stapes: x[d.x_stapes], phi_stapes: x[d.phi_stapes], umbo: x[d.umbo] }
+    }
+
+    /// Keeps the last `capacity` distinct whole-grid solves of [`Self::run`], so a run
+    /// that differs from one of them only after the solve (the canal, the microphone,
+    /// the LDV angle, the probe's effects) costs no solve: a finite-difference Jacobian's
+    /// columns for those. The answers are the same bit for bit.
+    pub fn remember(&mut self, capacity: usize) {
+        self.memo = Some(Memo::new(capacity));
+    }
+
+    /// Runs answered from the kept solves so far (0 when none are kept).
+    pub fn solves_reused(&self) -> usize {
+        self.memo.as_ref().map_or(0, Memo::hits)
     }
 
     /// Measured responses at one frequency, effects applied.
     pub fn response_at(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<Response, SimError> {
         self.solve_with(theta, fx, freq_hz)?;
-        let m = self.model;
-        let g = &m.config.geometry;
-        let x = &self.ws.x;
-        let w = 2.0 * PI * freq_hz;
-        let jw = c64::new(0.0, w);
-        let line = self.line(theta, w);
-        let (p_mic, _) = line.at(theta.mic_distance());
-        // Stapes velocity as the LDV sees it: piston·cos θ + rocking at the spot·sin θ.
-        let theta_ldv = theta.ldv_angle_deg().to_radians();
-        let v_piston = jw * x[m.dofs.x_stapes];
-        let v_rock = jw * x[m.dofs.phi_stapes] * g.ldv_spot;
-        let v_meas = v_piston * theta_ldv.cos() + v_rock * theta_ldv.sin();
-        // Impedance at the plane, then moved by the probe offset along the same line,
-        // then shunted by the leak.
-        let (p0, u0) = line.at(theta.canal_length());
-        let mut zec = p0 / u0;
-        let dx = fx.probe_offset();
-        if dx != 0.0 {
-            zec = air::shift_impedance(zec, line.zc, line.gamma, dx);
-        }
-        let a = fx.leak_radius();
-        if a > 0.0 {
-            let l = g.leak_length;
-            let mass = m.air.rho * (l + 1.7 * a) / (PI * a * a);
-            let res = 8.0 * m.air.mu * l / (PI * a.powi(4));
-            let z_leak = c64::new(res, w * mass);
-            zec = zec * z_leak / (zec + z_leak);
-        }
-        Ok(Response {
-            freq_hz,
-            vst_over_p: v_meas / p_mic,
-            vu_over_p: jw * x[m.dofs.umbo] / p_mic,
-            zec,
-            z0: m.air.z0(theta.canal_area()),
-        })
+        Ok(respond(self.model, theta, fx, freq_hz, self.solved()))
     }
 
     /// All frequencies of the model's grid.
     pub fn run(&mut self, theta: &Theta, fx: &Effects) -> Result<Vec<Response>, SimError> {
         let freqs = self.model.config.frequencies.clone();
-        freqs.iter().map(|&f| self.response_at(theta, fx, f)).collect()
+        let Some(mut memo) = self.memo.take() else {
+            return freqs.iter().map(|&f| self.response_at(theta, fx, f)).collect();
+        };
+        let key = SolveKey::of(theta, fx);
+        let out = match memo.get(&key) {
+            Some(solved) => {
+                check(theta)?;
+                Ok(freqs.iter().zip(solved).map(|(&f, &s)| respond(self.model, theta, fx, f, s)).collect())
+            }
+            None => {
+                let mut solved = Vec::with_capacity(freqs.len());
+                let out = freqs
+                    .iter()
+                    .map(|&f| {
+                        self.solve_with(theta, fx, f)?;
+                        solved.push(self.solved());
+                        Ok(respond(self.model, theta, fx, f, self.solved()))
+                    })
+                    .collect::<Result<Vec<Response>, SimError>>();
+                if out.is_ok() {
+                    memo.insert(key, solved);
+                }
+                out
+            }
+        };
+        self.memo = Some(memo);
+        out
     }
 
     /// Power balance of the last solve, per unit volume velocity at the impedance plane,
@@ -1231,6 +1244,60 @@ impl Runner<'_> {
     }
 }
 
+/// The residual canal of `theta` at angular frequency `w`, loaded by drum pressure `p_l`
+/// per unit flow into the drum.
+fn line(air: &Air, theta: &Theta, w: f64, p_l: c64) -> Line {
+    let (z, y) = air.line_zy(w, theta.canal_area());
+    let (gamma, zc) = air::line_constants(z, y);
+    Line { z, y, gamma, zc, p_l }
+}
+
+fn check(theta: &Theta) -> Result<(), SimError> {
+    for (v, p) in theta.0.iter().zip(super::params::PARAMS.iter()) {
+        if !p.physical(*v) {
+            return Err(SimError::BadParameter { name: p.name, value: *v });
+        }
+    }
+    Ok(())
+}
+
+/// Measured responses at one frequency from one solve, effects at the probe applied.
+fn respond(m: &Model, theta: &Theta, fx: &Effects, freq_hz: f64, s: Solved) -> Response {
+    let g = &m.config.geometry;
+    let w = 2.0 * PI * freq_hz;
+    let jw = c64::new(0.0, w);
+    let line = line(&m.air, theta, w, s.p_drum);
+    let (p_mic, _) = line.at(theta.mic_distance());
+    // Stapes velocity as the LDV sees it: piston·cos θ + rocking at the spot·sin θ.
+    let theta_ldv = theta.ldv_angle_deg().to_radians();
+    let v_piston = jw * s.x_stapes;
+    let v_rock = jw * s.phi_stapes * g.ldv_spot;
+    let v_meas = v_piston * theta_ldv.cos() + v_rock * theta_ldv.sin();
+    // Impedance at the plane, then moved by the probe offset along the same line,
+    // then shunted by the leak.
+    let (p0, u0) = line.at(theta.canal_length());
+    let mut zec = p0 / u0;
+    let dx = fx.probe_offset();
+    if dx != 0.0 {
+        zec = air::shift_impedance(zec, line.zc, line.gamma, dx);
+    }
+    let a = fx.leak_radius();
+    if a > 0.0 {
+        let l = g.leak_length;
+        let mass = m.air.rho * (l + 1.7 * a) / (PI * a * a);
+        let res = 8.0 * m.air.mu * l / (PI * a.powi(4));
+        let z_leak = c64::new(res, w * mass);
+        zec = zec * z_leak / (zec + z_leak);
+    }
+    Response {
+        freq_hz,
+        vst_over_p: v_meas / p_mic,
+        vu_over_p: jw * s.umbo / p_mic,
+        zec,
+        z0: m.air.z0(theta.canal_area()),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1243,6 +1310,58 @@ mod tests {
         assert!(matches!(e, SimError::DrumNotCondensed { shape: "Manubrium" }), "{e:?}");
         let msg = e.to_string();
         assert!(msg.contains("reduce_drum = false") && msg.contains("Manubrium"), "{msg}");
+    }
+
+    #[test]
+    fn kept_solves_answer_only_runs_that_differ_after_the_solve_and_answer_them_exactly() {
+        let model = Model::new(ModelConfig::default()).unwrap();
+        let fresh = |theta: &Theta, fx: &Effects| model.runner().run(theta, fx).unwrap();
+        let mut kept = model.runner();
+        kept.remember(3);
+        let base = Theta::nominal();
+        let with = |name: &str, value: f64| {
+            let mut t = base;
+            t.0[super::super::params::PARAMS.iter().position(|p| p.name == name).unwrap()] = value;
+            t
+        };
+        let effect = |name: &str, value: f64| {
+            let mut fx = Effects::default();
+            fx.set(name, value).unwrap();
+            fx
+        };
+        // (run, effects, reused so far): every after-solve change reuses the base's
+        // solves; anything inside the middle ear does not.
+        let runs = [
+            (base, Effects::default(), 0),
+            (with("canal_length", 15e-3), Effects::default(), 1),
+            (with("canal_area", 40e-6), Effects::default(), 2),
+            (with("mic_distance", 3e-3), Effects::default(), 3),
+            (with("ldv_angle", 20.0), Effects::default(), 4),
+            (base, effect("probe_leak", 1e-4), 5),
+            (with("cavity", 5e-6), Effects::default(), 5),
+            (with("E_sal", 4e5), Effects::default(), 5),
+            (with("cochlear_mass", 1e5), Effects::default(), 5),
+            (base, effect("third_window", 1e6), 5),
+            // The base is the oldest of the three kept now: gone.
+            (base, Effects::default(), 5),
+            (with("canal_length", 9e-3), Effects::default(), 6),
+        ];
+        for (k, (theta, fx, reused)) in runs.iter().enumerate() {
+            let got = kept.run(theta, fx).unwrap();
+            let want = fresh(theta, fx);
+            for (a, b) in got.iter().zip(&want) {
+                assert!(
+                    a.vst_over_p == b.vst_over_p && a.vu_over_p == b.vu_over_p && a.zec == b.zec && a.z0 == b.z0,
+                    "run {k} differs from a fresh runner's at {} Hz",
+                    a.freq_hz
+                );
+            }
+            assert_eq!(kept.solves_reused(), *reused, "runs answered from kept solves after run {k}");
+        }
+        // An unphysical row is refused even when its solve is kept.
+        let mut bad = base;
+        bad.0[8] = -1.0;
+        assert!(matches!(kept.run(&bad, &Effects::default()), Err(SimError::BadParameter { name: "canal_area", .. })));
     }
 
     #[test]
