@@ -64,7 +64,7 @@ impl DrumError {
 
 /// Coefficients of one solve: stiffness factor κ, mass factor s = −ω², flow factor jω,
 /// cavity stiffness ρc²/V (0 when the cavity is open).
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct DrumCoefficients {
     /// Stiffness factor κ: E with its loss (complex for a lossy drum).
     pub kappa: c64,

@@ -8,6 +8,7 @@
 //! numbers a frequency instead of a solve. Entries are the solve's outputs bit for bit,
 //! so an answer from here equals a fresh run's.
 
+use super::drum::DrumCoefficients;
 use super::params::{EFFECTS, Effects, N_EFFECTS, N_PARAMS, Theta};
 use faer::c64;
 use std::collections::VecDeque;
@@ -78,6 +79,48 @@ impl Memo {
             self.entries.pop_back();
         }
         self.entries.push_front((key, solved));
+    }
+
+    pub fn hits(&self) -> usize {
+        self.hits
+    }
+}
+
+/// The condensed drum's block at one frequency for its last few distinct coefficient
+/// sets, most recently used first. The block depends on the drum's stiffness factor, the
+/// frequency and the cavity only, so a Jacobian column of a parameter behind the drum
+/// (the ossicular chain's, the damping when the drum's loss is its own, the cochlear
+/// load) reuses the base row's: the modal sum is two fifths of a solve.
+#[derive(Debug)]
+pub(crate) struct DrumMemo {
+    capacity: usize,
+    entries: VecDeque<(DrumCoefficients, [c64; 16], usize)>,
+    hits: usize,
+}
+
+impl DrumMemo {
+    pub fn new(capacity: usize) -> DrumMemo {
+        DrumMemo { capacity, entries: VecDeque::with_capacity(capacity), hits: 0 }
+    }
+
+    pub fn get(&mut self, c: &DrumCoefficients) -> Option<&[c64]> {
+        let i = self.entries.iter().position(|(k, _, _)| k == c)?;
+        let entry = self.entries.remove(i)?;
+        self.entries.push_front(entry);
+        self.hits += 1;
+        self.entries.front().map(|(_, b, n)| &b[..*n])
+    }
+
+    pub fn insert(&mut self, c: DrumCoefficients, block: &[c64]) {
+        if self.capacity == 0 || block.len() > 16 {
+            return;
+        }
+        if self.entries.len() == self.capacity {
+            self.entries.pop_back();
+        }
+        let mut b = [c64::new(0.0, 0.0); 16];
+        b[..block.len()].copy_from_slice(block);
+        self.entries.push_front((c, b, block.len()));
     }
 
     pub fn hits(&self) -> usize {

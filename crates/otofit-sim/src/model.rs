@@ -24,7 +24,7 @@ use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
 use super::ear_effects;
 use super::line_drum::{LineDrum, LineTuning, simpson};
-use super::memo::{Memo, SolveKey, Solved};
+use super::memo::{DrumMemo, Memo, SolveKey, Solved};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
 use super::system::{SolveError, System, SystemBuilder, Workspace};
@@ -614,10 +614,20 @@ impl Model {
             ws: self.system.workspace(),
             coef: vec![c64::new(0.0, 0.0); self.system.n_blocks()],
             memo: None,
+            drum_memo: Vec::new(),
         }
     }
 
-    fn fill_coefficients(&self, theta: &Theta, fx: &Effects, w: f64, coef: &mut [c64]) {
+    /// The system's block coefficients at angular frequency `w`; the condensed drum's block
+    /// from `drum_memo` when it holds one for the same drum coefficients.
+    fn fill_coefficients(
+        &self,
+        theta: &Theta,
+        fx: &Effects,
+        w: f64,
+        coef: &mut [c64],
+        mut drum_memo: Option<&mut DrumMemo>,
+    ) {
         let bl = &self.blocks;
         let jw = c64::new(0.0, w);
         let rayleigh = c64::new(1.0, w * theta.damping_beta());
@@ -675,28 +685,38 @@ impl Model {
         };
         coef[bl.perforation_flow] = y_p;
         coef[bl.perforation_cavity] = y_p * cavity_row / jw;
-        match &self.drum {
+        let c = self.drum_coefficients(coef, w);
+        let at = bl.drum_schur;
+        if let Some(block) = drum_memo.as_deref_mut().and_then(|m| m.get(&c)) {
+            coef[at..at + block.len()].copy_from_slice(block);
+            return;
+        }
+        let n = match &self.drum {
             Some(Condensed::Axisymmetric(modes)) => {
-                let schur = modes.schur(&self.drum_coefficients(coef, w));
-                coef[bl.drum_schur..bl.drum_schur + 9].copy_from_slice(&schur);
+                coef[at..at + 9].copy_from_slice(&modes.schur(&c));
+                9
             }
             Some(Condensed::Manubrium(modes)) => {
-                let block = modes.block(&self.drum_coefficients(coef, w));
-                for (i, row) in block.iter().enumerate() {
-                    coef[bl.drum_schur + 4 * i..bl.drum_schur + 4 * i + 4].copy_from_slice(row);
+                for (i, row) in modes.block(&c).iter().enumerate() {
+                    coef[at + 4 * i..at + 4 * i + 4].copy_from_slice(row);
                 }
+                16
             }
             Some(Condensed::Anatomical(drum)) => {
-                let block = drum.block(&self.drum_coefficients(coef, w));
-                for (i, row) in block.iter().enumerate() {
-                    coef[bl.drum_schur + 4 * i..bl.drum_schur + 4 * i + 4].copy_from_slice(row);
+                for (i, row) in drum.block(&c).iter().enumerate() {
+                    coef[at + 4 * i..at + 4 * i + 4].copy_from_slice(row);
                 }
+                16
             }
             Some(Condensed::Line(line)) => {
                 let block = line.block(coef[bl.tm], w, coef[bl.cavity_row].re);
-                coef[bl.drum_schur..bl.drum_schur + 9].copy_from_slice(&block);
+                coef[at..at + 9].copy_from_slice(&block);
+                9
             }
-            None => {}
+            None => return,
+        };
+        if let Some(m) = drum_memo {
+            m.insert(c, &coef[at..at + n]);
         }
     }
 
@@ -1018,6 +1038,8 @@ pub struct Runner<'m> {
     coef: Vec<c64>,
     /// Recent whole-grid solves, when asked for ([`Runner::remember`]).
     memo: Option<Memo>,
+    /// Recent drum blocks per frequency of the grid, with `memo`.
+    drum_memo: Vec<DrumMemo>,
 }
 
 /// Power balance of one solve (W, for a unit probe volume velocity): what enters at the
@@ -1076,9 +1098,22 @@ impl Runner<'_> {
     /// incudostapedial joint, a fixed malleus); those at the probe act on the responses
     /// after the solve.
     pub fn solve_with(&mut self, theta: &Theta, fx: &Effects, freq_hz: f64) -> Result<(), SimError> {
+        self.solve_on_grid(theta, fx, freq_hz, None)
+    }
+
+    /// [`Self::solve_with`]; `grid`: the frequency's index in the model's grid, whose
+    /// kept drum blocks the solve may use.
+    fn solve_on_grid(
+        &mut self,
+        theta: &Theta,
+        fx: &Effects,
+        freq_hz: f64,
+        grid: Option<usize>,
+    ) -> Result<(), SimError> {
         check(theta)?;
         let w = 2.0 * PI * freq_hz;
-        self.model.fill_coefficients(theta, fx, w, &mut self.coef);
+        let drum_memo = grid.and_then(|k| self.drum_memo.get_mut(k));
+        self.model.fill_coefficients(theta, fx, w, &mut self.coef, drum_memo);
         self.model.system.solve(&self.coef, &[(self.model.dofs.p_drum, c64::new(1.0, 0.0))], &mut self.ws, freq_hz)?;
         Ok(())
     }
@@ -1105,11 +1140,19 @@ impl Runner<'_> {
     /// columns for those. The answers are the same bit for bit.
     pub fn remember(&mut self, capacity: usize) {
         self.memo = Some(Memo::new(capacity));
+        // Four: a Jacobian's base, then at most the drum's stiffness, the cavity and
+        // the viscoelasticity columns between columns that reuse the base's block.
+        self.drum_memo = self.model.config.frequencies.iter().map(|_| DrumMemo::new(4)).collect();
     }
 
     /// Runs answered from the kept solves so far (0 when none are kept).
     pub fn solves_reused(&self) -> usize {
         self.memo.as_ref().map_or(0, Memo::hits)
+    }
+
+    /// Drum blocks taken from the kept ones so far, over all frequencies.
+    pub fn drum_blocks_reused(&self) -> usize {
+        self.drum_memo.iter().map(DrumMemo::hits).sum()
     }
 
     /// Measured responses at one frequency, effects applied.
@@ -1134,8 +1177,9 @@ impl Runner<'_> {
                 let mut solved = Vec::with_capacity(freqs.len());
                 let out = freqs
                     .iter()
-                    .map(|&f| {
-                        self.solve_with(theta, fx, f)?;
+                    .enumerate()
+                    .map(|(k, &f)| {
+                        self.solve_on_grid(theta, fx, f, Some(k))?;
                         solved.push(self.solved());
                         Ok(respond(self.model, theta, fx, f, self.solved()))
                     })
@@ -1362,6 +1406,53 @@ mod tests {
         let mut bad = base;
         bad.0[8] = -1.0;
         assert!(matches!(kept.run(&bad, &Effects::default()), Err(SimError::BadParameter { name: "canal_area", .. })));
+    }
+
+    #[test]
+    fn kept_drum_blocks_serve_only_runs_that_leave_the_drum_as_it_was() {
+        // The default drum's loss is its own loss factor, so the Rayleigh damping of the
+        // chain leaves the drum's block as it was; its stiffness and the cavity do not.
+        let model = Model::new(ModelConfig::default()).unwrap();
+        assert!(matches!(model.config.geometry.tm_loss, DrumLoss::LossFactor(_)));
+        let nf = model.frequencies().len();
+        let mut kept = model.runner();
+        kept.remember(1);
+        let base = Theta::nominal();
+        let with = |name: &str, factor: f64| {
+            let mut t = base;
+            let i = super::super::params::PARAMS.iter().position(|p| p.name == name).unwrap();
+            t.0[i] *= factor;
+            t
+        };
+        let runs = [
+            (base, 0),
+            (with("E_sal", 1.2), nf),
+            (with("E_ligaments", 0.8), nf),
+            (with("E_tendons", 1.1), nf),
+            (with("E_joints", 2.0), nf),
+            (with("damping_beta", 1.5), nf),
+            (with("cochlear_load", 0.7), nf),
+            (with("E_eardrum", 1.1), 0),
+            (with("cavity", 0.5), 0),
+        ];
+        for (k, (theta, reused)) in runs.iter().enumerate() {
+            let before = kept.drum_blocks_reused();
+            let got = kept.run(theta, &Effects::default()).unwrap();
+            let want = model.runner().run(theta, &Effects::default()).unwrap();
+            for (a, b) in got.iter().zip(&want) {
+                assert!(
+                    a.vst_over_p == b.vst_over_p && a.vu_over_p == b.vu_over_p && a.zec == b.zec,
+                    "run {k} differs from a fresh runner's at {} Hz",
+                    a.freq_hz
+                );
+            }
+            assert_eq!(kept.drum_blocks_reused() - before, *reused, "drum blocks reused by run {k}");
+        }
+        // A single solve outside a whole-grid run keeps nothing and reuses nothing.
+        let mut plain = model.runner();
+        plain.run(&base, &Effects::default()).unwrap();
+        plain.run(&with("E_sal", 1.2), &Effects::default()).unwrap();
+        assert_eq!(plain.drum_blocks_reused(), 0);
     }
 
     #[test]
