@@ -1137,7 +1137,9 @@ impl Runner<'_> {
     /// Keeps the last `capacity` distinct whole-grid solves of [`Self::run`], so a run
     /// that differs from one of them only after the solve (the canal, the microphone,
     /// the LDV angle, the probe's effects) costs no solve: a finite-difference Jacobian's
-    /// columns for those. The answers are the same bit for bit.
+    /// columns for those. Each grid frequency also keeps its last four drum blocks, so a
+    /// run that leaves the drum's stiffness and the cavity as they were skips the modal
+    /// sum. The answers are the same bit for bit.
     pub fn remember(&mut self, capacity: usize) {
         self.memo = Some(Memo::new(capacity));
         // Four: a Jacobian's base, then at most the drum's stiffness, the cavity and
