@@ -24,7 +24,7 @@ use super::drum::{DrumCoefficients, DrumError, DrumModes};
 use super::drum_mesh::{DrumGeometry, ManubriumModes};
 use super::ear_effects;
 use super::line_drum::{LineDrum, LineTuning, simpson};
-use super::memo::{DrumMemo, Memo, SolveKey, Solved};
+use super::memo::{DrumMemo, Memo, Solved};
 use super::params::{Effects, Theta};
 use super::shell::{ShellElement, ShellMaterial, cone_nodes};
 use super::system::{SolveError, System, SystemBuilder, Workspace};
@@ -1169,7 +1169,7 @@ impl Runner<'_> {
         let Some(mut memo) = self.memo.take() else {
             return freqs.iter().map(|&f| self.response_at(theta, fx, f)).collect();
         };
-        let key = SolveKey::of(theta, fx);
+        let key = memo.key(theta, fx);
         let out = match memo.get(&key) {
             Some(solved) => {
                 check(theta)?;
@@ -1182,8 +1182,9 @@ impl Runner<'_> {
                     .enumerate()
                     .map(|(k, &f)| {
                         self.solve_on_grid(theta, fx, f, Some(k))?;
-                        solved.push(self.solved());
-                        Ok(respond(self.model, theta, fx, f, self.solved()))
+                        let s = self.solved();
+                        solved.push(s);
+                        Ok(respond(self.model, theta, fx, f, s))
                     })
                     .collect::<Result<Vec<Response>, SimError>>();
                 if out.is_ok() {

@@ -453,7 +453,7 @@ fn fit_hypothesis(
     let cols = columns(side);
     let design = Design::default();
     let mut runner = model.runner();
-    // A Jacobian's base row outlives its columns' runs: its canal and LDV columns reuse its solves.
+    // A Jacobian's base row outlives its columns' runs, which reuse its solves and drum blocks.
     runner.remember(cols.len() + 1);
     let chi2 = |r: Vec<f64>| r.iter().map(|v| v * v).sum::<f64>();
     let start = starts(map, draws, &cols, side)
