@@ -269,9 +269,10 @@ pub fn run(args: InferArgs) -> Result<()> {
     let mut summaries = Vec::with_capacity(rows.len());
     for (r, (x, present)) in rows.iter().enumerate() {
         let (x, present) = (x.as_slice(), present.as_slice());
-        // The full-measure flow answers an ear with every measure, when the file holds one.
+        // The full-measure flow answers an ear with every measure, a measure-set flow an
+        // ear of exactly its groups, when the file holds them.
         let obs = Obs { x, present: Some(present) };
-        let flow = if model.full_measure_answers(&obs) { "full-measure" } else { "main" };
+        let flow = model.answering_name(&obs);
         let model = model.answering(&obs);
         let inf = model
             .infer(&Obs { x, present: Some(present) }, args.samples, args.seed)

@@ -64,6 +64,12 @@ pub struct TrainArgs {
     /// one network answers sub-band measurements (needs --mask-groups).
     #[arg(long)]
     pub mask_bands: bool,
+    /// Train on these feature groups alone (comma-separated, e.g.
+    /// `stapes_velocity,impedance,absorbance`): a measure-set flow, sharper than the
+    /// masked flow on ears that give exactly these; store it with `otofit attach
+    /// --measure-set`. Not with --mask-groups.
+    #[arg(long, value_delimiter = ',')]
+    pub measures: Vec<String>,
     /// Train K flows (1..=16) from different seeds and store them as one equal-weight
     /// ensemble. Default: the default recipe trains 50,000 / training rows of them, 1 to 5
     /// (five on a 10,000-row table, one from about 28,000 rows on); `--recipe v8` one.
@@ -135,6 +141,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         patience: args.patience,
         mask_groups: args.mask_groups,
         mask_bands: args.mask_bands,
+        measures: args.measures.iter().map(|m| m.trim().to_string()).collect(),
         ensemble: args.ensemble.unwrap_or(match args.recipe {
             Recipe::Default => 0,
             Recipe::V8 => 1,

@@ -1145,8 +1145,8 @@ fn serve_refuses_a_default_model_it_cannot_load() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
-/// `otofit attach` refuses a flow that cannot be a full-measure flow, naming --full and
-/// why, and writes nothing.
+/// `otofit attach` refuses a flow that cannot be a full-measure or measure-set flow,
+/// naming the option and why, and a call without either, and writes nothing.
 #[test]
 fn attach_refuses_a_masked_flow_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
@@ -1156,5 +1156,11 @@ fn attach_refuses_a_masked_flow_and_writes_nothing() {
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("--full") && err.contains("masks"), "{err}");
+    let o = otofit(&["attach", "--model", model, "--measure-set", model, "--out", out.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--measure-set") && err.contains("--measures"), "{err}");
+    let o = otofit(&["attach", "--model", model, "--out", out.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("--full or --measure-set"), "{err}");
     assert!(!out.exists());
 }

@@ -396,7 +396,7 @@ pub struct Report {
     pub steps: usize,
     /// Feature groups given (empty: every one).
     pub measures: Vec<String>,
-    /// The flow that answered: `full-measure` or `masked` (the file's main flow).
+    /// The flow that answered: `full-measure`, `measure-set` or `masked` (the file's main flow).
     pub flow: &'static str,
     /// Flow draws per ear.
     pub flow_samples: usize,
@@ -501,7 +501,11 @@ pub fn summarize(per_ear: &[EarResult]) -> (Vec<ParamSummary>, Vec<GroupSummary>
 pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarResult, Skipped>)) -> Result<Report> {
     p.check()?;
     let present = npe.header.features_of_groups(&p.measures).map_err(|e| anyhow!("--measures: {e}"))?;
-    let full_measure = npe.full_measure_answers(&Obs { x: &vec![0.0; present.len()], present: Some(&present) });
+    // The flow the service would answer these ears with (`main` is the masked one).
+    let flow = match npe.answering_name(&Obs { x: &vec![0.0; present.len()], present: Some(&present) }) {
+        "main" => "masked",
+        other => other,
+    };
     let model = simulator_for(npe)?;
     let held = ears(p.ears, p.seed);
     let rows: Vec<Vec<f64>> = held.iter().map(|e| e.row.clone()).collect();
@@ -531,7 +535,7 @@ pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarR
         seed: p.seed,
         steps: p.steps,
         measures: p.measures.clone(),
-        flow: if full_measure { "full-measure" } else { "masked" },
+        flow,
         flow_samples: FLOW_SAMPLES,
         recipes: RECIPES.to_vec(),
         noise_mismatch,

@@ -249,7 +249,7 @@ pub fn fit_check(npe: &Npe, x: &[f64], present: &[bool], inf: &Inference) -> Res
 
 /// Measures the null on `cases` fresh prior draws simulated with the model's training
 /// noise and model error (held out by construction: seeds the training never used),
-/// every feature given.
+/// every feature given (a measure-set flow's: its groups').
 pub fn null(npe: &Npe, cases: usize, seed: u64) -> Result<FitNull, FitCheckError> {
     let model = simulator_for(npe)?;
     let design = Design::default();
@@ -264,7 +264,9 @@ pub fn null(npe: &Npe, cases: usize, seed: u64) -> Result<FitNull, FitCheckError
         return Err(FitCheckError::Inference("most null cases failed to simulate".into()));
     }
     let f = npe.header.feature_names.len();
-    let full = subset_null(model, npe, &sims, &vec![true; f], seed)?;
+    // A measure-set flow answers ears of its groups alone: its null is theirs.
+    let read = npe.header.measure_features().unwrap_or_else(|| vec![true; f]);
+    let full = subset_null(model, npe, &sims, &read, seed)?;
     // Every proper, non-empty subset of groups, for models that accept subsets.
     let groups = &npe.header.groups;
     let mut subsets = Vec::new();

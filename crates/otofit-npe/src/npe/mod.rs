@@ -113,7 +113,22 @@ pub struct Header {
     /// than a network that must also answer every subset.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub full_measure_flow: bool,
+    /// The feature groups a measure-set flow was trained on alone: every other group's
+    /// features were zeroed in training and are ignored when it answers. Empty for a flow
+    /// of every measure, and for a flow trained with masks.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub measures: Vec<String>,
+    /// How many measure-set flows follow the full-measure flow ([`Npe::answering`]).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub measure_set_flows: usize,
 }
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
+}
+
+/// Measure-set flows a file may hold.
+const MAX_MEASURE_SETS: usize = 8;
 
 /// The first 8 bytes as a little-endian u64's bytes (zeros past the end).
 fn le8(b: &[u8]) -> [u8; 8] {
@@ -185,6 +200,7 @@ impl Header {
         if let Some(n) = &self.diagnose_null {
             n.validate()?;
         }
+        self.validate_measures()?;
         self.model_error_sampler().map_err(|e| CheckpointError::field("model_error", e.to_string()))?;
         let finite = |v: &[f64]| v.iter().all(|x| x.is_finite());
         let positive = |v: &[f64]| v.iter().all(|x| x.is_finite() && *x > 0.0);
@@ -202,6 +218,52 @@ impl Header {
             Some(&(_, field, why)) => Err(CheckpointError::field(field, why)),
             None => Ok(()),
         }
+    }
+}
+
+impl Header {
+    /// A measure-set flow's groups name distinct groups of its own, fewer than all, and
+    /// go without masks; a file holds at most [`MAX_MEASURE_SETS`] such flows.
+    fn validate_measures(&self) -> Result<(), CheckpointError> {
+        let field = |why: String| Err(CheckpointError::field("measures", why));
+        if self.measure_set_flows > MAX_MEASURE_SETS {
+            return Err(CheckpointError::field(
+                "measure_set_flows",
+                format!("{} exceeds {MAX_MEASURE_SETS}", self.measure_set_flows),
+            ));
+        }
+        if self.measures.is_empty() {
+            return Ok(());
+        }
+        if self.mask_groups || self.mask_bands {
+            return field("a measure-set flow is trained without masks".into());
+        }
+        for (k, m) in self.measures.iter().enumerate() {
+            if !self.groups.iter().any(|g| &g.name == m) {
+                return field(format!("'{m}' is not one of the model's feature groups"));
+            }
+            if self.measures[..k].contains(m) {
+                return field(format!("'{m}' is named twice"));
+            }
+        }
+        if self.measures.len() >= self.groups.len() {
+            return field("names every group (a flow of every measure names none)".into());
+        }
+        Ok(())
+    }
+
+    /// The features a measure-set flow reads: its groups' and those outside every group;
+    /// `None` for a flow that reads them all.
+    pub fn measure_features(&self) -> Option<Vec<bool>> {
+        if self.measures.is_empty() {
+            return None;
+        }
+        let mut read = vec![true; self.feature_names.len()];
+        for g in self.groups.iter().filter(|g| !self.measures.contains(&g.name)) {
+            let n = read.len();
+            g.features.iter().filter(|&&i| i < n).for_each(|&i| read[i] = false);
+        }
+        Some(read)
     }
 }
 
@@ -345,6 +407,8 @@ pub struct Npe {
     plains: Vec<PlainFlow>,
     /// The full-measure flow, when the file holds one ([`Npe::answering`]).
     full: Option<Box<Npe>>,
+    /// The measure-set flows the file holds ([`Npe::answering`]).
+    sets: Vec<Npe>,
 }
 
 /// The members bound to one observation: an equal-weight mixture.
@@ -491,17 +555,47 @@ impl Npe {
         let device = Device::flex();
         let flows: Vec<Flow> = records.into_iter().map(|r| Flow::new(&header.flow, &device).load_record(r)).collect();
         let plains = flows.iter().map(|f| f.plain(&header.flow)).collect();
-        Npe { header, flows, plains, full: None }
+        Npe { header, flows, plains, full: None, sets: Vec::new() }
     }
 
     /// The model that answers an observation with these features present: the
     /// full-measure flow when the file holds one and every feature is present and
-    /// finite, else this one. Its own header (temperature, fit-check null) goes with it.
+    /// finite; else a measure-set flow whose groups are exactly those given, whole and
+    /// finite; else this one. Its own header (temperature, fit-check null) goes with it.
     pub fn answering(&self, obs: &Obs<'_>) -> &Npe {
         match &self.full {
             Some(full) if self.full_measure_answers(obs) => full,
-            _ => self,
+            _ => self.measure_set_answering(obs).unwrap_or(self),
         }
+    }
+
+    /// Which flow [`Npe::answering`] gives: `full-measure`, `measure-set` or `main`.
+    pub fn answering_name(&self, obs: &Obs<'_>) -> &'static str {
+        let a = self.answering(obs);
+        if std::ptr::eq(a, self) {
+            "main"
+        } else if a.header.measures.is_empty() {
+            "full-measure"
+        } else {
+            "measure-set"
+        }
+    }
+
+    /// The measure-set flow whose groups are exactly the groups given whole (every
+    /// feature present and finite), no feature of another group given.
+    fn measure_set_answering(&self, obs: &Obs<'_>) -> Option<&Npe> {
+        if obs.x.len() != self.header.feature_names.len() || obs.present.is_some_and(|p| p.len() != obs.x.len()) {
+            return None;
+        }
+        let given = |i: usize| obs.present.is_none_or(|p| p[i]) && obs.x[i].is_finite();
+        let n = obs.x.len();
+        let mut in_group = vec![false; n];
+        self.header.groups.iter().flat_map(|g| &g.features).filter(|&&i| i < n).for_each(|&i| in_group[i] = true);
+        self.sets.iter().find(|s| {
+            s.header.measure_features().is_some_and(|read| {
+                (0..obs.x.len()).all(|i| if read[i] { given(i) } else { !in_group[i] || !given(i) })
+            })
+        })
     }
 
     /// Whether [`Npe::answering`] gives the full-measure flow for `obs`: the file holds
@@ -513,6 +607,11 @@ impl Npe {
             && obs.present.is_none_or(|p| p.iter().all(|&b| b))
     }
 
+    /// The measure-set flows the file holds.
+    pub fn measure_sets(&self) -> &[Npe] {
+        &self.sets
+    }
+
     /// The full-measure flow, if the file holds one.
     pub fn full_measure(&self) -> Option<&Npe> {
         self.full.as_deref()
@@ -521,19 +620,15 @@ impl Npe {
     /// Stores `full` as this model's full-measure flow ([`Npe::answering`]): an unmasked
     /// model of the same parameters, features and grid, without one of its own.
     pub fn attach_full_measure(&mut self, full: Npe) -> Result<(), CheckpointError> {
-        let (h, f) = (&self.header, &full.header);
+        let f = &full.header;
         let why = if f.mask_groups || f.mask_bands {
             Some("it was trained with masks (it must answer the full set of measures only)")
-        } else if f.full_measure_flow || full.full.is_some() {
+        } else if !f.measures.is_empty() {
+            Some("it was trained on some measures only (attach it as a measure-set flow)")
+        } else if f.full_measure_flow || full.full.is_some() || !full.sets.is_empty() {
             Some("it holds a full-measure flow of its own")
-        } else if f.feature_names != h.feature_names || f.frequencies_hz != h.frequencies_hz {
-            Some("its features or frequency grid differ")
-        } else if f.params.len() != h.params.len()
-            || f.params.iter().zip(&h.params).any(|(a, b)| a.name != b.name || a.low != b.low || a.high != b.high)
-        {
-            Some("its parameters or their prior boxes differ")
         } else {
-            None
+            self.same_ear(f)
         };
         if let Some(why) = why {
             return Err(CheckpointError::field("full_measure_flow", why));
@@ -541,6 +636,58 @@ impl Npe {
         self.full = Some(Box::new(full));
         self.header.full_measure_flow = true;
         Ok(())
+    }
+
+    /// Stores `flow` as a measure-set flow ([`Npe::answering`]): a model trained on some
+    /// of this one's feature groups alone (`otofit train --measures`), of the same
+    /// parameters, features and grid, without flows of its own; one per set of groups.
+    pub fn attach_measure_set(&mut self, flow: Npe) -> Result<(), CheckpointError> {
+        let why = if flow.header.measures.is_empty() {
+            Some("it was not trained on a set of measures (otofit train --measures)".to_string())
+        } else if flow.full.is_some() || !flow.sets.is_empty() {
+            Some("it holds flows of its own".into())
+        } else {
+            self.same_ear(&flow.header).map(str::to_string)
+        };
+        let mut wanted = flow.header.measures.clone();
+        wanted.sort();
+        let held = |s: &Npe| {
+            let mut m = s.header.measures.clone();
+            m.sort();
+            m == wanted
+        };
+        let why = why.or_else(|| {
+            if self.sets.iter().any(held) {
+                Some(format!("the model holds a flow of the measures {} already", wanted.join(", ")))
+            } else if self.sets.len() >= MAX_MEASURE_SETS {
+                Some(format!("the model holds {MAX_MEASURE_SETS} measure-set flows, the most a file may"))
+            } else {
+                None
+            }
+        });
+        if let Some(why) = why {
+            return Err(CheckpointError::field("measure_set_flows", why));
+        }
+        self.sets.push(flow);
+        self.header.measure_set_flows = self.sets.len();
+        Ok(())
+    }
+
+    /// Why a flow with header `f` does not answer this model's ears: other features,
+    /// grid, parameters or prior boxes.
+    fn same_ear(&self, f: &Header) -> Option<&'static str> {
+        let h = &self.header;
+        if f.feature_names != h.feature_names || f.frequencies_hz != h.frequencies_hz {
+            Some("its features or frequency grid differ")
+        } else if f.params.len() != h.params.len()
+            || f.params.iter().zip(&h.params).any(|(a, b)| a.name != b.name || a.low != b.low || a.high != b.high)
+        {
+            Some("its parameters or their prior boxes differ")
+        } else if f.groups.iter().map(|g| (&g.name, &g.features)).ne(h.groups.iter().map(|g| (&g.name, &g.features))) {
+            Some("its feature groups differ")
+        } else {
+            None
+        }
     }
 
     /// Adds to each simulation in `xs` (row k: the k-th) its draw of the model error the
@@ -575,6 +722,7 @@ impl Npe {
         h.format_version = FORMAT_VERSION;
         h.members = self.flows.len();
         h.full_measure_flow = self.full.is_some();
+        h.measure_set_flows = self.sets.len();
         let header = serde_json::to_vec(&h).map_err(|e| NpeError::Encode { what: "header", why: e.to_string() })?;
         let mut out = Vec::with_capacity(header.len() + 400_000 * self.flows.len());
         out.extend_from_slice(MAGIC);
@@ -591,6 +739,11 @@ impl Npe {
         }
         if let Some(full) = &self.full {
             let bytes = full.to_bytes()?;
+            out.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
+            out.extend_from_slice(&bytes);
+        }
+        for set in &self.sets {
+            let bytes = set.to_bytes()?;
             out.extend_from_slice(&(bytes.len() as u64).to_le_bytes());
             out.extend_from_slice(&bytes);
         }
@@ -639,21 +792,32 @@ impl Npe {
         if records.is_empty() {
             return Err(CheckpointError::NoWeights);
         }
-        let with_full = header.full_measure_flow;
-        if nested && with_full {
-            return Err(CheckpointError::field("full_measure_flow", "a full-measure flow holds another"));
+        let (with_full, sets) = (header.full_measure_flow, header.measure_set_flows);
+        if nested && (with_full || sets > 0) {
+            let field = if with_full { "full_measure_flow" } else { "measure_set_flows" };
+            return Err(CheckpointError::field(field, "a flow inside a model holds another"));
         }
         let expected = Flow::new(&header.flow, &Device::flex()).num_params();
         let mut npe = Npe::from_parts(header, records);
         if npe.flows.iter().any(|f| f.num_params() != expected) {
             return Err(CheckpointError::Architecture);
         }
+        npe.header.measure_set_flows = 0;
+        let mut rest = rest;
         if with_full {
-            let (bytes, _) = length_prefixed(rest)
+            let (bytes, after) = length_prefixed(rest)
                 .ok_or_else(|| CheckpointError::field("full_measure_flow", "the file ends before the flow"))?;
             let full =
                 Npe::decode(bytes, true).map_err(|e| CheckpointError::field("full_measure_flow", e.to_string()))?;
             npe.attach_full_measure(full)?;
+            rest = after;
+        }
+        for k in 0..sets {
+            let field = |why: String| CheckpointError::field("measure_set_flows", format!("flow {}: {why}", k + 1));
+            let (bytes, after) = length_prefixed(rest).ok_or_else(|| field("the file ends before it".into()))?;
+            let set = Npe::decode(bytes, true).map_err(|e| field(e.to_string()))?;
+            npe.attach_measure_set(set)?;
+            rest = after;
         }
         Ok(npe)
     }
@@ -705,6 +869,15 @@ impl Npe {
             }
             if h.mask_bands {
                 row.extend((0..f).map(|i| if present(i) && obs.x[i].is_finite() { 1.0 } else { 0.0 }));
+            }
+        } else if let Some(read) = h.measure_features() {
+            // A measure-set flow never saw the other groups: they stay zero, given or not.
+            for i in 0..f {
+                if !read[i] {
+                    row[i] = 0.0;
+                } else if !present(i) || !obs.x[i].is_finite() {
+                    return Err(ObservationError::MissingOrNotFinite { feature: h.feature_names[i].clone() }.into());
+                }
             }
         } else if let Some(i) = (0..f).find(|&i| !present(i) || !obs.x[i].is_finite()) {
             return Err(ObservationError::MissingOrNotFinite { feature: h.feature_names[i].clone() }.into());
@@ -1155,6 +1328,103 @@ mod tests {
         let bytes = m.to_bytes().unwrap();
         let cut = Npe::from_bytes(&bytes[..bytes.len() - 1000]).err().map(why).unwrap_or_default();
         assert!(cut.contains("full_measure_flow"), "{cut}");
+    }
+
+    /// An untrained flow of `m`'s features that reads only the groups named.
+    fn measure_set_like(m: &Npe, groups: &[&str]) -> Npe {
+        let mut n = unmasked_like(m);
+        n.full = None;
+        n.header.measures = groups.iter().map(|g| g.to_string()).collect();
+        n
+    }
+
+    /// The features given when the groups named are measured whole.
+    fn given(h: &Header, groups: &[&str]) -> Vec<bool> {
+        let mut p = vec![false; h.feature_names.len()];
+        for g in h.groups.iter().filter(|g| groups.contains(&g.name.as_str())) {
+            g.features.iter().for_each(|&i| p[i] = true);
+        }
+        p
+    }
+
+    #[test]
+    fn a_measure_set_flow_answers_ears_of_exactly_its_groups_and_reads_only_them() {
+        let mut m = model();
+        let names: Vec<String> = m.header.groups.iter().map(|g| g.name.clone()).collect();
+        let (a, b, c) = (names[0].as_str(), names[1].as_str(), names[2].as_str());
+        assert!(names.len() >= 4, "{names:?}");
+        m.attach_measure_set(measure_set_like(&m, &[a, b])).unwrap();
+        let bytes = m.to_bytes().unwrap();
+        let back = Npe::from_bytes(&bytes).unwrap();
+        assert_eq!(back.to_bytes().unwrap(), bytes, "the model with its measure-set flow round-trips");
+        assert!(back.full_measure().is_some(), "the full-measure flow is kept beside it");
+        let set = &back.measure_sets()[0];
+        assert_eq!(set.header.measures, [a, b]);
+        let x = back.header.x_mean.clone();
+        let answering = |present: &[bool]| back.answering(&Obs { x: &x, present: Some(present) });
+        let ab = given(&back.header, &[b, a]);
+        assert!(std::ptr::eq(answering(&ab), set), "exactly its groups: the measure-set flow");
+        assert_eq!(back.answering_name(&Obs { x: &x, present: Some(&ab) }), "measure-set");
+        let all = vec![true; x.len()];
+        assert!(std::ptr::eq(answering(&all), back.full_measure().unwrap()), "every group: the full-measure flow");
+        assert_eq!(back.answering_name(&Obs { x: &x, present: None }), "full-measure");
+        let abc = given(&back.header, &[a, b, c]);
+        assert!(std::ptr::eq(answering(&abc), &back), "a group besides its own: the masked flow");
+        let mut cut = ab.clone();
+        cut[back.header.groups[1].features[0]] = false;
+        assert!(std::ptr::eq(answering(&cut), &back), "part of one of its groups missing: the masked flow");
+        assert!(std::ptr::eq(answering(&given(&back.header, &[a])), &back), "one of its groups alone: masked");
+        assert_eq!(back.answering_name(&Obs { x: &x, present: Some(&cut) }), "main");
+        let mut nan = x.clone();
+        nan[back.header.groups[0].features[0]] = f64::NAN;
+        assert!(std::ptr::eq(back.answering(&Obs { x: &nan, present: Some(&ab) }), &back), "not finite: masked");
+        // The other groups' values, given or not, never reach its network; its own must.
+        let mut moved = x.clone();
+        for (i, v) in moved.iter_mut().enumerate().filter(|(i, _)| !ab[*i]) {
+            *v += 5.0 * back.header.x_std[i];
+        }
+        let row = |x: &[f64], p: &[bool]| set.input_row(&Obs { x, present: Some(p) }).unwrap();
+        assert_eq!(row(&x, &ab), row(&moved, &all), "features outside its groups are ignored");
+        let mut inside = x.clone();
+        inside[back.header.groups[0].features[0]] += back.header.x_std[0];
+        assert_ne!(row(&x, &ab), row(&inside, &ab), "its own features are read");
+        let e = set.input_row(&Obs { x: &x, present: Some(&cut) }).unwrap_err().to_string();
+        assert!(e.contains(&back.header.feature_names[back.header.groups[1].features[0]]), "{e}");
+    }
+
+    #[test]
+    fn a_measure_set_flow_names_some_groups_once_each_set_is_held_once_and_a_cut_file_is_refused() {
+        let mut m = model();
+        let names: Vec<String> = m.header.groups.iter().map(|g| g.name.clone()).collect();
+        let (a, b) = (names[0].as_str(), names[1].as_str());
+        let why = |e: CheckpointError| e.to_string();
+        let unmasked = unmasked_like(&m);
+        assert!(why(m.attach_measure_set(unmasked).unwrap_err()).contains("--measures"));
+        assert!(why(m.attach_full_measure(measure_set_like(&m, &[a])).unwrap_err()).contains("some measures only"));
+        let mut other = measure_set_like(&m, &[a]);
+        other.header.groups.swap(0, 1);
+        assert!(why(m.attach_measure_set(other).unwrap_err()).contains("groups differ"));
+        m.attach_measure_set(measure_set_like(&m, &[a, b])).unwrap();
+        assert!(why(m.attach_measure_set(measure_set_like(&m, &[b, a])).unwrap_err()).contains("already"));
+        m.attach_measure_set(measure_set_like(&m, &[b])).unwrap();
+        let bytes = m.to_bytes().unwrap();
+        assert_eq!(Npe::from_bytes(&bytes).unwrap().measure_sets().len(), 2);
+        let cut = Npe::from_bytes(&bytes[..bytes.len() - 1000]).err().map(why).unwrap_or_default();
+        assert!(cut.contains("measure_set_flows") && cut.contains("flow 2"), "{cut}");
+        for (measures, says) in [
+            (vec!["tympanogram".to_string()], "not one of the model's feature groups"),
+            (vec![a.into(), a.into()], "named twice"),
+            (names.clone(), "names every group"),
+        ] {
+            let mut h = measure_set_like(&m, &[a]).header;
+            h.measures = measures;
+            let e = h.validate().unwrap_err().to_string();
+            assert!(e.contains("measures") && e.contains(says), "{e}");
+        }
+        let mut masked = measure_set_like(&m, &[a]).header;
+        masked.mask_groups = true;
+        masked.flow.inputs += masked.groups.len();
+        assert!(masked.validate().unwrap_err().to_string().contains("without masks"));
     }
 
     fn latent_of(npe: &Npe) -> LatentMap<'_> {

@@ -50,6 +50,10 @@ pub struct TrainSettings {
     /// Also cut each kept group's band at random (up to a quarter of the grid at each end)
     /// and give the network per-feature presence flags: one model for sub-band inputs.
     pub mask_bands: bool,
+    /// Feature groups to train on alone (every other group's features zeroed): a
+    /// measure-set flow for ears that give exactly these ([`super::Npe::answering`]).
+    /// Empty: every group.
+    pub measures: Vec<String>,
     /// Fraction of the rows held out for validation (0 < f < 1).
     pub val_fraction: f64,
     /// θ → the flow's space: logit of the box position, or the scale coordinate z-scored.
@@ -117,6 +121,7 @@ impl Default for TrainSettings {
             lr: 0.0,
             mask_groups: false,
             mask_bands: false,
+            measures: Vec::new(),
             val_fraction: 0.1,
             theta_map: ThetaMap::Scale,
             tail_bound: 3.0,
@@ -239,6 +244,23 @@ fn check(ds: &Dataset, s: &TrainSettings) -> Result<()> {
             "--mask-bands needs --mask-groups and a frequency grid (meta.json frequencies_hz) of at least 8 points",
         ));
     }
+    if !s.measures.is_empty() {
+        let why = if s.mask_groups {
+            Some("--measures trains on those groups alone: it goes without --mask-groups".to_string())
+        } else if let Some(m) = s.measures.iter().find(|m| !ds.groups.iter().any(|g| &&g.name == m)) {
+            let names: Vec<&str> = ds.groups.iter().map(|g| g.name.as_str()).collect();
+            Some(format!("--measures: '{m}' is not one of the dataset's feature groups ({})", names.join(", ")))
+        } else if s.measures.iter().enumerate().any(|(k, m)| s.measures[..k].contains(m)) {
+            Some("--measures: a group is named twice".into())
+        } else if s.measures.len() >= ds.groups.len() {
+            Some("--measures names every group: leave it out to train on every measure".into())
+        } else {
+            None
+        };
+        if let Some(why) = why {
+            return Err(NpeError::settings("measures", why));
+        }
+    }
     if !(4..=512).contains(&s.hidden) {
         return Err(NpeError::settings("hidden", format!("--hidden must be 4..=512 (got {})", s.hidden)));
     }
@@ -348,6 +370,8 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         fit_null: None,
         diagnose_null: None,
         full_measure_flow: false,
+        measures: s.measures.clone(),
+        measure_set_flows: 0,
     }
 }
 
@@ -361,6 +385,8 @@ struct Batcher<'a> {
     groups: &'a [super::Group],
     /// The model-error sampler (none without `model_error`).
     discrepancy: Option<Discrepancy>,
+    /// The features a measure-set flow reads (none: all).
+    read: Option<Vec<bool>>,
 }
 
 impl Batcher<'_> {
@@ -419,6 +445,9 @@ impl Batcher<'_> {
                         here[k] = false;
                     }
                 }
+            }
+            if let Some(read) = &self.read {
+                read.iter().zip(&mut inp[start..]).filter(|(r, _)| !**r).for_each(|(_, v)| *v = 0.0);
             }
             inp.extend(keep.iter().map(|&on| if on { 1.0 } else { 0.0 }));
             if s.mask_bands {
@@ -1427,7 +1456,8 @@ pub fn train_checkpointed(
     let header = reread(&header)?;
     let groups = if s.mask_groups { ds.groups.clone() } else { vec![] };
     let discrepancy = header.model_error_sampler()?;
-    let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &groups, discrepancy };
+    let read = header.measure_features();
+    let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &groups, discrepancy, read };
     let val_batches = validation_batches(&batcher, val_idx, s.seed);
     let run = Run { s, cfg: &cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() };
     let mut saver = checkpoint.map(|c| Saver::new(c, fingerprint(s, &header), start));
@@ -1625,10 +1655,52 @@ mod tests {
         let u_rows = u_rows(ds, s.theta_map);
         let header = standardise(ds, s, &u_rows, train_idx, n_val);
         let discrepancy = header.model_error_sampler().unwrap();
-        let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &[], discrepancy };
+        let read = header.measure_features();
+        let batcher = Batcher { ds, s, header: &header, u_rows: &u_rows, groups: &[], discrepancy, read };
         let val_batches = validation_batches(&batcher, val_idx, s.seed);
         let cfg = &header.flow;
         f(&Run { s, cfg, batcher, train_idx, val_batches, n_val, device: Device::flex().autodiff() })
+    }
+
+    /// A measure-set flow's batches give its network the other groups' features as
+    /// zeros, and its own as drawn; the trained model says which groups it reads and
+    /// ignores the rest when it answers. A group it cannot have is refused by name.
+    #[test]
+    fn a_measure_set_flow_trains_on_its_groups_alone() {
+        let mut ds = toy(300);
+        let group = |name: &str, features: Vec<usize>| super::super::Group { name: name.into(), features };
+        ds.groups = vec![group("sum", vec![0]), group("rest", vec![1, 2])];
+        let s = TrainSettings {
+            embedding: false,
+            seed: 3,
+            batch: 100,
+            max_epochs: 2,
+            measures: vec!["rest".into()],
+            ..Default::default()
+        };
+        with_run(&ds, &s, |run| {
+            let (_, inp) = run.batcher.batch(&run.train_idx[..50], 11);
+            let col = |k: usize| inp.iter().skip(k).step_by(3).copied().collect::<Vec<f32>>();
+            assert!(col(0).iter().all(|&v| v == 0.0), "the group it does without: zeros");
+            assert!(col(1).iter().chain(&col(2)).all(|&v| v != 0.0), "its own group: drawn");
+        });
+        let m = train(&ds, &s, &mut |_| true).unwrap();
+        assert_eq!(m.header.measures, ["rest"]);
+        let (x, moved) =
+            (m.header.x_mean.clone(), vec![m.header.x_mean[0] + 9.0, m.header.x_mean[1], m.header.x_mean[2]]);
+        let given = [false, true, true];
+        let row = |x: &[f64], p: Option<&[bool]>| m.input_row(&super::super::Obs { x, present: p }).unwrap();
+        assert_eq!(row(&x, Some(&given)), row(&moved, None), "the other group is not read");
+        for (measures, says) in [
+            (vec!["tympanogram".to_string()], "'tympanogram' is not one of the dataset's feature groups (sum, rest)"),
+            (vec!["rest".into(), "sum".into()], "names every group"),
+            (vec!["rest".into(), "rest".into()], "named twice"),
+        ] {
+            let e = train(&ds, &TrainSettings { measures, ..s.clone() }, &mut |_| true).err().unwrap().to_string();
+            assert!(e.contains("measures") && e.contains(says), "{e}");
+        }
+        let masked = TrainSettings { mask_groups: true, ..s.clone() };
+        assert!(train(&ds, &masked, &mut |_| true).err().unwrap().to_string().contains("--mask-groups"));
     }
 
     fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {

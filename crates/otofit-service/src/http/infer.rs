@@ -252,8 +252,9 @@ pub async fn infer(
     let (x, present, used) = features(&npe, &req.measurements, csv.as_ref())?;
     let band_hz = bands_used(&npe, &present);
     // Which of the model's flows answers: its full-measure flow for an ear with every
-    // measure over the whole band, when the model holds one.
-    let full = npe.full_measure_answers(&Obs { x: &x, present: Some(&present) });
+    // measure over the whole band, a measure-set flow for an ear of exactly its groups,
+    // when the model holds one.
+    let flow = npe.answering_name(&Obs { x: &x, present: Some(&present) });
     let seed = req.seed.unwrap_or(0);
     let npe2 = npe.clone();
     let (plot, title) = (req.plot, format!("Posterior, model {}", row.id));
@@ -268,8 +269,8 @@ pub async fn infer(
     tracing::info!(model = %row.id, samples = n, inputs = used.len(), ms = t0.elapsed().as_secs_f64() * 1e3, "inferred");
     let Answer { inf, fit, fit_ms, corner, refined, mut differential, alternatives, exact } = answer;
     let (fit, next) = fit_and_next(fit, req.model.as_deref(), &mut differential);
-    let answering = if full { npe.full_measure().unwrap_or(&npe) } else { &npe };
-    let exact = exact.map(|e| exact_doc(e, answering, &fit));
+    // Read against the normal ranges, which every flow of a model shares.
+    let exact = exact.map(|e| exact_doc(e, &npe, &fit));
     let verdict = crate::npe::normal::verdict(&differential, fit["ok"].as_bool());
     // The measurement-geometry nuisances are reported apart from the tissue parameters:
     // they describe the probe's placement, not the ear, and have no normal range.
@@ -299,7 +300,7 @@ pub async fn infer(
             grid_hz: npe.header.frequencies_hz.clone(),
             band_hz,
             format: if csv.is_some() { "csv" } else { "json" },
-            flow: if full { "full-measure" } else { "main" },
+            flow,
             notes: csv.map(|imp| imp.notes),
         },
         samples_count: n,
@@ -389,7 +390,7 @@ pub struct Inputs {
     /// The body's format: `json` or `csv`.
     pub format: &'static str,
     /// The flow that answered: `full-measure` (the model's flow for ears with every
-    /// measure) or `main`.
+    /// measure), `measure-set` (its flow for ears of exactly one set of groups) or `main`.
     pub flow: &'static str,
     /// What reading a text/csv table did.
     #[serde(skip_serializing_if = "Option::is_none")]

@@ -50,7 +50,7 @@ pub async fn log_prob(
     let (x, present, used) = super::infer::features(&npe, &req.measurements, None)?;
     let theta = req.theta;
     // The density of the flow /infer samples for these measurements.
-    let full = npe.full_measure_answers(&Obs { x: &x, present: Some(&present) });
+    let flow = npe.answering_name(&Obs { x: &x, present: Some(&present) });
     let npe2 = npe.clone();
     let lp = tokio::task::spawn_blocking(move || {
         let obs = Obs { x: &x, present: Some(&present) };
@@ -68,7 +68,7 @@ pub async fn log_prob(
     Ok(Json(LogProbResponse {
         model: row.id,
         columns: npe.params().iter().map(|p| p.name.clone()).collect(),
-        inputs: UsedInputs { used, flow: if full { "full-measure" } else { "main" } },
+        inputs: UsedInputs { used, flow },
         log_prob: values,
         outside_prior: outside,
     }))
@@ -92,6 +92,6 @@ pub struct LogProbResponse {
 #[derive(Serialize)]
 pub struct UsedInputs {
     pub used: Vec<&'static str>,
-    /// The flow whose density this is (`full-measure` or `main`, as POST /infer's).
+    /// The flow whose density this is (`full-measure`, `measure-set` or `main`, as POST /infer's).
     pub flow: &'static str,
 }

@@ -79,6 +79,18 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
                     "fit_null": f.fit_null,
                 });
             }
+            // The flows that answer ears of exactly one set of feature groups.
+            let sets: Vec<_> = npe
+                .measure_sets()
+                .iter()
+                .map(|s| {
+                    let f = &s.header;
+                    json!({ "measures": f.measures, "training": f.training, "temperature": f.temperature, "fit_null": f.fit_null })
+                })
+                .collect();
+            if !sets.is_empty() {
+                d["measure_set_flows"] = json!(sets);
+            }
             d["calibration"] = json!({
                 "temperature": h.temperature,
                 "fit_null": h.fit_null,
