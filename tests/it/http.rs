@@ -1029,9 +1029,10 @@ fn full_request() -> Value {
     }})
 }
 
-/// The shipped model holds a full-measure flow: an ear with every measure over the whole
-/// band is answered by it, an ear without one of them by the main flow, and GET
-/// /models/{id} lists it with its own calibration.
+/// The shipped model holds a full-measure flow and a flow for the study's three measures:
+/// an ear with every measure over the whole band is answered by the first, an ear of
+/// exactly those three by the second, wideband tympanometry alone by the main flow, and
+/// GET /models/{id} lists both with their own calibration.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     let (app, _, _dir) = app(vec![], 8, false).await;
@@ -1046,16 +1047,26 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     lp_req["theta"] = json!(draws);
     let (status, _, lp) = call(&app, "POST", "/log_prob", Some(lp_req)).await;
     assert_eq!((status, lp["inputs"]["flow"].as_str()), (StatusCode::OK, Some("full-measure")), "{lp}");
+    // Without umbo velocity: the study's three measures, answered by their own flow.
     let mut without_umbo = full;
     without_umbo["measurements"].as_object_mut().unwrap().remove("umbo_velocity");
-    let (status, _, b) = call(&app, "POST", "/infer", Some(without_umbo)).await;
-    assert_eq!((status, b["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{}", b["inputs"]);
+    let (status, _, b) = call(&app, "POST", "/infer", Some(without_umbo.clone())).await;
+    assert_eq!((status, b["inputs"]["flow"].as_str()), (StatusCode::OK, Some("measure-set")), "{}", b["inputs"]);
+    assert_eq!(b["fit"]["ok"], true, "{}", b["fit"]);
+    let mut wbt = without_umbo;
+    wbt["measurements"].as_object_mut().unwrap().remove("stapes_velocity");
+    let (status, _, c) = call(&app, "POST", "/infer", Some(wbt)).await;
+    assert_eq!((status, c["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{}", c["inputs"]);
     let (status, _, m) = call(&app, "GET", "/models/default", None).await;
     assert_eq!(status, StatusCode::OK, "{m}");
     let f = &m["full_measure_flow"];
     let t = f["temperature"].as_f64().unwrap_or(f64::NAN);
     assert!((0.5..=2.0).contains(&t) && f["fit_null"].is_object(), "{f}");
     assert_ne!(f["training"], m["training"], "the full-measure flow's own training, not the main flow's");
+    let sets = m["measure_set_flows"].as_array().cloned().unwrap_or_default();
+    assert_eq!(sets.len(), 1, "{m}");
+    assert_eq!(sets[0]["measures"], json!(["stapes_velocity", "impedance", "absorbance"]));
+    assert!(sets[0]["fit_null"].is_object() && sets[0]["training"] != f["training"], "{}", sets[0]);
 }
 
 /// Umbo velocity: WBT + umbo LDV is answered, the umbo narrows the
