@@ -1257,6 +1257,14 @@ mod tests {
         assert!(e.contains("'tympanogram'") && names.iter().all(|n| e.contains(n)), "{e}");
     }
 
+    /// The shipped model's masked flow alone, without the flows stored beside it.
+    fn bare_model() -> Npe {
+        let mut m = model();
+        m.full = None;
+        m.sets.clear();
+        m
+    }
+
     /// An untrained flow that takes `m`'s features without masks (the weights do not
     /// matter to how a file is stored or which flow answers).
     fn unmasked_like(m: &Npe) -> Npe {
@@ -1283,8 +1291,7 @@ mod tests {
 
     #[test]
     fn a_full_measure_flow_answers_ears_with_every_measure_and_is_stored_with_the_model() {
-        let mut m = model();
-        m.full = None;
+        let mut m = bare_model();
         let full = unmasked_like(&m);
         m.attach_full_measure(full).unwrap();
         let bytes = m.to_bytes().unwrap();
@@ -1303,8 +1310,7 @@ mod tests {
         assert!(std::ptr::eq(answering(&one_gone, &x), &back), "a feature absent: the main flow");
         let says = |present: &[bool]| back.full_measure_answers(&Obs { x: &x, present: Some(present) });
         assert!(says(&all) && !says(&one_gone), "the name the service gives follows the flow that answers");
-        let mut bare = model();
-        bare.full = None;
+        let bare = bare_model();
         assert!(!bare.full_measure_answers(&Obs { x: &x, present: Some(&all) }), "no full-measure flow, none answers");
         let mut nan = x.clone();
         nan[0] = f64::NAN;
@@ -1313,8 +1319,7 @@ mod tests {
 
     #[test]
     fn a_full_measure_flow_must_be_unmasked_and_of_the_same_ear_and_a_cut_file_is_refused() {
-        let mut m = model();
-        m.full = None;
+        let mut m = bare_model();
         let why = |e: CheckpointError| e.to_string();
         let masked = model();
         assert!(why(m.attach_full_measure(masked).unwrap_err()).contains("masks"));
@@ -1350,6 +1355,7 @@ mod tests {
     #[test]
     fn a_measure_set_flow_answers_ears_of_exactly_its_groups_and_reads_only_them() {
         let mut m = model();
+        m.sets.clear();
         let names: Vec<String> = m.header.groups.iter().map(|g| g.name.clone()).collect();
         let (a, b, c) = (names[0].as_str(), names[1].as_str(), names[2].as_str());
         assert!(names.len() >= 4, "{names:?}");
@@ -1394,7 +1400,7 @@ mod tests {
 
     #[test]
     fn a_measure_set_flow_names_some_groups_once_each_set_is_held_once_and_a_cut_file_is_refused() {
-        let mut m = model();
+        let mut m = bare_model();
         let names: Vec<String> = m.header.groups.iter().map(|g| g.name.clone()).collect();
         let (a, b) = (names[0].as_str(), names[1].as_str());
         let why = |e: CheckpointError| e.to_string();
