@@ -588,14 +588,10 @@ impl Npe {
             return None;
         }
         let given = |i: usize| obs.present.is_none_or(|p| p[i]) && obs.x[i].is_finite();
-        let n = obs.x.len();
-        let mut in_group = vec![false; n];
-        self.header.groups.iter().flat_map(|g| &g.features).filter(|&&i| i < n).for_each(|&i| in_group[i] = true);
-        self.sets.iter().find(|s| {
-            s.header.measure_features().is_some_and(|read| {
-                (0..obs.x.len()).all(|i| if read[i] { given(i) } else { !in_group[i] || !given(i) })
-            })
-        })
+        // A feature a set does not read belongs to another group: it must be absent.
+        self.sets
+            .iter()
+            .find(|s| s.header.measure_features().is_some_and(|read| (0..obs.x.len()).all(|i| read[i] == given(i))))
     }
 
     /// Whether [`Npe::answering`] gives the full-measure flow for `obs`: the file holds
