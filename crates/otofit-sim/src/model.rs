@@ -1147,6 +1147,12 @@ impl Runner<'_> {
         self.drum_memo = self.model.config.frequencies.iter().map(|_| DrumMemo::new(4)).collect();
     }
 
+    /// [`Self::remember`] sized for finite-difference Jacobians of `columns` columns: the
+    /// base row outlives its columns' runs, which reuse its solves and drum blocks.
+    pub fn remember_jacobian(&mut self, columns: usize) {
+        self.remember(columns + 1);
+    }
+
     /// Runs answered from the kept solves so far (0 when none are kept).
     pub fn solves_reused(&self) -> usize {
         self.memo.as_ref().map_or(0, Memo::hits)

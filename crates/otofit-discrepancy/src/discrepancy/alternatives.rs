@@ -453,8 +453,7 @@ fn fit_hypothesis(
     let cols = columns(side);
     let design = Design::default();
     let mut runner = model.runner();
-    // A Jacobian's base row outlives its columns' runs, which reuse its solves and drum blocks.
-    runner.remember(cols.len() + 1);
+    runner.remember_jacobian(cols.len());
     let chi2 = |r: Vec<f64>| r.iter().map(|v| v * v).sum::<f64>();
     let start = starts(map, draws, &cols, side)
         .into_iter()
@@ -500,7 +499,7 @@ fn fit_effect(model: &Model, map: &[f64], obs: &Observation, effect: usize, effo
     let mut cols = columns(None);
     cols.push(spec);
     let mut runner = model.runner();
-    runner.remember(cols.len() + 1);
+    runner.remember_jacobian(cols.len());
     let chi2 = |r: Vec<f64>| r.iter().map(|v| v * v).sum::<f64>();
     let base = starts(map, &[], &columns(None), None).remove(0);
     let start = [0.25, 0.75]

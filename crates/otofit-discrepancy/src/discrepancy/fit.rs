@@ -81,8 +81,7 @@ fn chi2(r: &[f64]) -> f64 {
 /// Fits from each start (rows in natural units) and keeps the best.
 pub fn fit(model: &Model, design: &Design, starts: &[Vec<f64>], obs: &Observation, max_iter: usize) -> Option<Fit> {
     let mut runner = model.runner();
-    // A Jacobian's base row outlives its columns' runs, which reuse its solves and drum blocks.
-    runner.remember(design.columns().len() + 1);
+    runner.remember_jacobian(design.columns().len());
     starts
         .iter()
         .filter_map(|s| fit_one(&mut runner, design, s, obs, max_iter))
