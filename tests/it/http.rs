@@ -408,7 +408,10 @@ async fn exact_job_samples_the_likelihoods_posterior() {
     };
     let (flow, exact) = (eardrum(&r["flow"]), eardrum(&r["exact"]["summaries"]));
     let truth = theta.e_eardrum();
-    assert!(exact.1 - exact.0 < (flow.1 - flow.0) / 2.0, "flow {flow:?}, likelihood {exact:?}");
+    // Narrower than the flow's, which is calibrated over the prior and so wider (1.1–1.4
+    // times on three-measure ears); by more than the few per cent that separate two
+    // samples of one distribution, so the flow's own draws would not pass.
+    assert!(exact.1 - exact.0 < 0.9 * (flow.1 - flow.0), "flow {flow:?}, likelihood {exact:?}");
     // Its median within 5 % of the truth, as the CLI's test of the same chain: on this
     // noise-free ear the truth can sit just outside a 90 % interval 3.5 % wide (seen:
     // 18.68–19.993 MPa for 20 MPa), the likelihood's ridge with the other parameters
