@@ -1007,7 +1007,10 @@ fn infer_exact_samples_the_likelihoods_posterior_of_the_typical_ear() {
     let (flow, exact) = (eardrum(&r["parameters"]), eardrum(&ex["summaries"]));
     eprintln!("E_eardrum 90 %: flow {flow:?}, likelihood {exact:?}; chain {}", ex["chain"]);
     assert_eq!(ex["summaries"].as_array().unwrap().len(), 14, "{ex}");
-    assert!(exact.1 - exact.0 < (flow.1 - flow.0) / 2.0, "flow {flow:?}, likelihood {exact:?}");
+    // Narrower than the flow's, which is calibrated over the prior and so wider (1.1–1.4
+    // times on three-measure ears); by more than the few per cent that separate two
+    // samples of one distribution, so the flow's own draws would not pass.
+    assert!(exact.1 - exact.0 < 0.9 * (flow.1 - flow.0), "flow {flow:?}, likelihood {exact:?}");
     // Its median within 5 % of the truth: the Cramér–Rao bound at this ear is 0.012 decades
     // (2.8 %; docs/results/simulator.md). Not "inside the 90 % interval": on a noise-free
     // ear the likelihood's ridge with the chain's parameters can put the truth just outside
