@@ -57,6 +57,9 @@ pub struct CalibrateArgs {
     pub diagnose_groups: Vec<String>,
 }
 
+/// How far below each level the tuned coverage may stay (held-out rows are noisy).
+const TUNE_SLACK: f64 = 0.01;
+
 /// Runs `otofit calibrate`.
 pub fn run(args: CalibrateArgs) -> Result<()> {
     if !(10..=100_000).contains(&args.samples) {
@@ -91,14 +94,14 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
     // And the model error it was trained with, if any: the inputs its training saw.
     model.add_model_error(rows.iter_mut().map(|(_, x)| x), args.seed)?;
     if args.tune {
-        let tuning = tune_temperature(&mut model, &rows, args.samples, args.seed, 0.01)?;
+        let tuning = tune_temperature(&mut model, &rows, args.samples, args.seed, TUNE_SLACK)?;
         eprintln!(
             "temperature {:.3}: joint HPD coverage at {:?} on the tuning rows {:?} -> {:?}",
             tuning.temperature, TUNE_LEVELS, tuning.coverage_before, tuning.coverage_after
         );
         if !tuning.reached {
             eprintln!(
-                "warning: no temperature in 1..4 brings the coverage to every level less 0.01; \
+                "warning: no temperature in 1..4 brings the coverage to every level less {TUNE_SLACK}; \
                  kept {:.3}, which came closest. The flow is overconfident in a way a temperature \
                  cannot mend: train it longer or on more rows",
                 tuning.temperature
