@@ -1032,10 +1032,11 @@ fn full_request() -> Value {
     }})
 }
 
-/// The shipped model holds a full-measure flow and a flow for the study's three measures:
-/// an ear with every measure over the whole band is answered by the first, an ear of
-/// exactly those three by the second, wideband tympanometry alone by the main flow, and
-/// GET /models/{id} lists both with their own calibration.
+/// The shipped model holds a full-measure flow and flows for the study's three measures
+/// and for wideband tympanometry: an ear with every measure over the whole band is
+/// answered by the first, an ear of exactly those three or of impedance and absorbance
+/// alone by its set's flow, a WBT ear on part of the band by the main (masked) flow, and
+/// GET /models/{id} lists each with its own calibration.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     let (app, _, _dir) = app(vec![], 8, false).await;
@@ -1058,8 +1059,22 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert_eq!(b["fit"]["ok"], true, "{}", b["fit"]);
     let mut wbt = without_umbo;
     wbt["measurements"].as_object_mut().unwrap().remove("stapes_velocity");
-    let (status, _, c) = call(&app, "POST", "/infer", Some(wbt)).await;
-    assert_eq!((status, c["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{}", c["inputs"]);
+    let (status, _, c) = call(&app, "POST", "/infer", Some(wbt.clone())).await;
+    assert_eq!((status, c["inputs"]["flow"].as_str()), (StatusCode::OK, Some("measure-set")), "{}", c["inputs"]);
+    assert_eq!(c["fit"]["ok"], true, "{}", c["fit"]);
+    // The same WBT ear above 300 Hz only: no set's flow reads part of a band.
+    let mut cut = wbt;
+    for m in ["impedance", "absorbance"] {
+        let block = cut["measurements"][m].as_object_mut().unwrap();
+        let keep: Vec<usize> = (0..block["frequencies_hz"].as_array().unwrap().len())
+            .filter(|&i| block["frequencies_hz"][i].as_f64().unwrap() >= 300.0)
+            .collect();
+        for (_, v) in block.iter_mut() {
+            *v = json!(keep.iter().map(|&i| v[i].clone()).collect::<Vec<_>>());
+        }
+    }
+    let (status, _, e) = call(&app, "POST", "/infer", Some(cut)).await;
+    assert_eq!((status, e["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{e}");
     let (status, _, m) = call(&app, "GET", "/models/default", None).await;
     assert_eq!(status, StatusCode::OK, "{m}");
     let f = &m["full_measure_flow"];
@@ -1067,9 +1082,13 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert!((0.5..=2.0).contains(&t) && f["fit_null"].is_object(), "{f}");
     assert_ne!(f["training"], m["training"], "the full-measure flow's own training, not the main flow's");
     let sets = m["measure_set_flows"].as_array().cloned().unwrap_or_default();
-    assert_eq!(sets.len(), 1, "{m}");
+    assert_eq!(sets.len(), 2, "{m}");
     assert_eq!(sets[0]["measures"], json!(["stapes_velocity", "impedance", "absorbance"]));
-    assert!(sets[0]["fit_null"].is_object() && sets[0]["training"] != f["training"], "{}", sets[0]);
+    assert_eq!(sets[1]["measures"], json!(["impedance", "absorbance"]));
+    for set in &sets {
+        assert!(set["fit_null"].is_object() && set["training"] != f["training"], "{set}");
+    }
+    assert_ne!(sets[0]["training"], sets[1]["training"]);
 }
 
 /// Umbo velocity: WBT + umbo LDV is answered, the umbo narrows the

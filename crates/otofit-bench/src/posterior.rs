@@ -826,17 +826,20 @@ mod tests {
         assert!(serde_json::to_string(&r).unwrap().contains("\"per_ear\""));
     }
 
-    /// A subset of measures is answered by the masked flow and scored against the
+    /// A subset of measures is answered by the flow that answers it in the service (the
+    /// masked flow, or a measure-set flow for exactly its groups) and scored against the
     /// likelihood of its features alone; an unknown group is refused by its argument.
     #[test]
-    fn a_subset_of_measures_is_read_by_the_masked_flow() {
+    fn a_subset_of_measures_is_read_by_the_flow_that_answers_it() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
         let npe = Npe::load(&path).unwrap();
-        let wbt = vec!["impedance".to_string(), "absorbance".to_string()];
-        let p = PosteriorParams { ears: 1, seed: 3, steps: MIN_STEPS, measures: wbt.clone() };
+        let clinic: Vec<String> = ["impedance", "absorbance", "umbo_velocity"].map(String::from).to_vec();
+        let p = PosteriorParams { ears: 1, seed: 3, steps: MIN_STEPS, measures: clinic.clone() };
         let r = run(&npe, &p, &mut |_| {}).unwrap();
-        assert_eq!((r.flow, &r.measures, r.per_ear.len()), ("masked", &wbt, 1), "{:?}", r.skipped);
-        assert!(table(&r).contains("measures impedance,absorbance (masked flow)"));
+        assert_eq!((r.flow, &r.measures, r.per_ear.len()), ("masked", &clinic, 1), "{:?}", r.skipped);
+        assert!(table(&r).contains("measures impedance,absorbance,umbo_velocity (masked flow)"));
+        let wbt = PosteriorParams { measures: clinic[..2].to_vec(), ..p.clone() };
+        assert_eq!(run(&npe, &wbt, &mut |_| {}).unwrap().flow, "measure-set");
         let all = PosteriorParams { measures: vec![], ..p.clone() };
         let every = run(&npe, &all, &mut |_| {}).unwrap();
         assert_eq!(every.flow, "full-measure");
