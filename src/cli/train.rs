@@ -61,7 +61,8 @@ pub struct TrainArgs {
     #[arg(long)]
     pub mask_groups: bool,
     /// Also cut the ends of each group's band at random (up to a quarter of the grid) so
-    /// one network answers sub-band measurements (needs --mask-groups).
+    /// one network answers sub-band measurements (with --mask-groups, or with --measures
+    /// for a measure-set flow that takes its groups on part of the band).
     #[arg(long)]
     pub mask_bands: bool,
     /// Train on these feature groups alone (comma-separated, e.g.

@@ -235,8 +235,8 @@ impl Header {
         if self.measures.is_empty() {
             return Ok(());
         }
-        if self.mask_groups || self.mask_bands {
-            return field("a measure-set flow is trained without masks".into());
+        if self.mask_groups {
+            return field("a measure-set flow is trained without group masks".into());
         }
         for (k, m) in self.measures.iter().enumerate() {
             if !self.groups.iter().any(|g| &g.name == m) {
@@ -588,10 +588,22 @@ impl Npe {
             return None;
         }
         let given = |i: usize| obs.present.is_none_or(|p| p[i]) && obs.x[i].is_finite();
-        // A feature a set does not read belongs to another group: it must be absent.
-        self.sets
-            .iter()
-            .find(|s| s.header.measure_features().is_some_and(|read| (0..obs.x.len()).all(|i| read[i] == given(i))))
+        // A feature a set does not read belongs to another group: it must be absent. A set
+        // that reads every feature given whole answers before a band-masked one.
+        let whole =
+            |s: &&Npe| s.header.measure_features().is_some_and(|read| (0..obs.x.len()).all(|i| read[i] == given(i)));
+        let banded = |s: &&Npe| {
+            let h = &s.header;
+            h.mask_bands
+                && h.measure_features().is_some_and(|read| (0..obs.x.len()).all(|i| read[i] || !given(i)))
+                && h.groups.iter().all(|g| {
+                    let band = band_of(h, g, &given);
+                    if h.measures.contains(&g.name) { matches!(band, Ok(Some(_))) } else { matches!(band, Ok(None)) }
+                })
+                && (0..obs.x.len()).all(|i| given(i) || h.groups.iter().any(|g| g.features.contains(&i)))
+        };
+        let unmasked = |s: &&Npe| !s.header.mask_bands;
+        self.sets.iter().filter(unmasked).find(whole).or_else(|| self.sets.iter().find(banded))
     }
 
     /// Whether [`Npe::answering`] gives the full-measure flow for `obs`: the file holds
@@ -647,14 +659,16 @@ impl Npe {
         };
         let mut wanted = flow.header.measures.clone();
         wanted.sort();
+        // One flow per set of measures read whole, and one per set read on part of the band.
         let held = |s: &Npe| {
             let mut m = s.header.measures.clone();
             m.sort();
-            m == wanted
+            m == wanted && s.header.mask_bands == flow.header.mask_bands
         };
         let why = why.or_else(|| {
             if self.sets.iter().any(held) {
-                Some(format!("the model holds a flow of the measures {} already", wanted.join(", ")))
+                let kind = if flow.header.mask_bands { " with band masks" } else { "" };
+                Some(format!("the model holds a flow{kind} of the measures {} already", wanted.join(", ")))
             } else if self.sets.len() >= MAX_MEASURE_SETS {
                 Some(format!("the model holds {MAX_MEASURE_SETS} measure-set flows, the most a file may"))
             } else {
@@ -867,13 +881,32 @@ impl Npe {
                 row.extend((0..f).map(|i| if present(i) && obs.x[i].is_finite() { 1.0 } else { 0.0 }));
             }
         } else if let Some(read) = h.measure_features() {
+            // A band-masked one reads each of its groups on a band as wide as training cut.
+            let banded = |i: usize| h.mask_bands && h.groups.iter().any(|g| g.features.contains(&i));
+            if h.mask_bands {
+                for g in h.groups.iter().filter(|g| h.measures.contains(&g.name)) {
+                    let given = |i: usize| present(i) && obs.x[i].is_finite();
+                    if band_of(h, g, &given)?.is_none() {
+                        return Err(ObservationError::MissingOrNotFinite {
+                            feature: h.feature_names[g.features[0]].clone(),
+                        }
+                        .into());
+                    }
+                }
+            }
             // A measure-set flow never saw the other groups: they stay zero, given or not.
             for i in 0..f {
                 if !read[i] {
                     row[i] = 0.0;
                 } else if !present(i) || !obs.x[i].is_finite() {
-                    return Err(ObservationError::MissingOrNotFinite { feature: h.feature_names[i].clone() }.into());
+                    if !banded(i) {
+                        return Err(ObservationError::MissingOrNotFinite { feature: h.feature_names[i].clone() }.into());
+                    }
+                    row[i] = 0.0;
                 }
+            }
+            if h.mask_bands {
+                row.extend((0..f).map(|i| if read[i] && present(i) && obs.x[i].is_finite() { 1.0 } else { 0.0 }));
             }
         } else if let Some(i) = (0..f).find(|&i| !present(i) || !obs.x[i].is_finite()) {
             return Err(ObservationError::MissingOrNotFinite { feature: h.feature_names[i].clone() }.into());
@@ -1394,6 +1427,72 @@ mod tests {
         assert!(e.contains(&back.header.feature_names[back.header.groups[1].features[0]]), "{e}");
     }
 
+    /// An untrained measure-set flow of `groups` that reads them on part of the band.
+    fn banded_set_like(m: &Npe, groups: &[&str]) -> Npe {
+        let mut h = measure_set_like(m, groups).header;
+        h.mask_bands = true;
+        h.band_cut_max = m.header.band_cut_max;
+        h.flow.inputs = 2 * h.feature_names.len();
+        let flow = Flow::new(&h.flow, &Device::flex());
+        Npe::from_parts(h, vec![flow.into_record()])
+    }
+
+    /// `present` without the lowest `n` grid points of group `g`.
+    fn without_low(h: &Header, present: &[bool], g: usize, n: usize) -> Vec<bool> {
+        let grid = h.frequencies_hz.len();
+        let mut p = present.to_vec();
+        h.groups[g].features.iter().filter(|&&i| i % grid < n).for_each(|&i| p[i] = false);
+        p
+    }
+
+    #[test]
+    fn a_band_masked_measure_set_flow_answers_its_groups_on_part_of_the_band() {
+        let mut m = bare_model();
+        let names: Vec<String> = m.header.groups.iter().map(|g| g.name.clone()).collect();
+        let (a, b, c) = (names[0].as_str(), names[1].as_str(), names[2].as_str());
+        let cut_max = m.header.band_cut_max;
+        assert!(cut_max >= 2, "{cut_max}");
+        m.attach_measure_set(banded_set_like(&m, &[a, b])).unwrap();
+        m.attach_measure_set(measure_set_like(&m, &[a, b])).unwrap();
+        let e = m.attach_measure_set(banded_set_like(&m, &[b, a])).unwrap_err().to_string();
+        assert!(e.contains("with band masks") && e.contains("already"), "{e}");
+        let back = Npe::from_bytes(&m.to_bytes().unwrap()).unwrap();
+        let (banded, whole) = (&back.measure_sets()[0], &back.measure_sets()[1]);
+        assert!(banded.header.mask_bands && !whole.header.mask_bands, "both kept, in order");
+        let h = &back.header;
+        let x = h.x_mean.clone();
+        let answering = |present: &[bool]| back.answering(&Obs { x: &x, present: Some(present) });
+        let ab = given(h, &[a, b]);
+        assert!(std::ptr::eq(answering(&ab), whole), "the whole band: the set read whole answers first");
+        let low2 = without_low(h, &ab, 0, 2);
+        assert!(std::ptr::eq(answering(&low2), banded), "two points short: the band-masked set");
+        assert_eq!(back.answering_name(&Obs { x: &x, present: Some(&low2) }), "measure-set");
+        let both = without_low(h, &low2, 1, cut_max);
+        assert!(std::ptr::eq(answering(&both), banded), "each group cut as far as training did");
+        assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, cut_max + 1)), &back), "cut further: masked");
+        assert!(std::ptr::eq(answering(&without_low(h, &given(h, &[a, b, c]), 0, 2)), &back), "another group");
+        let mut gap = ab.clone();
+        gap[h.groups[0].features.iter().copied().find(|&i| i % h.frequencies_hz.len() == 10).unwrap()] = false;
+        assert!(std::ptr::eq(answering(&gap), &back), "a gap inside the band: masked");
+        assert!(std::ptr::eq(answering(&given(h, &[a])), &back), "one of its groups alone: masked");
+        // Its input: the features given, the other groups as zeros, a flag per feature.
+        let row = banded.input_row(&Obs { x: &x, present: Some(&low2) }).unwrap();
+        let f = x.len();
+        assert_eq!(row.len(), 2 * f);
+        assert!((0..f).all(|i| (row[f + i] == 1.0) == low2[i]), "the flags are the features given");
+        let mut moved = x.clone();
+        (0..f).filter(|&i| !ab[i]).for_each(|i| moved[i] += 5.0 * h.x_std[i]);
+        let all_low2 = without_low(h, &without_low(h, &vec![true; f], 0, 2), 2, 0);
+        let row_moved = banded.input_row(&Obs { x: &moved, present: Some(&all_low2) }).unwrap();
+        assert_eq!(row, row_moved, "the other groups, given or not, never reach its network");
+        let e = banded.input_row(&Obs { x: &x, present: Some(&without_low(h, &ab, 0, cut_max + 1)) });
+        assert!(e.unwrap_err().to_string().contains(a), "a band narrower than training covered names the group");
+        let mut alone = bare_model();
+        alone.attach_measure_set(banded_set_like(&m, &[a, b])).unwrap();
+        let one = &alone.measure_sets()[0];
+        assert!(std::ptr::eq(alone.answering(&Obs { x: &x, present: Some(&ab) }), one), "alone: the whole band too");
+    }
+
     #[test]
     fn a_measure_set_flow_names_some_groups_once_each_set_is_held_once_and_a_cut_file_is_refused() {
         let mut m = bare_model();
@@ -1426,7 +1525,7 @@ mod tests {
         let mut masked = measure_set_like(&m, &[a]).header;
         masked.mask_groups = true;
         masked.flow.inputs += masked.groups.len();
-        assert!(masked.validate().unwrap_err().to_string().contains("without masks"));
+        assert!(masked.validate().unwrap_err().to_string().contains("without group masks"));
     }
 
     fn latent_of(npe: &Npe) -> LatentMap<'_> {

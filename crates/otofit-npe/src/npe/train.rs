@@ -238,10 +238,11 @@ fn check(ds: &Dataset, s: &TrainSettings) -> Result<()> {
     if s.mask_groups && ds.groups.is_empty() {
         return Err(NpeError::settings("mask-groups", "--mask-groups needs feature groups (declared in meta.json)"));
     }
-    if s.mask_bands && (!s.mask_groups || n_freq < 8 || f % n_freq != 0) {
+    if s.mask_bands && ((!s.mask_groups && s.measures.is_empty()) || n_freq < 8 || f % n_freq != 0) {
         return Err(NpeError::settings(
             "mask-bands",
-            "--mask-bands needs --mask-groups and a frequency grid (meta.json frequencies_hz) of at least 8 points",
+            "--mask-bands needs --mask-groups or --measures, and a frequency grid (meta.json frequencies_hz) of at \
+             least 8 points",
         ));
     }
     if !s.measures.is_empty() {
@@ -447,7 +448,24 @@ impl Batcher<'_> {
                 }
             }
             if let Some(read) = &self.read {
-                read.iter().zip(&mut inp[start..]).filter(|(r, _)| !**r).for_each(|(_, v)| *v = 0.0);
+                // A band-masked measure-set flow: each of its groups loses the ends of its
+                // band with probability 1/2, as a masked flow's kept groups do.
+                if s.mask_bands {
+                    for g in ds.groups.iter().filter(|g| h.measures.contains(&g.name)) {
+                        if rng.random::<bool>() {
+                            let lo = rng.random_range(0..=band_cut_max);
+                            let hi = n_freq - 1 - rng.random_range(0..=band_cut_max);
+                            for &k in g.features.iter().filter(|&&k| !(lo..=hi).contains(&(k % n_freq))) {
+                                inp[start + k] = 0.0;
+                                here[k] = false;
+                            }
+                        }
+                    }
+                }
+                for (k, _) in read.iter().enumerate().filter(|(_, r)| !**r) {
+                    inp[start + k] = 0.0;
+                    here[k] = false;
+                }
             }
             inp.extend(keep.iter().map(|&on| if on { 1.0 } else { 0.0 }));
             if s.mask_bands {
@@ -1701,6 +1719,72 @@ mod tests {
         }
         let masked = TrainSettings { mask_groups: true, ..s.clone() };
         assert!(train(&ds, &masked, &mut |_| true).err().unwrap().to_string().contains("--mask-groups"));
+    }
+
+    /// A table of two groups of eight features on an eight-point grid.
+    fn gridded(n: usize) -> Dataset {
+        let mut ds = toy(n);
+        let x: Vec<Vec<f64>> = ds
+            .theta
+            .iter()
+            .map(|t| {
+                (0..16)
+                    .map(|k| if k < 8 { t[0] + t[1] * k as f64 / 8.0 } else { t[0] * (k - 8) as f64 / 8.0 - t[1] })
+                    .collect()
+            })
+            .collect();
+        let group = |name: &str, features: Vec<usize>| super::super::Group { name: name.into(), features };
+        ds.feature_names = (0..16).map(|k| format!("f{k}")).collect();
+        ds.frequencies_hz = (0..8).map(|k| 200.0 * 2f64.powi(k)).collect();
+        ds.groups = vec![group("sum", (0..8).collect()), group("rest", (8..16).collect())];
+        ds.noise_std = vec![0.2; 16];
+        ds.x = x;
+        ds
+    }
+
+    /// A band-masked measure-set flow sees its groups whole or with the ends of the band
+    /// cut (never beyond a quarter of the grid), a flag per feature saying which are
+    /// there; the other groups never. It answers an ear of its groups on part of the band.
+    #[test]
+    fn a_band_masked_measure_set_flow_trains_on_its_groups_with_their_band_ends_cut() {
+        let ds = gridded(400);
+        let s = TrainSettings {
+            embedding: false,
+            seed: 5,
+            batch: 100,
+            max_epochs: 2,
+            measures: vec!["rest".into()],
+            mask_bands: true,
+            ..Default::default()
+        };
+        let (mut cut, mut whole) = (0, 0);
+        with_run(&ds, &s, |run| {
+            assert_eq!(run.cfg.inputs, 32, "16 features and 16 flags");
+            let (_, inp) = run.batcher.batch(&run.train_idx[..200], 17);
+            for row in inp.chunks(32) {
+                let (x, flag) = row.split_at(16);
+                assert!(x[..8].iter().chain(&flag[..8]).all(|&v| v == 0.0), "the other group: absent, {row:?}");
+                let on: Vec<usize> = (0..8).filter(|&k| flag[8 + k] == 1.0).collect();
+                let (lo, hi) = (on[0], on[on.len() - 1]);
+                assert!(on.len() == hi - lo + 1 && lo <= 2 && hi >= 5, "one band, cut ≤ 2 points each end: {on:?}");
+                assert!((0..8).all(|k| (flag[8 + k] == 1.0) == (x[8 + k] != 0.0)), "zeros where cut: {row:?}");
+                if on.len() < 8 { cut += 1 } else { whole += 1 }
+            }
+        });
+        assert!((60..=140).contains(&cut) && whole > 0, "about half the rows cut: {cut} of 200");
+        let m = train(&ds, &s, &mut |_| true).unwrap();
+        assert!(m.header.mask_bands && m.header.measures == ["rest"] && m.header.band_cut_max == 2);
+        let x = m.header.x_mean.clone();
+        let mut given = vec![false; 8];
+        given.extend((0..8).map(|k| k >= 2));
+        let row = m.input_row(&super::super::Obs { x: &x, present: Some(&given) }).unwrap();
+        assert_eq!(&row[16..], given.iter().map(|&g| if g { 1.0 } else { 0.0 }).collect::<Vec<f32>>(), "flags");
+        given[10] = false;
+        let e = m.input_row(&super::super::Obs { x: &x, present: Some(&given) }).unwrap_err().to_string();
+        assert!(e.contains("rest"), "a band cut further than training did is refused: {e}");
+        let neither = TrainSettings { measures: vec![], ..s.clone() };
+        let e = train(&ds, &neither, &mut |_| true).err().unwrap().to_string();
+        assert!(e.contains("--mask-groups or --measures"), "{e}");
     }
 
     fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {

@@ -85,7 +85,10 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
                 .iter()
                 .map(|s| {
                     let f = &s.header;
-                    json!({ "measures": f.measures, "training": f.training, "temperature": f.temperature, "fit_null": f.fit_null })
+                    json!({
+                        "measures": f.measures, "accepts_partial_bands": f.mask_bands, "training": f.training,
+                        "temperature": f.temperature, "fit_null": f.fit_null,
+                    })
                 })
                 .collect();
             if !sets.is_empty() {
