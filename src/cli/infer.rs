@@ -127,7 +127,12 @@ fn measured(
 /// observation), one observation in the `POST /infer` format (`.json`: the request, or
 /// just its `measurements`) or one ear as a long-layout table, as (features, present) on
 /// the model's grid.
-fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<(Vec<f64>, Vec<bool>)>> {
+/// One observation of a table: its features and which are given, or why it was refused.
+type Row = std::result::Result<(Vec<f64>, Vec<bool>), String>;
+
+/// The observations in `path`. A single ear (JSON, long layout) is refused whole; a
+/// feature table's rows one by one, so that one bad row costs only itself.
+fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<Row>> {
     if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("json")) {
         let text = std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
         let mut doc: serde_json::Value =
@@ -135,7 +140,7 @@ fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<(Vec<f
         let m = doc.get_mut("measurements").map(serde_json::Value::take).unwrap_or(doc);
         let m: crate::measurements::Measurements = serde_json::from_value(m)
             .with_context(|| format!("{}: not an observation in the POST /infer format", path.display()))?;
-        return Ok(vec![measured(model, path, &m, None)?]);
+        return Ok(vec![Ok(measured(model, path, &m, None)?)]);
     }
     let first = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
     if first.iter().find(|b| !b.is_ascii_whitespace()) == Some(&b'{') {
@@ -152,7 +157,7 @@ fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<(Vec<f
         for n in &imp.notes {
             eprintln!("note: {n}");
         }
-        return Ok(vec![measured(model, path, &imp.measurements, Some(&imp))?]);
+        return Ok(vec![Ok(measured(model, path, &imp.measurements, Some(&imp))?)]);
     }
     if !args.long.is_empty() || args.preset.is_some() {
         bail!(
@@ -165,29 +170,44 @@ fn observations(model: &Npe, path: &Path, args: &InferArgs) -> Result<Vec<(Vec<f
         bail!("{}: no observation rows", path.display());
     }
     let otofit_model = crate::discrepancy::fitcheck::simulator_for(model).is_ok();
-    table
+    let row = |row: &[f64]| -> Result<(Vec<f64>, Vec<bool>)> {
+        let (x, present) = align(model, &table.header, row)?;
+        // The JSON path checks this in measurements::features; a feature table here.
+        if otofit_model
+            && let Some((_, i, v)) =
+                crate::sim::output::implausible(&x, &present, model.header.frequencies_hz.len()).first()
+        {
+            bail!(
+                "{} = {v} is outside the physical range of a human ear (phases in rad, magnitudes as log10 of m/s/Pa \
+                 and Pa·s/m³)",
+                model.header.feature_names[*i]
+            );
+        }
+        Ok((x, present))
+    };
+    let rows: Vec<Row> = table
         .rows
         .iter()
         .enumerate()
-        .map(|(r, row)| {
-            let (x, present) =
-                align(model, &table.header, row).with_context(|| format!("{}: row {}", path.display(), r + 1))?;
-            // The JSON path checks this in measurements::features; a feature table here.
-            if otofit_model
-                && let Some((_, i, v)) =
-                    crate::sim::output::implausible(&x, &present, model.header.frequencies_hz.len()).first()
-            {
-                bail!(
-                    "{}: row {}: {} = {v} is outside the physical range of a human ear (phases in rad, magnitudes as \
-                     log10 of m/s/Pa and Pa·s/m³)",
-                    path.display(),
-                    r + 1,
-                    model.header.feature_names[*i]
-                );
-            }
-            Ok((x, present))
-        })
-        .collect()
+        .map(|(r, v)| row(v).map_err(|e| format!("{}: row {}: {e:#}", path.display(), r + 1)))
+        .collect();
+    // A table of one ear is that ear: refused whole, as before any work.
+    if let [Err(why)] = rows.as_slice() {
+        bail!("{why}");
+    }
+    Ok(rows)
+}
+
+/// Ends a run whose table had refused rows: every other row was answered and written.
+fn refused(rows: usize, why: &[String]) -> Result<()> {
+    match why {
+        [] => Ok(()),
+        [first, ..] => bail!(
+            "{} of {rows} observations refused (each has an `error` line on stdout; the others were answered): \
+             first: {first}",
+            why.len()
+        ),
+    }
 }
 
 /// The parameter sets of a `--log-prob` table, in the model's parameter order.
@@ -212,20 +232,32 @@ fn theta_rows(model: &Npe, path: &Path) -> Result<Vec<Vec<f64>>> {
 }
 
 /// `--log-prob`: log q(θ|x) of every given θ for every observation, one JSON line each.
-fn log_probs(model: &Npe, rows: &[(Vec<f64>, Vec<bool>)], path: &Path) -> Result<()> {
+fn log_probs(model: &Npe, rows: &[Row], path: &Path) -> Result<()> {
     let thetas = theta_rows(model, path)?;
     let inside = |t: &[f64]| model.params().iter().zip(t).all(|(p, v)| v.is_finite() && (p.low..=p.high).contains(v));
     let mut stdout = std::io::stdout().lock();
-    for (r, (x, present)) in rows.iter().enumerate() {
-        let obs = Obs { x, present: Some(present) };
-        let lp = model.answering(&obs).log_prob(&obs, &thetas).with_context(|| format!("observation {}", r + 1))?;
+    let mut why = Vec::new();
+    for (r, row) in rows.iter().enumerate() {
+        let lp = row.as_ref().map_err(String::clone).and_then(|(x, present)| {
+            let obs = Obs { x, present: Some(present) };
+            model.answering(&obs).log_prob(&obs, &thetas).map_err(|e| format!("observation {}: {e:#}", r + 1))
+        });
+        let lp = match lp {
+            Ok(lp) => lp,
+            Err(e) if rows.len() == 1 => bail!("{e}"),
+            Err(e) => {
+                writeln!(stdout, "{}", serde_json::json!({ "observation": r, "error": e }))?;
+                why.push(e);
+                continue;
+            }
+        };
         let outside: Vec<usize> = (0..thetas.len()).filter(|&i| !inside(&thetas[i])).collect();
         let lp: Vec<Option<f64>> =
             lp.iter().enumerate().map(|(i, v)| (!outside.contains(&i) && v.is_finite()).then_some(*v)).collect();
         let line = serde_json::json!({ "observation": r, "log_prob": lp, "outside_prior": outside });
         writeln!(stdout, "{line}")?;
     }
-    Ok(())
+    refused(rows.len(), &why)
 }
 
 /// Runs `otofit infer`.
@@ -267,16 +299,28 @@ pub fn run(args: InferArgs) -> Result<()> {
     // The summaries are printed after --out is written: a reader that stops early
     // (`| head -1`) must not cost the samples.
     let mut summaries = Vec::with_capacity(rows.len());
-    for (r, (x, present)) in rows.iter().enumerate() {
-        let (x, present) = (x.as_slice(), present.as_slice());
+    let mut why = Vec::new();
+    for (r, row) in rows.iter().enumerate() {
         // The full-measure flow answers an ear with every measure, a measure-set flow an
         // ear of exactly its groups, when the file holds them.
+        let answered = row.as_ref().map_err(String::clone).and_then(|(x, present)| {
+            let obs = Obs { x, present: Some(present) };
+            let inf = model.answering(&obs).infer(&obs, args.samples, args.seed);
+            inf.map(|inf| ((x.as_slice(), present.as_slice()), inf))
+                .map_err(|e| format!("observation {}: {e:#}", r + 1))
+        });
+        let ((x, present), inf) = match answered {
+            Ok(a) => a,
+            Err(e) if !many => bail!("{e}"),
+            Err(e) => {
+                summaries.push(serde_json::json!({ "observation": r, "error": e }).to_string());
+                why.push(e);
+                continue;
+            }
+        };
         let obs = Obs { x, present: Some(present) };
         let flow = model.answering_name(&obs);
         let model = model.answering(&obs);
-        let inf = model
-            .infer(&Obs { x, present: Some(present) }, args.samples, args.seed)
-            .with_context(|| format!("observation {}", r + 1))?;
         for s in &inf.samples {
             let vals: Vec<String> = s.iter().map(|v| format!("{v:e}")).collect();
             if many {
@@ -337,7 +381,7 @@ pub fn run(args: InferArgs) -> Result<()> {
     for line in summaries {
         writeln!(stdout, "{line}")?;
     }
-    Ok(())
+    refused(rows.len(), &why)
 }
 
 /// `--posterior exact`: the likelihood's posterior of one observation from short chains

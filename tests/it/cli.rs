@@ -623,6 +623,66 @@ fn a_wai_long_layout_export_imports_and_infers_with_the_shipped_model() {
     let _ = std::fs::remove_dir_all(&d);
 }
 
+/// A feature table of several ears with one implausible row: that row is refused by
+/// name, the others answered and written, and the run ends in failure saying so.
+#[test]
+fn one_bad_row_of_a_table_costs_only_itself() {
+    let d = scratch("rows");
+    let o = otofit(&[
+        "simulate",
+        "--n",
+        "3",
+        "--seed",
+        "4",
+        "--noise-scale",
+        "1",
+        "--out",
+        d.join("three").to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let x = std::fs::read_to_string(d.join("three/x.csv")).unwrap();
+    let header: Vec<&str> = x.lines().next().unwrap().split(',').collect();
+    let col = header.iter().position(|h| h.starts_with("absorbance@")).unwrap();
+    let mut lines: Vec<String> = x.lines().map(String::from).collect();
+    let row2 = lines[2].clone();
+    let mut bad: Vec<&str> = row2.split(',').collect();
+    bad[col] = "3.0";
+    lines[2] = bad.join(",");
+    let table = d.join("ears.csv");
+    std::fs::write(&table, lines.join("\n") + "\n").unwrap();
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
+    let out = d.join("s.csv");
+    let args = ["infer", "--model", model, "--obs", table.to_str().unwrap(), "--samples", "40"];
+    let o = otofit(&[&args[..], &["--out", out.to_str().unwrap()]].concat());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("1 of 3 observations refused") && err.contains("row 2"), "{err}");
+    let lines: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(lines.len(), 3, "{lines:?}");
+    let why = lines[1]["error"].as_str().unwrap_or_default();
+    assert!(why.contains(header[col]) && why.contains("physical range"), "{}", lines[1]);
+    assert!(lines[0]["parameters"].is_array() && lines[2]["parameters"].is_array());
+    let samples = std::fs::read_to_string(&out).unwrap();
+    let obs: Vec<&str> = samples.lines().skip(1).map(|l| l.split(',').next().unwrap()).collect();
+    assert_eq!((obs.len(), obs.iter().filter(|&&o| o == "1").count()), (80, 0), "rows 1 and 3 written, 40 each");
+    // The same for densities.
+    let theta = std::fs::read_to_string(d.join("three/theta.csv")).unwrap();
+    let one = d.join("theta.csv");
+    std::fs::write(&one, theta.lines().take(2).collect::<Vec<_>>().join("\n") + "\n").unwrap();
+    let o = otofit(&[&args[..], &["--log-prob", one.to_str().unwrap()]].concat());
+    let lp: Vec<serde_json::Value> =
+        String::from_utf8_lossy(&o.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert!(!o.status.success() && lp.len() == 3 && lp[1]["error"].is_string(), "{lp:?}");
+    assert!(lp[0]["log_prob"][0].is_number() && lp[2]["log_prob"][0].is_number(), "{lp:?}");
+    // A table of one bad ear is refused whole, nothing written.
+    let single = d.join("one.csv");
+    std::fs::write(&single, format!("{}\n{}\n", x.lines().next().unwrap(), bad.join(","))).unwrap();
+    let _ = std::fs::remove_file(&out);
+    let o = otofit(&["infer", "--model", model, "--obs", single.to_str().unwrap(), "--out", out.to_str().unwrap()]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("physical range") && !out.exists());
+    let _ = std::fs::remove_dir_all(&d);
+}
+
 #[test]
 fn diagnose_refuses_a_null_too_small_to_have_a_threshold() {
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/models/default.otofit");
