@@ -1062,7 +1062,8 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     let (status, _, c) = call(&app, "POST", "/infer", Some(wbt.clone())).await;
     assert_eq!((status, c["inputs"]["flow"].as_str()), (StatusCode::OK, Some("measure-set")), "{}", c["inputs"]);
     assert_eq!(c["fit"]["ok"], true, "{}", c["fit"]);
-    // The same WBT ear above 300 Hz only: no set's flow reads part of a band.
+    // The same WBT ear above 300 Hz only, as a device exports it: the WBT flow trained
+    // with band masks; an ear of another set of measures: the masked flow.
     let mut cut = wbt;
     for m in ["impedance", "absorbance"] {
         let block = cut["measurements"][m].as_object_mut().unwrap();
@@ -1074,7 +1075,10 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
         }
     }
     let (status, _, e) = call(&app, "POST", "/infer", Some(cut)).await;
-    assert_eq!((status, e["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{e}");
+    assert_eq!((status, e["inputs"]["flow"].as_str()), (StatusCode::OK, Some("measure-set")), "{}", e["inputs"]);
+    assert_eq!(e["fit"]["ok"], true, "{}", e["fit"]);
+    let (status, _, e) = call(&app, "POST", "/infer", Some(clinic_request())).await;
+    assert_eq!((status, e["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{}", e["inputs"]);
     let (status, _, m) = call(&app, "GET", "/models/default", None).await;
     assert_eq!(status, StatusCode::OK, "{m}");
     let f = &m["full_measure_flow"];
@@ -1082,13 +1086,17 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert!((0.5..=2.0).contains(&t) && f["fit_null"].is_object(), "{f}");
     assert_ne!(f["training"], m["training"], "the full-measure flow's own training, not the main flow's");
     let sets = m["measure_set_flows"].as_array().cloned().unwrap_or_default();
-    assert_eq!(sets.len(), 2, "{m}");
+    assert_eq!(sets.len(), 3, "{m}");
     assert_eq!(sets[0]["measures"], json!(["stapes_velocity", "impedance", "absorbance"]));
     assert_eq!(sets[1]["measures"], json!(["impedance", "absorbance"]));
+    assert_eq!(sets[2]["measures"], json!(["impedance", "absorbance"]));
+    let partial: Vec<bool> = sets.iter().map(|s| s["accepts_partial_bands"].as_bool().unwrap()).collect();
+    assert_eq!(partial, [false, false, true]);
     for set in &sets {
         assert!(set["fit_null"].is_object() && set["training"] != f["training"], "{set}");
     }
     assert_ne!(sets[0]["training"], sets[1]["training"]);
+    assert_ne!(sets[1]["training"], sets[2]["training"]);
 }
 
 /// Umbo velocity: WBT + umbo LDV is answered, the umbo narrows the
