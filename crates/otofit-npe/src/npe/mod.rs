@@ -252,6 +252,16 @@ impl Header {
         Ok(())
     }
 
+    /// Which features belong to a feature group (the others must always be given).
+    fn grouped_features(&self) -> Vec<bool> {
+        let f = self.feature_names.len();
+        let mut grouped = vec![false; f];
+        for &i in self.groups.iter().flat_map(|g| &g.features).filter(|&&i| i < f) {
+            grouped[i] = true;
+        }
+        grouped
+    }
+
     /// The features a measure-set flow reads: its groups' and those outside every group;
     /// `None` for a flow that reads them all.
     pub fn measure_features(&self) -> Option<Vec<bool>> {
@@ -600,7 +610,7 @@ impl Npe {
                     let band = band_of(h, g, &given);
                     if h.measures.contains(&g.name) { matches!(band, Ok(Some(_))) } else { matches!(band, Ok(None)) }
                 })
-                && (0..obs.x.len()).all(|i| given(i) || h.groups.iter().any(|g| g.features.contains(&i)))
+                && h.grouped_features().iter().enumerate().all(|(i, &grouped)| grouped || given(i))
         };
         let unmasked = |s: &&Npe| !s.header.mask_bands;
         self.sets.iter().filter(unmasked).find(whole).or_else(|| self.sets.iter().find(banded))
@@ -882,10 +892,10 @@ impl Npe {
             }
         } else if let Some(read) = h.measure_features() {
             // A band-masked one reads each of its groups on a band as wide as training cut.
-            let banded = |i: usize| h.mask_bands && h.groups.iter().any(|g| g.features.contains(&i));
+            let banded = if h.mask_bands { h.grouped_features() } else { vec![false; f] };
             if h.mask_bands {
+                let given = |i: usize| present(i) && obs.x[i].is_finite();
                 for g in h.groups.iter().filter(|g| h.measures.contains(&g.name)) {
-                    let given = |i: usize| present(i) && obs.x[i].is_finite();
                     if band_of(h, g, &given)?.is_none() {
                         return Err(ObservationError::MissingOrNotFinite {
                             feature: h.feature_names[g.features[0]].clone(),
@@ -899,7 +909,7 @@ impl Npe {
                 if !read[i] {
                     row[i] = 0.0;
                 } else if !present(i) || !obs.x[i].is_finite() {
-                    if !banded(i) {
+                    if !banded[i] {
                         return Err(ObservationError::MissingOrNotFinite { feature: h.feature_names[i].clone() }.into());
                     }
                     row[i] = 0.0;

@@ -436,7 +436,7 @@ impl Batcher<'_> {
             for (g, &on) in self.groups.iter().zip(&keep) {
                 // A kept group loses the ends of its band with probability 1/2.
                 let (lo, hi) = if on && s.mask_bands && rng.random::<bool>() {
-                    (rng.random_range(0..=band_cut_max), n_freq - 1 - rng.random_range(0..=band_cut_max))
+                    band_cut(rng, n_freq, band_cut_max)
                 } else {
                     (0, n_freq.saturating_sub(1))
                 };
@@ -453,8 +453,7 @@ impl Batcher<'_> {
                 if s.mask_bands {
                     for g in ds.groups.iter().filter(|g| h.measures.contains(&g.name)) {
                         if rng.random::<bool>() {
-                            let lo = rng.random_range(0..=band_cut_max);
-                            let hi = n_freq - 1 - rng.random_range(0..=band_cut_max);
+                            let (lo, hi) = band_cut(rng, n_freq, band_cut_max);
                             for &k in g.features.iter().filter(|&&k| !(lo..=hi).contains(&(k % n_freq))) {
                                 inp[start + k] = 0.0;
                                 here[k] = false;
@@ -474,6 +473,12 @@ impl Batcher<'_> {
         }
         (v, inp)
     }
+}
+
+/// The grid indices a cut band keeps: up to `band_cut_max` points off each end.
+fn band_cut(rng: &mut ChaCha8Rng, n_freq: usize, band_cut_max: usize) -> (usize, usize) {
+    let lo = rng.random_range(0..=band_cut_max);
+    (lo, n_freq - 1 - rng.random_range(0..=band_cut_max))
 }
 
 /// Mean negative log-likelihood of one batch, through burn (the tests hold the host's to it).
