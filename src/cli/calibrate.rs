@@ -1,6 +1,7 @@
 //! `otofit calibrate`: coverage and SBC ranks of a model on held-out simulations; with
 //! `--tune`, also the post-hoc recalibration (base temperature) and the fit check's null,
-//! written into the model; with `--diagnose-null`, the diagnose workflow's null, written
+//! written into the model; with `--null-only`, the fit check's null alone, for the model
+//! and every flow it holds; with `--diagnose-null`, the diagnose workflow's null, written
 //! into the model.
 
 use crate::npe::calibrate::{TUNE_LEVELS, calibrate_with, tune_temperature};
@@ -16,7 +17,7 @@ pub struct CalibrateArgs {
     #[arg(long)]
     pub model: PathBuf,
     /// Held-out dataset folder (not the training set).
-    #[arg(long, required_unless_present = "diagnose_null")]
+    #[arg(long, required_unless_present_any = ["diagnose_null", "null_only"])]
     pub data: Option<PathBuf>,
     /// Rows used (the first N; at most the dataset's rows).
     #[arg(long, default_value_t = 200)]
@@ -35,7 +36,7 @@ pub struct CalibrateArgs {
     /// Where --tune writes the model (default: over --model).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Held-out simulations behind the fit check's null (with --tune).
+    /// Held-out simulations behind the fit check's null (with --tune or --null-only).
     #[arg(long, default_value_t = 500)]
     pub null_cases: usize,
     /// Folder for calibration.json and calibration.svg (coverage curve, SBC rank
@@ -50,6 +51,11 @@ pub struct CalibrateArgs {
     /// jobs skip their per-ear null. Needs no --data.
     #[arg(long, conflicts_with_all = ["tune", "report", "json"])]
     pub diagnose_null: Option<usize>,
+    /// Measure the fit check's null again on --null-cases fresh simulations, for the model
+    /// and every flow it holds (full-measure, measure-set), keeping their temperatures;
+    /// write the result into the model (or into --out). Needs no --data.
+    #[arg(long, conflicts_with_all = ["tune", "report", "json", "diagnose_null"])]
+    pub null_only: bool,
     /// Feature groups given, per stored null (comma-separated group names, or `all`);
     /// repeat for several sets. An ear whose measures are not one of these sets gets its
     /// null measured per ear.
@@ -68,12 +74,15 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
     if args.n == 0 {
         bail!("--n must be at least 1");
     }
-    if args.tune && !(20..=100_000).contains(&args.null_cases) {
+    if (args.tune || args.null_only) && !(20..=100_000).contains(&args.null_cases) {
         bail!("--null-cases must be 20..=100000 (got {})", args.null_cases);
     }
     let mut model = Npe::load(&args.model)?;
     if let Some(cases) = args.diagnose_null {
         return diagnose_null(model, &args, cases);
+    }
+    if args.null_only {
+        return fit_null_only(model, &args);
     }
     let data = args.data.as_ref().context("--data is required")?;
     let ds = Dataset::load(data)?;
@@ -151,6 +160,42 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         let (chi2, _) = r.chi2(cal.samples_per_row, 10);
         println!("  {:<16} {:.3}  {:6.1}{}", r.name, m, chi2, if chi2 > 21.7 { "  (not uniform)" } else { "" });
     }
+    Ok(())
+}
+
+/// Measures the fit check's null of the model and of each flow it holds, and writes them
+/// into the model.
+fn fit_null_only(mut model: Npe, args: &CalibrateArgs) -> Result<()> {
+    use crate::discrepancy::fitcheck::null;
+    let what = "the fit check's null (only models of otofit's simulator have one)";
+    let report = |name: &str, n: &crate::npe::FitNull| {
+        eprintln!(
+            "{name}: fit check null on {} simulations: reduced χ² threshold {:.3}, worst measure {:.3}, input score \
+             {:.3} (the check fails {:.1} % of them)",
+            n.cases,
+            n.reduced_chi2,
+            n.measure_chi2,
+            n.input_score,
+            100.0 * (1.0 - n.quantile)
+        )
+    };
+    let main = null(&model, args.null_cases, args.seed).context(what)?;
+    report("main flow", &main);
+    model.header.fit_null = Some(main);
+    for flow in model.attached_mut() {
+        let n = null(flow, args.null_cases, args.seed).context(what)?;
+        let h = &flow.header;
+        let name = if h.measures.is_empty() {
+            "full-measure flow".to_string()
+        } else {
+            format!("measure-set flow {}{}", h.measures.join(","), if h.mask_bands { " (band masks)" } else { "" })
+        };
+        report(&name, &n);
+        flow.header.fit_null = Some(n);
+    }
+    let out = args.out.as_ref().unwrap_or(&args.model);
+    model.save(out)?;
+    eprintln!("wrote {}", out.display());
     Ok(())
 }
 

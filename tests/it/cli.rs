@@ -248,6 +248,25 @@ fn train_infer_and_calibrate_from_the_command_line() {
     let o = s(&[&calibrate[..], &["--json"]].concat());
     let cal: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(cal["levels"].as_array().unwrap().len(), 19);
+    // The fit check's null alone, into another file: every subset's thresholds, set together.
+    let nulled = d.join("nulled.otofit");
+    let o = s(&[
+        "calibrate",
+        "--model",
+        model.to_str().unwrap(),
+        "--null-only",
+        "--null-cases",
+        "40",
+        "--out",
+        nulled.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("main flow: fit check null on 40 simulations"), "{err}");
+    let null = otofit::npe::Npe::load(&nulled).unwrap().header.fit_null.expect("a null written");
+    assert!(null.joint && null.cases == 40 && null.subsets.len() == 14, "{null:?}");
+    assert!(otofit::npe::Npe::load(&model).unwrap().header.fit_null.is_none(), "--out leaves --model as it was");
+    let o = otofit(&["calibrate", "--model", model.to_str().unwrap(), "--null-only", "--tune"]);
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--tune"));
     // Errors name the problem.
     let bad = d.join("bad.csv");
     std::fs::write(&bad, "absorbance@999.0\n0.5\n").unwrap();

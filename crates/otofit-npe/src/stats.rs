@@ -96,6 +96,30 @@ pub fn spearman_per_block(a: &[f64], b: &[f64], blocks: usize) -> Vec<f64> {
     (0..blocks).map(|m| spearman(&a[m * n..(m + 1) * n], &b[m * n..(m + 1) * n])).collect()
 }
 
+/// Upper thresholds, one per statistic (`stats[j][i]`: statistic j of case i), such that
+/// at most a fraction `1 − level` of the cases exceed any of them: a check that fails when
+/// any statistic exceeds its threshold then keeps the false-alarm rate `level` promises,
+/// where each statistic held to its own `level` quantile would fail up to m times as many
+/// cases. Each threshold is its statistic's (k + 1)-th largest value, the same k for all,
+/// k as large as that budget allows. Statistics of unequal length are cut to the shortest;
+/// no cases: infinite thresholds.
+pub fn joint_upper_thresholds(stats: &[Vec<f64>], level: f64) -> Vec<f64> {
+    let n = stats.iter().map(Vec::len).min().unwrap_or(0);
+    if n == 0 {
+        return vec![f64::INFINITY; stats.len()];
+    }
+    let budget = ((1.0 - level) * n as f64 + 1e-9).floor() as usize;
+    let ordered: Vec<Vec<f64>> = stats.iter().map(|s| sorted(s[..n].to_vec())).collect();
+    let at = |k: usize| -> Vec<f64> { ordered.iter().map(|s| s[n - 1 - k.min(n - 1)]).collect() };
+    let failing = |t: &[f64]| (0..n).filter(|&i| stats.iter().zip(t).any(|(s, &t)| s[i] > t)).count();
+    // The union's failures grow with k: walk up while they stay within the budget.
+    let mut k = 0;
+    while k + 1 < n && failing(&at(k + 1)) <= budget {
+        k += 1;
+    }
+    at(k)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -126,5 +150,35 @@ mod tests {
         let (m, v) = mean_var_sample(&[1.0, 3.0]);
         assert_eq!((m, v), (2.0, 2.0));
         assert_eq!(mean([1.0, 2.0, 6.0]), 3.0);
+    }
+
+    #[test]
+    fn joint_thresholds_fail_the_promised_share_of_cases_however_the_statistics_relate() {
+        // Three independent statistics (a fixed pseudo-random sequence): each at its own
+        // 99 % quantile would fail up to 3 % of the cases together.
+        let n = 3000;
+        let mut state = 0x2545_F491_4F6C_DD1Du64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 11) as f64 / (1u64 << 53) as f64
+        };
+        let independent: Vec<Vec<f64>> = (0..3).map(|_| (0..n).map(|_| next()).collect()).collect();
+        let union_failing =
+            |stats: &[Vec<f64>], t: &[f64]| (0..n).filter(|&i| stats.iter().zip(t).any(|(s, &t)| s[i] > t)).count();
+        let t = joint_upper_thresholds(&independent, 0.99);
+        let failing = union_failing(&independent, &t);
+        assert!((25..=30).contains(&failing), "{failing} of {n} fail (budget 30)");
+        let alone: Vec<f64> = independent.iter().map(|s| quantile_nearest(&sorted(s.clone()), 0.99).unwrap()).collect();
+        assert!(union_failing(&independent, &alone) > 60, "each at its own 99 % fails more together");
+        // The same statistic three times: the joint thresholds are its own 99 % quantile.
+        let same = vec![independent[0].clone(); 3];
+        let t = joint_upper_thresholds(&same, 0.99);
+        assert_eq!(union_failing(&same, &t), 30);
+        assert!(t.iter().all(|&v| v == t[0]));
+        assert_eq!(joint_upper_thresholds(&[vec![], vec![1.0]], 0.99), vec![f64::INFINITY; 2]);
+        // Too few cases for the budget: the largest value of each, nothing fails.
+        assert_eq!(joint_upper_thresholds(&[vec![1.0, 3.0, 2.0]], 0.99), vec![3.0]);
     }
 }

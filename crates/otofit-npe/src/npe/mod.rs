@@ -303,8 +303,14 @@ fn unit_temperature() -> f64 {
 /// (with its training noise), so that the false-alarm rate is measured, not assumed.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct FitNull {
-    /// The quantile used as threshold (e.g. 0.99: 1 % of the model's own ears fail).
+    /// The check's level (e.g. 0.99: 1 % of the model's own ears fail it). With `joint`,
+    /// the thresholds are set together so that the check as a whole (any statistic over
+    /// its threshold) fails that share; without, each is its statistic's own quantile.
     pub quantile: f64,
+    /// The thresholds were set together (false in files calibrated before this existed:
+    /// their check fails up to three times the share `quantile` says).
+    #[serde(default)]
+    pub joint: bool,
     /// Threshold on the posterior-predictive reduced χ².
     pub reduced_chi2: f64,
     /// Threshold on the input score: mean of squared standardised features.
@@ -633,6 +639,12 @@ impl Npe {
     /// The full-measure flow, if the file holds one.
     pub fn full_measure(&self) -> Option<&Npe> {
         self.full.as_deref()
+    }
+
+    /// The flows the file holds besides the main one (full-measure first, then the
+    /// measure-set flows), to be calibrated again in place.
+    pub fn attached_mut(&mut self) -> impl Iterator<Item = &mut Npe> {
+        self.full.as_deref_mut().into_iter().chain(self.sets.iter_mut())
     }
 
     /// Stores `full` as this model's full-measure flow ([`Npe::answering`]): an unmasked

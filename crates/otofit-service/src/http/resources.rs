@@ -97,7 +97,7 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
             d["calibration"] = json!({
                 "temperature": h.temperature,
                 "fit_null": h.fit_null,
-                "note": "temperature: standard deviation of the flow's base distribution, tuned on held-out simulations so that joint credible regions hold the truth at their level; fit_null: thresholds of the fit check (null quantiles on held-out simulations), null when uncalibrated",
+                "note": "temperature: standard deviation of the flow's base distribution, tuned on held-out simulations so that joint credible regions hold the truth at their level; fit_null: thresholds of the fit check, set on held-out simulations so that the check as a whole fails 1 - quantile of them (joint: true; false in files calibrated before), null when uncalibrated",
             });
             d
         }
