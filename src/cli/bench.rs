@@ -137,6 +137,10 @@ pub enum BenchWhat {
         /// those features alone); all if empty.
         #[arg(long, default_value = "")]
         measures: String,
+        /// The lowest frequency given, in Hz (0..=500; 0: the whole grid), as a device
+        /// that exports from 226 Hz: the features below it are left out.
+        #[arg(long, default_value_t = 0.0)]
+        from_hz: f64,
         /// Folder for posterior.json (every ear and the pooled scores); none if absent.
         #[arg(long)]
         out: Option<std::path::PathBuf>,
@@ -221,9 +225,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Readings { ears, out, model, seed, measures, exact } => {
             readings(ears, &out, &model, seed, &measures, exact)
         }
-        BenchWhat::Posterior { ears, seed, steps, measures, out, model } => {
+        BenchWhat::Posterior { ears, seed, steps, measures, from_hz, out, model } => {
             let measures = groups(&measures);
-            posterior(crate::bench::posterior::PosteriorParams { ears, seed, steps, measures }, out.as_deref(), &model)
+            let p = crate::bench::posterior::PosteriorParams { ears, seed, steps, measures, from_hz };
+            posterior(p, out.as_deref(), &model)
         }
     }
 }

@@ -141,6 +141,9 @@ pub fn ears(n: usize, seed: u64) -> Vec<Ear> {
         .collect()
 }
 
+/// The highest `--from-hz`: every sub-band a model accepts reaches 494 Hz.
+pub const MAX_FROM_HZ: f64 = 500.0;
+
 /// How big a run is.
 #[derive(Clone, Debug)]
 pub struct PosteriorParams {
@@ -153,11 +156,14 @@ pub struct PosteriorParams {
     /// Feature groups given (every feature when empty), as a clinic's subset of measures:
     /// the flow that answers them and the likelihood of those features alone.
     pub measures: Vec<String>,
+    /// The lowest frequency given (Hz; 0: the whole grid), as a device that exports from
+    /// 226 Hz: features below it are left out of the flow's input and of the likelihood.
+    pub from_hz: f64,
 }
 
 impl Default for PosteriorParams {
     fn default() -> Self {
-        PosteriorParams { ears: 20, seed: 1, steps: DEFAULT_STEPS, measures: vec![] }
+        PosteriorParams { ears: 20, seed: 1, steps: DEFAULT_STEPS, measures: vec![], from_hz: 0.0 }
     }
 }
 
@@ -169,6 +175,9 @@ impl PosteriorParams {
         }
         if !(MIN_STEPS..=MAX_STEPS).contains(&self.steps) {
             bail!("--steps must be {MIN_STEPS}..={MAX_STEPS} (got {})", self.steps);
+        }
+        if !(self.from_hz.is_finite() && (0.0..=MAX_FROM_HZ).contains(&self.from_hz)) {
+            bail!("--from-hz must be 0..={MAX_FROM_HZ} Hz (got {})", self.from_hz);
         }
         Ok(())
     }
@@ -396,6 +405,10 @@ pub struct Report {
     pub steps: usize,
     /// Feature groups given (empty: every one).
     pub measures: Vec<String>,
+    /// The lowest frequency given (Hz; 0: the whole grid).
+    pub from_hz: f64,
+    /// Features given to the flow and to the likelihood.
+    pub features: usize,
     /// The flow that answered: `full-measure`, `measure-set` or `masked` (the file's main flow).
     pub flow: &'static str,
     /// Flow draws per ear.
@@ -500,7 +513,12 @@ pub fn summarize(per_ear: &[EarResult]) -> (Vec<ParamSummary>, Vec<GroupSummary>
 /// the scores. `progress` hears each ear as it ends.
 pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarResult, Skipped>)) -> Result<Report> {
     p.check()?;
-    let present = npe.header.features_of_groups(&p.measures).map_err(|e| anyhow!("--measures: {e}"))?;
+    let mut present = npe.header.features_of_groups(&p.measures).map_err(|e| anyhow!("--measures: {e}"))?;
+    // Features are measure-major on the grid: feature i lies at grid point i mod n.
+    let grid = &npe.header.frequencies_hz;
+    for (i, given) in present.iter_mut().enumerate() {
+        *given &= grid.get(i % grid.len().max(1)).is_none_or(|&hz| hz >= p.from_hz);
+    }
     // The flow the service would answer these ears with (`main` is the masked one).
     let flow = match npe.answering_name(&Obs { x: &vec![0.0; present.len()], present: Some(&present) }) {
         "main" => "masked",
@@ -535,6 +553,8 @@ pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarR
         seed: p.seed,
         steps: p.steps,
         measures: p.measures.clone(),
+        from_hz: p.from_hz,
+        features: present.iter().filter(|&&g| g).count(),
         flow,
         flow_samples: FLOW_SAMPLES,
         recipes: RECIPES.to_vec(),
@@ -580,11 +600,14 @@ pub fn table(r: &Report) -> String {
     let scored = r.per_ear.len();
     let _ = writeln!(
         s,
-        "{scored} of {} ears scored ({} skipped), seed {}, measures {} ({} flow), {} chain steps, {} flow draws per ear",
+        "{scored} of {} ears scored ({} skipped), seed {}, measures {}{} ({} features, {} flow), {} chain steps, {} \
+         flow draws per ear",
         r.ears,
         r.skipped.len(),
         r.seed,
         if r.measures.is_empty() { "all".to_string() } else { r.measures.join(",") },
+        if r.from_hz > 0.0 { format!(" from {} Hz", r.from_hz) } else { String::new() },
+        r.features,
         r.flow,
         r.steps,
         r.flow_samples
@@ -813,7 +836,7 @@ mod tests {
     fn two_ears_of_the_shipped_model_are_scored() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
         let npe = Npe::load(&path).unwrap();
-        let p = PosteriorParams { ears: 2, seed: 3, steps: 20_000, measures: vec![] };
+        let p = PosteriorParams { ears: 2, seed: 3, steps: 20_000, ..PosteriorParams::default() };
         let mut heard = 0;
         let r = run(&npe, &p, &mut |_| heard += 1).unwrap();
         assert_eq!((heard, r.per_ear.len() + r.skipped.len()), (2, 2));
@@ -834,17 +857,30 @@ mod tests {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
         let npe = Npe::load(&path).unwrap();
         let clinic: Vec<String> = ["impedance", "absorbance", "umbo_velocity"].map(String::from).to_vec();
-        let p = PosteriorParams { ears: 1, seed: 3, steps: MIN_STEPS, measures: clinic.clone() };
+        let p = PosteriorParams { ears: 1, seed: 3, steps: MIN_STEPS, measures: clinic.clone(), from_hz: 0.0 };
         let r = run(&npe, &p, &mut |_| {}).unwrap();
         assert_eq!((r.flow, &r.measures, r.per_ear.len()), ("masked", &clinic, 1), "{:?}", r.skipped);
-        assert!(table(&r).contains("measures impedance,absorbance,umbo_velocity (masked flow)"));
+        assert!(table(&r).contains("measures impedance,absorbance,umbo_velocity (250 features, masked flow)"));
+        // Fewer features, a wider likelihood: the chain's intervals widen.
+        let width = |r: &Report| r.per_ear[0].params.iter().map(|s| s.exact.width90).sum::<f64>();
         let wbt = PosteriorParams { measures: clinic[..2].to_vec(), ..p.clone() };
-        assert_eq!(run(&npe, &wbt, &mut |_| {}).unwrap().flow, "measure-set");
+        let whole = run(&npe, &wbt, &mut |_| {}).unwrap();
+        assert_eq!(whole.flow, "measure-set");
+        // From 226 Hz, as a device exports, or from 480 Hz (the lowest 12 of the 50 grid
+        // points gone, the most the band-masked flow learned to miss): that flow, on the
+        // features of the band alone.
+        let device = run(&npe, &PosteriorParams { from_hz: 226.0, ..wbt.clone() }, &mut |_| {}).unwrap();
+        assert_eq!((device.flow, device.per_ear.len()), ("measure-set", 1), "{:?}", device.skipped);
+        assert!(table(&device).contains("measures impedance,absorbance from 226 Hz (144 features, measure-set flow)"));
+        let high = run(&npe, &PosteriorParams { from_hz: 480.0, ..wbt.clone() }, &mut |_| {}).unwrap();
+        assert_eq!((high.flow, high.per_ear.len()), ("measure-set", 1), "{:?}", high.skipped);
+        // Three curves (impedance magnitude and phase, absorbance) of 50 points each.
+        assert_eq!((whole.features, device.features, high.features), (150, 144, 114));
+        let e = PosteriorParams { from_hz: 600.0, ..wbt }.check().unwrap_err().to_string();
+        assert!(e.contains("--from-hz"), "{e}");
         let all = PosteriorParams { measures: vec![], ..p.clone() };
         let every = run(&npe, &all, &mut |_| {}).unwrap();
         assert_eq!(every.flow, "full-measure");
-        // Fewer features, a wider likelihood: the chain's intervals widen.
-        let width = |r: &Report| r.per_ear[0].params.iter().map(|s| s.exact.width90).sum::<f64>();
         assert!(width(&r) > width(&every), "{} vs {}", width(&r), width(&every));
         let bad = PosteriorParams { measures: vec!["tympanogram".into()], ..p };
         let e = run(&npe, &bad, &mut |_| {}).unwrap_err().to_string();
