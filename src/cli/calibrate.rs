@@ -43,6 +43,11 @@ pub struct CalibrateArgs {
     /// histograms), besides the table on stdout.
     #[arg(long)]
     pub report: Option<PathBuf>,
+    /// Run the held-out coverage this many times (1..=20), with seeds --seed, --seed + 1,
+    /// …: each level's mean, range and standard deviation over the runs (one run's
+    /// coverage moves with its seed by about as much as its binomial error).
+    #[arg(long, default_value_t = 1, conflicts_with_all = ["tune", "report", "json"])]
+    pub seeds: usize,
     /// Print the full result as JSON (coverage per level, SBC ranks) instead of the table.
     #[arg(long, conflicts_with = "tune")]
     pub json: bool,
@@ -66,6 +71,59 @@ pub struct CalibrateArgs {
 /// How far below each level the tuned coverage may stay (held-out rows are noisy).
 const TUNE_SLACK: f64 = 0.01;
 
+/// The most runs `--seeds` asks for.
+const MAX_SEEDS: usize = 20;
+
+/// The first `n` held-out rows as (θ, x), x with the model's training noise drawn with
+/// `seed` (held-out x are noise-free simulations) and the model error it was trained
+/// with, if any: the inputs its training saw.
+fn noisy_rows(model: &Npe, ds: &Dataset, n: usize, seed: u64) -> Result<Vec<(Vec<f64>, Vec<f64>)>> {
+    let noise = crate::sim::batch::Noise { std: model.header.noise_std.clone(), scale: model.header.noise_scale, seed };
+    let mut rows: Vec<(Vec<f64>, Vec<f64>)> =
+        ds.theta.iter().zip(&ds.x).take(n).enumerate().map(|(i, (t, x))| (t.clone(), noise.apply(x, i))).collect();
+    model.add_model_error(rows.iter_mut().map(|(_, x)| x), seed)?;
+    Ok(rows)
+}
+
+/// The joint HPD coverage at `TUNE_LEVELS` of one calibration.
+fn at_levels(cal: &crate::npe::calibrate::Calibration) -> Vec<f64> {
+    let at = |l: f64| cal.levels.iter().position(|v| (v - l).abs() < 1e-9).map_or(f64::NAN, |k| cal.coverage[k]);
+    TUNE_LEVELS.iter().map(|&l| at(l)).collect()
+}
+
+/// `--seeds K`: the held-out coverage K times, seeds --seed, --seed + 1, …; each run on
+/// stderr, each level's mean, range and standard deviation on stdout.
+fn over_seeds(model: &Npe, ds: &Dataset, args: &CalibrateArgs) -> Result<()> {
+    let mut runs: Vec<Vec<f64>> = Vec::with_capacity(args.seeds);
+    for r in 0..args.seeds {
+        let seed = args.seed.wrapping_add(r as u64);
+        let rows = noisy_rows(model, ds, args.n, seed)?;
+        let cal = calibrate_with(model, &rows, args.samples, seed, &mut |_| {})?;
+        let c = at_levels(&cal);
+        let shown: Vec<String> = c.iter().map(|v| format!("{v:.3}")).collect();
+        eprintln!("seed {seed}: joint HPD coverage at 50/80/90/95 % {}", shown.join(" "));
+        runs.push(c);
+    }
+    println!(
+        "joint HPD coverage on {} held-out rows ({} samples each, temperature {:.3}), {} seeds from {}: mean \
+         (lowest–highest, standard deviation over the runs)",
+        args.n.min(ds.theta.len()),
+        args.samples,
+        model.header.temperature,
+        args.seeds,
+        args.seed
+    );
+    for (j, l) in TUNE_LEVELS.iter().enumerate() {
+        let v: Vec<f64> = runs.iter().map(|c| c[j]).collect();
+        let k = v.len() as f64;
+        let mean = v.iter().sum::<f64>() / k;
+        let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (k - 1.0)).sqrt();
+        let (lo, hi) = v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
+        println!("  {:>3.0} %  {mean:.3}  ({:+.3}; {lo:.3}–{hi:.3}, sd {sd:.3})", 100.0 * l, mean - l);
+    }
+    Ok(())
+}
+
 /// Runs `otofit calibrate`.
 pub fn run(args: CalibrateArgs) -> Result<()> {
     if !(10..=100_000).contains(&args.samples) {
@@ -73,6 +131,9 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
     }
     if args.n == 0 {
         bail!("--n must be at least 1");
+    }
+    if !(1..=MAX_SEEDS).contains(&args.seeds) {
+        bail!("--seeds must be 1..={MAX_SEEDS} (got {})", args.seeds);
     }
     if (args.tune || args.null_only) && !(20..=100_000).contains(&args.null_cases) {
         bail!("--null-cases must be 20..=100000 (got {})", args.null_cases);
@@ -92,16 +153,10 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
     if args.n > ds.theta.len() {
         bail!("--n {} exceeds the {} rows of {}", args.n, ds.theta.len(), data.display());
     }
-    // Held-out x are noise-free simulations: add the model's training noise once.
-    let noise = crate::sim::batch::Noise {
-        std: model.header.noise_std.clone(),
-        scale: model.header.noise_scale,
-        seed: args.seed,
-    };
-    let mut rows: Vec<(Vec<f64>, Vec<f64>)> =
-        ds.theta.iter().zip(&ds.x).take(args.n).enumerate().map(|(i, (t, x))| (t.clone(), noise.apply(x, i))).collect();
-    // And the model error it was trained with, if any: the inputs its training saw.
-    model.add_model_error(rows.iter_mut().map(|(_, x)| x), args.seed)?;
+    if args.seeds > 1 {
+        return over_seeds(&model, &ds, &args);
+    }
+    let rows = noisy_rows(&model, &ds, args.n, args.seed)?;
     if args.tune {
         let tuning = tune_temperature(&mut model, &rows, args.samples, args.seed, TUNE_SLACK)?;
         eprintln!(

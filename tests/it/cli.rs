@@ -248,6 +248,32 @@ fn train_infer_and_calibrate_from_the_command_line() {
     let o = s(&[&calibrate[..], &["--json"]].concat());
     let cal: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(cal["levels"].as_array().unwrap().len(), 19);
+    // Several seeds: each run is the single run of its seed, and the mean is theirs.
+    let rows = ["--data", data.to_str().unwrap(), "--n", "100", "--samples", "50"];
+    let one = ["calibrate", "--model", model.to_str().unwrap()];
+    let o = s(&[&one[..], &rows, &["--seed", "4", "--seeds", "3"]].concat());
+    let (out, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+    assert!(out.contains("3 seeds from 4"), "{out}");
+    let mut means = [0.0; 4];
+    for seed in 4..7 {
+        let o = s(&[&one[..], &rows, &["--seed", &seed.to_string(), "--json"]].concat());
+        let cal: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+        let at = |l: f64| {
+            let k = cal["levels"].as_array().unwrap().iter().position(|v| (v.as_f64().unwrap() - l).abs() < 1e-9);
+            cal["coverage"][k.unwrap()].as_f64().unwrap()
+        };
+        let single: Vec<f64> = [0.5, 0.8, 0.9, 0.95].map(at).to_vec();
+        let shown: Vec<String> = single.iter().map(|v| format!("{v:.3}")).collect();
+        assert!(
+            err.contains(&format!("seed {seed}: joint HPD coverage at 50/80/90/95 % {}", shown.join(" "))),
+            "{err}"
+        );
+        means.iter_mut().zip(&single).for_each(|(m, v)| *m += v / 3.0);
+    }
+    let fifty = out.lines().find(|l| l.trim_start().starts_with("50 %")).unwrap();
+    assert!(fifty.contains(&format!("{:.3}", means[0])), "{fifty} against the runs' mean {:.3}", means[0]);
+    let o = otofit(&[&one[..], &rows, &["--seeds", "21"]].concat());
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("--seeds must be 1..=20"));
     // The fit check's null alone, into another file: every subset's thresholds, set together.
     let nulled = d.join("nulled.otofit");
     let o = s(&[
