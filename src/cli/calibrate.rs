@@ -115,9 +115,8 @@ fn over_seeds(model: &Npe, ds: &Dataset, args: &CalibrateArgs) -> Result<()> {
     );
     for (j, l) in TUNE_LEVELS.iter().enumerate() {
         let v: Vec<f64> = runs.iter().map(|c| c[j]).collect();
-        let k = v.len() as f64;
-        let mean = v.iter().sum::<f64>() / k;
-        let sd = (v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (k - 1.0)).sqrt();
+        let (mean, var) = crate::stats::mean_var_sample(&v);
+        let sd = var.sqrt();
         let (lo, hi) = v.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &x| (a.min(x), b.max(x)));
         println!("  {:>3.0} %  {mean:.3}  ({:+.3}; {lo:.3}–{hi:.3}, sd {sd:.3})", 100.0 * l, mean - l);
     }
@@ -206,9 +205,8 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         "joint HPD coverage on {} held-out rows ({} samples each, temperature {:.3}):",
         cal.rows, cal.samples_per_row, model.header.temperature
     );
-    for l in TUNE_LEVELS {
-        let k = cal.levels.iter().position(|v| (v - l).abs() < 1e-9).unwrap_or(0);
-        println!("  {:>3.0} %  {:.3}  ({:+.3})", 100.0 * l, cal.coverage[k], cal.coverage[k] - l);
+    for (l, c) in TUNE_LEVELS.iter().zip(at_levels(&cal)) {
+        println!("  {:>3.0} %  {c:.3}  ({:+.3})", 100.0 * l, c - l);
     }
     println!("per parameter: marginal 90 % coverage, SBC rank χ² (10 bins, 9 dof; 99 % quantile 21.7)");
     for (r, m) in cal.sbc_ranks.iter().zip(&cal.marginal_coverage90) {

@@ -579,7 +579,7 @@ mod tests {
                 fit_check(flow, x, &present, &inf).unwrap().ok == Some(false)
             })
             .count();
-        // 1 % of 1,000 is 10 (Poisson SD 3.2); 20 leaves room for chance, not for 34.
+        // 1 % of 1,000 is 10 (Poisson SD 3.2); 20 leaves room for chance, not for 45.
         assert!(failed <= 20, "{failed} of {} of the model's own ears fail the check", ears.len());
     }
 
