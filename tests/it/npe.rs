@@ -153,6 +153,29 @@ fn coverage_on_held_out_simulations_is_not_overconfident() {
     }
 }
 
+/// Calibration reads its rows side by side, a few per thread at a time: every row's
+/// draws come from the row's own seed, so one thread and two give the same coverage,
+/// ranks and intervals.
+#[test]
+fn calibration_is_the_same_on_one_thread_and_on_two() {
+    let model = trained();
+    let held = linear_gaussian(21, 78);
+    let mut rng = ChaCha8Rng::seed_from_u64(6);
+    let noisy = |x: &Vec<f64>| x.iter().map(|v| v + SIGMA * rng.sample::<f64, _>(rand_distr::StandardNormal)).collect();
+    let rows: Vec<(Vec<f64>, Vec<f64>)> = held.theta.iter().cloned().zip(held.x.iter().map(noisy)).collect();
+    let on = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| npe::calibrate::calibrate(model, &rows, 50, 3).unwrap())
+    };
+    let (one, two) = (on(1), on(2));
+    assert_eq!(one.coverage, two.coverage);
+    assert_eq!(one.marginal_coverage90, two.marginal_coverage90);
+    for (a, b) in one.sbc_ranks.iter().zip(&two.sbc_ranks) {
+        assert_eq!(a.ranks, b.ranks, "{}", a.name);
+    }
+    assert_eq!(one.sbc_ranks[0].ranks.len(), rows.len());
+}
+
 /// A checkpoint with its JSON header rewritten by `edit` (the length field kept consistent).
 fn with_header(bytes: &[u8], edit: impl Fn(String) -> String) -> Vec<u8> {
     let n = u64::from_le_bytes(bytes[11..19].try_into().unwrap()) as usize;
@@ -239,6 +262,9 @@ fn bad_training_and_calibration_settings_are_named_errors() {
     let rows = vec![(vec![0.0, 0.0], vec![0.0, 0.0, 0.0])];
     let e = npe::calibrate::calibrate(trained(), &rows, 1, 0).unwrap_err();
     assert!(matches!(e, npe::NpeError::Settings { field: "samples", .. }), "{e:?}");
+    let rows = vec![(vec![0.0, 0.0], vec![0.0, 0.0, 0.0]), (vec![0.0], vec![0.0, 0.0, 0.0])];
+    let e = npe::calibrate::calibrate(trained(), &rows, 10, 0).unwrap_err();
+    assert!(matches!(e, npe::NpeError::Settings { field: "rows", .. }) && e.to_string().contains("row 1"), "{e:?}");
 }
 
 #[test]

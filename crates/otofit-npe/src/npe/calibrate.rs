@@ -52,7 +52,11 @@ pub fn calibrate(npe: &Npe, rows: &[(Vec<f64>, Vec<f64>)], samples: usize, seed:
     calibrate_with(npe, rows, samples, seed, &mut |_| {})
 }
 
-/// [`calibrate`], calling `progress` with the number of rows done after each row.
+/// [`calibrate`], calling `progress` with the number of rows done as they finish.
+///
+/// The rows are read side by side, a few per thread at a time (the progress callback runs
+/// between those chunks): a row's draws come from its own seed (`seed` + its index), so
+/// the result is the same on any number of threads.
 pub fn calibrate_with(
     npe: &Npe,
     rows: &[(Vec<f64>, Vec<f64>)],
@@ -60,6 +64,7 @@ pub fn calibrate_with(
     seed: u64,
     progress: &mut dyn FnMut(usize),
 ) -> Result<Calibration> {
+    use rayon::prelude::*;
     if samples < 2 {
         return Err(NpeError::settings(
             "samples",
@@ -68,39 +73,29 @@ pub fn calibrate_with(
     }
     let levels: Vec<f64> = (1..=19).map(|i| i as f64 * 0.05).collect();
     let d = npe.params().len();
+    if let Some(r) = rows.iter().position(|(theta, _)| theta.len() != d) {
+        return Err(NpeError::settings("rows", format!("row {r} has {} parameters, the model {d}", rows[r].0.len())));
+    }
     let mut inside = vec![0usize; levels.len()];
     let mut ranks = vec![Vec::with_capacity(rows.len()); d];
     let mut marginal = vec![0usize; d];
-    for (r, (theta, x)) in rows.iter().enumerate() {
-        let obs = Obs { x, present: None };
-        let draws = npe.sample(&obs, samples, seed.wrapping_add(r as u64))?;
-        // Densities in the flow's unbounded space (natural-unit densities less the
-        // bijection's Jacobian): there a widened posterior stays a bell, whereas in θ the
-        // logit's Jacobian piles density onto the box edges and ranks edge draws above
-        // the truth. HPD regions of either density are valid credible regions.
-        let flow_lp = |t: &[Vec<f64>]| -> Result<Vec<f64>> {
-            let lp = npe.log_prob(&obs, t)?;
-            Ok(lp.iter().zip(t).map(|(l, t)| l - npe.log_jacobian(t)).collect())
-        };
-        let lp = flow_lp(&draws)?;
-        let lp_true = flow_lp(std::slice::from_ref(theta))?[0];
-        // θ lies in the α-HPD region iff fewer than α of the draws are denser than it.
-        let denser = lp.iter().filter(|&&l| l > lp_true).count() as f64 / samples as f64;
-        for (k, &a) in levels.iter().enumerate() {
-            if denser < a {
-                inside[k] += 1;
+    let chunk = 4 * rayon::current_num_threads().max(1);
+    for (c, part) in rows.chunks(chunk).enumerate() {
+        let read: Vec<RowReading> = (part.par_iter().enumerate())
+            .map(|(i, (theta, x))| read_row(npe, theta, x, samples, seed.wrapping_add((c * chunk + i) as u64)))
+            .collect::<Result<_>>()?;
+        for row in read {
+            for (k, &a) in levels.iter().enumerate() {
+                if row.denser < a {
+                    inside[k] += 1;
+                }
+            }
+            for k in 0..d {
+                ranks[k].push(row.ranks[k]);
+                marginal[k] += usize::from(row.inside90[k]);
             }
         }
-        for k in 0..d {
-            let mut v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
-            ranks[k].push(v.iter().filter(|&&s| s < theta[k]).count());
-            v.sort_by(f64::total_cmp);
-            let (lo, hi) = (quantile_floor(&v, 0.05), quantile_floor(&v, 0.95));
-            if theta[k] >= lo && theta[k] <= hi {
-                marginal[k] += 1;
-            }
-        }
-        progress(r + 1);
+        progress(rows.len().min((c + 1) * chunk));
     }
     let n = rows.len().max(1) as f64;
     Ok(Calibration {
@@ -111,6 +106,40 @@ pub fn calibrate_with(
         sbc_ranks: npe.params().iter().zip(ranks).map(|(p, r)| ParamRanks { name: p.name.clone(), ranks: r }).collect(),
         marginal_coverage90: marginal.iter().map(|&c| c as f64 / n).collect(),
     })
+}
+
+/// What one held-out row says of the posterior: the share of draws denser than the
+/// truth, and per parameter the truth's rank among the draws and whether the central
+/// 90 % interval holds it.
+struct RowReading {
+    denser: f64,
+    ranks: Vec<usize>,
+    inside90: Vec<bool>,
+}
+
+fn read_row(npe: &Npe, theta: &[f64], x: &[f64], samples: usize, seed: u64) -> Result<RowReading> {
+    let obs = Obs { x, present: None };
+    let draws = npe.sample(&obs, samples, seed)?;
+    // Densities in the flow's unbounded space (natural-unit densities less the
+    // bijection's Jacobian): there a widened posterior stays a bell, whereas in θ the
+    // logit's Jacobian piles density onto the box edges and ranks edge draws above the
+    // truth. HPD regions of either density are valid credible regions.
+    let flow_lp = |t: &[Vec<f64>]| -> Result<Vec<f64>> {
+        let lp = npe.log_prob(&obs, t)?;
+        Ok(lp.iter().zip(t).map(|(l, t)| l - npe.log_jacobian(t)).collect())
+    };
+    let lp = flow_lp(&draws)?;
+    let lp_true = flow_lp(&[theta.to_vec()])?[0];
+    // θ lies in the α-HPD region iff fewer than α of the draws are denser than it.
+    let denser = lp.iter().filter(|&&l| l > lp_true).count() as f64 / samples as f64;
+    let (mut ranks, mut inside90) = (Vec::with_capacity(theta.len()), Vec::with_capacity(theta.len()));
+    for (k, &t) in theta.iter().enumerate().take(npe.params().len()) {
+        let mut v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
+        ranks.push(v.iter().filter(|&&s| s < t).count());
+        v.sort_by(f64::total_cmp);
+        inside90.push(t >= quantile_floor(&v, 0.05) && t <= quantile_floor(&v, 0.95));
+    }
+    Ok(RowReading { denser, ranks, inside90 })
 }
 
 /// Credible levels the temperature is tuned at (the levels the calibration targets name).
