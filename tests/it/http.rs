@@ -1032,10 +1032,10 @@ fn full_request() -> Value {
     }})
 }
 
-/// The shipped model holds a full-measure flow and flows for the study's three measures
-/// and for wideband tympanometry: an ear with every measure over the whole band is
-/// answered by the first, an ear of exactly those three or of impedance and absorbance
-/// alone by its set's flow, a WBT ear on part of the band by the main (masked) flow, and
+/// The shipped model holds a full-measure flow and flows for the study's three measures,
+/// for wideband tympanometry (whole band, and part of it) and for WBT with umbo LDV: an
+/// ear with every measure over the whole band is answered by the first, an ear of one of
+/// those sets by its set's flow, an ear of another set by the main (masked) flow, and
 /// GET /models/{id} lists each with its own calibration.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
@@ -1063,7 +1063,8 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert_eq!((status, c["inputs"]["flow"].as_str()), (StatusCode::OK, Some("measure-set")), "{}", c["inputs"]);
     assert_eq!(c["fit"]["ok"], true, "{}", c["fit"]);
     // The same WBT ear above 300 Hz only, as a device exports it: the WBT flow trained
-    // with band masks; an ear of another set of measures: the masked flow.
+    // with band masks; WBT with umbo LDV from 226 Hz: its own band-masked flow; an ear of
+    // another set of measures: the masked flow.
     let mut cut = wbt;
     for m in ["impedance", "absorbance"] {
         let block = cut["measurements"][m].as_object_mut().unwrap();
@@ -1078,6 +1079,11 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert_eq!((status, e["inputs"]["flow"].as_str()), (StatusCode::OK, Some("measure-set")), "{}", e["inputs"]);
     assert_eq!(e["fit"]["ok"], true, "{}", e["fit"]);
     let (status, _, e) = call(&app, "POST", "/infer", Some(clinic_request())).await;
+    assert_eq!((status, e["inputs"]["flow"].as_str()), (StatusCode::OK, Some("measure-set")), "{}", e["inputs"]);
+    assert_eq!(e["fit"]["ok"], true, "{}", e["fit"]);
+    let mut other = full_request();
+    other["measurements"].as_object_mut().unwrap().remove("absorbance");
+    let (status, _, e) = call(&app, "POST", "/infer", Some(other)).await;
     assert_eq!((status, e["inputs"]["flow"].as_str()), (StatusCode::OK, Some("main")), "{}", e["inputs"]);
     let (status, _, m) = call(&app, "GET", "/models/default", None).await;
     assert_eq!(status, StatusCode::OK, "{m}");
@@ -1086,17 +1092,19 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert!((0.5..=2.0).contains(&t) && f["fit_null"].is_object(), "{f}");
     assert_ne!(f["training"], m["training"], "the full-measure flow's own training, not the main flow's");
     let sets = m["measure_set_flows"].as_array().cloned().unwrap_or_default();
-    assert_eq!(sets.len(), 3, "{m}");
+    assert_eq!(sets.len(), 4, "{m}");
     assert_eq!(sets[0]["measures"], json!(["stapes_velocity", "impedance", "absorbance"]));
     assert_eq!(sets[1]["measures"], json!(["impedance", "absorbance"]));
     assert_eq!(sets[2]["measures"], json!(["impedance", "absorbance"]));
+    assert_eq!(sets[3]["measures"], json!(["impedance", "absorbance", "umbo_velocity"]));
     let partial: Vec<bool> = sets.iter().map(|s| s["accepts_partial_bands"].as_bool().unwrap()).collect();
-    assert_eq!(partial, [false, false, true]);
+    assert_eq!(partial, [false, false, true, true]);
     for set in &sets {
         assert!(set["fit_null"].is_object() && set["training"] != f["training"], "{set}");
     }
-    assert_ne!(sets[0]["training"], sets[1]["training"]);
-    assert_ne!(sets[1]["training"], sets[2]["training"]);
+    for pair in sets.windows(2) {
+        assert_ne!(pair[0]["training"], pair[1]["training"]);
+    }
 }
 
 /// Umbo velocity: WBT + umbo LDV is answered, the umbo narrows the

@@ -849,9 +849,9 @@ mod tests {
         assert!(serde_json::to_string(&r).unwrap().contains("\"per_ear\""));
     }
 
-    /// A subset of measures is answered by the flow that answers it in the service (the
-    /// masked flow, or a measure-set flow for exactly its groups) and scored against the
-    /// likelihood of its features alone; an unknown group is refused by its argument.
+    /// A subset of measures is answered by the flow that answers it in the service (a
+    /// measure-set flow for exactly its groups, else the masked flow) and scored against
+    /// the likelihood of its features alone; an unknown group is refused by its argument.
     #[test]
     fn a_subset_of_measures_is_read_by_the_flow_that_answers_it() {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
@@ -859,8 +859,13 @@ mod tests {
         let clinic: Vec<String> = ["impedance", "absorbance", "umbo_velocity"].map(String::from).to_vec();
         let p = PosteriorParams { ears: 1, seed: 3, steps: MIN_STEPS, measures: clinic.clone(), from_hz: 0.0 };
         let r = run(&npe, &p, &mut |_| {}).unwrap();
-        assert_eq!((r.flow, &r.measures, r.per_ear.len()), ("masked", &clinic, 1), "{:?}", r.skipped);
-        assert!(table(&r).contains("measures impedance,absorbance,umbo_velocity (250 features, masked flow)"));
+        assert_eq!((r.flow, &r.measures, r.per_ear.len()), ("measure-set", &clinic, 1), "{:?}", r.skipped);
+        assert!(table(&r).contains("measures impedance,absorbance,umbo_velocity (250 features, measure-set flow)"));
+        // Both velocities alone: no flow of their own, so the masked flow.
+        let lasers: Vec<String> = ["stapes_velocity", "umbo_velocity"].map(String::from).to_vec();
+        let v = run(&npe, &PosteriorParams { measures: lasers.clone(), ..p.clone() }, &mut |_| {}).unwrap();
+        assert_eq!((v.flow, &v.measures, v.per_ear.len()), ("masked", &lasers, 1), "{:?}", v.skipped);
+        assert!(table(&v).contains("measures stapes_velocity,umbo_velocity (200 features, masked flow)"));
         // Fewer features, a wider likelihood: the chain's intervals widen.
         let width = |r: &Report| r.per_ear[0].params.iter().map(|s| s.exact.width90).sum::<f64>();
         let wbt = PosteriorParams { measures: clinic[..2].to_vec(), ..p.clone() };
