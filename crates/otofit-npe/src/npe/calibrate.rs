@@ -133,7 +133,7 @@ fn read_row(npe: &Npe, theta: &[f64], x: &[f64], samples: usize, seed: u64) -> R
     // θ lies in the α-HPD region iff fewer than α of the draws are denser than it.
     let denser = lp.iter().filter(|&&l| l > lp_true).count() as f64 / samples as f64;
     let (mut ranks, mut inside90) = (Vec::with_capacity(theta.len()), Vec::with_capacity(theta.len()));
-    for (k, &t) in theta.iter().enumerate().take(npe.params().len()) {
+    for (k, &t) in theta.iter().enumerate() {
         let mut v: Vec<f64> = draws.iter().map(|s| s[k]).collect();
         ranks.push(v.iter().filter(|&&s| s < t).count());
         v.sort_by(f64::total_cmp);
