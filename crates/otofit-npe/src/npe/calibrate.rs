@@ -82,7 +82,7 @@ pub fn calibrate_with(
     let chunk = 4 * rayon::current_num_threads().max(1);
     for (c, part) in rows.chunks(chunk).enumerate() {
         let read: Vec<RowReading> = (part.par_iter().enumerate())
-            .map(|(i, (theta, x))| read_row(npe, theta, x, samples, seed.wrapping_add((c * chunk + i) as u64)))
+            .map(|(i, row)| read_row(npe, row, samples, seed.wrapping_add((c * chunk + i) as u64)))
             .collect::<Result<_>>()?;
         for row in read {
             for (k, &a) in levels.iter().enumerate() {
@@ -117,7 +117,7 @@ struct RowReading {
     inside90: Vec<bool>,
 }
 
-fn read_row(npe: &Npe, theta: &[f64], x: &[f64], samples: usize, seed: u64) -> Result<RowReading> {
+fn read_row(npe: &Npe, (theta, x): &(Vec<f64>, Vec<f64>), samples: usize, seed: u64) -> Result<RowReading> {
     let obs = Obs { x, present: None };
     let draws = npe.sample(&obs, samples, seed)?;
     // Densities in the flow's unbounded space (natural-unit densities less the
@@ -129,7 +129,7 @@ fn read_row(npe: &Npe, theta: &[f64], x: &[f64], samples: usize, seed: u64) -> R
         Ok(lp.iter().zip(t).map(|(l, t)| l - npe.log_jacobian(t)).collect())
     };
     let lp = flow_lp(&draws)?;
-    let lp_true = flow_lp(&[theta.to_vec()])?[0];
+    let lp_true = flow_lp(std::slice::from_ref(theta))?[0];
     // θ lies in the α-HPD region iff fewer than α of the draws are denser than it.
     let denser = lp.iter().filter(|&&l| l > lp_true).count() as f64 / samples as f64;
     let (mut ranks, mut inside90) = (Vec::with_capacity(theta.len()), Vec::with_capacity(theta.len()));
