@@ -47,6 +47,11 @@ pub enum BenchWhat {
         /// (short chains) in every request.
         #[arg(long, value_enum, default_value = "flow", conflicts_with = "direct")]
         posterior: super::infer::PosteriorArg,
+        /// Instead of the example, six simulated seven-measure ears with findings (one
+        /// side of the normal ranges, or both), one after another: per ear the request's
+        /// latency and the differential's alternatives (`timing_ms.alternatives`).
+        #[arg(long, conflicts_with_all = ["direct", "posterior"])]
+        findings: bool,
     },
     /// POST /infer's exact posterior (short chains) on held-out simulated ears: 50 % and
     /// 90 % coverage, R-hat/ESS verdicts and wall time on every ear, and on the first
@@ -208,7 +213,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Sim { runs, drum } => sim(runs, &drum),
         BenchWhat::Npe { data, model, held, seed } => npe_bench(data, &model, held, seed),
         BenchWhat::Infer { requests, samples, direct: true, .. } => infer_direct(requests, samples),
-        BenchWhat::Infer { clients, requests, samples, direct: false, posterior } => {
+        BenchWhat::Infer { clients, requests, samples, direct: false, findings: true, .. } => {
+            infer_findings(clients, requests, samples)
+        }
+        BenchWhat::Infer { clients, requests, samples, direct: false, posterior, findings: false } => {
             infer(clients, requests, samples, posterior)
         }
         BenchWhat::Exact(a) => super::bench_exact::run(a),
@@ -456,30 +464,6 @@ fn sim(runs: usize, drum: &super::drum::DrumOpts) -> Result<()> {
     Ok(())
 }
 
-/// One HTTP/1.1 request over a fresh connection; returns (status line, milliseconds,
-/// the answer's `timing_ms`).
-async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64, serde_json::Value)> {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
-    let t = Instant::now();
-    let mut s = tokio::net::TcpStream::connect(addr).await?;
-    let req = format!(
-        "POST /infer HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    s.write_all(req.as_bytes()).await?;
-    let mut buf = Vec::new();
-    s.read_to_end(&mut buf).await?;
-    let ms = t.elapsed().as_secs_f64() * 1e3;
-    let text = String::from_utf8_lossy(&buf);
-    let status = text.lines().next().unwrap_or("").to_string();
-    let timing = text
-        .split_once("\r\n\r\n")
-        .and_then(|(_, b)| serde_json::from_str::<serde_json::Value>(b).ok())
-        .map(|v| v["timing_ms"].clone())
-        .unwrap_or_default();
-    Ok((status, ms, timing))
-}
-
 /// CPU seconds this process has used so far (user + system, all threads).
 fn cpu_seconds() -> f64 {
     #[cfg(unix)]
@@ -583,38 +567,21 @@ fn infer(clients: usize, requests: usize, samples: usize, posterior: super::infe
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
     rt.block_on(async move {
         let dir = std::env::temp_dir().join(format!("otofit-bench-{}", std::process::id()));
-        let ctx = super::serve::open(&dir, std::path::Path::new("models/default.otofit"), 8).await?;
-        let app = crate::http::router(crate::http::AppState::new(ctx, vec![]));
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        let addr = listener.local_addr()?;
-        tokio::spawn(async move { axum::serve(listener, app).await });
+        let addr = serve_default_model(&dir).await?;
         post(addr, &body).await?; // load the model once
         let (t, cpu0, load0) = (Instant::now(), cpu_seconds(), load_average());
-        let mut tasks = Vec::new();
-        for _ in 0..clients {
-            let body = body.clone();
-            tasks.push(tokio::spawn(async move {
-                let mut out = Vec::new();
-                for _ in 0..requests {
-                    out.push(post(addr, &body).await);
-                }
-                out
-            }));
-        }
         let mut lat = Vec::new();
         let mut phases: [Vec<f64>; 5] = Default::default();
         let mut bad = 0;
-        for task in tasks {
-            for r in task.await? {
-                match r {
-                    Ok((status, ms, timing)) if status.contains(" 200 ") => {
-                        lat.push(ms);
-                        for (v, k) in phases.iter_mut().zip(["sample", "map", "fit", "exact", "total"]) {
-                            v.extend(timing[k].as_f64());
-                        }
+        for r in closed_loop(addr, &body, clients, requests).await? {
+            match r {
+                Ok((status, ms, answer)) if status.contains(" 200 ") => {
+                    lat.push(ms);
+                    for (v, k) in phases.iter_mut().zip(["sample", "map", "fit", "exact", "total"]) {
+                        v.extend(answer["timing_ms"][k].as_f64());
                     }
-                    _ => bad += 1,
                 }
+                _ => bad += 1,
             }
         }
         let wall = t.elapsed().as_secs_f64();
@@ -641,6 +608,154 @@ fn infer(clients: usize, requests: usize, samples: usize, posterior: super::infe
         let _ = std::fs::remove_dir_all(&dir);
         anyhow::Ok(())
     })
+}
+
+/// The ears of `bench infer --findings`: tissue at the centre of every normal range but
+/// for these values (name, value), and what the change is.
+const FINDING_EARS: [(&str, &[(&str, f64)]); 6] = [
+    ("stapes fixation", &[("E_sal", 4e6)]),
+    ("joint erosion", &[("E_joints", 1e5)]),
+    ("contracted muscles", &[("E_tendons", 2e7)]),
+    ("stapes fixation, low losses", &[("E_sal", 3e6), ("damping_beta", 2.5e-5)]),
+    ("stapes fixation, low cochlear load", &[("E_sal", 3e6), ("cochlear_load", 6e9)]),
+    ("contracted muscles, flaccid drum", &[("E_tendons", 2e7), ("E_eardrum", 1.5e6)]),
+];
+
+/// A POST /infer body of every measure of a simulated ear: `FINDING_EARS[k]` with 1×
+/// noise of seed 3.
+fn finding_body(model: &crate::sim::Model, k: usize, samples: usize) -> Result<serde_json::Value> {
+    use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
+    use crate::sim::params::PARAMS;
+    // The ear's canal, cavity, drum viscoelasticity, LDV angle and cochlear mass from the
+    // prior (seed 5, row k); its tissue at the centre of the normal ranges.
+    let mut row = Design::default().draw(5, k, 1).remove(0);
+    let centre = crate::npe::normal::centre_row();
+    row[..crate::sim::params::N_TISSUE].copy_from_slice(&centre[..crate::sim::params::N_TISSUE]);
+    for &(name, v) in FINDING_EARS[k].1 {
+        let i = PARAMS.iter().position(|p| p.name == name).ok_or_else(|| anyhow::anyhow!("no parameter {name}"))?;
+        row[i] = v;
+    }
+    let noise = Noise { std: default_noise_std(model), scale: 1.0, seed: 3 };
+    let x = run_rows(model, &Design::default(), &[row], 0, Some(&noise)).remove(0)?;
+    let f = model.frequencies().to_vec();
+    let n = f.len();
+    let block = |b: usize| x[b * n..(b + 1) * n].to_vec();
+    let mag = |b: usize| block(b).into_iter().map(|v| 10f64.powf(v)).collect::<Vec<f64>>();
+    Ok(serde_json::json!({
+        "measurements": {
+            "stapes_velocity": {"frequencies_hz": f, "magnitude": mag(0), "phase": block(1)},
+            "impedance": {"frequencies_hz": f, "magnitude": mag(2), "phase": block(3)},
+            "absorbance": {"frequencies_hz": f, "values": block(4)},
+            "umbo_velocity": {"frequencies_hz": f, "magnitude": mag(5), "phase": block(6)},
+        },
+        "samples": samples,
+        "return_samples": false,
+    }))
+}
+
+/// `bench infer --findings`: each ear of [`FINDING_EARS`] posted by `clients` closed-loop
+/// clients, `requests` each after one of warm-up; medians of the latency and of the
+/// answer's `timing_ms.alternatives` per ear.
+fn infer_findings(clients: usize, requests: usize, samples: usize) -> Result<()> {
+    let model = crate::sim::Model::new(crate::sim::ModelConfig::default())?;
+    let bodies = (0..FINDING_EARS.len()).map(|k| finding_body(&model, k, samples)).collect::<Result<Vec<_>>>()?;
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    rt.block_on(async move {
+        let dir = std::env::temp_dir().join(format!("otofit-bench-{}", std::process::id()));
+        let addr = serve_default_model(&dir).await?;
+        println!("POST /infer with the differential's alternatives, {samples} samples, {clients} concurrent clients × {requests} requests per ear (target: one client p50 ≤ 100 ms)");
+        for ((what, change), body) in FINDING_EARS.iter().zip(&bodies) {
+            let body = body.to_string();
+            let (_, _, first) = post(addr, &body).await?; // warm-up
+            let load0 = load_average();
+            let (mut lat, mut alt, mut bad) = (vec![], vec![], 0);
+            for r in closed_loop(addr, &body, clients, requests).await? {
+                match r {
+                    Ok((status, ms, answer)) if status.contains(" 200 ") => {
+                        lat.push(ms);
+                        alt.push(answer["timing_ms"]["alternatives"].as_f64().unwrap_or(0.0));
+                    }
+                    _ => bad += 1,
+                }
+            }
+            if lat.is_empty() {
+                anyhow::bail!("every POST /infer of the {what} ear failed ({bad} requests)");
+            }
+            let change: Vec<String> = change.iter().map(|(n, v)| format!("{n} {v:e}")).collect();
+            let hypotheses = first["alternatives"]["hypotheses"].as_array().map_or(0, Vec::len);
+            println!(
+                "{what} ({}): verdict {}, {hypotheses} hypotheses; p50 {:.1} ms, max {:.1} ms; alternatives p50 {:.1} ms; {bad} failed; load average {load0:.2} → {:.2}",
+                change.join(", "),
+                first["verdict"]["code"].as_str().unwrap_or("none"),
+                median(&mut lat),
+                lat.iter().copied().fold(0.0, f64::max),
+                median(&mut alt),
+                load_average()
+            );
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+        anyhow::Ok(())
+    })
+}
+
+/// An in-process server of the default model on a loopback port, its state in `dir`.
+async fn serve_default_model(dir: &std::path::Path) -> Result<std::net::SocketAddr> {
+    let ctx = super::serve::open(dir, std::path::Path::new("models/default.otofit"), 8).await?;
+    let app = crate::http::router(crate::http::AppState::new(ctx, vec![]));
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+    let addr = listener.local_addr()?;
+    tokio::spawn(async move { axum::serve(listener, app).await });
+    Ok(addr)
+}
+
+/// `clients` closed-loop clients posting `body` `requests` times each; every answer of
+/// [`post`].
+async fn closed_loop(
+    addr: std::net::SocketAddr,
+    body: &str,
+    clients: usize,
+    requests: usize,
+) -> Result<Vec<Result<(String, f64, serde_json::Value)>>> {
+    let tasks: Vec<_> = (0..clients)
+        .map(|_| {
+            let body = body.to_string();
+            tokio::spawn(async move {
+                let mut out = Vec::new();
+                for _ in 0..requests {
+                    out.push(post(addr, &body).await);
+                }
+                out
+            })
+        })
+        .collect();
+    let mut out = Vec::new();
+    for task in tasks {
+        out.extend(task.await?);
+    }
+    Ok(out)
+}
+
+/// One HTTP/1.1 request over a fresh connection; returns (status line, milliseconds,
+/// the answer's JSON, null when it is none).
+async fn post(addr: std::net::SocketAddr, body: &str) -> Result<(String, f64, serde_json::Value)> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let t = Instant::now();
+    let mut s = tokio::net::TcpStream::connect(addr).await?;
+    let req = format!(
+        "POST /infer HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    s.write_all(req.as_bytes()).await?;
+    let mut buf = Vec::new();
+    s.read_to_end(&mut buf).await?;
+    let ms = t.elapsed().as_secs_f64() * 1e3;
+    let text = String::from_utf8_lossy(&buf);
+    let status = text.lines().next().unwrap_or("").to_string();
+    let answer = text
+        .split_once("\r\n\r\n")
+        .and_then(|(_, b)| serde_json::from_str::<serde_json::Value>(b).ok())
+        .unwrap_or_default();
+    Ok((status, ms, answer))
 }
 
 /// Two-moons-like toy (Greenberg et al. 2019): θ ∈ [−1, 1]², x ∈ R².

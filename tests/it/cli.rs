@@ -1272,3 +1272,20 @@ fn attach_refuses_a_masked_flow_and_writes_nothing() {
     assert!(!o.status.success() && err.contains("--full or --measure-set"), "{err}");
     assert!(!out.exists());
 }
+
+/// `bench infer --findings` times ears whose findings call for the differential's
+/// alternatives: each of its six ears is answered with findings that hold, and with seven
+/// or more hypotheses fitted (nine or fifteen when both sides of the ranges are tested).
+#[test]
+fn bench_infer_findings_times_ears_that_call_for_alternatives() {
+    let o = otofit(&["bench", "infer", "--findings", "--clients", "1", "--requests", "1", "--samples", "300"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = String::from_utf8_lossy(&o.stdout);
+    let ears: Vec<&str> = out.lines().filter(|l| l.contains(" hypotheses; ")).collect();
+    assert_eq!(ears.len(), 6, "{out}");
+    for ear in ears {
+        assert!(ear.contains("verdict reliable_findings") && ear.contains("; 0 failed"), "{ear}");
+        let n: usize = ear.split(" hypotheses").next().and_then(|h| h.rsplit(' ').next()).unwrap().parse().unwrap();
+        assert!(n >= 7, "{ear}");
+    }
+}

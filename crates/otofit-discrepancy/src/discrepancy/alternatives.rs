@@ -82,8 +82,12 @@ pub const MARGIN: f64 = 10.0;
 /// Cheaper efforts kept those rates (60 simulations, refresh every fourth step: 98 % and
 /// 98 %, 3.2× faster) but moved the fits of the module's constructed ears
 /// (tests/it/alternatives.rs: a fixed malleus, a fixed stapes under WBT) into other
-/// minima, where the answers those tests require no longer came out.
-pub const EFFORT: Effort = Effort { steps: 40, simulations: 90, refresh: 3 };
+/// minima, where the answers those tests require no longer came out. The tolerance: a
+/// fit stops once a step on a fresh Jacobian gains less than 0.1 χ² (a hundredth of
+/// [`MARGIN`]) instead of a millionth of χ²; on the same 130 ears per set the true
+/// hypothesis stayed within the margin for 97 % (WBT) and 98 % (every measure), and the
+/// fits took 7 % less time.
+pub const EFFORT: Effort = Effort { steps: 40, simulations: 90, refresh: 3, tolerance: 0.1 };
 
 /// A fitted value within this fraction of its abnormal side's width (on the parameter's
 /// scale) from the normal limit is "at the normal limit".
@@ -305,7 +309,7 @@ fn starts(map: &[f64], draws: &[Vec<f64>], cols: &[ParamSpec], side: Option<Side
 }
 
 /// What a box fit may spend.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Effort {
     /// Levenberg–Marquardt steps, at most.
     pub steps: usize,
@@ -313,6 +317,9 @@ pub struct Effort {
     pub simulations: usize,
     /// Accepted steps between finite-difference Jacobians; 1: a fresh one every step.
     pub refresh: usize,
+    /// A step on a fresh Jacobian that lowers χ² by less than this (or by less than a
+    /// millionth of χ²) ends the fit.
+    pub tolerance: f64,
 }
 
 /// A projected Levenberg–Marquardt fit: the columns in their box positions (0 at `low`,
@@ -422,7 +429,7 @@ pub fn fit_box(
             }
             fresh = false;
         }
-        let stalled = gain <= 1e-6 * c.max(1.0);
+        let stalled = gain <= (1e-6 * c.max(1.0)).max(effort.tolerance);
         if stalled && was_fresh {
             break;
         }
@@ -837,7 +844,7 @@ mod tests {
     /// χ² 0.63 against 8.0e3.)
     #[test]
     fn a_carried_jacobian_gets_further_for_the_same_simulations() {
-        let every = Effort { steps: 200, simulations: usize::MAX, refresh: 1 };
+        let every = Effort { steps: 200, simulations: usize::MAX, refresh: 1, tolerance: 0.0 };
         let carried = Effort { refresh: EFFORT.refresh, ..every };
         for effort in [every, carried] {
             let (c, e, _) = fit_curved(effort);
@@ -858,10 +865,22 @@ mod tests {
         let (_, residuals) = curved_problem();
         let c0: f64 = residuals(&[0.0; 10]).iter().map(|v| v * v).sum();
         for budget in [25, 40, 60] {
-            let (c, _, n) = fit_curved(Effort { steps: 200, simulations: budget, refresh: 4 });
+            let (c, _, n) = fit_curved(Effort { steps: 200, simulations: budget, refresh: 4, tolerance: 0.0 });
             assert!(n <= budget, "{n} simulations against a budget of {budget}");
             assert!(c < 0.1 * c0, "χ² {c} from {c0} in {budget} simulations");
         }
+    }
+
+    /// A fit ends once a step on a fresh Jacobian gains less χ² than its tolerance: it
+    /// spends fewer simulations than one run to a millionth of χ², and ends no further
+    /// from the minimum (0 here) than a few times the tolerance.
+    #[test]
+    fn a_fit_ends_once_its_steps_gain_less_than_the_tolerance() {
+        let exact = Effort { steps: 200, simulations: usize::MAX, refresh: EFFORT.refresh, tolerance: 0.0 };
+        let (c0, _, n0) = fit_curved(exact);
+        let (c, _, n) = fit_curved(Effort { tolerance: 1.0, ..exact });
+        assert!(n < n0, "{n} simulations with the tolerance against {n0} without (χ² {c}, {c0})");
+        assert!(c < 5.0, "χ² {c} with a tolerance of 1");
     }
 
     #[test]
@@ -895,12 +914,13 @@ mod calibration {
             Npe::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit")).unwrap();
         let model = super::super::fitcheck::simulator_for(&npe).unwrap();
         let nf = model.frequencies().len();
-        // EFFORT, or another to compare: ALT_STEPS, ALT_SIMS, ALT_REFRESH.
+        // EFFORT, or another to compare: ALT_STEPS, ALT_SIMS, ALT_REFRESH, ALT_TOL.
         let env = |k: &str, d: usize| std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d);
         let effort = Effort {
             steps: env("ALT_STEPS", EFFORT.steps),
             simulations: env("ALT_SIMS", EFFORT.simulations),
             refresh: env("ALT_REFRESH", EFFORT.refresh),
+            tolerance: std::env::var("ALT_TOL").ok().and_then(|v| v.parse().ok()).unwrap_or(EFFORT.tolerance),
         };
         let all: Vec<Side> = sides(true).into_iter().chain(sides(false)).collect();
         for wbt in [true, false] {
