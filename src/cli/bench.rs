@@ -625,12 +625,11 @@ const FINDING_EARS: [(&str, &[(&str, f64)]); 6] = [
 /// noise of seed 3.
 fn finding_body(model: &crate::sim::Model, k: usize, samples: usize) -> Result<serde_json::Value> {
     use crate::sim::batch::{Design, Noise, default_noise_std, run_rows};
-    use crate::sim::params::PARAMS;
+    use crate::sim::params::{N_TISSUE, PARAMS};
     // The ear's canal, cavity, drum viscoelasticity, LDV angle and cochlear mass from the
     // prior (seed 5, row k); its tissue at the centre of the normal ranges.
     let mut row = Design::default().draw(5, k, 1).remove(0);
-    let centre = crate::npe::normal::centre_row();
-    row[..crate::sim::params::N_TISSUE].copy_from_slice(&centre[..crate::sim::params::N_TISSUE]);
+    row[..N_TISSUE].copy_from_slice(&crate::npe::normal::centre_row()[..N_TISSUE]);
     for &(name, v) in FINDING_EARS[k].1 {
         let i = PARAMS.iter().position(|p| p.name == name).ok_or_else(|| anyhow::anyhow!("no parameter {name}"))?;
         row[i] = v;

@@ -915,12 +915,14 @@ mod calibration {
         let model = super::super::fitcheck::simulator_for(&npe).unwrap();
         let nf = model.frequencies().len();
         // EFFORT, or another to compare: ALT_STEPS, ALT_SIMS, ALT_REFRESH, ALT_TOL.
-        let env = |k: &str, d: usize| std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d);
+        fn env<T: std::str::FromStr>(k: &str, d: T) -> T {
+            std::env::var(k).ok().and_then(|v| v.parse().ok()).unwrap_or(d)
+        }
         let effort = Effort {
             steps: env("ALT_STEPS", EFFORT.steps),
             simulations: env("ALT_SIMS", EFFORT.simulations),
             refresh: env("ALT_REFRESH", EFFORT.refresh),
-            tolerance: std::env::var("ALT_TOL").ok().and_then(|v| v.parse().ok()).unwrap_or(EFFORT.tolerance),
+            tolerance: env("ALT_TOL", EFFORT.tolerance),
         };
         let all: Vec<Side> = sides(true).into_iter().chain(sides(false)).collect();
         for wbt in [true, false] {
