@@ -120,6 +120,11 @@ pub enum BenchWhat {
         /// discrepancy workflow, without retraining: misfits.md and misfits.json in --out.
         #[arg(long)]
         diagnose: bool,
+        /// Also fit the differential's alternatives on the ears the fit check refuses
+        /// (never shipped): what the constrained fits would name on an ear the model does
+        /// not reproduce; a second table.
+        #[arg(long)]
+        alternatives_on_misfits: bool,
     },
     /// The shipped posterior (the flow) against the posterior under the model's own
     /// likelihood (least-squares fits, then a Metropolis chain, as `otofit infer --exact`)
@@ -224,8 +229,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
         BenchWhat::Discrepancy { cases, clean, seed, effects, no_full, out } => {
             super::diagnose::bench(cases, clean, seed, &effects, !no_full, out.as_deref())
         }
-        BenchWhat::Crossmodel { ears, out, model, seed, samples, measures, diagnose } => {
-            crossmodel(ears, &out, &model, seed, samples, &measures)?;
+        BenchWhat::Crossmodel { ears, out, model, seed, samples, measures, diagnose, alternatives_on_misfits } => {
+            crossmodel(ears, &out, &model, seed, samples, &measures, alternatives_on_misfits)?;
             if diagnose { crossmodel_misfits(ears, &out, &model, seed, samples) } else { Ok(()) }
         }
         BenchWhat::C2st(a) => super::bench_c2st::run(*a),
@@ -296,6 +301,7 @@ fn crossmodel(
     seed: u64,
     samples: usize,
     measures: &str,
+    misfits: bool,
 ) -> Result<()> {
     use crate::bench::crossmodel::run::{self, CrossParams};
     use anyhow::Context;
@@ -307,7 +313,7 @@ fn crossmodel(
     }
     std::fs::create_dir_all(out).with_context(|| format!("--out {}: cannot create it", out.display()))?;
     let npe = crate::npe::Npe::load(model)?;
-    let p = CrossParams { ears, seed, samples, groups: groups(measures), ..CrossParams::default() };
+    let p = CrossParams { ears, seed, samples, groups: groups(measures), misfits, ..CrossParams::default() };
     let given = if measures.is_empty() { "all" } else { measures };
     let t = Instant::now();
     let results = run::run(&npe, &p, &mut |r| {
@@ -321,7 +327,11 @@ fn crossmodel(
             t.elapsed().as_secs_f64()
         )
     })?;
-    let table = run::table(&results);
+    let mut table = run::table(&results);
+    if misfits {
+        let m = run::misfit_table(&results);
+        table.push_str(&format!("\nThe alternatives on the ears the fit check refused (never shipped):\n\n{m}"));
+    }
     println!("measures given: {given}");
     print!("{table}");
     std::fs::write(out.join("crossmodel.md"), format!("measures given: {given}\n\n{table}"))?;

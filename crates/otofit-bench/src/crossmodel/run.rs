@@ -20,7 +20,7 @@ use super::hudde_engel::HuddeEngel;
 use super::kringlebotn::Kringlebotn;
 use super::{CONDITIONS, Condition, EarModel, Geometry, features, training_air};
 use anyhow::{Result, anyhow, bail};
-use otofit_discrepancy::discrepancy::alternatives::{AlternativesParams, alternatives};
+use otofit_discrepancy::discrepancy::alternatives::{AlternativesParams, Hypothesis, alternatives};
 use otofit_discrepancy::discrepancy::fitcheck::checked_reading;
 use otofit_npe::npe::normal::{self, Differential};
 use otofit_npe::npe::{Npe, Obs};
@@ -128,11 +128,15 @@ pub struct CrossParams {
     /// The feature groups given to the posterior and the fit check (e.g. `impedance`,
     /// `absorbance`: wideband tympanometry alone); all when empty.
     pub groups: Vec<String>,
+    /// Also fit the differential's alternatives on ears whose fit check failed (never
+    /// shipped): what the constrained fits would name on an ear the model does not
+    /// reproduce.
+    pub misfits: bool,
 }
 
 impl Default for CrossParams {
     fn default() -> Self {
-        CrossParams { ears: 20, seed: 1, samples: 1000, noise_scale: 1.0, groups: vec![] }
+        CrossParams { ears: 20, seed: 1, samples: 1000, noise_scale: 1.0, groups: vec![], misfits: false }
     }
 }
 
@@ -154,8 +158,12 @@ pub struct EarOutcome {
     /// Findings as shipped (empty when the fit failed).
     pub findings: Vec<String>,
     /// With the fit check passed: the explanations the differential with alternatives
-    /// keeps (`NAME below|above`, or `none`), the best and those within its margin.
+    /// keeps (`NAME below|above`, or `none`), the best and those within its margin;
+    /// with [`CrossParams::misfits`], also when it failed.
     pub alternatives: Vec<String>,
+    /// The best-fitting explanation that is not on its normal limit, whenever the
+    /// alternatives were fitted.
+    pub best_explanation: Option<String>,
 }
 
 /// The scores of one model × condition.
@@ -190,12 +198,29 @@ pub struct CaseResult {
     pub among_alternatives: Option<f64>,
     /// Median reduced χ² of the fit check over the ears it ran on.
     pub median_chi2: Option<f64>,
+    /// With [`CrossParams::misfits`], over the ears whose fit check failed: the share
+    /// whose best explanation names the condition (healthy: `none` or the model's own
+    /// tissue), the share that keep it within the margin, and the median number kept.
+    pub misfit_alternatives: Option<MisfitScores>,
     /// How often each finding was shipped.
     pub findings: BTreeMap<String, usize>,
     /// How often each finding was read before the fit check.
     pub findings_raw: BTreeMap<String, usize>,
     /// Every ear.
     pub per_ear: Vec<EarOutcome>,
+}
+
+/// What the alternatives say of the ears whose fit check failed (never shipped).
+#[derive(Clone, Debug, Serialize)]
+pub struct MisfitScores {
+    /// Ears whose fit check failed and whose alternatives were fitted.
+    pub ears: usize,
+    /// Share whose best explanation names the condition.
+    pub best_names: f64,
+    /// Share that keep the condition within the margin.
+    pub among: f64,
+    /// Median number of explanations kept.
+    pub kept_median: usize,
 }
 
 /// `NAME below|above` for every confident finding of a differential.
@@ -213,6 +238,14 @@ fn names_condition(found: &[String], expected: &[String], inherent: &[String]) -
     }
 }
 
+/// Whether one explanation of the alternatives (`NAME below|above|present`, or `none`)
+/// is the condition's; for a healthy ear `none`, or a reading the model's own tissue
+/// implies (`inherent`). An answer without a finding whose least squares prefer an
+/// abnormal ear does not count as healthy.
+fn explains(a: &str, expected: &[String], inherent: &[String]) -> bool {
+    if expected.is_empty() { a == "none" || inherent.iter().any(|i| i == a) } else { expected.iter().any(|x| x == a) }
+}
+
 /// Whether a set of findings holds one that neither the condition nor the model's own
 /// tissue (`inherent`) names.
 fn names_another(found: &[String], expected: &[String], inherent: &[String]) -> bool {
@@ -220,7 +253,7 @@ fn names_another(found: &[String], expected: &[String], inherent: &[String]) -> 
 }
 
 /// Reads one ear as `otofit infer` does.
-fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -> Result<EarOutcome> {
+fn read_ear(npe: &Npe, x: &[f64], present: &[bool], p: &CrossParams, seed: u64) -> Result<EarOutcome> {
     let mut ear = EarOutcome {
         severity: 1.0,
         refused: None,
@@ -230,6 +263,7 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
         findings_raw: vec![],
         findings: vec![],
         alternatives: vec![],
+        best_explanation: None,
     };
     if let Some((m, i, v)) = output::implausible(x, present, npe.header.frequencies_hz.len()).first() {
         ear.refused = Some(format!(
@@ -241,7 +275,7 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
     }
     // As the service answers: the full-measure flow for an ear with every measure.
     let npe = npe.answering(&Obs { x, present: Some(present) });
-    let inf = npe.infer(&Obs { x, present: Some(present) }, samples, seed)?;
+    let inf = npe.infer(&Obs { x, present: Some(present) }, p.samples, seed)?;
     // What the draws say before a failed fit check withdraws it.
     ear.findings_raw = findings(&normal::read(npe.params(), &inf.samples));
     let (differential, fit) = checked_reading(npe, x, present, &inf, &inf.samples);
@@ -257,14 +291,12 @@ fn read_ear(npe: &Npe, x: &[f64], present: &[bool], samples: usize, seed: u64) -
     }
     ear.findings = findings(&differential);
     // The competing explanations, also when nothing is read: is the condition among them?
-    let p = AlternativesParams { when_no_finding: true, ..Default::default() };
-    if let Some(a) = alternatives(npe, x, present, (&inf.map, &inf.samples), &differential, ear.fit_ok, &p) {
-        ear.alternatives = a
-            .hypotheses
-            .iter()
-            .filter(|h| h.delta_chi2 < a.margin && !h.at_normal_limit)
-            .map(|h| h.parameter.map_or("none".to_string(), |n| format!("{n} {}", h.direction)))
-            .collect();
+    let ap = AlternativesParams { when_no_finding: true, when_misfit: p.misfits, ..Default::default() };
+    if let Some(a) = alternatives(npe, x, present, (&inf.map, &inf.samples), &differential, ear.fit_ok, &ap) {
+        let name = |h: &Hypothesis| h.parameter.map_or("none".to_string(), |n| format!("{n} {}", h.direction));
+        let distinct = a.hypotheses.iter().filter(|h| !h.at_normal_limit);
+        ear.alternatives = distinct.clone().filter(|h| h.delta_chi2 < a.margin).map(name).collect();
+        ear.best_explanation = distinct.map(name).next();
     } else if ear.fit_ok == Some(true) && ear.findings.is_empty() {
         // Nothing abnormal fits within the margin of a normal ear.
         ear.alternatives = vec!["none".into()];
@@ -308,7 +340,7 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
             .map(|k| {
                 let row = case * 1_000_000 + k;
                 let (x, severity) = noisy_ear(model, condition, p, row, &freqs);
-                let mut o = read_ear(npe, &x, &present, p.samples, p.seed.wrapping_add(row as u64))?;
+                let mut o = read_ear(npe, &x, &present, p, p.seed.wrapping_add(row as u64))?;
                 o.severity = severity;
                 Ok(o)
             })
@@ -351,17 +383,27 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
             median_chi2: (!chi2.is_empty()).then(|| chi2[(chi2.len() - 1) / 2]),
             among_alternatives: {
                 let ok: Vec<&EarOutcome> = per_ear.iter().filter(|e| e.fit_ok == Some(true)).collect();
-                // Healthy: `none` must be among the explanations kept (an answer without a
-                // finding whose least squares prefer an abnormal ear does not count).
-                let kept = |e: &EarOutcome| {
-                    if expected.is_empty() {
-                        e.alternatives.iter().any(|a| a == "none" || inherent.contains(a))
-                    } else {
-                        names_condition(&e.findings, &expected, &inherent)
-                            || e.alternatives.iter().any(|a| expected.contains(a))
-                    }
+                let kept = |e: &&EarOutcome| {
+                    names_condition(&e.findings, &expected, &inherent) && !expected.is_empty()
+                        || e.alternatives.iter().any(|a| explains(a, &expected, &inherent))
                 };
                 (!ok.is_empty()).then(|| ok.iter().filter(|e| kept(e)).count() as f64 / ok.len() as f64)
+            },
+            misfit_alternatives: {
+                let bad: Vec<&EarOutcome> =
+                    per_ear.iter().filter(|e| e.fit_ok == Some(false) && e.best_explanation.is_some()).collect();
+                let share =
+                    |f: &dyn Fn(&EarOutcome) -> bool| bad.iter().filter(|e| f(e)).count() as f64 / bad.len() as f64;
+                let mut kept: Vec<usize> = bad.iter().map(|e| e.alternatives.len()).collect();
+                kept.sort_unstable();
+                (!bad.is_empty()).then(|| MisfitScores {
+                    ears: bad.len(),
+                    best_names: share(&|e| {
+                        e.best_explanation.as_deref().is_some_and(|b| explains(b, &expected, &inherent))
+                    }),
+                    among: share(&|e| e.alternatives.iter().any(|a| explains(a, &expected, &inherent))),
+                    kept_median: kept[(kept.len() - 1) / 2],
+                })
             },
             findings: count(&|e| &e.findings),
             findings_raw: count(&|e| &e.findings_raw),
@@ -412,6 +454,38 @@ pub fn table(results: &[CaseResult]) -> String {
     s
 }
 
+/// The alternatives on the ears whose fit check failed (`CrossParams::misfits`), as a
+/// Markdown table: one row per model × condition with such ears.
+pub fn misfit_table(results: &[CaseResult]) -> String {
+    let mut s = String::from(
+        "| model | condition | should read | misfit ears | best explanation names it | named within the margin | explanations kept (median) | most frequent best explanation (ears) |\n|---|---|---|---|---|---|---|---|\n",
+    );
+    let pct = |v: f64| format!("{:.0} %", 100.0 * v);
+    for r in results {
+        let Some(m) = &r.misfit_alternatives else { continue };
+        let mut best = BTreeMap::new();
+        for e in r.per_ear.iter().filter(|e| e.fit_ok == Some(false)) {
+            if let Some(b) = &e.best_explanation {
+                *best.entry(b.as_str()).or_insert(0) += 1;
+            }
+        }
+        let most = best.iter().max_by_key(|(_, n)| **n).map_or("—".to_string(), |(b, n)| format!("{b} ({n})"));
+        let should = if r.expected.is_empty() { "no finding".to_string() } else { r.expected.join(" or ") };
+        s.push_str(&format!(
+            "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
+            r.model.name(),
+            r.condition.name(),
+            should,
+            m.ears,
+            pct(m.best_names),
+            pct(m.among),
+            m.kept_median,
+            most
+        ));
+    }
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -429,6 +503,11 @@ mod tests {
         let own = e(&["cochlear_load below"]);
         assert!(names_condition(&own, &[], &own) && !names_another(&own, &sal, &own));
         assert!(names_another(&e(&["cochlear_load above"]), &sal, &own));
+        // An explanation of the alternatives: the condition's, or for a healthy ear none
+        // or the model's own tissue.
+        assert!(explains("E_sal above", &sal, &own) && !explains("E_joints above", &sal, &own));
+        assert!(!explains("none", &sal, &own) && explains("none", &[], &own));
+        assert!(explains("cochlear_load below", &[], &own) && !explains("E_sal above", &[], &own));
     }
 
     /// The models' cochlear loads on otofit's scale, from their published elements:
@@ -505,5 +584,36 @@ mod tests {
         let bad = CrossParams { groups: vec!["tympanogram".into()], ..p.clone() };
         assert!(run(&npe, &bad, &mut |_| {}).unwrap_err().to_string().contains("unknown feature group"));
         assert_eq!(table(&a).lines().count(), 10);
+    }
+
+    /// The alternatives of ears the fit check refuses are fitted only when asked, and
+    /// then on every such ear; the shipped answer is the same either way.
+    #[test]
+    fn misfit_ears_get_alternatives_only_when_asked() {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/default.otofit");
+        let npe = Npe::load(&path).unwrap();
+        let p = CrossParams { ears: 1, samples: 200, ..CrossParams::default() };
+        let off = run(&npe, &p, &mut |_| {}).unwrap();
+        let on = run(&npe, &CrossParams { misfits: true, ..p.clone() }, &mut |_| {}).unwrap();
+        let mut misfits = 0;
+        for (a, b) in off.iter().zip(&on) {
+            assert!(a.misfit_alternatives.is_none(), "{} {}", a.model.name(), a.condition.name());
+            let refused = b.per_ear.iter().filter(|e| e.fit_ok == Some(false)).count();
+            misfits += refused;
+            assert_eq!(b.misfit_alternatives.as_ref().map_or(0, |m| m.ears), refused);
+            for (ea, eb) in a.per_ear.iter().zip(&b.per_ear) {
+                assert_eq!((&ea.findings, ea.fit_ok), (&eb.findings, eb.fit_ok));
+                if eb.fit_ok == Some(false) {
+                    assert!(ea.best_explanation.is_none() && ea.alternatives.is_empty());
+                    assert!(eb.best_explanation.is_some() && !eb.alternatives.is_empty());
+                }
+            }
+        }
+        // Every ear of both models fails the check with all seven measures.
+        assert!(misfits >= 6, "{misfits} misfit ears");
+        assert_eq!(
+            misfit_table(&on).lines().count(),
+            2 + on.iter().filter(|r| r.misfit_alternatives.is_some()).count()
+        );
     }
 }

@@ -109,11 +109,17 @@ pub struct AlternativesParams {
     /// hypotheses and `none` cost about twice a finding's one side, past POST /infer's
     /// latency target on two cores; `otofit bench crossmodel` measures it.
     pub when_no_finding: bool,
+    /// Also fit the hypotheses when the fit check failed. Off in every answer: on an ear
+    /// the model does not reproduce, Δχ² measures the model's structural error as much as
+    /// the evidence, and the best constrained fit can be one wrong structure alone
+    /// (docs/results/crossmodel.md); `otofit bench crossmodel --alternatives-on-misfits`
+    /// measures what it would say.
+    pub when_misfit: bool,
 }
 
 impl Default for AlternativesParams {
     fn default() -> Self {
-        AlternativesParams { effort: EFFORT, margin: MARGIN, when_no_finding: false }
+        AlternativesParams { effort: EFFORT, margin: MARGIN, when_no_finding: false, when_misfit: false }
     }
 }
 
@@ -675,8 +681,9 @@ fn sides_of(readings: &[Differential]) -> (bool, bool) {
 }
 
 /// The differential with alternatives of one reading: `None` when there is nothing to
-/// say (the fit check did not pass, the model is not otofit's, or the differential holds
-/// no finding and no abnormal hypothesis fits within the margin of the best).
+/// say (the fit check did not pass, unless `p.when_misfit`; the model is not otofit's;
+/// or the differential holds no finding and no abnormal hypothesis fits within the
+/// margin of the best).
 pub fn alternatives(
     npe: &Npe,
     x: &[f64],
@@ -686,7 +693,8 @@ pub fn alternatives(
     fit_ok: Option<bool>,
     p: &AlternativesParams,
 ) -> Option<Alternatives> {
-    if fit_ok != Some(true) || map.len() != N_PARAMS {
+    let checked = fit_ok == Some(true) || (p.when_misfit && fit_ok == Some(false));
+    if !checked || map.len() != N_PARAMS {
         return None;
     }
     let finding = readings.iter().any(|d| matches!(d.reading, "below" | "above"));
