@@ -257,6 +257,47 @@ fn merging_parts_that_do_not_cover_every_row_is_an_error() {
     assert_eq!(std::fs::read_to_string(dir.join("c/x.csv")).unwrap().lines().count(), 31);
 }
 
+/// Parts joined as they finish, a few at a time while others are still running, give
+/// the same dataset bytes as parts joined all at once; a part not yet finished is not
+/// joined.
+#[test]
+fn parts_joined_as_they_finish_are_the_same_bytes_as_joined_at_once() {
+    use otofit::dataset::{self, Meta, PartJoiner, PartRun, Rows};
+    use otofit::sim::batch::{Design, Noise};
+    use otofit::sim::{Model, ModelConfig};
+    let dir = temp_dir("join-steps");
+    let parts = dir.join("parts");
+    std::fs::create_dir_all(&parts).unwrap();
+    let model = Model::new(ModelConfig::default()).unwrap();
+    let design = Design::default();
+    let noise = Noise { std: otofit::sim::batch::default_noise_std(&model), scale: 1.0, seed: 4 };
+    let rows = Rows::Prior { n: 30, seed: 2 };
+    let run = PartRun { model: &model, design: &design, rows: &rows, noise: &noise, parts: &parts };
+    let meta = || Meta::new(&design, model.config.preset, model.frequencies(), &noise, Some(2));
+    run.simulate(0, 0, 12, "t", &mut |_| true).unwrap();
+    let mut joiner = PartJoiner::create(&parts, &dir.join("steps"), &meta()).unwrap();
+    joiner.append_upto(1).unwrap();
+    let err = format!("{:#}", anyhow::Error::from(joiner.append_upto(2).unwrap_err()));
+    assert!(err.contains("part-00001") && err.contains("not finished"), "{err}");
+    run.simulate(1, 12, 9, "t", &mut |_| true).unwrap();
+    run.simulate(2, 21, 9, "t", &mut |_| true).unwrap();
+    joiner.append_upto(2).unwrap();
+    assert_eq!(joiner.appended(), 2);
+    let mut stepped = meta();
+    joiner.finish(3, 30, &mut stepped).unwrap();
+    let mut at_once = meta();
+    dataset::merge_parts(&parts, 3, 30, &dir.join("once"), &mut at_once).unwrap();
+    for f in dataset::FILES {
+        let (a, b) =
+            (std::fs::read(dir.join("steps").join(f)).unwrap(), std::fs::read(dir.join("once").join(f)).unwrap());
+        if f != "meta.json" {
+            assert!(a == b, "{f} differs");
+        }
+    }
+    assert_eq!((stepped.n_rows, stepped.failed.len()), (at_once.n_rows, at_once.failed.len()));
+    assert_eq!(std::fs::read_to_string(dir.join("steps/x.csv")).unwrap().lines().count(), 31);
+}
+
 /// A simulate job's progress follows every worker's finished chunks: the chunk table,
 /// not only what the job's own worker last wrote (which lags while it runs a chunk of its
 /// own). Two of three chunks finished by "other workers", the third running, read as

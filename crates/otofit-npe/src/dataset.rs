@@ -663,49 +663,90 @@ impl PartRun<'_> {
 /// not a short dataset. `meta` is [`Meta::new`]'s; its counts, failures and time (the
 /// parts' compute) are filled in.
 pub fn merge_parts(parts: &Path, n_parts: usize, n_rows: usize, dir: &Path, meta: &mut Meta) -> Result<()> {
-    let mut writer = Writer::create(dir, meta, Format::Csv)?;
-    let mut next = 0;
-    let mut append = |idx: usize, writer: &mut Writer| -> Result<Part> {
+    PartJoiner::create(parts, dir, meta)?.finish(n_parts, n_rows, meta)
+}
+
+/// Joins a dataset's parts in order as they finish, so that a chunked run copies its
+/// table while other chunks still run and only the last parts are left at its end
+/// ([`merge_parts`] all at once). Its tables are temporary files in `dir` until
+/// [`PartJoiner::finish`]; [`PartJoiner::abandon`] removes them.
+pub struct PartJoiner<'a> {
+    parts: &'a Path,
+    writer: Writer,
+    /// The next part to append, and the first row it must hold.
+    next: (usize, usize),
+    failed: Vec<Failed>,
+    wall: f64,
+}
+
+impl<'a> PartJoiner<'a> {
+    /// Opens the dataset's temporary tables in `dir` with their headers.
+    pub fn create(parts: &'a Path, dir: &Path, meta: &Meta) -> Result<PartJoiner<'a>> {
+        let writer = Writer::create(dir, meta, Format::Csv)?;
+        Ok(PartJoiner { parts, writer, next: (0, 0), failed: vec![], wall: 0.0 })
+    }
+
+    /// Parts appended so far.
+    pub fn appended(&self) -> usize {
+        self.next.0
+    }
+
+    /// Appends parts up to (not including) `upto`, which must be finished.
+    pub fn append_upto(&mut self, upto: usize) -> Result<()> {
+        while self.next.0 < upto {
+            self.append_next()?;
+        }
+        Ok(())
+    }
+
+    fn append_next(&mut self) -> Result<()> {
+        let (idx, first) = self.next;
         let unusable = |why: String| {
             let e = std::io::Error::new(std::io::ErrorKind::InvalidData, why);
-            DatasetError::Io(FileError { action: "read", path: part_file(parts, idx, "json"), source: e })
+            DatasetError::Io(FileError { action: "read", path: part_file(self.parts, idx, "json"), source: e })
         };
-        let part = read_part(parts, idx).ok_or_else(|| unusable("part not finished".into()))?;
-        if part.first != next || part.len == 0 {
-            return Err(unusable(format!(
-                "part holds rows {}..{}, expected from row {next}",
-                part.first,
-                part.first + part.len
-            )));
+        let part = read_part(self.parts, idx).ok_or_else(|| unusable("part not finished".into()))?;
+        if part.first != first || part.len == 0 {
+            let why = format!("part holds rows {}..{}, expected from row {first}", part.first, part.first + part.len);
+            return Err(unusable(why));
         }
-        next += part.len;
-        for (f, w) in [(FILES[0], &mut writer.theta), (FILES[1], &mut writer.x)] {
-            let from = part_file(parts, idx, f);
+        for (f, w) in [(FILES[0], &mut self.writer.theta), (FILES[1], &mut self.writer.x)] {
+            let from = part_file(self.parts, idx, f);
             File::open(&from).and_then(|mut r| std::io::copy(&mut r, w)).map_err(io("read", &from))?;
         }
-        writer.rows += part.rows;
-        Ok(part)
-    };
-    let mut wall = 0.0;
-    for idx in 0..n_parts {
-        match append(idx, &mut writer) {
-            Ok(part) => {
-                meta.failed.extend(part.failed);
-                wall += part.wall_seconds;
-            }
-            Err(e) => {
-                writer.abandon();
-                return Err(e);
-            }
+        self.writer.rows += part.rows;
+        self.wall += part.wall_seconds;
+        self.failed.extend(part.failed);
+        self.next = (idx + 1, first + part.len);
+        Ok(())
+    }
+
+    /// Appends the parts left of `0..n_parts` and renames the dataset into place, if
+    /// the parts cover rows `0..n_rows`; `meta` gets the counts, failures and compute
+    /// time. On an error the temporary tables are removed.
+    pub fn finish(mut self, n_parts: usize, n_rows: usize, meta: &mut Meta) -> Result<()> {
+        if let Err(e) = self.append_upto(n_parts) {
+            self.abandon();
+            return Err(e);
         }
+        if self.next.1 != n_rows {
+            let e = std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("parts cover {} of {n_rows} rows", self.next.1),
+            );
+            let path = self.parts.to_path_buf();
+            self.abandon();
+            return Err(DatasetError::Io(FileError { action: "read", path, source: e }));
+        }
+        meta.failed.extend(self.failed);
+        meta.wall_seconds = self.wall;
+        self.writer.finish(meta)
     }
-    if next != n_rows {
-        writer.abandon();
-        let e = std::io::Error::new(std::io::ErrorKind::InvalidData, format!("parts cover {next} of {n_rows} rows"));
-        return Err(DatasetError::Io(FileError { action: "read", path: parts.to_path_buf(), source: e }));
+
+    /// Removes the temporary tables.
+    pub fn abandon(self) {
+        self.writer.abandon();
     }
-    meta.wall_seconds = wall;
-    writer.finish(meta)
 }
 
 /// A numeric CSV table with a header row.

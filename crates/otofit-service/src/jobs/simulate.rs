@@ -1,8 +1,9 @@
 //! `simulate`: prior draws or given rows through the simulator into a dataset folder,
 //! `datasets/<job id>/`, in chunks: each chunk (claimed by the job's worker or by any
 //! idle one) is written as a part file in `datasets/<job id>/parts/`; a re-claimed job
-//! resumes from the finished parts; at the end the parts are joined in this attempt's
-//! staging folder and moved into place after a fresh renewal of its lease.
+//! resumes from the finished parts; the job's worker joins the parts in order, as they
+//! finish, in this attempt's staging folder, and at the end moves the dataset into place
+//! after a fresh renewal of its lease.
 
 use super::spec::{FieldError, effects_of, non_negative, theta_values, with_geometry};
 use super::{Ctx, JobContext, JobError, JobSpec, Reporter, Stopped, limits};
@@ -122,8 +123,9 @@ pub fn chunk_plan(n: usize, chunk_rows: usize) -> Vec<(usize, usize)> {
 /// Runs a simulate job as chunks (planned at its first attempt, kept across attempts):
 /// claims the chunks nobody holds, one after another, each written as a part file by
 /// `run_chunk`, while idle dispatchers anywhere may claim others (`help`); waits for
-/// those; then (the lease renewed) joins the parts into `datasets/<id>/` through this
-/// attempt's staging folder. Chunks finished by an earlier attempt, or by a worker that
+/// those; joins each leading run of finished parts into this attempt's staging folder
+/// as it forms (so that the end copies only the last parts); then, the lease renewed,
+/// moves the dataset into `datasets/<id>/`. Chunks finished by an earlier attempt, or by a worker that
 /// died after writing its part, are not run again: the job resumes from them, and its
 /// dataset is the same bytes as an uninterrupted run (every row has its own streams).
 pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> Result<serde_json::Value, JobError> {
@@ -136,23 +138,75 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
         .with_context(|| format!("creating {}", parts.display()))
         .internal("the dataset's folder could not be created")?;
     let mut chunks = rt.block_on(ctx.store.plan_chunks(id, &chunk_plan(n, ctx.chunk_rows)))?;
-    // A part counts only if it holds the chunk's rows (not those of another plan's chunk).
-    let finished =
-        |c: &ChunkRow| dataset::read_part(&parts, c.idx).is_some_and(|p| p.first == c.first_row && p.len == c.n_rows);
-    let resumed = chunks.iter().filter(|c| finished(c)).count();
+    let resumed = chunks.iter().filter(|c| part_finished(&parts, c)).count();
     if resumed > 0 {
         tracing::info!(job = %id, resumed, chunks = chunks.len(), "resuming from finished chunks");
     }
+    let mut meta = dataset::Meta::new(
+        &setup.design,
+        setup.model.config.preset,
+        setup.model.frequencies(),
+        &setup.noise,
+        setup.rows.seed(),
+    );
+    // The parts are joined in order as they finish, while other chunks still run: at
+    // the end only the last ones are left to copy.
+    let staging = staging_dir(&dir, &r.claim.1);
+    let mut joiner =
+        dataset::PartJoiner::create(&parts, &staging, &meta).internal("the dataset's tables could not be created")?;
+    if let Err(e) = run_chunks(ctx, id, (&setup, &parts), r, &mut chunks, &mut joiner) {
+        joiner.abandon();
+        return Err(e);
+    }
+    joiner.finish(chunks.len(), n, &mut meta).internal("the dataset's chunks could not be joined")?;
+    r.still_ours(ctx)?;
+    publish_dataset(&staging, &dir)?;
+    // The parts are in the dataset now: gone before the job is marked done, so that no
+    // end of this process (even a kill right after) leaves them behind.
+    remove_temporary_files(&dir, true);
+    Ok(serde_json::json!({
+        "dataset": format!("/datasets/{id}"),
+        "rows": meta.n_rows,
+        "failed": meta.failed.len(),
+        "wall_seconds": meta.wall_seconds,
+        "chunks": chunks.len(),
+        "resumed_chunks": resumed,
+    }))
+}
+
+/// Whether chunk `c`'s part is finished in `parts`: it counts only if it holds the
+/// chunk's rows (not those of another plan's chunk).
+fn part_finished(parts: &Path, c: &ChunkRow) -> bool {
+    dataset::read_part(parts, c.idx).is_some_and(|p| p.first == c.first_row && p.len == c.n_rows)
+}
+
+/// The claim-and-run loop of [`execute`]: until every chunk's part is finished, claims
+/// and runs the chunks nobody holds, waits for the others, reports progress and hands
+/// `joiner` each leading run of finished parts.
+fn run_chunks(
+    ctx: &Ctx,
+    id: &str,
+    (setup, parts): (&Setup, &Path),
+    r: &Reporter,
+    chunks: &mut Vec<ChunkRow>,
+    joiner: &mut dataset::PartJoiner<'_>,
+) -> Result<(), JobError> {
+    let rt = tokio::runtime::Handle::current();
+    let n = setup.rows.len();
+    let finished = |c: &ChunkRow| part_finished(parts, c);
     loop {
         // The parts on disk say what is finished; the table is brought in line with them.
         let (mut done, mut done_rows) = (0, 0);
-        for c in &chunks {
-            match (finished(c), c.state.as_str()) {
+        let ended: Vec<bool> = chunks.iter().map(finished).collect();
+        for (c, &end) in chunks.iter().zip(&ended) {
+            match (end, c.state.as_str()) {
                 (true, _) => (done, done_rows) = (done + 1, done_rows + c.n_rows),
                 (false, "done") => rt.block_on(ctx.store.set_chunk_state(&c.id, "queued"))?,
                 _ => {}
             }
         }
+        let leading = ended.iter().take_while(|&&e| e).count();
+        joiner.append_upto(leading).internal("the dataset's chunks could not be joined")?;
         let status = |rows: usize| format!("simulated {rows}/{n} rows ({done}/{} chunks)", chunks.len());
         if !r.report(done_rows as f64 / n.max(1) as f64, status(done_rows)) {
             return Err(Stopped.into());
@@ -167,7 +221,7 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
             Some(claim) => {
                 let mut progress =
                     |rows: usize| r.report((done_rows + rows) as f64 / n as f64, status(done_rows + rows));
-                match run_chunk(ctx, &setup, &parts, &claim, &mut progress) {
+                match run_chunk(ctx, setup, parts, &claim, &mut progress) {
                     // The job is stopping (cancel, shutdown, its lease lost).
                     Err(e) if e.is::<Stopped>() && r.cancel.load(Ordering::Relaxed) => return Err(e),
                     // Only the chunk's lease was lost: another worker runs it.
@@ -180,31 +234,9 @@ pub(super) fn execute(ctx: &Ctx, id: &str, p: &SimulateParams, r: &Reporter) -> 
             // small queries).
             None => std::thread::sleep(Duration::from_millis(50)),
         }
-        chunks = rt.block_on(ctx.store.chunks(id))?;
+        *chunks = rt.block_on(ctx.store.chunks(id))?;
     }
-    let mut meta = dataset::Meta::new(
-        &setup.design,
-        setup.model.config.preset,
-        setup.model.frequencies(),
-        &setup.noise,
-        setup.rows.seed(),
-    );
-    let staging = staging_dir(&dir, &r.claim.1);
-    dataset::merge_parts(&parts, chunks.len(), n, &staging, &mut meta)
-        .internal("the dataset's chunks could not be joined")?;
-    r.still_ours(ctx)?;
-    publish_dataset(&staging, &dir)?;
-    // The parts are in the dataset now: gone before the job is marked done, so that no
-    // end of this process (even a kill right after) leaves them behind.
-    remove_temporary_files(&dir, true);
-    Ok(serde_json::json!({
-        "dataset": format!("/datasets/{id}"),
-        "rows": meta.n_rows,
-        "failed": meta.failed.len(),
-        "wall_seconds": meta.wall_seconds,
-        "chunks": chunks.len(),
-        "resumed_chunks": resumed,
-    }))
+    Ok(())
 }
 
 /// A running simulate job's progress as its chunk table tells it: the rows of finished
