@@ -536,6 +536,33 @@ mod tests {
         }
     }
 
+    /// Why otofit reads these networks' stapes fixations as a fixed malleus or a stiff
+    /// joint: in both, an annular ligament only 10× stiffer already lowers the umbo's
+    /// velocity below 1 kHz by more than 10 dB and by over half as much as the stapes'
+    /// — the signature Nakajima et al. (2005, Hear Res 204:60) measured for malleus
+    /// fixations in temporal bones, where stapes fixations lowered the umbo's by less
+    /// than 10 dB (their joints flex, as otofit's FE chain does:
+    /// otofit-sim/tests/semantics.rs). `cargo run --example fixation_signatures` tables it.
+    #[test]
+    fn the_networks_stapes_fixations_lower_the_umbo_as_a_fixed_malleus_does() {
+        let freqs = [250.0, 500.0, 1000.0];
+        let umbo_stapes_db = |ear: &dyn EarModel| {
+            let x = features(ear, &Geometry::nominal(), &training_air(), &freqs);
+            // |v_stapes| is the first block, |v_umbo| the sixth (log10 m/s/Pa).
+            let mean = |m: usize| 20.0 * x[m * 3..m * 3 + 3].iter().sum::<f64>() / 3.0;
+            (mean(5), mean(0))
+        };
+        for m in MODELS {
+            let (healthy, _) = m.ear(Condition::Healthy, 0.0);
+            let (fixed, factor) = m.ear(Condition::StapesFixation, 0.0);
+            assert_eq!(factor, STAPES_FIXATION.0);
+            let (u0, s0) = umbo_stapes_db(healthy.as_ref());
+            let (u1, s1) = umbo_stapes_db(fixed.as_ref());
+            let (du, ds) = (u1 - u0, s1 - s0);
+            assert!(du < -10.0 && du < 0.5 * ds, "{}: umbo {du:.1} dB, stapes {ds:.1} dB", m.name());
+        }
+    }
+
     /// Every model is passive (absorbance in [0, 1] at the probe, the drum's resistance
     /// not negative) and gives finite features inside otofit's physical envelope for
     /// every condition, at both ends of the condition's range.
