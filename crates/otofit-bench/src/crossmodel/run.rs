@@ -384,7 +384,7 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
             among_alternatives: {
                 let ok: Vec<&EarOutcome> = per_ear.iter().filter(|e| e.fit_ok == Some(true)).collect();
                 let kept = |e: &&EarOutcome| {
-                    names_condition(&e.findings, &expected, &inherent) && !expected.is_empty()
+                    (!expected.is_empty() && names_condition(&e.findings, &expected, &inherent))
                         || e.alternatives.iter().any(|a| explains(a, &expected, &inherent))
                 };
                 (!ok.is_empty()).then(|| ok.iter().filter(|e| kept(e)).count() as f64 / ok.len() as f64)
@@ -417,6 +417,11 @@ pub fn run(npe: &Npe, p: &CrossParams, progress: &mut dyn FnMut(&CaseResult)) ->
     Ok(out)
 }
 
+/// What a case should read, in words: its expected readings, or no finding.
+fn should_read(r: &CaseResult) -> String {
+    if r.expected.is_empty() { "no finding".to_string() } else { r.expected.join(" or ") }
+}
+
 /// The results as a Markdown table: one row per model × condition.
 pub fn table(results: &[CaseResult]) -> String {
     let mut s = String::from(
@@ -430,7 +435,7 @@ pub fn table(results: &[CaseResult]) -> String {
             .filter(|(f, _)| !r.expected.contains(f) && !r.inherent.contains(f))
             .max_by_key(|(_, n)| **n)
             .map_or("—".to_string(), |(f, n)| format!("{f} ({n})"));
-        let mut should = if r.expected.is_empty() { "no finding".to_string() } else { r.expected.join(" or ") };
+        let mut should = should_read(r);
         if !r.inherent.is_empty() {
             should.push_str(&format!(" (its own tissue: {})", r.inherent.join(", ")));
         }
@@ -470,7 +475,7 @@ pub fn misfit_table(results: &[CaseResult]) -> String {
             }
         }
         let most = best.iter().max_by_key(|(_, n)| **n).map_or("—".to_string(), |(b, n)| format!("{b} ({n})"));
-        let should = if r.expected.is_empty() { "no finding".to_string() } else { r.expected.join(" or ") };
+        let should = should_read(r);
         s.push_str(&format!(
             "| {} | {} | {} | {} | {} | {} | {} | {} |\n",
             r.model.name(),

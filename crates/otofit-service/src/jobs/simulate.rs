@@ -197,7 +197,9 @@ fn run_chunks(
     loop {
         // The parts on disk say what is finished; the table is brought in line with them.
         let (mut done, mut done_rows) = (0, 0);
-        let ended: Vec<bool> = chunks.iter().map(finished).collect();
+        // Parts already joined are finished: their JSON is not read again.
+        let joined = joiner.appended();
+        let ended: Vec<bool> = chunks.iter().enumerate().map(|(i, c)| i < joined || finished(c)).collect();
         for (c, &end) in chunks.iter().zip(&ended) {
             match (end, c.state.as_str()) {
                 (true, _) => (done, done_rows) = (done + 1, done_rows + c.n_rows),
