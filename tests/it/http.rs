@@ -1033,7 +1033,7 @@ fn full_request() -> Value {
 }
 
 /// The shipped model holds a full-measure flow and flows for the study's three measures,
-/// for wideband tympanometry (whole band, and part of it) and for WBT with umbo LDV: an
+/// for wideband tympanometry and for WBT with umbo LDV (each whole band, and part of it): an
 /// ear with every measure over the whole band is answered by the first, an ear of one of
 /// those sets by its set's flow, an ear of another set by the main (masked) flow, and
 /// GET /models/{id} lists each with its own calibration.
@@ -1092,13 +1092,14 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert!((0.5..=2.0).contains(&t) && f["fit_null"].is_object(), "{f}");
     assert_ne!(f["training"], m["training"], "the full-measure flow's own training, not the main flow's");
     let sets = m["measure_set_flows"].as_array().cloned().unwrap_or_default();
-    assert_eq!(sets.len(), 4, "{m}");
+    assert_eq!(sets.len(), 5, "{m}");
     assert_eq!(sets[0]["measures"], json!(["stapes_velocity", "impedance", "absorbance"]));
     assert_eq!(sets[1]["measures"], json!(["impedance", "absorbance"]));
     assert_eq!(sets[2]["measures"], json!(["impedance", "absorbance"]));
     assert_eq!(sets[3]["measures"], json!(["impedance", "absorbance", "umbo_velocity"]));
+    assert_eq!(sets[4]["measures"], json!(["impedance", "absorbance", "umbo_velocity"]));
     let partial: Vec<bool> = sets.iter().map(|s| s["accepts_partial_bands"].as_bool().unwrap()).collect();
-    assert_eq!(partial, [false, false, true, true]);
+    assert_eq!(partial, [false, false, true, true, false]);
     for set in &sets {
         assert!(set["fit_null"].is_object() && set["training"] != f["training"], "{set}");
     }

@@ -424,3 +424,30 @@ fn the_anneal_runs_half_the_epochs_so_far_after_the_patience_limit() {
     assert_eq!(limit(&annealed), t, "the same epochs until the limit");
     assert_eq!(annealed.len(), t + 3usize.max(t.div_ceil(2)));
 }
+
+/// The shipped model holds, for wideband tympanometry with and without umbo velocity, a
+/// flow trained without band masks and one trained with them: an ear of exactly those
+/// measures over the whole band is answered by the first (the sharper), the same ear
+/// without the grid's lowest point, as devices export from 226 Hz, by the second.
+#[test]
+fn the_shipped_model_answers_whole_band_ears_by_its_flows_without_band_masks() {
+    let m = Npe::load(&std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")).unwrap();
+    let h = &m.header;
+    let (x, grid) = (h.x_mean.clone(), h.frequencies_hz.len());
+    for measures in [&["impedance", "absorbance"][..], &["impedance", "absorbance", "umbo_velocity"]] {
+        let mut read: Vec<bool> = vec![false; x.len()];
+        for g in h.groups.iter().filter(|g| measures.contains(&g.name.as_str())) {
+            g.features.iter().for_each(|&i| read[i] = true);
+        }
+        assert!(read.iter().any(|&r| r), "{measures:?}: no such groups in {:?}", h.groups);
+        let from_second: Vec<bool> = read.iter().enumerate().map(|(i, &r)| r && i % grid > 0).collect();
+        for (present, banded) in [(&read, false), (&from_second, true)] {
+            let a = m.answering(&Obs { x: &x, present: Some(present) });
+            let mut got = a.header.measures.clone();
+            got.sort();
+            let mut want: Vec<String> = measures.iter().map(|s| s.to_string()).collect();
+            want.sort();
+            assert_eq!((got, a.header.mask_bands), (want, banded), "{measures:?}, band masks wanted: {banded}");
+        }
+    }
+}
