@@ -65,6 +65,11 @@ pub struct TrainArgs {
     /// for a measure-set flow that takes its groups on part of the band).
     #[arg(long)]
     pub mask_bands: bool,
+    /// With --mask-bands: cut at most this many grid points off each end (default a
+    /// quarter of the grid). A flow for a device's band (from 226 Hz: 2 points) then
+    /// spends no capacity on cuts it will never meet; attach it beside a wider one.
+    #[arg(long, default_value_t = 0)]
+    pub band_cut: usize,
     /// Train on these feature groups alone (comma-separated, e.g.
     /// `stapes_velocity,impedance,absorbance`): a measure-set flow, sharper than the
     /// masked flow on ears that give exactly these; store it with `otofit attach
@@ -142,6 +147,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         patience: args.patience,
         mask_groups: args.mask_groups,
         mask_bands: args.mask_bands,
+        band_cut: args.band_cut,
         measures: args.measures.iter().map(|m| m.trim().to_string()).collect(),
         ensemble: args.ensemble.unwrap_or(match args.recipe {
             Recipe::Default => 0,

@@ -619,7 +619,9 @@ impl Npe {
                 && h.grouped_features().iter().enumerate().all(|(i, &grouped)| grouped || given(i))
         };
         let unmasked = |s: &&Npe| !s.header.mask_bands;
-        self.sets.iter().filter(unmasked).find(whole).or_else(|| self.sets.iter().find(banded))
+        // Of the band-masked sets that cover the ear, the one trained on the narrowest cuts.
+        let narrowest = || self.sets.iter().filter(banded).min_by_key(|s| s.header.band_cut_max);
+        self.sets.iter().filter(unmasked).find(whole).or_else(narrowest)
     }
 
     /// Whether [`Npe::answering`] gives the full-measure flow for `obs`: the file holds
@@ -681,15 +683,24 @@ impl Npe {
         };
         let mut wanted = flow.header.measures.clone();
         wanted.sort();
-        // One flow per set of measures read whole, and one per set read on part of the band.
+        // One flow per set of measures read whole, and one per set and cut limit read on
+        // part of the band.
         let held = |s: &Npe| {
             let mut m = s.header.measures.clone();
             m.sort();
-            m == wanted && s.header.mask_bands == flow.header.mask_bands
+            m == wanted
+                && (s.header.mask_bands, s.header.band_cut_max) == (flow.header.mask_bands, flow.header.band_cut_max)
         };
         let why = why.or_else(|| {
             if self.sets.iter().any(held) {
-                let kind = if flow.header.mask_bands { " with band masks" } else { "" };
+                let kind = if flow.header.mask_bands {
+                    format!(
+                        " with band masks cutting at most {} of the grid's points from each end",
+                        flow.header.band_cut_max
+                    )
+                } else {
+                    String::new()
+                };
                 Some(format!("the model holds a flow{kind} of the measures {} already", wanted.join(", ")))
             } else if self.sets.len() >= MAX_MEASURE_SETS {
                 Some(format!("the model holds {MAX_MEASURE_SETS} measure-set flows, the most a file may"))
@@ -1513,6 +1524,35 @@ mod tests {
         alone.attach_measure_set(banded_set_like(&m, &[a, b])).unwrap();
         let one = &alone.measure_sets()[0];
         assert!(std::ptr::eq(alone.answering(&Obs { x: &x, present: Some(&ab) }), one), "alone: the whole band too");
+    }
+
+    /// Two band-masked flows of one set, trained on different cut limits, are both held;
+    /// an ear is answered by the one of the narrowest cuts that covers its band.
+    #[test]
+    fn of_two_band_masked_flows_the_narrowest_cut_that_covers_the_ear_answers() {
+        let mut m = bare_model();
+        let names: Vec<String> = m.header.groups.iter().map(|g| g.name.clone()).collect();
+        let (a, b) = (names[0].as_str(), names[1].as_str());
+        let cut_max = m.header.band_cut_max;
+        assert!(cut_max >= 2, "{cut_max}");
+        let mut narrow = banded_set_like(&m, &[a, b]);
+        narrow.header.band_cut_max = 1;
+        m.attach_measure_set(banded_set_like(&m, &[a, b])).unwrap();
+        m.attach_measure_set(narrow).unwrap();
+        let mut again = banded_set_like(&m, &[a, b]);
+        again.header.band_cut_max = 1;
+        let e = m.attach_measure_set(again).unwrap_err().to_string();
+        assert!(e.contains("at most 1 of the grid") && e.contains("already"), "{e}");
+        let back = Npe::from_bytes(&m.to_bytes().unwrap()).unwrap();
+        let (wide, narrow) = (&back.measure_sets()[0], &back.measure_sets()[1]);
+        assert_eq!((wide.header.band_cut_max, narrow.header.band_cut_max), (cut_max, 1));
+        let h = &back.header;
+        let x = h.x_mean.clone();
+        let answering = |present: &[bool]| back.answering(&Obs { x: &x, present: Some(present) });
+        let ab = given(h, &[a, b]);
+        assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, 1)), narrow), "one point short: the narrow cuts");
+        assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, 2)), wide), "two points short: the wide cuts");
+        assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, cut_max + 1)), &back), "further: masked");
     }
 
     #[test]

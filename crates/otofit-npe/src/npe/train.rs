@@ -50,6 +50,10 @@ pub struct TrainSettings {
     /// Also cut each kept group's band at random (up to a quarter of the grid at each end)
     /// and give the network per-feature presence flags: one model for sub-band inputs.
     pub mask_bands: bool,
+    /// With `mask_bands`: the most grid points a cut takes off each end (0: a quarter of
+    /// the grid). A flow cut less answers fewer bands and learns no cuts it will not
+    /// meet: devices drop two or three points at the low end (from 226 or 250 Hz).
+    pub band_cut: usize,
     /// Feature groups to train on alone (every other group's features zeroed): a
     /// measure-set flow for ears that give exactly these ([`super::Npe::answering`]).
     /// Empty: every group.
@@ -121,6 +125,7 @@ impl Default for TrainSettings {
             lr: 0.0,
             mask_groups: false,
             mask_bands: false,
+            band_cut: 0,
             measures: Vec::new(),
             val_fraction: 0.1,
             theta_map: ThetaMap::Scale,
@@ -245,6 +250,16 @@ fn check(ds: &Dataset, s: &TrainSettings) -> Result<()> {
              least 8 points",
         ));
     }
+    if s.band_cut > 0 && !(s.mask_bands && s.band_cut <= n_freq / 4) {
+        return Err(NpeError::settings(
+            "band-cut",
+            format!(
+                "--band-cut {} needs --mask-bands and at most a quarter of the {n_freq}-point grid ({})",
+                s.band_cut,
+                n_freq / 4
+            ),
+        ));
+    }
     if !s.measures.is_empty() {
         let why = if s.mask_groups {
             Some("--measures trains on those groups alone: it goes without --mask-groups".to_string())
@@ -355,7 +370,11 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         groups: ds.groups.clone(),
         mask_groups: s.mask_groups,
         mask_bands: s.mask_bands,
-        band_cut_max: if s.mask_bands { n_freq / 4 } else { 0 },
+        band_cut_max: match (s.mask_bands, s.band_cut) {
+            (false, _) => 0,
+            (true, 0) => n_freq / 4,
+            (true, k) => k,
+        },
         x_mean,
         x_std,
         theta_map: s.theta_map,
@@ -1790,6 +1809,41 @@ mod tests {
         let neither = TrainSettings { measures: vec![], ..s.clone() };
         let e = train(&ds, &neither, &mut |_| true).err().unwrap().to_string();
         assert!(e.contains("--mask-groups or --measures"), "{e}");
+    }
+
+    /// `band_cut` bounds how far a cut reaches (a flow for devices that drop a point or
+    /// two), is stored as the flow's limit, and is refused without band masks or beyond a
+    /// quarter of the grid.
+    #[test]
+    fn a_band_cut_bounds_the_cuts_and_is_the_flows_limit() {
+        let ds = gridded(400);
+        let s = TrainSettings {
+            embedding: false,
+            seed: 5,
+            batch: 100,
+            max_epochs: 1,
+            measures: vec!["rest".into()],
+            mask_bands: true,
+            band_cut: 1,
+            ..Default::default()
+        };
+        let mut widest = 0;
+        with_run(&ds, &s, |run| {
+            let (_, inp) = run.batcher.batch(&run.train_idx[..200], 17);
+            for row in inp.chunks(32) {
+                let on: Vec<usize> = (0..8).filter(|&k| row[24 + k] == 1.0).collect();
+                let cut = on[0].max(7 - on[on.len() - 1]);
+                assert!(cut <= 1, "a cut of {cut} points: {on:?}");
+                widest = widest.max(cut);
+            }
+        });
+        assert_eq!(widest, 1, "some rows are cut");
+        let m = train(&ds, &s, &mut |_| true).unwrap();
+        assert_eq!(m.header.band_cut_max, 1);
+        for bad in [TrainSettings { band_cut: 3, ..s.clone() }, TrainSettings { mask_bands: false, ..s.clone() }] {
+            let e = train(&ds, &bad, &mut |_| true).err().unwrap().to_string();
+            assert!(e.contains("band-cut"), "{e}");
+        }
     }
 
     fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
