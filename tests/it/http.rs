@@ -1092,14 +1092,22 @@ async fn an_ear_with_every_measure_is_answered_by_the_full_measure_flow() {
     assert!((0.5..=2.0).contains(&t) && f["fit_null"].is_object(), "{f}");
     assert_ne!(f["training"], m["training"], "the full-measure flow's own training, not the main flow's");
     let sets = m["measure_set_flows"].as_array().cloned().unwrap_or_default();
-    assert_eq!(sets.len(), 5, "{m}");
+    assert_eq!(sets.len(), 6, "{m}");
     assert_eq!(sets[0]["measures"], json!(["stapes_velocity", "impedance", "absorbance"]));
     assert_eq!(sets[1]["measures"], json!(["impedance", "absorbance"]));
     assert_eq!(sets[2]["measures"], json!(["impedance", "absorbance"]));
     assert_eq!(sets[3]["measures"], json!(["impedance", "absorbance", "umbo_velocity"]));
     assert_eq!(sets[4]["measures"], json!(["impedance", "absorbance", "umbo_velocity"]));
+    assert_eq!(sets[5]["measures"], json!(["impedance", "absorbance", "umbo_velocity"]));
     let partial: Vec<bool> = sets.iter().map(|s| s["accepts_partial_bands"].as_bool().unwrap()).collect();
-    assert_eq!(partial, [false, false, true, true, false]);
+    assert_eq!(partial, [false, false, true, true, false, true]);
+    // The two band-masked flows of WBT with umbo velocity: cuts of up to a quarter of the
+    // grid, and of up to two points (a device's export from 226 Hz).
+    let grid: Vec<f64> = serde_json::from_value(m["frequencies_hz"].clone()).unwrap();
+    let reach = |k: usize| json!([grid[k], grid[grid.len() - 1 - k]]);
+    let reaches: Vec<_> = sets.iter().map(|s| s.get("band_must_reach_hz").cloned()).collect();
+    let quarter = grid.len() / 4;
+    assert_eq!(reaches, [None, None, Some(reach(quarter)), Some(reach(quarter)), None, Some(reach(2))], "{m}");
     for set in &sets {
         assert!(set["fit_null"].is_object() && set["training"] != f["training"], "{set}");
     }

@@ -428,26 +428,40 @@ fn the_anneal_runs_half_the_epochs_so_far_after_the_patience_limit() {
 /// The shipped model holds, for wideband tympanometry with and without umbo velocity, a
 /// flow trained without band masks and one trained with them: an ear of exactly those
 /// measures over the whole band is answered by the first (the sharper), the same ear
-/// without the grid's lowest point, as devices export from 226 Hz, by the second.
+/// without the grid's lowest points, as devices export from 226 Hz, by the second. For
+/// WBT with umbo velocity it holds two band-masked flows: one trained on the cuts a
+/// device makes (up to two points) answers ears from 226 Hz, the one trained on cuts of
+/// up to a quarter of the grid those that stop shorter (from 300 Hz).
 #[test]
 fn the_shipped_model_answers_whole_band_ears_by_its_flows_without_band_masks() {
     let m = Npe::load(&std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")).unwrap();
     let h = &m.header;
     let (x, grid) = (h.x_mean.clone(), h.frequencies_hz.len());
-    for measures in [&["impedance", "absorbance"][..], &["impedance", "absorbance", "umbo_velocity"]] {
+    let first_from = |hz: f64| h.frequencies_hz.iter().position(|&f| f >= hz).unwrap();
+    let (from_226, from_300) = (first_from(226.0), first_from(300.0));
+    assert_eq!((from_226, from_300), (2, 6), "{:?}", h.frequencies_hz);
+    let quarter = grid / 4;
+    // (measures, grid points missing at the low end, band masks and cut limit wanted)
+    let cases: [(&[&str], usize, (bool, usize)); 5] = [
+        (&["impedance", "absorbance"], 0, (false, 0)),
+        (&["impedance", "absorbance"], from_226, (true, quarter)),
+        (&["impedance", "absorbance", "umbo_velocity"], 0, (false, 0)),
+        (&["impedance", "absorbance", "umbo_velocity"], from_226, (true, 2)),
+        (&["impedance", "absorbance", "umbo_velocity"], from_300, (true, quarter)),
+    ];
+    for (measures, missing, want_flow) in cases {
         let mut read: Vec<bool> = vec![false; x.len()];
         for g in h.groups.iter().filter(|g| measures.contains(&g.name.as_str())) {
             g.features.iter().for_each(|&i| read[i] = true);
         }
         assert!(read.iter().any(|&r| r), "{measures:?}: no such groups in {:?}", h.groups);
-        let from_second: Vec<bool> = read.iter().enumerate().map(|(i, &r)| r && i % grid > 0).collect();
-        for (present, banded) in [(&read, false), (&from_second, true)] {
-            let a = m.answering(&Obs { x: &x, present: Some(present) });
-            let mut got = a.header.measures.clone();
-            got.sort();
-            let mut want: Vec<String> = measures.iter().map(|s| s.to_string()).collect();
-            want.sort();
-            assert_eq!((got, a.header.mask_bands), (want, banded), "{measures:?}, band masks wanted: {banded}");
-        }
+        let present: Vec<bool> = read.iter().enumerate().map(|(i, &r)| r && i % grid >= missing).collect();
+        let a = m.answering(&Obs { x: &x, present: Some(&present) });
+        let mut got = a.header.measures.clone();
+        got.sort();
+        let mut want: Vec<String> = measures.iter().map(|s| s.to_string()).collect();
+        want.sort();
+        let flow = (a.header.mask_bands, a.header.band_cut_max);
+        assert_eq!((got, flow), (want, want_flow), "{measures:?}, {missing} points missing");
     }
 }

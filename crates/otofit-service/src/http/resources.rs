@@ -48,6 +48,13 @@ pub async fn openapi() -> Response {
     r
 }
 
+/// [highest allowed first frequency, lowest allowed last frequency] of a band-masked flow.
+fn band_must_reach_hz(h: &otofit_npe::npe::Header) -> Option<[f64; 2]> {
+    let n = h.frequencies_hz.len();
+    (h.mask_bands && h.band_cut_max < n)
+        .then(|| [h.frequencies_hz[h.band_cut_max], h.frequencies_hz[n - 1 - h.band_cut_max]])
+}
+
 fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
     let base = json!({
         "id": m.id, "default": m.is_default, "created_at": m.created_at, "source_job": m.source_job, "tenant": m.tenant,
@@ -63,10 +70,8 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
             d["accepts_subsets"] = json!(h.mask_groups);
             // The narrowest band each measure may cover (band-masked models), never extrapolated.
             d["accepts_partial_bands"] = json!(h.mask_bands);
-            if h.mask_bands && h.band_cut_max < h.frequencies_hz.len() {
-                let n = h.frequencies_hz.len();
-                d["band_must_reach_hz"] =
-                    json!([h.frequencies_hz[h.band_cut_max], h.frequencies_hz[n - 1 - h.band_cut_max]]);
+            if let Some(reach) = band_must_reach_hz(h) {
+                d["band_must_reach_hz"] = json!(reach);
             }
             d["training"] = json!(h.training);
             d["members"] = json!(h.members);
@@ -85,10 +90,15 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
                 .iter()
                 .map(|s| {
                     let f = &s.header;
-                    json!({
+                    let mut set = json!({
                         "measures": f.measures, "accepts_partial_bands": f.mask_bands, "training": f.training,
                         "temperature": f.temperature, "fit_null": f.fit_null,
-                    })
+                    });
+                    // Two band-masked flows of the same measures differ in how far a band may stop short.
+                    if let Some(reach) = band_must_reach_hz(f) {
+                        set["band_must_reach_hz"] = json!(reach);
+                    }
+                    set
                 })
                 .collect();
             if !sets.is_empty() {
