@@ -4,7 +4,8 @@
 //! and every flow it holds; with `--diagnose-null`, the diagnose workflow's null, written
 //! into the model.
 
-use crate::npe::calibrate::{TUNE_LEVELS, calibrate_with, tune_temperature};
+use crate::npe::Obs;
+use crate::npe::calibrate::{TUNE_LEVELS, calibrate_given, tune_temperature};
 use crate::npe::{Dataset, Npe};
 use anyhow::{Context, Result, bail};
 use clap::Args;
@@ -66,7 +67,19 @@ pub struct CalibrateArgs {
     /// null measured per ear.
     #[arg(long, default_values_t = ["all".to_string(), "impedance,absorbance".to_string()])]
     pub diagnose_groups: Vec<String>,
+    /// Give the held-out rows only these feature groups (comma-separated), as a clinic's
+    /// subset of measures: each row is answered by the flow of the file that answers such
+    /// ears (a measure-set flow of exactly these groups, else the main flow).
+    #[arg(long, value_delimiter = ',', conflicts_with_all = ["tune", "null_only", "diagnose_null"])]
+    pub measures: Vec<String>,
+    /// Give the held-out rows from this frequency up (Hz, ≤ 500), as a device's export
+    /// from 226 Hz: the features below it are left out and a band-masked flow answers.
+    #[arg(long, conflicts_with_all = ["tune", "null_only", "diagnose_null"])]
+    pub from_hz: Option<f64>,
 }
+
+/// The highest `--from-hz`: every sub-band a band-masked flow accepts reaches 494 Hz.
+const MAX_FROM_HZ: f64 = 500.0;
 
 /// How far below each level the tuned coverage may stay (held-out rows are noisy).
 const TUNE_SLACK: f64 = 0.01;
@@ -93,12 +106,12 @@ fn at_levels(cal: &crate::npe::calibrate::Calibration) -> Vec<f64> {
 
 /// `--seeds K`: the held-out coverage K times, seeds --seed, --seed + 1, …; each run on
 /// stderr, each level's mean, range and standard deviation on stdout.
-fn over_seeds(model: &Npe, ds: &Dataset, args: &CalibrateArgs) -> Result<()> {
+fn over_seeds(model: &Npe, ds: &Dataset, args: &CalibrateArgs, present: Option<&[bool]>) -> Result<()> {
     let mut runs: Vec<Vec<f64>> = Vec::with_capacity(args.seeds);
     for r in 0..args.seeds {
         let seed = args.seed.wrapping_add(r as u64);
         let rows = noisy_rows(model, ds, args.n, seed)?;
-        let cal = calibrate_with(model, &rows, args.samples, seed, &mut |_| {})?;
+        let cal = calibrate_given(model, &rows, args.samples, seed, present, &mut |_| {})?;
         let c = at_levels(&cal);
         let shown: Vec<String> = c.iter().map(|v| format!("{v:.3}")).collect();
         eprintln!("seed {seed}: joint HPD coverage at 50/80/90/95 % {}", shown.join(" "));
@@ -109,7 +122,7 @@ fn over_seeds(model: &Npe, ds: &Dataset, args: &CalibrateArgs) -> Result<()> {
          (lowest–highest, standard deviation over the runs)",
         args.n.min(ds.theta.len()),
         args.samples,
-        model.header.temperature,
+        answering(model, present).header.temperature,
         args.seeds,
         args.seed
     );
@@ -152,8 +165,10 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
     if args.n > ds.theta.len() {
         bail!("--n {} exceeds the {} rows of {}", args.n, ds.theta.len(), data.display());
     }
+    let present = given(&model, &args)?;
+    let present = present.as_deref();
     if args.seeds > 1 {
-        return over_seeds(&model, &ds, &args);
+        return over_seeds(&model, &ds, &args, present);
     }
     let rows = noisy_rows(&model, &ds, args.n, args.seed)?;
     if args.tune {
@@ -187,7 +202,7 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         std::fs::create_dir_all(dir).with_context(|| format!("--report {}: cannot create it", dir.display()))?;
     }
     let mut bar = super::progress::Progress::new("calibrated", "held-out rows", rows.len() as u64);
-    let cal = calibrate_with(&model, &rows, args.samples, args.seed, &mut |done| bar.set(done as u64))?;
+    let cal = calibrate_given(&model, &rows, args.samples, args.seed, present, &mut |done| bar.set(done as u64))?;
     bar.finish();
     if let Some(dir) = &args.report {
         let ranks: Vec<(&str, Vec<usize>)> = cal.sbc_ranks.iter().map(|r| (r.name.as_str(), r.ranks.clone())).collect();
@@ -201,19 +216,64 @@ pub fn run(args: CalibrateArgs) -> Result<()> {
         println!("{}", serde_json::to_string(&cal)?);
         return Ok(());
     }
+    if let Some(p) = present {
+        let flow = model.answering_name(&Obs { x: &vec![0.0; p.len()], present: Some(p) });
+        println!(
+            "rows given {} of {} features, answered by the {flow} flow",
+            p.iter().filter(|&&g| g).count(),
+            p.len()
+        );
+    }
     println!(
         "joint HPD coverage on {} held-out rows ({} samples each, temperature {:.3}):",
-        cal.rows, cal.samples_per_row, model.header.temperature
+        cal.rows,
+        cal.samples_per_row,
+        answering(&model, present).header.temperature
     );
     for (l, c) in TUNE_LEVELS.iter().zip(at_levels(&cal)) {
         println!("  {:>3.0} %  {c:.3}  ({:+.3})", 100.0 * l, c - l);
     }
-    println!("per parameter: marginal 90 % coverage, SBC rank χ² (10 bins, 9 dof; 99 % quantile 21.7)");
+    println!(
+        "per parameter: marginal 50 % coverage (from the SBC ranks), 90 %, SBC rank χ² (10 bins, 9 dof; 99 % \
+         quantile 21.7)"
+    );
     for (r, m) in cal.sbc_ranks.iter().zip(&cal.marginal_coverage90) {
         let (chi2, _) = r.chi2(cal.samples_per_row, 10);
-        println!("  {:<16} {:.3}  {:6.1}{}", r.name, m, chi2, if chi2 > 21.7 { "  (not uniform)" } else { "" });
+        let half = central_share(&r.ranks, cal.samples_per_row, 0.5);
+        let flag = if chi2 > 21.7 { "  (not uniform)" } else { "" };
+        println!("  {:<16} {half:.3}  {m:.3}  {chi2:6.1}{flag}", r.name);
     }
     Ok(())
+}
+
+/// The features `--measures` and `--from-hz` give (None: every feature, as before).
+fn given(model: &Npe, args: &CalibrateArgs) -> Result<Option<Vec<bool>>> {
+    if args.measures.is_empty() && args.from_hz.is_none() {
+        return Ok(None);
+    }
+    let from_hz = args.from_hz.unwrap_or(0.0);
+    if !(from_hz.is_finite() && (0.0..=MAX_FROM_HZ).contains(&from_hz)) {
+        bail!("--from-hz must be 0..={MAX_FROM_HZ} Hz (got {from_hz})");
+    }
+    let present =
+        model.header.features_given(&args.measures, from_hz).map_err(|e| anyhow::anyhow!("--measures: {e}"))?;
+    Ok(Some(present))
+}
+
+/// The flow that answers rows of `present` (the main flow when every feature is given).
+fn answering<'a>(model: &'a Npe, present: Option<&[bool]>) -> &'a Npe {
+    match present {
+        Some(p) => model.answering(&Obs { x: &vec![0.0; p.len()], present: Some(p) }),
+        None => model,
+    }
+}
+
+/// Share of rows whose truth lies inside the central `level` interval of its draws, read
+/// off its SBC rank (the truth's rank among `samples` draws).
+fn central_share(ranks: &[usize], samples: usize, level: f64) -> f64 {
+    let (lo, hi) = ((1.0 - level) / 2.0 * samples as f64, (1.0 + level) / 2.0 * samples as f64);
+    let inside = ranks.iter().filter(|&&r| (lo..=hi).contains(&(r as f64))).count();
+    inside as f64 / ranks.len().max(1) as f64
 }
 
 /// Measures the fit check's null of the model and of each flow it holds, and writes them

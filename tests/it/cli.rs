@@ -595,6 +595,18 @@ fn infer_reads_wideband_tympanometry_alone_and_refuses_implausible_and_bad_argum
     assert!(String::from_utf8_lossy(&o.stderr).contains("--samples"), "{}", String::from_utf8_lossy(&o.stderr));
     let o = otofit(&["calibrate", "--model", model, "--data", held.to_str().unwrap(), "--n", "5"]);
     assert!(String::from_utf8_lossy(&o.stderr).contains("exceeds"), "{}", String::from_utf8_lossy(&o.stderr));
+    // Calibration of a clinic's ears: some measures, from 226 Hz, answered by their flow.
+    let clinic = ["--n", "1", "--samples", "20", "--measures", "impedance,absorbance,umbo_velocity"];
+    let base = ["calibrate", "--model", model, "--data", held.to_str().unwrap()];
+    let o = otofit(&[&base[..], &clinic, &["--from-hz", "226"]].concat());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let said = String::from_utf8_lossy(&o.stdout);
+    assert!(said.contains("240 of 350 features, answered by the measure-set flow"), "{said}");
+    for (bad, named) in [(&["--from-hz", "600"][..], "--from-hz"), (&["--measures", "eardrum"], "--measures")] {
+        let o = otofit(&[&base[..], &clinic, bad].concat());
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success() && e.contains(named), "{bad:?}: {e}");
+    }
     let _ = std::fs::remove_dir_all(&d);
 }
 

@@ -425,6 +425,37 @@ fn the_anneal_runs_half_the_epochs_so_far_after_the_patience_limit() {
     assert_eq!(annealed.len(), t + 3usize.max(t.div_ceil(2)));
 }
 
+/// Calibration of the ears a clinic gives (some measures, from 226 Hz) is that of the flow
+/// the file answers them with, not of its main flow: through the whole file and through
+/// the band-masked flow for a device's band alone, the same ranks row for row.
+#[test]
+fn a_calibration_of_some_measures_on_part_of_the_band_is_the_answering_flows() {
+    let m = Npe::load(&std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/default.otofit")).unwrap();
+    let h = &m.header;
+    let present = h.features_given(&["impedance", "absorbance", "umbo_velocity"], 226.0).unwrap();
+    let mid = |p: &Param| match p.scale {
+        Scale::Log10 => (p.low * p.high).sqrt(),
+        _ => 0.5 * (p.low + p.high),
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let rows: Vec<(Vec<f64>, Vec<f64>)> = (0..6)
+        .map(|_| {
+            let x = h.x_mean.iter().zip(&h.x_std).map(|(m, s)| m + 0.3 * s * rng.random_range(-1.0..1.0)).collect();
+            (h.params.iter().map(mid).collect(), x)
+        })
+        .collect();
+    let device = m.measure_sets().iter().find(|s| s.header.mask_bands && s.header.band_cut_max == 2).unwrap();
+    let run = |npe: &Npe| npe::calibrate::calibrate_given(npe, &rows, 50, 4, Some(&present), &mut |_| {}).unwrap();
+    let (whole_file, flow) = (run(&m), run(device));
+    for (a, b) in whole_file.sbc_ranks.iter().zip(&flow.sbc_ranks) {
+        assert_eq!(a.ranks, b.ranks, "{}", a.name);
+    }
+    assert_eq!(whole_file.coverage, flow.coverage);
+    let wrong = vec![true; present.len() + 1];
+    let e = npe::calibrate::calibrate_given(&m, &rows, 50, 4, Some(&wrong), &mut |_| {}).unwrap_err().to_string();
+    assert!(e.contains("351 feature flags"), "{e}");
+}
+
 /// The shipped model holds, for wideband tympanometry with and without umbo velocity, a
 /// flow trained without band masks and one trained with them: an ear of exactly those
 /// measures over the whole band is answered by the first (the sharper), the same ear

@@ -513,12 +513,7 @@ pub fn summarize(per_ear: &[EarResult]) -> (Vec<ParamSummary>, Vec<GroupSummary>
 /// the scores. `progress` hears each ear as it ends.
 pub fn run(npe: &Npe, p: &PosteriorParams, progress: &mut dyn FnMut(&Result<EarResult, Skipped>)) -> Result<Report> {
     p.check()?;
-    let mut present = npe.header.features_of_groups(&p.measures).map_err(|e| anyhow!("--measures: {e}"))?;
-    // Features are measure-major on the grid: feature i lies at grid point i mod n.
-    let grid = &npe.header.frequencies_hz;
-    for (i, given) in present.iter_mut().enumerate() {
-        *given &= grid.get(i % grid.len().max(1)).is_none_or(|&hz| hz >= p.from_hz);
-    }
+    let present = npe.header.features_given(&p.measures, p.from_hz).map_err(|e| anyhow!("--measures: {e}"))?;
     // The flow the service would answer these ears with (`main` is the masked one).
     let flow = match npe.answering_name(&Obs { x: &vec![0.0; present.len()], present: Some(&present) }) {
         "main" => "masked",

@@ -64,6 +64,21 @@ pub fn calibrate_with(
     seed: u64,
     progress: &mut dyn FnMut(usize),
 ) -> Result<Calibration> {
+    calibrate_given(npe, rows, samples, seed, None, progress)
+}
+
+/// [`calibrate_with`] on the rows as a clinic gives them: only the features `present`
+/// marks (some measures, part of the band), each row answered by the flow of the file
+/// that answers such ears ([`Npe::answering`]) — the calibration of what a user of
+/// those measures gets. `None`: every feature, the file's main flow.
+pub fn calibrate_given(
+    npe: &Npe,
+    rows: &[(Vec<f64>, Vec<f64>)],
+    samples: usize,
+    seed: u64,
+    present: Option<&[bool]>,
+    progress: &mut dyn FnMut(usize),
+) -> Result<Calibration> {
     use rayon::prelude::*;
     if samples < 2 {
         return Err(NpeError::settings(
@@ -76,13 +91,17 @@ pub fn calibrate_with(
     if let Some(r) = rows.iter().position(|(theta, _)| theta.len() != d) {
         return Err(NpeError::settings("rows", format!("row {r} has {} parameters, the model {d}", rows[r].0.len())));
     }
+    if let Some(p) = present.filter(|p| p.len() != npe.header.feature_names.len()) {
+        let n = npe.header.feature_names.len();
+        return Err(NpeError::settings("present", format!("{} feature flags, the model has {n} features", p.len())));
+    }
     let mut inside = vec![0usize; levels.len()];
     let mut ranks = vec![Vec::with_capacity(rows.len()); d];
     let mut marginal = vec![0usize; d];
     let chunk = 4 * rayon::current_num_threads().max(1);
     for (c, part) in rows.chunks(chunk).enumerate() {
         let read: Vec<RowReading> = (part.par_iter().enumerate())
-            .map(|(i, row)| read_row(npe, row, samples, seed.wrapping_add((c * chunk + i) as u64)))
+            .map(|(i, row)| read_row(npe, row, present, samples, seed.wrapping_add((c * chunk + i) as u64)))
             .collect::<Result<_>>()?;
         for row in read {
             for (k, &a) in levels.iter().enumerate() {
@@ -117,8 +136,15 @@ struct RowReading {
     inside90: Vec<bool>,
 }
 
-fn read_row(npe: &Npe, (theta, x): &(Vec<f64>, Vec<f64>), samples: usize, seed: u64) -> Result<RowReading> {
-    let obs = Obs { x, present: None };
+fn read_row(
+    npe: &Npe,
+    (theta, x): &(Vec<f64>, Vec<f64>),
+    present: Option<&[bool]>,
+    samples: usize,
+    seed: u64,
+) -> Result<RowReading> {
+    let obs = Obs { x, present };
+    let npe = if present.is_some() { npe.answering(&obs) } else { npe };
     let draws = npe.sample(&obs, samples, seed)?;
     // Densities in the flow's unbounded space (natural-unit densities less the
     // bijection's Jacobian): there a widened posterior stays a bell, whereas in θ the

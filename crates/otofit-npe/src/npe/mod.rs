@@ -161,6 +161,18 @@ impl Header {
         Ok(given)
     }
 
+    /// [`Header::features_of_groups`] from `from_hz` up, as a device that exports from
+    /// 226 Hz gives them: features are measure-major on the grid (feature i lies at grid
+    /// point i mod n), and those below `from_hz` are left out.
+    pub fn features_given<S: AsRef<str>>(&self, names: &[S], from_hz: f64) -> Result<Vec<bool>, ObservationError> {
+        let mut given = self.features_of_groups(names)?;
+        let grid = &self.frequencies_hz;
+        for (i, g) in given.iter_mut().enumerate() {
+            *g &= grid.get(i % grid.len().max(1)).is_none_or(|&hz| hz >= from_hz);
+        }
+        Ok(given)
+    }
+
     /// The sampler of the model error the model was trained with, if any.
     pub fn model_error_sampler(&self) -> Result<Option<model_error::Discrepancy>> {
         self.model_error.map(|m| m.sampler(&self.frequencies_hz, &self.noise_std)).transpose()
