@@ -4,6 +4,7 @@
 //! and every flow it holds; with `--diagnose-null`, the diagnose workflow's null, written
 //! into the model.
 
+use crate::bench::posterior::MAX_FROM_HZ;
 use crate::npe::Obs;
 use crate::npe::calibrate::{TUNE_LEVELS, calibrate_given, tune_temperature};
 use crate::npe::{Dataset, Npe};
@@ -77,9 +78,6 @@ pub struct CalibrateArgs {
     #[arg(long, conflicts_with_all = ["tune", "null_only", "diagnose_null"])]
     pub from_hz: Option<f64>,
 }
-
-/// The highest `--from-hz`: every sub-band a band-masked flow accepts reaches 494 Hz.
-const MAX_FROM_HZ: f64 = 500.0;
 
 /// How far below each level the tuned coverage may stay (held-out rows are noisy).
 const TUNE_SLACK: f64 = 0.01;
