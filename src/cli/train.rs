@@ -70,6 +70,12 @@ pub struct TrainArgs {
     /// spends no capacity on cuts it will never meet; attach it beside a wider one.
     #[arg(long, default_value_t = 0)]
     pub band_cut: usize,
+    /// With --mask-bands: half the rows that cut a band cut every measure to the same
+    /// band, as a device does (a wideband tympanometer's impedance and absorbance from
+    /// 226 Hz together). Without it each measure is cut on its own, and an ear whose
+    /// every measure starts at 226 Hz is a pattern training almost never shows.
+    #[arg(long)]
+    pub band_cut_together: bool,
     /// Train on these feature groups alone (comma-separated, e.g.
     /// `stapes_velocity,impedance,absorbance`): a measure-set flow, sharper than the
     /// masked flow on ears that give exactly these; store it with `otofit attach
@@ -148,6 +154,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         mask_groups: args.mask_groups,
         mask_bands: args.mask_bands,
         band_cut: args.band_cut,
+        band_cut_together: args.band_cut_together,
         measures: args.measures.iter().map(|m| m.trim().to_string()).collect(),
         ensemble: args.ensemble.unwrap_or(match args.recipe {
             Recipe::Default => 0,

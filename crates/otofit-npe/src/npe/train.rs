@@ -54,6 +54,12 @@ pub struct TrainSettings {
     /// the grid). A flow cut less answers fewer bands and learns no cuts it will not
     /// meet: devices drop two or three points at the low end (from 226 or 250 Hz).
     pub band_cut: usize,
+    /// With `mask_bands`: half the rows that cut a band cut every group of the row to one
+    /// band. A device exports every measure of one recording over the same band (a
+    /// wideband tympanometer's impedance and absorbance always, its LDV often), and
+    /// cutting each group on its own shows a flow that case in only one row of
+    /// thousands when it has three groups.
+    pub band_cut_together: bool,
     /// Feature groups to train on alone (every other group's features zeroed): a
     /// measure-set flow for ears that give exactly these ([`super::Npe::answering`]).
     /// Empty: every group.
@@ -126,6 +132,7 @@ impl Default for TrainSettings {
             mask_groups: false,
             mask_bands: false,
             band_cut: 0,
+            band_cut_together: false,
             measures: Vec::new(),
             val_fraction: 0.1,
             theta_map: ThetaMap::Scale,
@@ -249,6 +256,9 @@ fn check(ds: &Dataset, s: &TrainSettings) -> Result<()> {
             "--mask-bands needs --mask-groups or --measures, and a frequency grid (meta.json frequencies_hz) of at \
              least 8 points",
         ));
+    }
+    if s.band_cut_together && !s.mask_bands {
+        return Err(NpeError::settings("band-cut-together", "--band-cut-together needs --mask-bands"));
     }
     if s.band_cut > 0 && !(s.mask_bands && s.band_cut <= n_freq / 4) {
         return Err(NpeError::settings(
@@ -452,9 +462,14 @@ impl Batcher<'_> {
             let row = x.iter().zip(&noise).zip(&e).zip(&h.x_mean).zip(&h.x_std);
             inp.extend(row.map(|((((x, sd), e), mean), std)| ((x + sd * e - mean) / std) as f32));
             let mut here = vec![true; f];
+            // One cut for every group of the row, in half the rows (`band_cut_together`).
+            let together = (s.mask_bands && s.band_cut_together && rng.random::<bool>())
+                .then(|| band_cut(rng, n_freq, band_cut_max));
             for (g, &on) in self.groups.iter().zip(&keep) {
                 // A kept group loses the ends of its band with probability 1/2.
-                let (lo, hi) = if on && s.mask_bands && rng.random::<bool>() {
+                let (lo, hi) = if let (true, Some(cut)) = (on, together) {
+                    cut
+                } else if on && s.mask_bands && rng.random::<bool>() {
                     band_cut(rng, n_freq, band_cut_max)
                 } else {
                     (0, n_freq.saturating_sub(1))
@@ -468,11 +483,13 @@ impl Batcher<'_> {
             }
             if let Some(read) = &self.read {
                 // A band-masked measure-set flow: each of its groups loses the ends of its
-                // band with probability 1/2, as a masked flow's kept groups do.
+                // band with probability 1/2, as a masked flow's kept groups do, or all of
+                // them the row's one cut.
                 if s.mask_bands {
                     for g in ds.groups.iter().filter(|g| h.measures.contains(&g.name)) {
-                        if rng.random::<bool>() {
-                            let (lo, hi) = band_cut(rng, n_freq, band_cut_max);
+                        let cut =
+                            together.or_else(|| rng.random::<bool>().then(|| band_cut(rng, n_freq, band_cut_max)));
+                        if let Some((lo, hi)) = cut {
                             for &k in g.features.iter().filter(|&&k| !(lo..=hi).contains(&(k % n_freq))) {
                                 inp[start + k] = 0.0;
                                 here[k] = false;
@@ -1844,6 +1861,54 @@ mod tests {
             let e = train(&ds, &bad, &mut |_| true).err().unwrap().to_string();
             assert!(e.contains("band-cut"), "{e}");
         }
+    }
+
+    /// With `band_cut_together`, half the cutting rows cut every group of a measure-set
+    /// flow to one band (a device's export); cut on their own, two groups share a cut in
+    /// about one row of forty.
+    #[test]
+    fn cuts_together_give_every_group_of_a_row_one_band() {
+        let mut ds = gridded(400);
+        // A third group, for a measure-set flow of two groups that is not every group.
+        for (x, t) in ds.x.iter_mut().zip(&ds.theta) {
+            x.extend((0..8).map(|k| t[1] * k as f64 / 8.0));
+        }
+        ds.feature_names = (0..24).map(|k| format!("f{k}")).collect();
+        ds.groups.push(super::super::Group { name: "third".into(), features: (16..24).collect() });
+        ds.noise_std = vec![0.2; 24];
+        let s = TrainSettings {
+            embedding: false,
+            seed: 5,
+            batch: 100,
+            max_epochs: 1,
+            measures: vec!["sum".into(), "rest".into()],
+            mask_bands: true,
+            band_cut: 2,
+            ..Default::default()
+        };
+        // Rows whose two groups are both cut, to the same band.
+        let shared = |s: &TrainSettings| {
+            let (mut rows, mut same) = (0, 0);
+            with_run(&ds, s, |run| {
+                let (_, inp) = run.batcher.batch(run.train_idx, 17);
+                for row in inp.chunks(48) {
+                    let here = &row[24..40];
+                    rows += 1;
+                    same += usize::from(here.contains(&0.0) && here[..8] == here[8..]);
+                }
+            });
+            (rows, same)
+        };
+        let (rows, alone) = shared(&s);
+        let (_, together) = shared(&TrainSettings { band_cut_together: true, ..s.clone() });
+        assert_eq!(rows, 360);
+        assert!(alone * 15 <= rows, "cut on their own, one band for both in {alone} of {rows}");
+        assert!(together * 3 >= rows, "cut together, one band for both in {together} of {rows}");
+        let e = train(&ds, &TrainSettings { band_cut_together: true, mask_bands: false, ..s.clone() }, &mut |_| true)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("band-cut-together"), "{e}");
     }
 
     fn on_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
