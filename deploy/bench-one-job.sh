@@ -2,11 +2,13 @@
 # One simulate job of N rows (default 40,000) on 1 and then 2 `otofit worker --threads 1`
 # sharing a throwaway PostgreSQL (run as root; the server runs as `postgres`): the wall
 # time from posting to `succeeded`, and the dataset compared byte for byte with
-# `otofit simulate` of the same seed. Build first (cargo build).
+# `otofit simulate` of the same seed. Build first (cargo build). CHUNK=ROWS sets the
+# serve's and workers' --chunk-rows (default theirs, 10,000).
 set -euo pipefail
 BIN=${OTOFIT_BIN:-${CARGO_TARGET_DIR:-$HOME/.cache/otofit/target}/debug/otofit}
 PGBIN=$(ls -d /usr/lib/postgresql/*/bin | tail -1)
 N=${N:-40000}
+CHUNK_ARG=${CHUNK:+--chunk-rows $CHUNK}
 T=${TMPDIR:-/tmp}/otofit-bench-one-job; PORT=${PGPORT:-55433}
 rm -rf "$T"; mkdir -p "$T/pg"; chmod 777 "$T"; chown postgres "$T/pg"
 su postgres -c "$PGBIN/initdb -D $T/pg -U postgres --auth=trust --no-sync -E UTF8 >/dev/null"
@@ -17,11 +19,11 @@ sleep 1
 for W in 1 2; do
   su postgres -c "$PGBIN/psql -h 127.0.0.1 -p $PORT -U postgres -qc 'CREATE DATABASE w$W'"
   URL=postgres://postgres@127.0.0.1:$PORT/w$W; DATA=$T/data-$W; HTTP=127.0.0.1:$((18280 + W))
-  "$BIN" serve --addr "$HTTP" --data-dir "$DATA" --database "$URL" --workers 0 >"$T/serve-$W.log" 2>&1 &
+  "$BIN" serve --addr "$HTTP" --data-dir "$DATA" --database "$URL" --workers 0 $CHUNK_ARG >"$T/serve-$W.log" 2>&1 &
   PIDS="$!"
   sleep 2
   for i in $(seq "$W"); do
-    "$BIN" worker --data-dir "$DATA" --database "$URL" --threads 1 >"$T/worker-$W-$i.log" 2>&1 &
+    "$BIN" worker --data-dir "$DATA" --database "$URL" --threads 1 $CHUNK_ARG >"$T/worker-$W-$i.log" 2>&1 &
     PIDS="$PIDS $!"
   done
   sleep 2
