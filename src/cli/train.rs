@@ -70,8 +70,8 @@ pub struct TrainArgs {
     /// spends no capacity on cuts it will never meet; attach it beside a wider one.
     #[arg(long, default_value_t = 0)]
     pub band_cut: usize,
-    /// With --mask-bands: half the rows that cut a band cut every measure to the same
-    /// band, as a device does (a wideband tympanometer's impedance and absorbance from
+    /// With --mask-bands: in half the rows every measure takes one shared cut (or none),
+    /// as a device's export does (a wideband tympanometer's impedance and absorbance from
     /// 226 Hz together). Without it each measure is cut on its own, and an ear whose
     /// every measure starts at 226 Hz is a pattern training almost never shows.
     #[arg(long)]

@@ -54,11 +54,11 @@ pub struct TrainSettings {
     /// the grid). A flow cut less answers fewer bands and learns no cuts it will not
     /// meet: devices drop two or three points at the low end (from 226 or 250 Hz).
     pub band_cut: usize,
-    /// With `mask_bands`: half the rows that cut a band cut every group of the row to one
-    /// band. A device exports every measure of one recording over the same band (a
-    /// wideband tympanometer's impedance and absorbance always, its LDV often), and
-    /// cutting each group on its own shows a flow that case in only one row of
-    /// thousands when it has three groups.
+    /// With `mask_bands`: in half the rows every group takes the row's one cut (drawn as
+    /// a group's would be, no cut among them); the other half cut each group on its own.
+    /// A device exports every measure of one recording over the same band (a wideband
+    /// tympanometer's impedance and absorbance always, its LDV often); cut on their own,
+    /// three groups share a device's cut in one row of thousands.
     pub band_cut_together: bool,
     /// Feature groups to train on alone (every other group's features zeroed): a
     /// measure-set flow for ears that give exactly these ([`super::Npe::answering`]).
@@ -1863,7 +1863,7 @@ mod tests {
         }
     }
 
-    /// With `band_cut_together`, half the cutting rows cut every group of a measure-set
+    /// With `band_cut_together`, half the rows cut every group of a measure-set
     /// flow to one band (a device's export); cut on their own, two groups share a cut in
     /// about one row of forty.
     #[test]
