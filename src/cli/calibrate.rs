@@ -4,7 +4,7 @@
 //! and every flow it holds; with `--diagnose-null`, the diagnose workflow's null, written
 //! into the model.
 
-use crate::bench::posterior::MAX_FROM_HZ;
+use crate::bench::posterior::check_from_hz;
 use crate::npe::Obs;
 use crate::npe::calibrate::{TUNE_LEVELS, calibrate_given, tune_temperature};
 use crate::npe::{Dataset, Npe};
@@ -250,9 +250,7 @@ fn given(model: &Npe, args: &CalibrateArgs) -> Result<Option<Vec<bool>>> {
         return Ok(None);
     }
     let from_hz = args.from_hz.unwrap_or(0.0);
-    if !(from_hz.is_finite() && (0.0..=MAX_FROM_HZ).contains(&from_hz)) {
-        bail!("--from-hz must be 0..={MAX_FROM_HZ} Hz (got {from_hz})");
-    }
+    check_from_hz(from_hz)?;
     let present =
         model.header.features_given(&args.measures, from_hz).map_err(|e| anyhow::anyhow!("--measures: {e}"))?;
     Ok(Some(present))

@@ -176,11 +176,16 @@ impl PosteriorParams {
         if !(MIN_STEPS..=MAX_STEPS).contains(&self.steps) {
             bail!("--steps must be {MIN_STEPS}..={MAX_STEPS} (got {})", self.steps);
         }
-        if !(self.from_hz.is_finite() && (0.0..=MAX_FROM_HZ).contains(&self.from_hz)) {
-            bail!("--from-hz must be 0..={MAX_FROM_HZ} Hz (got {})", self.from_hz);
-        }
-        Ok(())
+        check_from_hz(self.from_hz)
     }
+}
+
+/// Refuses a `--from-hz` outside 0..=[`MAX_FROM_HZ`], naming the argument.
+pub fn check_from_hz(from_hz: f64) -> Result<()> {
+    if !(from_hz.is_finite() && (0.0..=MAX_FROM_HZ).contains(&from_hz)) {
+        bail!("--from-hz must be 0..={MAX_FROM_HZ} Hz (got {from_hz})");
+    }
+    Ok(())
 }
 
 /// One method's posterior of one parameter, against the truth.
