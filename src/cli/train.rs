@@ -76,6 +76,12 @@ pub struct TrainArgs {
     /// every measure starts at 226 Hz is a pattern training almost never shows.
     #[arg(long)]
     pub band_cut_together: bool,
+    /// With --measures, without --mask-bands: train on those measures from this frequency
+    /// up, as one device exports them (226: a wideband tympanometer's band). Attached
+    /// beside the whole-band flow, it answers ears given exactly that band, as sharply
+    /// as the whole-band flow answers whole ones.
+    #[arg(long, value_name = "HZ", default_value_t = 0.0)]
+    pub from_hz: f64,
     /// Train on these feature groups alone (comma-separated, e.g.
     /// `stapes_velocity,impedance,absorbance`): a measure-set flow, sharper than the
     /// masked flow on ears that give exactly these; store it with `otofit attach
@@ -155,6 +161,7 @@ pub fn run(args: TrainArgs) -> Result<()> {
         mask_bands: args.mask_bands,
         band_cut: args.band_cut,
         band_cut_together: args.band_cut_together,
+        from_hz: args.from_hz,
         measures: args.measures.iter().map(|m| m.trim().to_string()).collect(),
         ensemble: args.ensemble.unwrap_or(match args.recipe {
             Recipe::Default => 0,

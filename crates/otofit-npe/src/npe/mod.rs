@@ -121,10 +121,19 @@ pub struct Header {
     /// How many measure-set flows follow the full-measure flow ([`Npe::answering`]).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub measure_set_flows: usize,
+    /// A measure-set flow trained on its groups from this frequency up (0: the whole
+    /// band), as one device exports them (a wideband tympanometer from 226 Hz): it reads
+    /// no lower point and answers ears given exactly that band.
+    #[serde(default, skip_serializing_if = "is_zero_hz")]
+    pub from_hz: f64,
 }
 
 fn is_zero(n: &usize) -> bool {
     *n == 0
+}
+
+fn is_zero_hz(hz: &f64) -> bool {
+    *hz == 0.0
 }
 
 /// Measure-set flows a file may hold.
@@ -244,6 +253,18 @@ impl Header {
                 format!("{} exceeds {MAX_MEASURE_SETS}", self.measure_set_flows),
             ));
         }
+        let top = self.frequencies_hz.iter().copied().fold(f64::NAN, f64::max);
+        if self.from_hz != 0.0
+            && (self.measures.is_empty() || self.mask_bands || !(self.from_hz > 0.0 && self.from_hz < top))
+        {
+            return Err(CheckpointError::field(
+                "from_hz",
+                format!(
+                    "{} Hz: a band's start is for a measure-set flow without band masks, below the grid's top",
+                    self.from_hz
+                ),
+            ));
+        }
         if self.measures.is_empty() {
             return Ok(());
         }
@@ -281,9 +302,15 @@ impl Header {
             return None;
         }
         let mut read = vec![true; self.feature_names.len()];
+        let n = read.len();
         for g in self.groups.iter().filter(|g| !self.measures.contains(&g.name)) {
-            let n = read.len();
             g.features.iter().filter(|&&i| i < n).for_each(|&i| read[i] = false);
+        }
+        // Its own groups below `from_hz` (features lie measure-major on the grid).
+        let grid = &self.frequencies_hz;
+        let below = |i: usize| grid.get(i % grid.len().max(1)).is_some_and(|&hz| hz < self.from_hz);
+        for g in self.groups.iter().filter(|g| self.measures.contains(&g.name)) {
+            g.features.iter().filter(|&&i| i < n && below(i)).for_each(|&i| read[i] = false);
         }
         Some(read)
     }
@@ -702,6 +729,7 @@ impl Npe {
             m.sort();
             m == wanted
                 && (s.header.mask_bands, s.header.band_cut_max) == (flow.header.mask_bands, flow.header.band_cut_max)
+                && s.header.from_hz == flow.header.from_hz
         };
         let why = why.or_else(|| {
             if self.sets.iter().any(held) {
@@ -710,6 +738,8 @@ impl Npe {
                         " with band masks cutting at most {} of the grid's points from each end",
                         flow.header.band_cut_max
                     )
+                } else if flow.header.from_hz > 0.0 {
+                    format!(" from {} Hz", flow.header.from_hz)
                 } else {
                     String::new()
                 };
@@ -1565,6 +1595,55 @@ mod tests {
         assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, 1)), narrow), "one point short: the narrow cuts");
         assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, 2)), wide), "two points short: the wide cuts");
         assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, cut_max + 1)), &back), "further: masked");
+    }
+
+    /// A measure-set flow trained from a frequency up (a device's band) is held beside the
+    /// whole-band and band-masked flows of its set; it answers ears whose groups are all
+    /// given exactly from there, and reads no point below.
+    #[test]
+    fn a_flow_from_a_frequency_up_answers_ears_given_exactly_from_there() {
+        let mut m = bare_model();
+        let names: Vec<String> = m.header.groups.iter().map(|g| g.name.clone()).collect();
+        let (a, b) = (names[0].as_str(), names[1].as_str());
+        let grid = m.header.frequencies_hz.clone();
+        let from_hz = (grid[1] + grid[2]) / 2.0;
+        let from_like = |m: &Npe, groups: &[&str]| {
+            let mut n = measure_set_like(m, groups);
+            n.header.from_hz = from_hz;
+            n
+        };
+        m.attach_measure_set(measure_set_like(&m, &[a, b])).unwrap();
+        m.attach_measure_set(banded_set_like(&m, &[a, b])).unwrap();
+        m.attach_measure_set(from_like(&m, &[a, b])).unwrap();
+        let e = m.attach_measure_set(from_like(&m, &[b, a])).unwrap_err().to_string();
+        assert!(e.contains(&format!("from {from_hz} Hz")) && e.contains("already"), "{e}");
+        let back = Npe::from_bytes(&m.to_bytes().unwrap()).unwrap();
+        let (whole, banded, from) = (&back.measure_sets()[0], &back.measure_sets()[1], &back.measure_sets()[2]);
+        assert_eq!(from.header.from_hz, from_hz, "kept in the file");
+        let h = &back.header;
+        let x = h.x_mean.clone();
+        let answering = |present: &[bool]| back.answering(&Obs { x: &x, present: Some(present) });
+        let ab = given(h, &[a, b]);
+        let both = without_low(h, &without_low(h, &ab, 0, 2), 1, 2);
+        assert!(std::ptr::eq(answering(&ab), whole), "the whole band: the whole-band flow");
+        assert!(std::ptr::eq(answering(&both), from), "both groups from its frequency: the flow from there");
+        assert!(std::ptr::eq(answering(&without_low(h, &ab, 0, 2)), banded), "one group cut: band-masked");
+        assert!(std::ptr::eq(answering(&without_low(h, &both, 0, 3)), banded), "cut further: band-masked");
+        // It reads its groups from its frequency up, and nothing below.
+        let read = from.header.measure_features().unwrap();
+        let unread: Vec<bool> = read.iter().zip(&ab).map(|(r, g)| *g && !*r).collect();
+        let below: Vec<bool> = ab.iter().zip(&both).map(|(g, b)| *g && !*b).collect();
+        assert!(unread == below && below.contains(&true), "its groups' two lowest points are all it leaves");
+        let mut moved = x.clone();
+        (0..x.len()).filter(|&i| ab[i] && !both[i]).for_each(|i| moved[i] += 5.0 * h.x_std[i]);
+        let row = |x: &[f64], p: &[bool]| from.input_row(&Obs { x, present: Some(p) }).unwrap();
+        assert_eq!(row(&x, &both), row(&moved, &ab), "points below its band never reach its network");
+        for (bad, hz) in [(banded_set_like(&m, &[a]).header, from_hz), (measure_set_like(&m, &[a]).header, 1e9)] {
+            let e = Header { from_hz: hz, ..bad }.validate().unwrap_err().to_string();
+            assert!(e.contains("from_hz"), "{e}");
+        }
+        let e = Header { from_hz, ..bare_model().header }.validate().unwrap_err().to_string();
+        assert!(e.contains("from_hz"), "a flow of every measure has no band's start: {e}");
     }
 
     #[test]

@@ -60,6 +60,11 @@ pub struct TrainSettings {
     /// tympanometer's impedance and absorbance always, its LDV often); cut on their own,
     /// three groups share a device's cut in one row of thousands.
     pub band_cut_together: bool,
+    /// With `measures`, without `mask_bands`: train on those groups from this frequency
+    /// up, every row (0: the whole band). A device's fixed band (from 226 Hz) is then
+    /// what the flow learns alone, as sharp as a flow of the whole band, where a
+    /// band-masked flow shares its capacity among every cut.
+    pub from_hz: f64,
     /// Feature groups to train on alone (every other group's features zeroed): a
     /// measure-set flow for ears that give exactly these ([`super::Npe::answering`]).
     /// Empty: every group.
@@ -133,6 +138,7 @@ impl Default for TrainSettings {
             mask_bands: false,
             band_cut: 0,
             band_cut_together: false,
+            from_hz: 0.0,
             measures: Vec::new(),
             val_fraction: 0.1,
             theta_map: ThetaMap::Scale,
@@ -270,6 +276,28 @@ fn check(ds: &Dataset, s: &TrainSettings) -> Result<()> {
             ),
         ));
     }
+    if s.from_hz != 0.0 {
+        let grid = &ds.frequencies_hz;
+        let why = if s.measures.is_empty() || s.mask_bands {
+            Some("--from-hz trains a measure-set flow (--measures) on one band: it goes without --mask-bands".into())
+        } else if !(s.from_hz.is_finite() && s.from_hz > 0.0) || n_freq < 8 || f % n_freq != 0 {
+            Some(format!("--from-hz {} needs a positive frequency and a grid of at least 8 points", s.from_hz))
+        } else if s.from_hz <= grid[0] || s.from_hz > grid[n_freq * 3 / 4] {
+            // Above the first point, or it is the whole band; a quarter of the grid kept.
+            Some(format!(
+                "--from-hz {} Hz must lie above the grid's first point ({:.0} Hz) and at most at {:.0} Hz (a \
+                 quarter of the grid kept)",
+                s.from_hz,
+                grid[0],
+                grid[n_freq * 3 / 4]
+            ))
+        } else {
+            None
+        };
+        if let Some(why) = why {
+            return Err(NpeError::settings("from-hz", why));
+        }
+    }
     if !s.measures.is_empty() {
         let why = if s.mask_groups {
             Some("--measures trains on those groups alone: it goes without --mask-groups".to_string())
@@ -402,6 +430,7 @@ fn standardise(ds: &Dataset, s: &TrainSettings, u_rows: &[Vec<f64>], train_idx: 
         full_measure_flow: false,
         measures: s.measures.clone(),
         measure_set_flows: 0,
+        from_hz: s.from_hz,
     }
 }
 
@@ -1783,21 +1812,58 @@ mod tests {
         ds
     }
 
+    /// Two quick epochs of a flow of the gridded table's group "rest" alone.
+    fn rest_alone() -> TrainSettings {
+        TrainSettings {
+            embedding: false,
+            seed: 5,
+            batch: 100,
+            max_epochs: 2,
+            measures: vec!["rest".into()],
+            ..Default::default()
+        }
+    }
+
+    /// A measure-set flow trained from a frequency up sees its groups' lower points as
+    /// zeros in every row, and its band above as drawn; it answers an ear given from that
+    /// frequency without reading a lower point. Settings it cannot train are refused.
+    #[test]
+    fn a_flow_from_a_frequency_up_never_sees_the_points_below_it() {
+        let ds = gridded(300);
+        let s = TrainSettings { from_hz: 500.0, ..rest_alone() };
+        with_run(&ds, &s, |run| {
+            let (_, inp) = run.batcher.batch(&run.train_idx[..60], 13);
+            let col = |k: usize| inp.iter().skip(k).step_by(16).copied().collect::<Vec<f32>>();
+            assert!((0..10).all(|k| col(k).iter().all(|&v| v == 0.0)), "the other group and 200, 400 Hz: zeros");
+            assert!((10..16).all(|k| col(k).iter().all(|&v| v != 0.0)), "its band from 800 Hz: drawn");
+        });
+        let m = train(&ds, &s, &mut |_| true).unwrap();
+        assert_eq!((m.header.from_hz, m.header.measures.as_slice()), (500.0, ["rest".to_string()].as_slice()));
+        let x = m.header.x_mean.clone();
+        let mut moved = x.clone();
+        (0..10).for_each(|k| moved[k] += 9.0);
+        let given: Vec<bool> = (0..16).map(|k| k >= 10).collect();
+        let row = |x: &[f64], p: Option<&[bool]>| m.input_row(&super::super::Obs { x, present: p }).unwrap();
+        assert_eq!(row(&x, Some(&given)), row(&moved, None), "points below its band are not read");
+        for (bad, says) in [
+            (TrainSettings { measures: vec![], ..s.clone() }, "--measures"),
+            (TrainSettings { mask_bands: true, ..s.clone() }, "without --mask-bands"),
+            (TrainSettings { from_hz: 200.0, ..s.clone() }, "above the grid's first point (200 Hz)"),
+            (TrainSettings { from_hz: 20_000.0, ..s.clone() }, "at most at 12800 Hz"),
+            (TrainSettings { from_hz: f64::NAN, ..s.clone() }, "positive frequency"),
+        ] {
+            let e = train(&ds, &bad, &mut |_| true).err().unwrap().to_string();
+            assert!(e.contains("from-hz") && e.contains(says), "{e}");
+        }
+    }
+
     /// A band-masked measure-set flow sees its groups whole or with the ends of the band
     /// cut (never beyond a quarter of the grid), a flag per feature saying which are
     /// there; the other groups never. It answers an ear of its groups on part of the band.
     #[test]
     fn a_band_masked_measure_set_flow_trains_on_its_groups_with_their_band_ends_cut() {
         let ds = gridded(400);
-        let s = TrainSettings {
-            embedding: false,
-            seed: 5,
-            batch: 100,
-            max_epochs: 2,
-            measures: vec!["rest".into()],
-            mask_bands: true,
-            ..Default::default()
-        };
+        let s = TrainSettings { mask_bands: true, ..rest_alone() };
         let (mut cut, mut whole) = (0, 0);
         with_run(&ds, &s, |run| {
             assert_eq!(run.cfg.inputs, 32, "16 features and 16 flags");

@@ -98,6 +98,10 @@ fn model_doc(st: &AppState, m: &crate::store::ModelRow) -> serde_json::Value {
                     if let Some(reach) = band_must_reach_hz(f) {
                         set["band_must_reach_hz"] = json!(reach);
                     }
+                    // A flow of one device's band answers ears given exactly from there.
+                    if f.from_hz > 0.0 {
+                        set["from_hz"] = json!(f.from_hz);
+                    }
                     set
                 })
                 .collect();
