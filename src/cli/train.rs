@@ -77,9 +77,9 @@ pub struct TrainArgs {
     #[arg(long)]
     pub band_cut_together: bool,
     /// With --measures, without --mask-bands: train on those measures from this frequency
-    /// up, as one device exports them (226: a wideband tympanometer's band). Attached
-    /// beside the whole-band flow, it answers ears given exactly that band, as sharply
-    /// as the whole-band flow answers whole ones.
+    /// up, as one device exports them (226: a wideband tympanometer's band), without the
+    /// masks' other cuts. Attached beside the whole-band flow, it answers ears given
+    /// exactly that band.
     #[arg(long, value_name = "HZ", default_value_t = 0.0)]
     pub from_hz: f64,
     /// Train on these feature groups alone (comma-separated, e.g.

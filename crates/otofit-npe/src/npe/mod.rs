@@ -301,17 +301,10 @@ impl Header {
         if self.measures.is_empty() {
             return None;
         }
-        let mut read = vec![true; self.feature_names.len()];
-        let n = read.len();
-        for g in self.groups.iter().filter(|g| !self.measures.contains(&g.name)) {
-            g.features.iter().filter(|&&i| i < n).for_each(|&i| read[i] = false);
-        }
-        // Its own groups below `from_hz` (features lie measure-major on the grid).
-        let grid = &self.frequencies_hz;
-        let below = |i: usize| grid.get(i % grid.len().max(1)).is_some_and(|&hz| hz < self.from_hz);
-        for g in self.groups.iter().filter(|g| self.measures.contains(&g.name)) {
-            g.features.iter().filter(|&&i| i < n && below(i)).for_each(|&i| read[i] = false);
-        }
+        // Its groups as a device gives them from `from_hz` up, and every ungrouped feature.
+        let mut read = self.features_given(&self.measures, self.from_hz).ok()?;
+        let grouped = self.grouped_features();
+        read.iter_mut().zip(grouped).filter(|(_, g)| !g).for_each(|(r, _)| *r = true);
         Some(read)
     }
 }

@@ -61,9 +61,9 @@ pub struct TrainSettings {
     /// three groups share a device's cut in one row of thousands.
     pub band_cut_together: bool,
     /// With `measures`, without `mask_bands`: train on those groups from this frequency
-    /// up, every row (0: the whole band). A device's fixed band (from 226 Hz) is then
-    /// what the flow learns alone, as sharp as a flow of the whole band, where a
-    /// band-masked flow shares its capacity among every cut.
+    /// up, every row (0: the whole band). A device's fixed band (from 226 Hz) is then all
+    /// the flow learns, where a band-masked flow shares its capacity among every cut
+    /// (for WBT with umbo LDV from 226 Hz no sharper: docs/results/posterior.md).
     pub from_hz: f64,
     /// Feature groups to train on alone (every other group's features zeroed): a
     /// measure-set flow for ears that give exactly these ([`super::Npe::answering`]).
